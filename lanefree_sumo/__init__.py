@@ -1,0 +1,1 @@
+"""lanefree_sumo: deep RL in lane-free traffic on Eclipse SUMO."""

@@ -1,0 +1,42 @@
+"""Collisions (SPEC §4): rectangle overlaps on the ring, counted as events.
+
+Two vehicles overlap when ``|dx| < (l_i + l_j)/2`` and ``|dy| < (w_i + w_j)/2``.  A collision
+*event* starts on the first step of an overlap of a pair; a contact lasting many steps is one
+event.  Vehicles are never removed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .state import VehicleState, pairwise_offsets
+
+
+def overlap_matrix(state: VehicleState, ring_length: float) -> np.ndarray:
+    """Symmetric boolean matrix: ``[i, j]`` is True when vehicles i ≠ j overlap."""
+    dx, dy = pairwise_offsets(state, ring_length)
+    half_len = 0.5 * (state.length[:, None] + state.length[None, :])
+    half_wid = 0.5 * (state.width[:, None] + state.width[None, :])
+    overlap = (np.abs(dx) < half_len) & (np.abs(dy) < half_wid)
+    np.fill_diagonal(overlap, False)
+    return overlap
+
+
+class CollisionTracker:
+    """Counts overlap events per pair: a pair that keeps overlapping is counted once.
+
+    ``update`` takes this step's overlap matrix and returns the pairs (i < j) whose overlap
+    started on this step.
+    """
+
+    def __init__(self, n_vehicles: int) -> None:
+        self._previous = np.zeros((n_vehicles, n_vehicles), dtype=bool)
+
+    def reset(self, n_vehicles: int) -> None:
+        self._previous = np.zeros((n_vehicles, n_vehicles), dtype=bool)
+
+    def update(self, overlap: np.ndarray) -> np.ndarray:
+        """Return an array of shape (k, 2) of the pairs (i < j) that started overlapping now."""
+        started = np.triu(overlap & ~self._previous, k=1)
+        self._previous = overlap.copy()
+        return np.argwhere(started)

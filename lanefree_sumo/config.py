@@ -1,0 +1,283 @@
+"""One typed, nested configuration for the whole platform.
+
+Every number the simulation, the driver model, the rewards or the observations use lives here,
+with its unit, and nowhere else (SPEC §1–§7).  A plain ``dict`` can override any part of it with
+:func:`merge_config`; unknown keys are an error that names the valid keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Any, Mapping
+
+
+@dataclass
+class RoadConfig:
+    """The ring road hosted by SUMO: one lane as wide as the road."""
+
+    length_m: float = 500.0
+    """Centre-line length of the closed loop (m)."""
+    width_m: float = 10.2
+    """Road (= lane) width (m)."""
+    speed_limit_mps: float = 50.0
+    """SUMO lane speed limit (m/s); only needs to exceed every commanded speed."""
+
+
+@dataclass
+class SimulationConfig:
+    """Time stepping and SUMO options."""
+
+    step_s: float = 0.25
+    """Simulation step T (s)."""
+    episode_steps: int = 800
+    """Steps per episode (800 × 0.25 s = 200 s)."""
+    lateral_resolution_m: float = 0.8
+    """SUMO ``--lateral-resolution`` (m): switches on the sublane model."""
+    edge_clearance_m: float = 1e-3
+    """Body edges are clipped this far inside the road edges (m): SUMO rejects a lateral target
+    that puts the body at or past the lane border."""
+    edge_contact_tolerance_m: float = 1e-6
+    """A lateral overshoot past the clip line smaller than this is rounding: it is clipped but
+    not counted as a boundary contact (m)."""
+    sumo_min_lateral_speed_mps: float = 0.001
+    """SUMO treats lateral speeds below this as zero (its NUMERICAL_EPS) and ignores such a
+    ``changeSublane``; smaller moves are set with ``setLateralLanePosition`` instead (m/s)."""
+    route_loops: int = 400
+    """How many times the looping route repeats the ring; must exceed the laps of any run."""
+
+
+@dataclass
+class VehicleClassConfig:
+    """Dimensions and desired speeds of one vehicle class."""
+
+    length_m: float
+    width_m: float
+    desired_speed_min_mps: float
+    desired_speed_max_mps: float
+    color_rgb: tuple[int, int, int] = (255, 255, 0)
+    """Colour in sumo-gui (0–255 each)."""
+
+
+def _background_class() -> VehicleClassConfig:
+    return VehicleClassConfig(3.5, 1.8, 18.0, 22.0, (80, 140, 255))
+
+
+def _agent_class() -> VehicleClassConfig:
+    return VehicleClassConfig(3.2, 1.6, 20.0, 20.0, (0, 200, 0))
+
+
+@dataclass
+class AccelerationBounds:
+    """Acceleration limits (m/s²)."""
+
+    ax_min: float = -4.5
+    ax_max: float = 2.0
+    ay_min: float = -1.8
+    ay_max: float = 1.8
+
+
+@dataclass
+class DriverConfig:
+    """The force-based lane-free background driver (SPEC §3, Papageorgiou et al. 2021)."""
+
+    neighbour_range_m: float = 100.0
+    """Neighbours j with |dx_j| ≤ this contribute forces (m)."""
+    speed_share_ahead: float = 0.30
+    """s_x: approach speed to a vehicle ahead is max(0, vx_i − (1 − s_x)·vx_j) (–)."""
+    time_headway_x_s: float = 0.65
+    """τx: longitudinal ramp length L_x = vx_i·τx (s)."""
+    time_headway_y_s: float = 0.25
+    """τy: lateral ramp length L_y = uy·τy + ``lateral_ramp_offset_m`` (s)."""
+    braking_decel_mps2: float = 3.0
+    """c_x in D_x = ux²/(2·c_x) + len: assumed braking deceleration (m/s²)."""
+    longitudinal_margin_m: float = 2.5
+    """Extra flat part of the longitudinal trapezoid (m)."""
+    lateral_ramp_offset_m: float = 0.5
+    """Constant part of L_y (m)."""
+    lateral_margin_m: float = 0.5
+    """Extra flat part of the lateral trapezoid beyond the half widths (m)."""
+    coef_fx: float = 5.0
+    """Gain on the summed longitudinal forces Σf_x (m/s² per unit force)."""
+    coef_fy: float = 1.0
+    """Gain on the summed lateral forces Σf_y (m/s² per unit force)."""
+    max_repulsions: int = 6
+    """How many of the largest repulsions (vehicles ahead) are summed."""
+    nudging: bool = False
+    """Whether vehicles behind push forward (nudge). OFF in the paper's training setting."""
+    max_nudges: int = 3
+    """How many of the largest nudges are summed when nudging is on."""
+    nudge_scale_x: float = 0.9
+    nudge_scale_y: float = 1.0
+    wall_exponent: float = 0.25
+    """x-wall degree δ = |clip(f_x, −1, 1)|^exponent (–)."""
+    wall_time_gap_s: float = 0.25
+    """x-wall safe speed v_s = min(gap / this, vx_leader − ``wall_speed_margin_mps``) (s)."""
+    wall_speed_margin_mps: float = 0.1
+    edge_decel_mps2: float = -1.8
+    """ū of the road-edge bound U(v, d, ū): lateral deceleration assumed available (m/s²)."""
+    edge_speed_factor: float = 1.05
+    """Lateral speed safety factor in the road-edge bound (–)."""
+    overspeed_factor: float = 1.2
+    """Longitudinal speed never exceeds this × desired speed (–)."""
+    lateral_speed_ratio: float = 0.5
+    """|vy| ≤ this × vx after the step (–)."""
+    bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
+
+
+@dataclass
+class SpawnConfig:
+    """Initial placement of vehicles at a density (SPEC §1).
+
+    The road is cut into cells of (vehicle length + ``gap_x_m``) × (vehicle width + ``gap_y_m``);
+    vehicles go to distinct random cells with a random offset inside their cell, so positions
+    never overlap and the largest density that fits is known exactly.
+    """
+
+    gap_x_m: float = 6.0
+    """Minimum bumper-to-bumper gap between vehicles of one row (m)."""
+    gap_y_m: float = 0.5
+    """Minimum lateral clearance between rows and to the road edges (m)."""
+    initial_speed_mps: float = 18.0
+    """Every vehicle starts at this vx (m/s), so no pair starts out closing in (vy = 0)."""
+
+
+@dataclass
+class ScenarioConfig:
+    """What is on the road."""
+
+    density_veh_per_km: float = 70.0
+    """Background vehicles = round(density · L / 1000) (veh/km)."""
+    background: VehicleClassConfig = field(default_factory=_background_class)
+    background_fast_color_rgb: tuple[int, int, int] = (255, 150, 40)
+    """sumo-gui colour of background vehicles desiring more than the middle desired speed."""
+    agent: VehicleClassConfig = field(default_factory=_agent_class)
+    with_agent: bool = False
+    """Whether one externally controlled agent vehicle is on the road."""
+    agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
+    driver: DriverConfig = field(default_factory=DriverConfig)
+    spawn: SpawnConfig = field(default_factory=SpawnConfig)
+
+
+@dataclass
+class RewardConfig:
+    """Reward components (SPEC §7, paper Tables 3–4). Weights are set by the preset."""
+
+    preset: str = "fields_zones_overtake_collision"
+    epsilon_r: float = 0.1
+    """ε_r of the reciprocal reward (–)."""
+    collision_reward: float = -2.5
+    """r_c, added on every step the agent overlaps a vehicle."""
+    overtake_reward: float = 2.0
+    """r_o, added on a step the agent overtakes and does not collide."""
+    field_magnitude: float = 0.5
+    """m_f, peak of each ellipsoid field (–)."""
+    critical_exponents: tuple[float, float, float] = (4.0, 4.0, 1.0)
+    """(p_x, p_y, p_t) of the critical region."""
+    broad_exponents: tuple[float, float, float] = (2.0, 2.0, 1.0)
+    """(p_x, p_y, p_t) of the broad region."""
+    k_r_s_per_m: float = 0.5
+    """Broad-region longitudinal stretch per m/s of closing speed (s/m)."""
+    e_v_s_per_m: float = 0.4
+    """Broad-region lateral stretch per m/s of lateral closing speed (s/m)."""
+    zone_time_gap_s: float = 0.7
+    """t_g: zones scan d_o = vx · t_g ahead (s)."""
+    zone_margin_m: float = 0.1
+    """A zone must be at least agent width + 2 × this wide (m)."""
+    min_desired_speed_mps: float = 1.0
+    """Floor of v_d,eff in c_x (m/s)."""
+
+
+@dataclass
+class ObservationConfig:
+    """Agent observation (SPEC §5)."""
+
+    kind: str = "vector"
+    """``vector`` (the paper's n nearest) or ``set`` (all in range, padded)."""
+    n_neighbours: int = 5
+    range_m: float = 80.0
+    max_rows: int = 32
+    """Rows of the set observation (padding above the vehicles in range)."""
+    scale: bool = True
+    """Scale features to O(1); False returns raw SI values."""
+
+
+@dataclass
+class LaneFreeConfig:
+    """Everything: road, simulation, scenario, rewards, observations."""
+
+    road: RoadConfig = field(default_factory=RoadConfig)
+    sim: SimulationConfig = field(default_factory=SimulationConfig)
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    seed: int = 0
+    backend: str = "libsumo"
+    """``libsumo`` (fast, default), ``traci`` (socket; needed for the GUI) or ``numpy`` (no SUMO)."""
+    gui: bool = False
+    """Open sumo-gui (forces the TraCI backend)."""
+    net_file: str = ""
+    """SUMO network; empty = the committed ring for ``road`` (generated on demand)."""
+
+    @property
+    def background_vehicles(self) -> int:
+        """round(density · L / 1000)."""
+        return int(round(self.scenario.density_veh_per_km * self.road.length_m / 1000.0))
+
+
+class ConfigError(ValueError):
+    """A configuration value or key that cannot be used."""
+
+
+def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any:
+    """Return a copy of dataclass ``base`` with ``overrides`` merged in recursively.
+
+    Unknown keys raise :class:`ConfigError` naming the valid ones.
+    """
+    if not isinstance(overrides, Mapping):
+        raise ConfigError(f"config{path or ''} must be a mapping, got {type(overrides).__name__}")
+    valid = {f.name: f for f in fields(base)}
+    changes: dict[str, Any] = {}
+    for key, value in overrides.items():
+        where = f"{path}.{key}" if path else key
+        if key not in valid:
+            raise ConfigError(
+                f"unknown config key '{where}'; valid keys here: {', '.join(sorted(valid))}"
+            )
+        current = getattr(base, key)
+        if is_dataclass(current) and isinstance(value, Mapping):
+            changes[key] = merge_config(current, value, where)
+        elif is_dataclass(current) and is_dataclass(value):
+            changes[key] = value
+        else:
+            if isinstance(current, tuple) and isinstance(value, list):
+                value = tuple(value)
+            changes[key] = value
+    return dataclasses.replace(base, **changes)
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict (tuples as lists) for YAML/JSON."""
+
+    def conv(v: Any) -> Any:
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        if isinstance(v, list):
+            return [conv(x) for x in v]
+        if isinstance(v, dict):
+            return {k: conv(x) for k, x in v.items()}
+        return v
+
+    return conv(dataclasses.asdict(cfg))
+
+
+def validate_density(density: float) -> float:
+    """Check a density is a finite positive number (veh/km)."""
+    try:
+        value = float(density)
+    except (TypeError, ValueError):
+        raise ConfigError(f"density must be a number in veh/km, got {density!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"density must be a positive finite number in veh/km, got {density!r}")
+    return value

@@ -1,0 +1,74 @@
+"""Vehicle dynamics (SPEC §2): a double integrator with the ballistic update, on a ring.
+
+    x' = x + vx·T + ½·ax·T²      vx' = vx + ax·T
+    y' = y + vy·T + ½·ay·T²      vy' = vy + ay·T
+
+``vx'`` is floored at 0 (no reversing).  A lateral move that would put the body closer than
+``clearance`` to a road edge is clipped there and ``vy'`` set to 0: a *boundary contact*.
+SUMO rejects lateral targets at or past the lane border, so the clearance is strictly positive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class StepCommand:
+    """What one step asks of every vehicle; exactly what a backend needs to execute it."""
+
+    vx_next: np.ndarray
+    """Speed at the end of the step (m/s), commanded with ``setSpeed``."""
+    dy: np.ndarray
+    """Lateral displacement during the step (m), commanded with ``changeSublane``."""
+    vy_next: np.ndarray
+    """Lateral speed at the end of the step (m/s); kept on the Python side."""
+    ax: np.ndarray
+    """Realised longitudinal acceleration (m/s²) after the vx ≥ 0 floor."""
+    ay: np.ndarray
+    """Realised lateral acceleration (m/s²) after the road-edge clip."""
+    boundary_contact: np.ndarray
+    """True where the lateral move was clipped at a road edge."""
+
+
+def plan_step(
+    x: np.ndarray,
+    y: np.ndarray,
+    vx: np.ndarray,
+    vy: np.ndarray,
+    width: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    step_s: float,
+    road_width: float,
+    clearance: float,
+    contact_tolerance: float = 0.0,
+) -> StepCommand:
+    """Integrate one ballistic step laterally and longitudinally (speeds), with the edge clip.
+
+    Overshoots of the clip line up to ``contact_tolerance`` (m) are clipped without counting
+    as a contact or zeroing vy (they are floating-point rounding of a driver that stops at the
+    line)."""
+    t = step_s
+    vx_next = np.maximum(vx + ax * t, 0.0)
+    ax_real = (vx_next - vx) / t
+    y_target = y + vy * t + 0.5 * ay * t * t
+    lo = 0.5 * width + clearance
+    hi = road_width - 0.5 * width - clearance
+    y_next = np.clip(y_target, lo, hi)
+    contact = np.abs(y_target - y_next) > contact_tolerance
+    dy = y_next - y
+    vy_next = np.where(contact, 0.0, vy + ay * t)
+    # realised lateral acceleration: the one that yields the clipped displacement
+    ay_real = np.where(contact, 2.0 * (dy - vy * t) / (t * t), ay)
+    return StepCommand(vx_next, dy, vy_next, ax_real, ay_real, contact)
+
+
+def ballistic_distance(vx: np.ndarray, vx_next: np.ndarray, step_s: float) -> np.ndarray:
+    """Distance travelled in one ballistic step, (v + ½·(v' − v))·T  =  v·T + ½·a·T² (m).
+
+    Evaluated in the order SUMO's ballistic update uses, so that the SUMO-free backend
+    reproduces SUMO's positions bit for bit."""
+    return (vx + 0.5 * (vx_next - vx)) * step_s

@@ -1,0 +1,131 @@
+"""The ring road as SUMO input files (pure file writing; SUMO itself runs in ``sumo_backend``).
+
+A closed ring of ``EDGES`` equal edges, each ONE lane as wide as the road, laid on a circle of
+circumference L with ``spreadType="center"`` so the lane centre line is the ring.  Each edge's
+``length`` attribute is set to exactly L / EDGES so that SUMO lane positions add up to the
+centre-line coordinate x: ``x = edge_index · L / EDGES + lane position``.  Internal junction
+lanes are disabled (``--no-internal-links``), so a vehicle is always on one of the edges.
+
+Files for a ring ``ring_L<L>_W<W>`` under ``sumo_nets/``:
+``.nod.xml``/``.edg.xml`` (plain input), ``.net.xml`` (netconvert output), ``.add.xml``
+(vehicle types and the looping route; rewritten from the config at every start).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+from .config import LaneFreeConfig, VehicleClassConfig
+
+EDGES = 4
+SHAPE_POINTS_PER_EDGE = 24
+NETS_DIR = Path(__file__).resolve().parent.parent / "sumo_nets"
+ROUTE_ID = "ring_loop"
+VTYPE_AGENT = "agent"
+VTYPE_BG_SLOW = "bg_slow"
+VTYPE_BG_FAST = "bg_fast"
+
+
+def edge_id(index: int) -> str:
+    return f"e{index}"
+
+
+def ring_name(length_m: float, width_m: float) -> str:
+    return f"ring_L{length_m:g}_W{width_m:g}"
+
+
+def default_net_path(cfg: LaneFreeConfig) -> Path:
+    return NETS_DIR / f"{ring_name(cfg.road.length_m, cfg.road.width_m)}.net.xml"
+
+
+def netconvert_args(nod: Path, edg: Path, net: Path) -> list[str]:
+    """netconvert options (after the binary) that build the ring from plain files."""
+    return [
+        "--node-files", str(nod),
+        "--edge-files", str(edg),
+        "--output-file", str(net),
+        "--no-internal-links", "true",
+        "--no-turnarounds", "true",
+        "--junctions.corner-detail", "0",
+        "--default.junctions.radius", "0",
+        "--offset.disable-normalization", "true",
+    ]
+
+
+def write_plain_ring(length_m: float, width_m: float, speed_mps: float, directory: Path) -> tuple[Path, Path]:
+    """Write the node and edge files of the ring; return their paths."""
+    directory.mkdir(parents=True, exist_ok=True)
+    name = ring_name(length_m, width_m)
+    radius = length_m / (2.0 * math.pi)
+    nod = directory / f"{name}.nod.xml"
+    edg = directory / f"{name}.edg.xml"
+
+    def point(angle: float) -> str:
+        return f"{radius * math.cos(angle):.6f},{radius * math.sin(angle):.6f}"
+
+    nodes = ["<nodes>"]
+    for k in range(EDGES):
+        a = 2.0 * math.pi * k / EDGES
+        nodes.append(
+            f'    <node id="n{k}" x="{radius * math.cos(a):.6f}" y="{radius * math.sin(a):.6f}" type="priority"/>'
+        )
+    nodes.append("</nodes>\n")
+    nod.write_text("\n".join(nodes))
+
+    edges = ["<edges>"]
+    for k in range(EDGES):
+        a0 = 2.0 * math.pi * k / EDGES
+        a1 = 2.0 * math.pi * (k + 1) / EDGES
+        shape = " ".join(
+            point(a0 + (a1 - a0) * i / SHAPE_POINTS_PER_EDGE) for i in range(SHAPE_POINTS_PER_EDGE + 1)
+        )
+        edges.append(
+            f'    <edge id="{edge_id(k)}" from="n{k}" to="n{(k + 1) % EDGES}" numLanes="1" '
+            f'width="{width_m:g}" speed="{speed_mps:g}" length="{length_m / EDGES:.6f}" '
+            f'spreadType="center" shape="{shape}"/>'
+        )
+    edges.append("</edges>\n")
+    edg.write_text("\n".join(edges))
+    return nod, edg
+
+
+def _vtype(vid: str, cls: VehicleClassConfig, max_speed: float) -> str:
+    r, g, b = cls.color_rgb
+    # Huge accelerations and lateral speed so SUMO executes every commanded step exactly;
+    # zero gaps so SUMO's own models never interfere (speed and lane-change modes are 0 too).
+    return (
+        f'    <vType id="{vid}" length="{cls.length_m:g}" width="{cls.width_m:g}" minGap="0" '
+        f'maxSpeed="{max_speed:g}" speedFactor="1" speedDev="0" accel="1000" decel="1000" '
+        f'emergencyDecel="1000" maxSpeedLat="1000" lcAccelLat="1000" minGapLat="0" '
+        f'latAlignment="arbitrary" color="{r},{g},{b}"/>'
+    )
+
+
+def write_additional(cfg: LaneFreeConfig, path: Path) -> Path:
+    """Vehicle types (two background classes split at the middle desired speed, the agent) and
+    the looping route, as a SUMO additional file."""
+    sc = cfg.scenario
+    speed = cfg.road.speed_limit_mps
+    slow = sc.background
+    fast = dataclasses.replace(sc.background, color_rgb=sc.background_fast_color_rgb)
+    route = " ".join(edge_id(k) for k in range(EDGES))
+    lines = [
+        "<additional>",
+        _vtype(VTYPE_BG_SLOW, slow, speed),
+        _vtype(VTYPE_BG_FAST, fast, speed),
+        _vtype(VTYPE_AGENT, sc.agent, speed),
+        f'    <route id="{ROUTE_ID}" edges="{" ".join([route] * cfg.sim.route_loops)}"/>',
+        "</additional>\n",
+    ]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines))
+    return path
+
+
+def background_vtype(v_desired: float, cfg: LaneFreeConfig) -> str:
+    """Background class of a vehicle by its desired speed (for colours in sumo-gui)."""
+    bg = cfg.scenario.background
+    middle = 0.5 * (bg.desired_speed_min_mps + bg.desired_speed_max_mps)
+    return VTYPE_BG_FAST if v_desired >= middle else VTYPE_BG_SLOW

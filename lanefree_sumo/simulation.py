@@ -1,0 +1,165 @@
+"""The simulation core: spawn, driver forces, dynamics, a backend that executes, collisions.
+
+Each step the state is read from the backend, the force model computes the background
+vehicles' accelerations from it (the agent's come from outside), the dynamics turn them into
+commands, the backend executes them, and collisions are counted on the new state.
+
+Backends: ``libsumo`` (default) and ``traci`` execute in SUMO (:mod:`.sumo_backend`);
+``numpy`` executes the same dynamics with no SUMO at all — the reference and the fast path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .collisions import CollisionTracker, overlap_matrix
+from .config import AccelerationBounds, ConfigError, LaneFreeConfig
+from .dynamics import StepCommand, ballistic_distance, plan_step
+from .network import EDGES
+from .forces import driver_accelerations
+from .spawn import spawn
+from .state import VehicleState
+
+BACKENDS = ("libsumo", "traci", "numpy")
+
+
+class Backend(Protocol):
+    """Executes steps; positions and speeds are always read back from it."""
+
+    def reset(self, state: VehicleState) -> None: ...
+
+    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def close(self) -> None: ...
+
+
+class NumpyBackend:
+    """SUMO-free execution of the same commands.
+
+    Positions are kept the way SUMO keeps them — edge index plus position on the edge, lateral
+    offset from the lane centre — and updated with the same arithmetic (ballistic distance,
+    edge hand-over, small lateral moves set rather than driven), so that both backends produce
+    bit-identical trajectories from the same commands.
+    """
+
+    def __init__(self, cfg: LaneFreeConfig) -> None:
+        self._segment = cfg.road.length_m / EDGES
+        self._step = cfg.sim.step_s
+        self._half_width = 0.5 * cfg.road.width_m
+        self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
+        self._edge = np.zeros(0, dtype=int)
+        self._pos = self._pos_lat = self._vx = self._y = np.zeros(0)
+
+    def reset(self, state: VehicleState) -> None:
+        self._edge = np.minimum((state.x // self._segment).astype(int), EDGES - 1)
+        self._pos = state.x - self._edge * self._segment
+        self._pos_lat = state.y - self._half_width
+        self._vx = state.vx.copy()
+        self._y = state.y.copy()
+
+    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        pos = self._pos + ballistic_distance(self._vx, cmd.vx_next, self._step)
+        passed = pos > self._segment
+        self._pos = np.where(passed, pos - self._segment, pos)
+        self._edge = np.where(passed, (self._edge + 1) % EDGES, self._edge)
+        tiny = np.abs(cmd.dy) < self._min_lateral_move
+        moved = np.where(tiny, (self._y + cmd.dy) - self._half_width, self._pos_lat + cmd.dy)
+        self._pos_lat = np.where(cmd.dy == 0.0, self._pos_lat, moved)
+        self._vx = cmd.vx_next.copy()
+        x = self._edge * self._segment + self._pos
+        self._y = self._pos_lat + self._half_width
+        return x, self._y.copy(), self._vx.copy()
+
+    def close(self) -> None:
+        pass
+
+
+def make_backend(cfg: LaneFreeConfig) -> Backend:
+    """The backend named by ``cfg.backend`` (``cfg.gui`` implies TraCI)."""
+    if cfg.backend not in BACKENDS:
+        raise ConfigError(f"unknown backend '{cfg.backend}'; choose one of {', '.join(BACKENDS)}")
+    if cfg.backend == "numpy":
+        if cfg.gui:
+            raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
+        return NumpyBackend(cfg)
+    from .sumo_backend import SumoBackend  # noqa: PLC0415 - SUMO only when asked for
+
+    return SumoBackend(cfg, kind=cfg.backend, gui=cfg.gui)
+
+
+@dataclass
+class StepResult:
+    """What happened in one step."""
+
+    ax: np.ndarray
+    """Realised longitudinal acceleration of each vehicle (m/s²)."""
+    ay: np.ndarray
+    """Realised lateral acceleration of each vehicle (m/s²)."""
+    boundary_contact: np.ndarray
+    """True where a lateral move was clipped at a road edge."""
+    overlap: np.ndarray
+    """Pairwise overlap matrix after the step."""
+    new_collisions: np.ndarray
+    """(k, 2) index pairs (i < j) whose overlap started this step."""
+
+
+def clip_acceleration(ax: float, ay: float, bounds: AccelerationBounds) -> tuple[float, float]:
+    """Clip an agent's acceleration to its bounds (m/s²)."""
+    return (
+        float(np.clip(ax, bounds.ax_min, bounds.ax_max)),
+        float(np.clip(ay, bounds.ay_min, bounds.ay_max)),
+    )
+
+
+class Simulation:
+    """Background traffic (and optionally one externally controlled agent) on the ring."""
+
+    def __init__(self, cfg: LaneFreeConfig, backend: Backend | None = None) -> None:
+        self.cfg = cfg
+        self.backend = backend if backend is not None else make_backend(cfg)
+        self.state: VehicleState | None = None
+        self.steps = 0
+        self._tracker = CollisionTracker(0)
+
+    def reset(self, seed: int | None = None) -> VehicleState:
+        """Spawn a new random traffic state (reproducible for a seed) and place it."""
+        rng = np.random.default_rng(self.cfg.seed if seed is None else seed)
+        state = spawn(self.cfg, rng)
+        self.backend.reset(state)
+        self.state = state
+        self.steps = 0
+        self._tracker.reset(state.n)
+        self._tracker.update(overlap_matrix(state, self.cfg.road.length_m))
+        return state
+
+    def step(self, agent_accel: tuple[float, float] | None = None) -> StepResult:
+        """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent, clipped to its
+        bounds; required when the scenario has an agent."""
+        state = self.state
+        if state is None:
+            raise RuntimeError("call reset() before step()")
+        cfg = self.cfg
+        ax, ay = driver_accelerations(
+            state, cfg.scenario.driver, cfg.road.length_m, cfg.road.width_m, cfg.sim.step_s, cfg.sim.edge_clearance_m
+        )
+        if not state.controlled.all():
+            if agent_accel is None:
+                raise ValueError("this scenario has an agent: pass agent_accel=(ax, ay)")
+            agent = ~state.controlled
+            ax[agent], ay[agent] = clip_acceleration(*agent_accel, cfg.scenario.agent_bounds)
+        cmd = plan_step(
+            state.x, state.y, state.vx, state.vy, state.width, ax, ay,
+            cfg.sim.step_s, cfg.road.width_m, cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
+        )
+        state.x, state.y, state.vx = self.backend.step(cmd)
+        state.vy = cmd.vy_next
+        self.steps += 1
+        overlap = overlap_matrix(state, cfg.road.length_m)
+        new = self._tracker.update(overlap)
+        return StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
+
+    def close(self) -> None:
+        self.backend.close()

@@ -1,0 +1,307 @@
+"""The only module that talks to SUMO: netconvert, libsumo/TraCI backends, bare stepping.
+
+SUMO hosts the ring (SPEC §1).  Every step the orchestrator sends, for every vehicle, the speed
+at the end of the step (``setSpeed`` under speed mode 0, ballistic step method) and the lateral
+displacement (``changeSublane`` under lane-change mode 0, vTypes with huge ``maxSpeedLat`` and
+``lcAccelLat``); SUMO executes exactly that, and the new state is read back through
+subscriptions (lane position, lateral lane position, speed, edge).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sumo
+import traci
+import traci.constants as tc
+
+from .config import LaneFreeConfig
+from .dynamics import StepCommand
+from .network import (
+    EDGES,
+    ROUTE_ID,
+    VTYPE_AGENT,
+    background_vtype,
+    default_net_path,
+    edge_id,
+    netconvert_args,
+    write_additional,
+    write_plain_ring,
+)
+from .spawn import AGENT_ID
+from .state import VehicleState
+
+_SUBSCRIBED = (tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED)
+
+
+class SumoError(RuntimeError):
+    """SUMO could not do what was asked; the message says what the user can do."""
+
+
+def sumo_binary(name: str) -> str:
+    """Path of a SUMO executable from the eclipse-sumo wheel (``sumo``, ``sumo-gui``, ...)."""
+    path = Path(sumo.SUMO_HOME) / "bin" / name
+    if not path.exists():
+        raise SumoError(f"SUMO binary {path} is missing; reinstall with 'pip install eclipse-sumo'")
+    return str(path)
+
+
+def sumo_version() -> str:
+    """Version of the installed SUMO wheel."""
+    out = subprocess.run([sumo_binary("sumo"), "--version"], capture_output=True, text=True, check=False)
+    first = (out.stdout or "").splitlines()[0] if out.stdout else ""
+    return first.replace("Eclipse SUMO sumo ", "").strip() or "unknown"
+
+
+def build_ring_net(length_m: float, width_m: float, speed_mps: float, directory: Path) -> Path:
+    """Write the plain files and run netconvert; return the ``.net.xml`` path."""
+    nod, edg = write_plain_ring(length_m, width_m, speed_mps, directory)
+    net = nod.with_name(nod.name.replace(".nod.xml", ".net.xml"))
+    cmd = [sumo_binary("netconvert"), *netconvert_args(nod, edg, net), "--no-warnings", "true"]
+    result = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        msg = (result.stderr or result.stdout).strip().splitlines()
+        raise SumoError(f"netconvert failed: {msg[-1] if msg else 'no output'}")
+    return net
+
+
+def resolve_net(cfg: LaneFreeConfig) -> Path:
+    """The network file to load: ``cfg.net_file`` if set, else the committed default ring
+    (built on first use for non-default road sizes)."""
+    if cfg.net_file:
+        path = Path(cfg.net_file)
+        if not path.is_file():
+            raise SumoError(f"network file {path} does not exist; build one with 'lanefree net'")
+        return path
+    path = default_net_path(cfg)
+    if not path.is_file():
+        path = build_ring_net(cfg.road.length_m, cfg.road.width_m, cfg.road.speed_limit_mps, path.parent)
+    return path
+
+
+def check_ring_net(path: Path, cfg: LaneFreeConfig) -> None:
+    """Fail with a clear message unless ``path`` is a readable SUMO ring of the configured size."""
+    import sumolib  # noqa: PLC0415 - only needed here
+
+    try:
+        net = sumolib.net.readNet(str(path))
+    except Exception as exc:  # sumolib raises bare SAX/XML errors
+        raise SumoError(
+            f"network file {path} is not a readable SUMO network ({type(exc).__name__}); "
+            "rebuild it with 'lanefree net' or 'make nets'"
+        ) from None
+    expected = {edge_id(k) for k in range(EDGES)}
+    found = {e.getID() for e in net.getEdges()}
+    if found != expected:
+        raise SumoError(
+            f"network file {path} is not a lanefree ring (edges {sorted(found)[:6]}); "
+            "rebuild it with 'lanefree net'"
+        )
+    total = sum(e.getLength() for e in net.getEdges())
+    width = net.getEdge(edge_id(0)).getLane(0).getWidth()
+    if abs(total - cfg.road.length_m) > 1e-3 or abs(width - cfg.road.width_m) > 1e-3:
+        raise SumoError(
+            f"network file {path} is a {total:g} m × {width:g} m ring but the config asks for "
+            f"{cfg.road.length_m:g} m × {cfg.road.width_m:g} m; pass matching --length/--width"
+        )
+
+
+def sumo_options(cfg: LaneFreeConfig, net: Path, additional: Path) -> list[str]:
+    """Command-line options of the SUMO process (after the binary)."""
+    return [
+        "--net-file", str(net),
+        "--additional-files", str(additional),
+        "--step-length", f"{cfg.sim.step_s:g}",
+        "--lateral-resolution", f"{cfg.sim.lateral_resolution_m:g}",
+        "--step-method.ballistic", "true",
+        "--collision.action", "none",
+        "--collision.check-junctions", "false",
+        "--time-to-teleport", "-1",
+        "--no-step-log", "true",
+        "--no-warnings", "true",
+        "--seed", str(cfg.seed),
+    ]
+
+
+class SumoBackend:
+    """Executes steps in SUMO through libsumo (in-process) or TraCI (a socket; needed for GUI).
+
+    ``reset`` places a new set of vehicles exactly (no process restart); ``step`` executes a
+    :class:`StepCommand` and returns the positions and speeds SUMO reports afterwards.
+    """
+
+    def __init__(self, cfg: LaneFreeConfig, kind: str = "libsumo", gui: bool = False, label: str | None = None) -> None:
+        if kind not in ("libsumo", "traci"):
+            raise SumoError(f"unknown SUMO backend '{kind}'; use libsumo or traci")
+        if gui and kind != "traci":
+            kind = "traci"
+        self.cfg = cfg
+        self.kind = kind
+        self.gui = gui
+        self.net = resolve_net(cfg)
+        check_ring_net(self.net, cfg)
+        self._label = label or f"lanefree-{os.getpid()}-{id(self)}"
+        self._ids: list[str] = []
+        self._edge_offset = {edge_id(k): k * cfg.road.length_m / EDGES for k in range(EDGES)}
+        self._half_width = 0.5 * cfg.road.width_m
+        self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
+        self._y = np.zeros(0)
+        self._conn: Any = None
+        self._start()
+
+    # -- process ------------------------------------------------------------------------
+    def _start(self) -> None:
+        additional = self.net.with_name(self.net.name.replace(".net.xml", ".add.xml"))
+        write_additional(self.cfg, additional)
+        args = [sumo_binary("sumo-gui" if self.gui else "sumo"), *sumo_options(self.cfg, self.net, additional)]
+        if self.gui:
+            args += ["--start", "true", "--quit-on-end", "true"]
+        try:
+            if self.kind == "libsumo":
+                import libsumo  # noqa: PLC0415 - libsumo is loaded only when used
+
+                if libsumo.simulation.isLoaded():
+                    raise SumoError(
+                        "libsumo already runs a simulation in this process; use one environment per "
+                        "process (--envs N starts processes) or the traci backend"
+                    )
+                libsumo.start(args)
+                self._conn = libsumo
+            else:
+                traci.start(args, label=self._label)
+                self._conn = traci.getConnection(self._label)
+        except SumoError:
+            raise
+        except Exception as exc:
+            raise SumoError(f"SUMO did not start: {str(exc).strip() or type(exc).__name__}; "
+                            f"check the network file {self.net}") from None
+
+    def close(self) -> None:
+        """Stop SUMO (idempotent)."""
+        if self._conn is None:
+            return
+        try:
+            self._conn.close()
+        except Exception:  # already closed by SUMO (e.g. GUI window closed)
+            pass
+        self._conn = None
+
+    def __del__(self) -> None:  # pragma: no cover - best effort
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # -- episodes -----------------------------------------------------------------------
+    def _lane_of(self, x: float) -> tuple[str, float]:
+        seg = self.cfg.road.length_m / EDGES
+        k = min(int(x // seg), EDGES - 1)
+        return f"{edge_id(k)}_0", x - k * seg
+
+    def reset(self, state: VehicleState) -> None:
+        """Remove all vehicles and place ``state``'s vehicles at their exact positions/speeds."""
+        v = self._conn.vehicle
+        try:
+            for vid in v.getIDList():
+                v.remove(vid)
+            for i, vid in enumerate(state.ids):
+                vtype = VTYPE_AGENT if vid == AGENT_ID else background_vtype(float(state.v_desired[i]), self.cfg)
+                v.add(vid, ROUTE_ID, vtype, depart="now", departSpeed=f"{state.vx[i]:.6f}")
+                v.setSpeedMode(vid, 0)
+                v.setLaneChangeMode(vid, 0)
+                lane, pos = self._lane_of(float(state.x[i]))
+                v.moveTo(vid, lane, pos)
+            self._conn.simulationStep()  # inserts them
+            for i, vid in enumerate(state.ids):
+                lane, pos = self._lane_of(float(state.x[i]))
+                v.moveTo(vid, lane, pos)
+                v.setLateralLanePosition(vid, float(state.y[i]) - self._half_width)
+                v.setPreviousSpeed(vid, float(state.vx[i]))
+                v.subscribe(vid, _SUBSCRIBED)
+            if self.gui and AGENT_ID in state.ids:
+                self._conn.gui.trackVehicle("View #0", AGENT_ID)
+        except SumoError:
+            raise
+        except Exception as exc:
+            raise SumoError(f"SUMO refused to place the vehicles: {exc}") from None
+        self._ids = list(state.ids)
+        self._y = state.y.copy()
+
+    def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y, vx) of every vehicle in the order of the last ``reset`` (m, m, m/s)."""
+        res = self._conn.vehicle.getAllSubscriptionResults()
+        off = self._edge_offset
+        try:
+            rows = [res[vid] for vid in self._ids]
+        except KeyError as exc:
+            raise SumoError(f"vehicle {exc} left the SUMO simulation unexpectedly") from None
+        x = np.fromiter((off[r[tc.VAR_ROAD_ID]] + r[tc.VAR_LANEPOSITION] for r in rows), float, len(rows))
+        y = np.fromiter((r[tc.VAR_LANEPOSITION_LAT] for r in rows), float, len(rows)) + self._half_width
+        vx = np.fromiter((r[tc.VAR_SPEED] for r in rows), float, len(rows))
+        self._y = y
+        return x, y, vx
+
+    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Command every vehicle, advance SUMO one step, and read the new state back.
+
+        SUMO ignores a ``changeSublane`` whose lateral speed |dy|/T is below its numerical
+        epsilon (0.001 m/s, i.e. 0.25 mm per 0.25 s step); such tiny moves are applied with
+        ``setLateralLanePosition`` before the step instead, so every move is executed exactly.
+        """
+        v = self._conn.vehicle
+        set_speed = v.setSpeed
+        change = v.changeSublane
+        set_lat = v.setLateralLanePosition
+        tiny = np.abs(cmd.dy) < self._min_lateral_move
+        lat_target = (self._y + cmd.dy - self._half_width).tolist()
+        for vid, speed, dy, small, target in zip(
+            self._ids, cmd.vx_next.tolist(), cmd.dy.tolist(), tiny.tolist(), lat_target
+        ):
+            set_speed(vid, speed)
+            if small:
+                if dy != 0.0:
+                    set_lat(vid, target)
+            else:
+                change(vid, dy)
+        self._conn.simulationStep()
+        return self.read()
+
+    def set_color(self, vid: str, rgba: tuple[int, int, int, int]) -> None:
+        self._conn.vehicle.setColor(vid, rgba)
+
+    def screenshot(self, path: Path, width: int, height: int) -> None:
+        self._conn.gui.screenshot("View #0", str(path), width, height)
+
+
+def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> float:
+    """Steps per second of SUMO alone: the same vehicles on the same ring, driven by SUMO's own
+    car-following and sublane models, with no Python control at all (the benchmark baseline)."""
+    import time  # noqa: PLC0415
+
+    import libsumo  # noqa: PLC0415
+
+    net = resolve_net(cfg)
+    additional = net.with_name(net.name.replace(".net.xml", ".add.xml"))
+    write_additional(cfg, additional)
+    libsumo.start([sumo_binary("sumo"), *sumo_options(cfg, net, additional)])
+    try:
+        seg = cfg.road.length_m / EDGES
+        for i, vid in enumerate(state.ids):
+            k = min(int(state.x[i] // seg), EDGES - 1)
+            libsumo.vehicle.add(vid, ROUTE_ID, background_vtype(float(state.v_desired[i]), cfg), depart="now",
+                                departSpeed=f"{state.vx[i]:.6f}")
+            libsumo.vehicle.moveTo(vid, f"{edge_id(k)}_0", float(state.x[i]) - k * seg)
+            libsumo.vehicle.setMaxSpeed(vid, float(state.v_desired[i]))
+        libsumo.simulationStep()
+        for i, vid in enumerate(state.ids):
+            libsumo.vehicle.setLateralLanePosition(vid, float(state.y[i]) - 0.5 * cfg.road.width_m)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            libsumo.simulationStep()
+        return steps / (time.perf_counter() - t0)
+    finally:
+        libsumo.close()

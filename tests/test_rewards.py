@@ -1,0 +1,452 @@
+"""Reward components (SPEC §7) against values computed by hand from the formulas."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lanefree_sumo.config import RewardConfig
+from lanefree_sumo.rewards import (
+    PRESETS,
+    RewardTerms,
+    RewardWeights,
+    agent_overlaps,
+    compute_reward,
+    detect_overtakes,
+    ellipsoid,
+    field_cost,
+    get_preset,
+    lateral_cost,
+    longitudinal_cost,
+    reciprocal_reward,
+    zone_target,
+)
+
+W = 10.2  # road width (m)
+L = 500.0  # ring length (m)
+A_LEN, A_WID = 3.2, 1.6  # agent (m)
+B_LEN, B_WID = 3.5, 1.8  # background vehicle (m)
+A_C = (A_LEN + B_LEN) / 2  # 3.35 m
+B_C = (A_WID + B_WID) / 2  # 1.7 m
+
+
+# ------------------------------------------------------------------ ellipsoid
+
+
+def test_ellipsoid_centre_is_magnitude():
+    assert ellipsoid(0.0, 0.0, 2.0, 1.0, 4, 4, 1, 0.5) == pytest.approx(0.5)
+    assert ellipsoid(0.0, 0.0, 7.0, 3.0, 2, 2, 3, 0.8) == pytest.approx(0.8)
+
+
+def test_ellipsoid_on_axes():
+    # dx = a on the x axis: 0.5 / (1 + 0 + 1)^1 = 0.25
+    assert ellipsoid(2.0, 0.0, 2.0, 1.0, 4, 4, 1, 0.5) == pytest.approx(0.25)
+    # negative dx uses |dx|: (4/2)^2 = 4 -> 0.5 / 5 = 0.1
+    assert ellipsoid(-4.0, 0.0, 2.0, 1.0, 2, 2, 1, 0.5) == pytest.approx(0.1)
+    # dy = b on the y axis with p_t = 2: 0.5 / 2^2 = 0.125
+    assert ellipsoid(0.0, 1.5, 3.0, 1.5, 2, 2, 2, 0.5) == pytest.approx(0.125)
+    # off axis: (1/2)^4 + (1/1)^4 + 1 = 2.0625 -> 0.5 / 2.0625
+    assert ellipsoid(1.0, -1.0, 2.0, 1.0, 4, 4, 1, 0.5) == pytest.approx(0.5 / 2.0625)
+
+
+def test_ellipsoid_broadcasts():
+    dx = np.array([0.0, 1.0, 2.0])
+    dy = np.array([[0.0], [1.0]])
+    out = ellipsoid(dx, dy, 1.0, 1.0, 2, 2, 1, 1.0)
+    assert out.shape == (2, 3)
+    expected = np.array(
+        [
+            [1 / 1, 1 / 2, 1 / 5],  # dy = 0: 1/(dx^2 + 1)
+            [1 / 2, 1 / 3, 1 / 6],  # dy = 1: 1/(dx^2 + 2)
+        ]
+    )
+    np.testing.assert_allclose(out, expected)
+    # arrays of semi-axes broadcast too
+    np.testing.assert_allclose(
+        ellipsoid(2.0, 0.0, np.array([1.0, 2.0, 4.0]), 1.0, 2, 2, 1, 1.0),
+        [1 / 5, 1 / 2, 1 / 1.25],
+    )
+
+
+# ------------------------------------------------------------------ fields
+
+
+def _one(v):
+    return np.array([v], dtype=float)
+
+
+def test_field_cost_zero_relative_speed_by_hand():
+    # neighbour 5 m ahead, same lateral position, same speed
+    e_c = 0.5 / ((5 / A_C) ** 4 + 1)
+    e_b = 0.5 / ((5 / A_C) ** 2 + 1)
+    got = field_cost(_one(5.0), _one(0.0), _one(0.0), _one(0.0), A_LEN, A_WID, _one(B_LEN), _one(B_WID))
+    assert got == pytest.approx(e_c + e_b)
+    assert 0.0 < got < 1.0
+
+
+def test_field_cost_approaching_vs_receding():
+    args = (A_LEN, A_WID, _one(B_LEN), _one(B_WID))
+    still = field_cost(_one(5.0), _one(0.0), _one(0.0), _one(0.0), *args)
+    # agent 3 m/s slower than the vehicle ahead: gap opens, no stretch
+    receding = field_cost(_one(5.0), _one(0.0), _one(-3.0), _one(0.0), *args)
+    # agent 4 m/s faster than the vehicle ahead: ux = 4, a_b = 3.35 * (1 + 0.5*4) = 10.05
+    approaching = field_cost(_one(5.0), _one(0.0), _one(4.0), _one(0.0), *args)
+    e_c = 0.5 / ((5 / 3.35) ** 4 + 1)
+    e_b = 0.5 / ((5 / 10.05) ** 2 + 1)
+    assert receding == pytest.approx(still)
+    assert approaching == pytest.approx(e_c + e_b)
+    assert approaching > still + 0.1
+
+    # vehicle 5 m behind and faster than the agent (dvx = -4): closing, same stretch
+    behind = field_cost(_one(-5.0), _one(0.0), _one(-4.0), _one(0.0), *args)
+    assert behind == pytest.approx(approaching)
+    # vehicle behind and slower (dvx = +4): opening, no stretch
+    behind_open = field_cost(_one(-5.0), _one(0.0), _one(4.0), _one(0.0), *args)
+    assert behind_open == pytest.approx(still)
+
+
+def test_field_cost_lateral_closing_speed():
+    # neighbour 2 m to the left (dy > 0), agent drifting left 1 m/s faster: uy = 1,
+    # b_b = 1.7 * (1 + 0.4*1) = 2.38; dx = 0 so the x terms vanish
+    args = (A_LEN, A_WID, _one(B_LEN), _one(B_WID))
+    got = field_cost(_one(0.0), _one(2.0), _one(0.0), _one(1.0), *args)
+    e_c = 0.5 / ((2 / 1.7) ** 4 + 1)
+    e_b = 0.5 / ((2 / 2.38) ** 2 + 1)
+    assert got == pytest.approx(e_c + e_b)
+    away = field_cost(_one(0.0), _one(2.0), _one(0.0), _one(-1.0), *args)
+    assert away == pytest.approx(e_c + 0.5 / ((2 / 1.7) ** 2 + 1))
+
+
+def test_field_cost_sums_and_respects_keywords():
+    dx = np.array([5.0, -8.0])
+    dy = np.array([0.0, 1.0])
+    zero = np.zeros(2)
+    got = field_cost(dx, dy, zero, zero, A_LEN, A_WID, B_LEN, B_WID)
+    expected = (
+        0.5 / ((5 / 3.35) ** 4 + 1) + 0.5 / ((5 / 3.35) ** 2 + 1)
+        + 0.5 / ((8 / 3.35) ** 4 + (1 / 1.7) ** 4 + 1) + 0.5 / ((8 / 3.35) ** 2 + (1 / 1.7) ** 2 + 1)
+    )
+    assert got == pytest.approx(expected)
+    # k_r is used: with k_r = 1, ux = 4 -> a_b = 3.35 * 5 = 16.75
+    kr = field_cost(_one(5.0), _one(0.0), _one(4.0), _one(0.0), A_LEN, A_WID, B_LEN, B_WID, k_r=1.0)
+    assert kr == pytest.approx(0.5 / ((5 / 3.35) ** 4 + 1) + 0.5 / ((5 / 16.75) ** 2 + 1))
+
+
+def test_field_cost_capped_at_one():
+    n = 6
+    dx = np.full(n, 1.0)
+    got = field_cost(dx, np.zeros(n), np.zeros(n), np.zeros(n), A_LEN, A_WID, np.full(n, B_LEN), np.full(n, B_WID))
+    # uncapped: 6 * (0.5/((1/3.35)^4+1) + 0.5/((1/3.35)^2+1)) ≈ 5.7
+    assert n * (0.5 / ((1 / 3.35) ** 4 + 1) + 0.5 / ((1 / 3.35) ** 2 + 1)) > 5.0
+    assert got == 1.0
+
+
+def test_field_cost_empty_and_nan_rows():
+    e = np.array([])
+    assert field_cost(e, e, e, e, A_LEN, A_WID, e, e) == 0.0
+    nan = np.array([np.nan])
+    assert field_cost(nan, nan, nan, nan, A_LEN, A_WID, _one(B_LEN), _one(B_WID)) == 0.0
+    # a NaN (padding) row next to a real one contributes nothing
+    got = field_cost(np.array([5.0, np.nan]), np.array([0.0, np.nan]), np.zeros(2), np.zeros(2),
+                     A_LEN, A_WID, B_LEN, B_WID)
+    assert got == pytest.approx(0.5 / ((5 / 3.35) ** 4 + 1) + 0.5 / ((5 / 3.35) ** 2 + 1))
+
+
+# ------------------------------------------------------------------ zones
+
+# agent at 20 m/s: d_o = 20 * 0.7 = 14 m; blockers need dx > -3.35 and dx - 3.35 <= 14
+V_A = 20.0
+
+
+def _zones(dx, y_j, agent_y, vxs=None, wids=None, v_desired=20.0, **kw):
+    dx = np.asarray(dx, float)
+    dy = np.asarray(y_j, float) - agent_y
+    vxs = np.full(dx.shape, 15.0) if vxs is None else np.asarray(vxs, float)
+    wids = np.full(dx.shape, B_WID) if wids is None else np.asarray(wids, float)
+    return zone_target(dx, dy, vxs, np.full(dx.shape, B_LEN), wids, agent_y, V_A, A_LEN, A_WID,
+                       v_desired, W, **kw)
+
+
+def test_zone_empty_road_is_centre():
+    e = np.array([])
+    assert zone_target(e, e, e, e, e, 3.0, V_A, A_LEN, A_WID, 20.0, W) == (W / 2, 20.0, False)
+
+
+def test_zone_one_blocker_middle_picks_nearest_side():
+    # blocker at y = 5.1 occupies [4.2, 6.0]; zones [0, 4.2] (centre 2.1) and [6.0, 10.2] (8.1)
+    # agent at y = 5.5: distance 5.5 - 4.2 = 1.3 to the right zone, 6.0 - 5.5 = 0.5 to the left
+    y_d, v_d, blocked = _zones([10.0], [5.1], agent_y=5.5)
+    assert y_d == pytest.approx((6.0 + 10.2) / 2)
+    assert v_d == 20.0 and blocked is False
+    # agent at y = 4.7: 0.5 to the right zone, 1.3 to the left -> right zone
+    y_d, _, _ = _zones([10.0], [5.1], agent_y=4.7)
+    assert y_d == pytest.approx(4.2 / 2)
+
+
+def test_zone_tie_goes_left():
+    # agent centred behind the blocker: distance 0.9 to both zones -> documented tie rule (left)
+    y_d, _, _ = _zones([10.0], [5.1], agent_y=5.1)
+    assert y_d == pytest.approx((6.0 + 10.2) / 2)
+
+
+def test_zone_agent_already_in_free_zone():
+    # agent at y = 2.0 is inside [0, 4.2]: distance 0 -> centre 2.1 (not its own y)
+    y_d, v_d, blocked = _zones([10.0], [5.1], agent_y=2.0)
+    assert y_d == pytest.approx(2.1)
+    assert (v_d, blocked) == (20.0, False)
+    # inside the left zone [6.0, 10.2] at y = 9.5 -> 8.1
+    y_d, _, _ = _zones([10.0], [5.1], agent_y=9.5)
+    assert y_d == pytest.approx(8.1)
+
+
+def test_zone_too_narrow_is_dropped():
+    # blockers at y = 2.0 ([1.1, 2.9]) and 5.5 ([4.6, 6.4]); zones [0, 1.1] (1.1 m),
+    # [2.9, 4.6] (1.7 m) and [6.4, 10.2] (3.8 m).  Minimum width 1.6 + 2*0.1 = 1.8 m drops the
+    # 1.7 m gap even though the agent (1.6 m) is inside it -> [6.4, 10.2], centre 8.3
+    y_d, v_d, blocked = _zones([6.0, 9.0], [2.0, 5.5], agent_y=3.75)
+    assert y_d == pytest.approx((6.4 + 10.2) / 2)
+    assert (v_d, blocked) == (20.0, False)
+    # without the margin (1.6 m minimum) the 1.7 m gap fits and contains the agent
+    y_d, _, _ = _zones([6.0, 9.0], [2.0, 5.5], agent_y=3.75, margin=0.0)
+    assert y_d == pytest.approx((2.9 + 4.6) / 2)
+
+
+def test_zone_fully_blocked():
+    # 2.5 m wide blockers at y = 1.5, 5.1, 8.7 occupy [0.25, 2.75], [3.85, 6.35], [7.45, 9.95];
+    # gaps 0.25, 1.1, 1.1, 0.25 m are all < 1.8 m -> blocked
+    dx, ys, vxs, wids = [5.0, 8.0, 12.0], [1.5, 5.1, 8.7], [15.0, 12.0, 17.0], [2.5, 2.5, 2.5]
+    y_d, v_d, blocked = _zones(dx, ys, agent_y=5.1, vxs=vxs, wids=wids)
+    assert blocked is True
+    assert v_d == pytest.approx(12.0)  # slowest blocker
+    assert y_d == pytest.approx(8.7)  # y of the fastest blocker (17 m/s)
+    # v_d_eff never exceeds the agent's own desired speed
+    _, v_d, blocked = _zones(dx, ys, agent_y=5.1, vxs=vxs, wids=wids, v_desired=10.0)
+    assert (v_d, blocked) == (10.0, True)
+
+
+def test_zone_non_blockers_behind_and_beyond_scan():
+    # blocker in front at y = 5.1, agent at y = 4.0 -> zone [0, 4.2], centre 2.1
+    assert _zones([10.0], [5.1], agent_y=4.0)[0] == pytest.approx(2.1)
+    # entirely behind: dx = -3.4 <= -(3.2 + 3.5)/2 = -3.35 -> not a blocker -> W/2
+    assert _zones([-3.4], [5.1], agent_y=4.0) == (W / 2, 20.0, False)
+    # partly alongside (dx = -3.3 > -3.35) is a blocker
+    assert _zones([-3.3], [5.1], agent_y=4.0)[0] == pytest.approx(2.1)
+    # bumper gap 17.5 - 3.35 = 14.15 > d_o = 14 -> not a blocker
+    assert _zones([17.5], [5.1], agent_y=4.0) == (W / 2, 20.0, False)
+    # bumper gap 17.0 - 3.35 = 13.65 <= 14 -> blocker
+    assert _zones([17.0], [5.1], agent_y=4.0)[0] == pytest.approx(2.1)
+    # NaN (absent) rows are ignored
+    assert _zones([np.nan], [5.1], agent_y=4.0) == (W / 2, 20.0, False)
+
+
+def test_zone_scan_distance_scales_with_speed():
+    # at 10 m/s d_o = 7 m: bumper gap 13.65 m is beyond it
+    e = np.array([17.0])
+    out = zone_target(e, np.array([1.1]), np.array([15.0]), np.array([B_LEN]), np.array([B_WID]),
+                      4.0, 10.0, A_LEN, A_WID, 20.0, W)
+    assert out == (W / 2, 20.0, False)
+
+
+# ------------------------------------------------------------------ overtakes
+
+
+def test_overtake_simple_pass():
+    assert detect_overtakes(np.array([2.0]), np.array([-0.5]), 80.0, L) == 1
+    assert detect_overtakes(np.array([1.0]), np.array([0.0]), 80.0, L) == 1  # to <= 0
+    assert detect_overtakes(np.array([0.0]), np.array([-1.0]), 80.0, L) == 0  # from > 0 only
+    assert detect_overtakes(np.array([-1.0]), np.array([1.0]), 80.0, L) == 0  # being passed
+    assert detect_overtakes(np.array([3.0]), np.array([2.0]), 80.0, L) == 0  # still ahead
+
+
+def test_overtake_ring_seam_is_not_a_pass():
+    for prev, cur in [(-240.0, 240.0), (240.0, -240.0)]:
+        assert detect_overtakes(np.array([prev]), np.array([cur]), 80.0, L) == 0
+        # even with a range that covers the whole ring, |dx| < L/4 excludes the seam
+        assert detect_overtakes(np.array([prev]), np.array([cur]), 300.0, L) == 0
+
+
+def test_overtake_leaving_or_entering_range_is_not_a_pass():
+    assert detect_overtakes(np.array([2.0]), np.array([np.nan]), 80.0, L) == 0
+    assert detect_overtakes(np.array([np.nan]), np.array([-0.5]), 80.0, L) == 0
+    assert detect_overtakes(np.array([5.0]), np.array([-81.0]), 80.0, L) == 0
+
+
+def test_overtake_counts_several():
+    prev = np.array([2.0, 0.5, 10.0, np.nan, -240.0])
+    cur = np.array([-0.5, -0.1, 9.0, -1.0, 240.0])
+    assert detect_overtakes(prev, cur, 80.0, L) == 2
+
+
+# ------------------------------------------------------------------ costs and overlap
+
+
+def test_longitudinal_and_lateral_costs():
+    assert longitudinal_cost(15.0, 20.0) == pytest.approx(5.0 / 20.0)
+    assert longitudinal_cost(25.0, 20.0) == pytest.approx(5.0 / 20.0)
+    assert longitudinal_cost(50.0, 20.0) == 1.0  # min(1, 30/20)
+    # floor: v_d_eff = 0.5 -> denominator 1.0: |1.0 - 0.5| / 1 = 0.5
+    assert longitudinal_cost(1.0, 0.5) == pytest.approx(0.5)
+    assert lateral_cost(3.0, 5.1, W) == pytest.approx(2.1 / 10.2)
+    assert lateral_cost(8.0, 2.0, W) == pytest.approx(6.0 / 10.2)
+
+
+def test_agent_overlaps():
+    assert agent_overlaps(np.array([3.0]), np.array([1.5]), A_LEN, A_WID, B_LEN, B_WID)
+    assert not agent_overlaps(np.array([3.4]), np.array([0.0]), A_LEN, A_WID, B_LEN, B_WID)
+    assert not agent_overlaps(np.array([0.0]), np.array([1.75]), A_LEN, A_WID, B_LEN, B_WID)
+    assert not agent_overlaps(np.array([]), np.array([]), A_LEN, A_WID, np.array([]), np.array([]))
+    assert agent_overlaps(np.array([50.0, -1.0]), np.array([0.0, -1.0]), A_LEN, A_WID, B_LEN, B_WID)
+
+
+# ------------------------------------------------------------------ reciprocal reward
+
+
+def test_reciprocal_reward_by_hand():
+    base = 0.1 / (0.1 + 0.35 * 0.2 + 0.65 * 0.1 + 1.0 * 0.3)
+    assert reciprocal_reward(0.2, 0.1, 0.3, False, False, 0.35, 0.65, 1.0) == pytest.approx(base)
+    assert reciprocal_reward(0.0, 0.0, 0.0, False, False, 0.35, 0.65, 1.0) == pytest.approx(1.0)
+    assert reciprocal_reward(0.2, 0.1, 0.3, True, False, 0.35, 0.65, 1.0) == pytest.approx(base - 2.5)
+    assert reciprocal_reward(0.2, 0.1, 0.3, False, True, 0.35, 0.65, 1.0) == pytest.approx(base + 2.0)
+
+
+def test_overtake_bonus_not_paid_on_collision_step():
+    base = 0.1 / (0.1 + 0.65 * 0.4)
+    got = reciprocal_reward(0.4, 0.0, 0.0, True, True, 0.65, 0.0, 0.0)
+    assert got == pytest.approx(base - 2.5)
+    # with the collision term switched off, the bonus is still withheld on a collision step
+    got = reciprocal_reward(0.4, 0.0, 0.0, True, True, 0.65, 0.0, 0.0, use_collision=False)
+    assert got == pytest.approx(base)
+
+
+def test_reciprocal_reward_switches():
+    base = 0.1 / (0.1 + 0.65 * 0.4)
+    assert reciprocal_reward(0.4, 0, 0, True, False, 0.65, 0, 0, use_collision=False) == pytest.approx(base)
+    assert reciprocal_reward(0.4, 0, 0, False, True, 0.65, 0, 0, use_overtake=False) == pytest.approx(base)
+    assert reciprocal_reward(0.4, 0, 0, True, False, 0.65, 0, 0, collision_reward=-1.0) == pytest.approx(base - 1.0)
+
+
+def test_collision_term_on_every_overlapping_step():
+    # the vehicle ahead is passed at 1 m/s relative speed; dx per step (m):
+    steps = [5.0, 3.0, 1.0, -1.0, -3.0, -5.0]
+    overlapping = [abs(d) < 3.35 for d in steps]  # by hand: steps 2..5 overlap
+    assert overlapping == [False, True, True, True, True, False]
+    for d, ov in zip(steps, overlapping):
+        dx, dy, vx = np.array([d]), np.array([0.5]), np.array([17.0])
+        terms = compute_reward(dx, dy, vx, np.zeros(1), np.array([B_LEN]), np.array([B_WID]),
+                               4.0, 18.0, 0.0, A_LEN, A_WID, 20.0, W, "fields_collision")
+        assert terms.collided is ov
+        # by hand: c_x = |18 - 20| / 20 = 0.1; reward from the reported c_f
+        base = 0.1 / (0.1 + 0.65 * 0.1 + 1.0 * terms.c_f)
+        assert terms.c_x == pytest.approx(0.1)
+        assert terms.reward - base == pytest.approx(-2.5 if ov else 0.0, abs=1e-12)
+        # the same step without the collision term differs by exactly r_c when overlapping
+        off = compute_reward(dx, dy, vx, np.zeros(1), np.array([B_LEN]), np.array([B_WID]),
+                             4.0, 18.0, 0.0, A_LEN, A_WID, 20.0, W, "fields")
+        assert terms.reward - off.reward == pytest.approx(-2.5 if ov else 0.0, abs=1e-12)
+
+
+# ------------------------------------------------------------------ compute_reward
+
+
+def test_compute_reward_fields_by_hand():
+    # one neighbour 5 m ahead, same lane position, 2 m/s slower than the agent (closing)
+    terms = compute_reward(np.array([5.0]), np.array([0.0]), np.array([16.0]), np.array([0.0]),
+                           np.array([B_LEN]), np.array([B_WID]), 5.0, 18.0, 0.0, A_LEN, A_WID,
+                           20.0, W, "fields_overtake_collision", overtook=True)
+    e_c = 0.5 / ((5 / 3.35) ** 4 + 1)
+    e_b = 0.5 / ((5 / (3.35 * (1 + 0.5 * 2))) ** 2 + 1)
+    c_f = e_c + e_b
+    assert terms.c_f == pytest.approx(c_f)
+    assert terms.c_y == 0.0 and terms.y_d == pytest.approx(W / 2)  # zones off
+    assert terms.collided is False and terms.overtook is True
+    assert terms.reward == pytest.approx(0.1 / (0.1 + 0.65 * 0.1 + c_f) + 2.0)
+    assert isinstance(terms, RewardTerms)
+    assert set(terms.as_dict()) == {"c_x", "c_y", "c_f", "y_d", "v_d_eff", "blocked", "collided",
+                                    "overtook", "reward"}
+
+
+def test_compute_reward_zones_on_blocked_changes_cx_and_cy():
+    dx = np.array([5.0, 8.0, 12.0])
+    ys = np.array([1.5, 5.1, 8.7])
+    vxs = np.array([15.0, 12.0, 17.0])
+    agent_y = 5.0
+    terms = compute_reward(dx, ys - agent_y, vxs, np.zeros(3), np.full(3, B_LEN), np.full(3, 2.5),
+                           agent_y, 14.0, 0.0, A_LEN, A_WID, 20.0, W,
+                           "fields_zones_overtake_collision")
+    # d_o = 14 * 0.7 = 9.8; bumper gaps 5-3.35, 8-3.35, 12-3.35 = 8.65 all <= 9.8 -> all block
+    assert terms.blocked is True
+    assert terms.v_d_eff == pytest.approx(12.0)
+    assert terms.y_d == pytest.approx(8.7)
+    assert terms.c_x == pytest.approx(2.0 / 12.0)
+    assert terms.c_y == pytest.approx(3.7 / 10.2)
+    expected = 0.1 / (0.1 + 0.35 * (2.0 / 12.0) + 0.65 * (3.7 / 10.2) + 1.0 * terms.c_f)
+    assert terms.reward == pytest.approx(expected)
+    # zones off for the same traffic: nominal desired speed, centre, c_y = 0
+    off = compute_reward(dx, ys - agent_y, vxs, np.zeros(3), np.full(3, B_LEN), np.full(3, 2.5),
+                         agent_y, 14.0, 0.0, A_LEN, A_WID, 20.0, W, "fields_overtake_collision")
+    assert (off.y_d, off.v_d_eff, off.blocked, off.c_y) == (W / 2, 20.0, False, 0.0)
+    assert off.c_x == pytest.approx(6.0 / 20.0)
+
+
+def test_compute_reward_observed_subset_and_config():
+    dx = np.array([5.0, 60.0])
+    zero = np.zeros(2)
+    only_near = compute_reward(dx, zero, np.full(2, 18.0), zero, B_LEN, B_WID, 5.0, 18.0, 0.0,
+                               A_LEN, A_WID, 20.0, W, "fields", observed=np.array([True, False]))
+    assert only_near.c_f == pytest.approx(0.5 / ((5 / 3.35) ** 4 + 1) + 0.5 / ((5 / 3.35) ** 2 + 1))
+    none = compute_reward(dx, zero, np.full(2, 18.0), zero, B_LEN, B_WID, 5.0, 18.0, 0.0,
+                          A_LEN, A_WID, 20.0, W, "fields", observed=[])
+    assert none.c_f == 0.0
+    cfg = RewardConfig(epsilon_r=0.2, field_magnitude=0.25)
+    t = compute_reward(dx[:1], zero[:1], np.full(1, 18.0), zero[:1], B_LEN, B_WID, 5.0, 18.0, 0.0,
+                       A_LEN, A_WID, 20.0, W, "fields", config=cfg)
+    c_f = 0.25 / ((5 / 3.35) ** 4 + 1) + 0.25 / ((5 / 3.35) ** 2 + 1)
+    assert t.c_f == pytest.approx(c_f)
+    assert t.reward == pytest.approx(0.2 / (0.2 + 0.65 * 0.1 + c_f))
+
+
+# ------------------------------------------------------------------ presets
+
+
+SPEC_TABLE = {
+    # name: (w_x, w_y, w_f, r_c on, r_o on)
+    "collision": (0.65, 0.0, 0.0, True, False),
+    "overtake_collision": (0.65, 0.0, 0.0, True, True),
+    "fields": (0.65, 0.0, 1.0, False, False),
+    "fields_collision": (0.65, 0.0, 1.0, True, False),
+    "fields_overtake_collision": (0.65, 0.0, 1.0, True, True),
+    "zones_overtake_collision": (0.35, 0.65, 0.0, True, True),
+    "fields_zones_overtake_collision": (0.35, 0.65, 1.0, True, True),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SPEC_TABLE))
+def test_presets_match_spec_table(name):
+    p = get_preset(name)
+    assert isinstance(p, RewardWeights)
+    assert (p.w_x, p.w_y, p.w_f, p.use_collision, p.use_overtake) == SPEC_TABLE[name]
+
+
+def test_preset_set_is_exactly_the_table():
+    assert set(PRESETS) == set(SPEC_TABLE)
+    assert RewardConfig().preset in PRESETS
+
+
+def test_unknown_preset_lists_names():
+    with pytest.raises(ValueError) as err:
+        get_preset("fieldz")
+    msg = str(err.value)
+    assert "fieldz" in msg and "\n" not in msg
+    for name in SPEC_TABLE:
+        assert name in msg
+    with pytest.raises(ValueError):
+        compute_reward(np.array([]), np.array([]), np.array([]), np.array([]), np.array([]),
+                       np.array([]), 5.0, 20.0, 0.0, A_LEN, A_WID, 20.0, W, "nope")
+
+
+def test_presets_are_frozen():
+    with pytest.raises(Exception):
+        get_preset("fields").w_f = 2.0  # type: ignore[misc]
+    assert math.isclose(get_preset("fields").w_f, 1.0)
