@@ -20,7 +20,7 @@ import numpy as np
 from scipy.special import erfc
 
 from .config import DriverConfig
-from .state import VehicleState, wrap
+from .state import VehicleState, pairwise_offsets, wrap
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -54,22 +54,28 @@ def edge_bound(v: np.ndarray, d: np.ndarray, step_s: float, decel: float) -> np.
     return np.where(disc >= 0.0, (t * decel - 2.0 * v + root) / (2.0 * t), decel)
 
 
-def _top_k_sum(
-    values: np.ndarray, other: np.ndarray, k: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row, the k entries of ``values`` with the largest magnitude (values are all ≤ 0 or
-    all ≥ 0 per entry), summed, with the matching entries of ``other`` summed, and the column of
-    the largest one.  k ≥ number of columns takes all."""
-    n_cols = values.shape[1]
-    mag = np.abs(values)
-    if k < n_cols:
-        idx = np.argpartition(-mag, k - 1, axis=1)[:, :k]
-        sel = np.take_along_axis(values, idx, axis=1)
-        sel_other = np.take_along_axis(other, idx, axis=1)
-    else:
-        sel, sel_other = values, other
-    strongest = np.argmax(mag, axis=1)
-    return sel.sum(axis=1), sel_other.sum(axis=1), strongest
+def symmetric_trapezoid(abs_t: np.ndarray, w: np.ndarray, l: np.ndarray) -> np.ndarray:
+    """H(t, w, l, w) from |t|: clip((w + l − |t|)/w, 0, 1), a step |t| ≤ l where w = 0.
+
+    The fast form of :func:`trapezoid_h` for equal rise and fall, as both force ramps are."""
+    num = (w + l) - abs_t
+    if np.min(w) > 0.0:
+        return np.minimum(np.maximum(num / w, 0.0), 1.0)
+    positive = w > 0.0
+    w_safe = np.where(positive, w, 1.0)
+    return np.where(positive, np.clip(num / w_safe, 0.0, 1.0), (num >= 0.0).astype(float))
+
+
+def _strongest_sum(values: np.ndarray, other: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the sum of the k entries of ``values`` with the largest magnitude, and the sum of
+    the matching entries of ``other``.  Rows with at most k non-zero entries are summed whole."""
+    if values.shape[1] <= k or (values != 0.0).sum(axis=1).max() <= k:
+        return values.sum(axis=1), other.sum(axis=1)
+    idx = np.argpartition(-np.abs(values), k - 1, axis=1)[:, :k]
+    return (
+        np.take_along_axis(values, idx, axis=1).sum(axis=1),
+        np.take_along_axis(other, idx, axis=1).sum(axis=1),
+    )
 
 
 def driver_accelerations(
@@ -79,6 +85,7 @@ def driver_accelerations(
     road_width: float,
     step_s: float,
     edge_clearance: float = 0.0,
+    offsets: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Accelerations (ax, ay) in m/s² for every vehicle from the forces of its neighbours.
 
@@ -86,46 +93,43 @@ def driver_accelerations(
     strongest repulsions (and nudges when ``cfg.nudging``), then the regulation steps 1–5.
     The road-edge bound (step 2) treats the edges as ``edge_clearance`` (m) inside the road, the
     line the dynamics clip at, so a driver that obeys it never touches the clip.
+    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.state.pairwise_offsets` if already computed.
     """
     x, y, vx, vy = state.x, state.y, state.vx, state.vy
     length, width, vd = state.length, state.width, state.v_desired
-    n = state.n
     t = step_s
 
-    dx = wrap(x[None, :] - x[:, None], ring_length)  # dx[i, j] = x_j − x_i
-    dy = y[None, :] - y[:, None]
-    vx_i = vx[:, None]
+    if offsets is None:
+        offsets = pairwise_offsets(state, ring_length)
+    dx, dy = offsets  # dx[i, j] = wrap(x_j − x_i), dy[i, j] = y_j − y_i
+    abs_dx = np.abs(dx)
     vx_j = vx[None, :]
     ahead = dx >= 0.0
 
-    # approach speeds and ramp sizes (m/s, m)
-    ux = np.where(ahead, np.maximum(0.0, vx_i - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
+    # lateral trapezoid first: it is zero for most pairs
     uy = np.abs(vy[:, None] - vy[None, :])
-    half_len = 0.5 * (length[:, None] + length[None, :])
-    half_wid = 0.5 * (width[:, None] + width[None, :])
-    lx_half = 0.5 * vx * cfg.time_headway_x_s  # L_x / 2, per vehicle i
-    dist_x = ux * ux / (2.0 * cfg.braking_decel_mps2) + half_len
-    lx = lx_half[:, None]
-    mag_x = trapezoid_h(dx, lx, lx + dist_x + cfg.longitudinal_margin_m, lx)
     ly = uy * cfg.time_headway_y_s + cfg.lateral_ramp_offset_m
-    mag_y = trapezoid_h(dy, ly, half_wid + cfg.lateral_margin_m, ly)
-    mag = mag_x * mag_y
+    half_wid = 0.5 * (width[:, None] + width[None, :])
+    mag_y = symmetric_trapezoid(np.abs(dy), ly, half_wid + cfg.lateral_margin_m)
+    # longitudinal trapezoid: approach speed ux, ramp L_x/2, plateau L_x/2 + D_x + margin
+    ux = np.where(ahead, np.maximum(0.0, vx[:, None] - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
+    half_len = 0.5 * (length[:, None] + length[None, :])
+    lx_half = (0.5 * cfg.time_headway_x_s) * vx[:, None]
+    plateau = lx_half + (ux * ux) / (2.0 * cfg.braking_decel_mps2) + half_len + cfg.longitudinal_margin_m
+    mag = symmetric_trapezoid(abs_dx, lx_half, plateau) * mag_y
+    mag[abs_dx > cfg.neighbour_range_m] = 0.0
+    np.fill_diagonal(mag, 0.0)
 
-    in_range = np.abs(dx) <= cfg.neighbour_range_m
-    np.fill_diagonal(in_range, False)
-    mag = np.where(in_range, mag, 0.0)
-    dist = np.hypot(dx, dy)
-    safe = np.where(dist > 0.0, dist, 1.0)
-    fx = np.where(dist > 0.0, -dx / safe, 0.0) * mag  # −cos θ · mag
-    fy = np.where(dist > 0.0, -dy / safe, 0.0) * mag  # −sin θ · mag
+    dist = np.sqrt(dx * dx + dy * dy)
+    scale = np.divide(mag, dist, out=np.zeros_like(mag), where=dist > 0.0)
+    fx = -dx * scale  # −cos θ · mag
+    fy = -dy * scale  # −sin θ · mag
 
     rep_fx = np.where(ahead, fx, 0.0)
     rep_fy = np.where(ahead, fy, 0.0)
-    sum_fx, sum_fy, leader = _top_k_sum(rep_fx, rep_fy, cfg.max_repulsions)
+    sum_fx, sum_fy = _strongest_sum(rep_fx, rep_fy, cfg.max_repulsions)
     if cfg.nudging:
-        nud_fx = np.where(ahead, 0.0, fx)
-        nud_fy = np.where(ahead, 0.0, fy)
-        nfx, nfy, _ = _top_k_sum(nud_fx, nud_fy, cfg.max_nudges)
+        nfx, nfy = _strongest_sum(fx - rep_fx, fy - rep_fy, cfg.max_nudges)
         sum_fx = sum_fx + cfg.nudge_scale_x * nfx
         sum_fy = sum_fy + cfg.nudge_scale_y * nfy
 
@@ -134,14 +138,12 @@ def driver_accelerations(
     ax = cfg.coef_fx * sum_fx + fts_x
     ay = cfg.coef_fy * sum_fy + fts_y
 
-    # 1. x-wall towards the strongest summed repulsion
-    rows = np.arange(n)
-    lead_fx = rep_fx[rows, leader]
+    # 1. x-wall towards the strongest summed repulsion (the most negative f_x)
+    leader = np.argmin(rep_fx, axis=1)
+    lead_fx = rep_fx[np.arange(state.n), leader]
     has_leader = lead_fx < 0.0
     degree = np.abs(np.clip(lead_fx, -1.0, 1.0)) ** cfg.wall_exponent
-    gap = wrap(
-        (x[leader] - 0.5 * length[leader]) - (x + 0.5 * length), ring_length
-    )
+    gap = wrap((x[leader] - 0.5 * length[leader]) - (x + 0.5 * length), ring_length)
     v_safe = np.minimum(gap / cfg.wall_time_gap_s, vx[leader] - cfg.wall_speed_margin_mps)
     wall = ((1.0 - degree) * (vd - vx) + degree * (v_safe - vx)) / t
     ax = np.where(has_leader, np.minimum(ax, wall), ax)

@@ -10,6 +10,7 @@ Backends: ``libsumo`` (default) and ``traci`` execute in SUMO (:mod:`.sumo_backe
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -21,7 +22,7 @@ from .dynamics import StepCommand, ballistic_distance, plan_step
 from .network import EDGES
 from .forces import driver_accelerations
 from .spawn import spawn
-from .state import VehicleState
+from .state import VehicleState, pairwise_offsets
 
 BACKENDS = ("libsumo", "traci", "numpy")
 
@@ -121,7 +122,11 @@ class Simulation:
         self.cfg = cfg
         self.backend = backend if backend is not None else make_backend(cfg)
         self.state: VehicleState | None = None
+        self.offsets: tuple[np.ndarray, np.ndarray] | None = None
+        """(dx, dy) matrices of the current state, shared by collisions, forces, observations."""
         self.steps = 0
+        self.backend_seconds = 0.0
+        """Wall time spent inside ``backend.step`` (s), for profiling."""
         self._tracker = CollisionTracker(0)
 
     def reset(self, seed: int | None = None) -> VehicleState:
@@ -132,7 +137,8 @@ class Simulation:
         self.state = state
         self.steps = 0
         self._tracker.reset(state.n)
-        self._tracker.update(overlap_matrix(state, self.cfg.road.length_m))
+        self.offsets = pairwise_offsets(state, self.cfg.road.length_m)
+        self._tracker.update(overlap_matrix(state, self.cfg.road.length_m, self.offsets))
         return state
 
     def step(self, agent_accel: tuple[float, float] | None = None) -> StepResult:
@@ -143,7 +149,8 @@ class Simulation:
             raise RuntimeError("call reset() before step()")
         cfg = self.cfg
         ax, ay = driver_accelerations(
-            state, cfg.scenario.driver, cfg.road.length_m, cfg.road.width_m, cfg.sim.step_s, cfg.sim.edge_clearance_m
+            state, cfg.scenario.driver, cfg.road.length_m, cfg.road.width_m, cfg.sim.step_s,
+            cfg.sim.edge_clearance_m, self.offsets,
         )
         if not state.controlled.all():
             if agent_accel is None:
@@ -154,10 +161,13 @@ class Simulation:
             state.x, state.y, state.vx, state.vy, state.width, ax, ay,
             cfg.sim.step_s, cfg.road.width_m, cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
         )
+        t0 = time.perf_counter()
         state.x, state.y, state.vx = self.backend.step(cmd)
+        self.backend_seconds += time.perf_counter() - t0
         state.vy = cmd.vy_next
         self.steps += 1
-        overlap = overlap_matrix(state, cfg.road.length_m)
+        self.offsets = pairwise_offsets(state, cfg.road.length_m)
+        overlap = overlap_matrix(state, cfg.road.length_m, self.offsets)
         new = self._tracker.update(overlap)
         return StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
 

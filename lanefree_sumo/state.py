@@ -50,8 +50,8 @@ class VehicleState:
 
 def wrap(dx: np.ndarray | float, ring_length: float) -> np.ndarray:
     """Map longitudinal differences onto [−L/2, L/2) on a ring of length ``ring_length`` (m)."""
-    half = 0.5 * ring_length
-    return np.mod(np.asarray(dx, dtype=float) + half, ring_length) - half
+    d = np.asarray(dx, dtype=float)
+    return d - ring_length * np.floor(d / ring_length + 0.5)
 
 
 def pairwise_offsets(state: VehicleState, ring_length: float) -> tuple[np.ndarray, np.ndarray]:

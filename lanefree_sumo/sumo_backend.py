@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import subprocess
+import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -57,8 +59,10 @@ def sumo_version() -> str:
     return first.replace("Eclipse SUMO sumo ", "").strip() or "unknown"
 
 
-def build_ring_net(length_m: float, width_m: float, speed_mps: float, directory: Path) -> Path:
-    """Write the plain files and run netconvert; return the ``.net.xml`` path."""
+def build_ring_net(cfg: LaneFreeConfig, directory: Path) -> Path:
+    """Write the plain files, run netconvert and write the default vTypes/route file next to
+    them (for opening the net by hand in sumo-gui); return the ``.net.xml`` path."""
+    length_m, width_m, speed_mps = cfg.road.length_m, cfg.road.width_m, cfg.road.speed_limit_mps
     nod, edg = write_plain_ring(length_m, width_m, speed_mps, directory)
     net = nod.with_name(nod.name.replace(".nod.xml", ".net.xml"))
     cmd = [sumo_binary("netconvert"), *netconvert_args(nod, edg, net), "--no-warnings", "true"]
@@ -66,6 +70,7 @@ def build_ring_net(length_m: float, width_m: float, speed_mps: float, directory:
     if result.returncode != 0:
         msg = (result.stderr or result.stdout).strip().splitlines()
         raise SumoError(f"netconvert failed: {msg[-1] if msg else 'no output'}")
+    write_additional(cfg, net.with_name(net.name.replace(".net.xml", ".add.xml")))
     return net
 
 
@@ -79,7 +84,7 @@ def resolve_net(cfg: LaneFreeConfig) -> Path:
         return path
     path = default_net_path(cfg)
     if not path.is_file():
-        path = build_ring_net(cfg.road.length_m, cfg.road.width_m, cfg.road.speed_limit_mps, path.parent)
+        path = build_ring_net(cfg, path.parent)
     return path
 
 
@@ -151,12 +156,14 @@ class SumoBackend:
         self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
         self._y = np.zeros(0)
         self._conn: Any = None
+        self.sumo_step_seconds = 0.0
+        """Wall time spent inside SUMO's simulationStep during ``step`` (s), for profiling."""
         self._start()
 
     # -- process ------------------------------------------------------------------------
     def _start(self) -> None:
-        additional = self.net.with_name(self.net.name.replace(".net.xml", ".add.xml"))
-        write_additional(self.cfg, additional)
+        self._tmp = tempfile.TemporaryDirectory(prefix="lanefree-")
+        additional = write_additional(self.cfg, Path(self._tmp.name) / "vtypes.add.xml")
         args = [sumo_binary("sumo-gui" if self.gui else "sumo"), *sumo_options(self.cfg, self.net, additional)]
         if self.gui:
             args += ["--start", "true", "--quit-on-end", "true"]
@@ -189,6 +196,7 @@ class SumoBackend:
         except Exception:  # already closed by SUMO (e.g. GUI window closed)
             pass
         self._conn = None
+        self._tmp.cleanup()
 
     def __del__(self) -> None:  # pragma: no cover - best effort
         try:
@@ -267,7 +275,9 @@ class SumoBackend:
                     set_lat(vid, target)
             else:
                 change(vid, dy)
+        t0 = time.perf_counter()
         self._conn.simulationStep()
+        self.sumo_step_seconds += time.perf_counter() - t0
         return self.read()
 
     def set_color(self, vid: str, rgba: tuple[int, int, int, int]) -> None:
@@ -280,13 +290,11 @@ class SumoBackend:
 def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> float:
     """Steps per second of SUMO alone: the same vehicles on the same ring, driven by SUMO's own
     car-following and sublane models, with no Python control at all (the benchmark baseline)."""
-    import time  # noqa: PLC0415
-
     import libsumo  # noqa: PLC0415
 
     net = resolve_net(cfg)
-    additional = net.with_name(net.name.replace(".net.xml", ".add.xml"))
-    write_additional(cfg, additional)
+    tmp = tempfile.TemporaryDirectory(prefix="lanefree-")
+    additional = write_additional(cfg, Path(tmp.name) / "vtypes.add.xml")
     libsumo.start([sumo_binary("sumo"), *sumo_options(cfg, net, additional)])
     try:
         seg = cfg.road.length_m / EDGES
@@ -305,3 +313,4 @@ def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> floa
         return steps / (time.perf_counter() - t0)
     finally:
         libsumo.close()
+        tmp.cleanup()

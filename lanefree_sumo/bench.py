@@ -1,0 +1,119 @@
+"""``make bench``: step rates measured side by side in one run, printed as a table and written
+to ``runs/bench/``.
+
+For 70, 90 and 120 veh/km, 800 steps each:
+(a) bare SUMO — the same ring and vehicles, SUMO's own models drive, no Python per step;
+(b) the libsumo backend with the force model (read state, forces, commands, collisions);
+(c) the TraCI backend (same, over a socket);
+(d) the numpy-only physics (no SUMO).
+(a) and (b) are measured alternately ``REPEATS`` times and the median is reported, so that
+machine noise hits both alike.  Timings are not tests: the numbers are for reading.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from .config import LaneFreeConfig, merge_config
+from .simulation import Simulation
+from .spawn import spawn
+from .sumo_backend import bare_step_rate, sumo_version
+
+DENSITIES = (70, 90, 120)
+REPEATS = 3
+
+
+def _rate(cfg: LaneFreeConfig, steps: int, seed: int) -> tuple[float, float, dict[str, float]]:
+    """(steps per second, reset time in ms, ms per step split into SUMO's own step, the
+    per-vehicle commands and reads, and the Python physics) on ``cfg.backend``."""
+    sim = Simulation(cfg)
+    try:
+        sim.reset(seed)
+        t0 = time.perf_counter()
+        sim.reset(seed + 1)
+        reset_ms = 1000.0 * (time.perf_counter() - t0)
+        sim.backend_seconds = 0.0
+        sumo_step = getattr(sim.backend, "sumo_step_seconds", 0.0)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            sim.step()
+        total = time.perf_counter() - t0
+        sumo_step = getattr(sim.backend, "sumo_step_seconds", 0.0) - sumo_step
+        split = {
+            "sumo_step": 1000.0 * sumo_step / steps,
+            "api_calls": 1000.0 * (sim.backend_seconds - sumo_step) / steps,
+            "physics": 1000.0 * (total - sim.backend_seconds) / steps,
+        }
+        return steps / total, reset_ms, split
+    finally:
+        sim.close()
+
+
+def run(steps: int, seed: int, out_dir: Path) -> str:
+    rows = []
+    profile = []
+    for density in DENSITIES:
+        base = merge_config(LaneFreeConfig(), {"scenario": {"density_veh_per_km": density}})
+        state = spawn(base, np.random.default_rng(seed))
+        bare, lib, resets, splits = [], [], [], []
+        for _ in range(REPEATS):
+            bare.append(bare_step_rate(base, state, steps))
+            rate, reset_ms, split = _rate(merge_config(base, {"backend": "libsumo"}), steps, seed)
+            lib.append(rate)
+            resets.append(reset_ms)
+            splits.append(split)
+        traci_rate, _, _ = _rate(merge_config(base, {"backend": "traci"}), steps, seed)
+        numpy_rate, _, _ = _rate(merge_config(base, {"backend": "numpy"}), steps, seed)
+        a, b = statistics.median(bare), statistics.median(lib)
+        rows.append((density, state.n, a, b, traci_rate, numpy_rate, b / a, statistics.median(resets)))
+        split = {k: statistics.median(s[k] for s in splits) for k in splits[0]}
+        ceiling = (1000.0 / a) / (split["sumo_step"] + split["api_calls"])
+        profile.append((density, 1000.0 / a, split["sumo_step"], split["api_calls"], split["physics"], ceiling))
+        print(f"  {density} veh/km done", flush=True)
+    header = (
+        "| density (veh/km) | vehicles | (a) bare SUMO | (b) libsumo + forces | (c) TraCI + forces "
+        "| (d) numpy only | (b)/(a) | reset (ms) |\n|---|---|---|---|---|---|---|---|"
+    )
+    lines = [header] + [
+        f"| {d} | {n} | {a:.0f} | {b:.0f} | {c:.0f} | {e:.0f} | {r:.2f} | {ms:.1f} |"
+        for d, n, a, b, c, e, r, ms in rows
+    ]
+    lines += [
+        "",
+        "Where (b)'s time goes, ms per step (median of the repeats):",
+        "",
+        "| density (veh/km) | bare SUMO step (a) | SUMO step under control | setSpeed/changeSublane + read "
+        "| Python physics | (b)/(a) ceiling with zero physics |\n|---|---|---|---|---|---|",
+    ] + [
+        f"| {d} | {bare_ms:.3f} | {st:.3f} | {api:.3f} | {phys:.3f} | {ceil:.2f} |"
+        for d, bare_ms, st, api, phys, ceil in profile
+    ]
+    table = "\n".join(lines)
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    text = (
+        f"Step rates in steps/s ({steps} steps, median of {REPEATS} for (a) and (b)), "
+        f"SUMO {sumo_version()}, {stamp}\n\n{table}\n"
+    )
+    (out_dir / f"bench-{stamp}.md").write_text(text)
+    (out_dir / "latest.md").write_text(text)
+    return text
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=800, help="steps per measurement (default 800)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the traffic (default 0)")
+    parser.add_argument("--out", type=Path, default=Path("runs/bench"), help="folder for the table")
+    args = parser.parse_args()
+    print(run(args.steps, args.seed, args.out))
+
+
+if __name__ == "__main__":
+    main()

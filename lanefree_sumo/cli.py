@@ -1,0 +1,256 @@
+"""``lanefree`` command line: ``simulate`` (background traffic) and ``net`` (build a ring).
+
+Every bad input ends in ONE line on stderr saying what was wrong and what to do, and a
+non-zero exit code (2 for bad input, 1 when SUMO fails, 130 on Ctrl-C); never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import shlex
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import yaml
+
+from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_density
+
+EXIT_BAD_INPUT = 2
+EXIT_SUMO = 1
+EXIT_INTERRUPTED = 130
+TRAJECTORY_COLUMNS = ("t", "id", "x", "y", "vx", "vy", "ax", "ay")
+
+
+class UsageError(Exception):
+    """Bad command-line input; the message is the one line shown to the user."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports errors as one line instead of usage + error."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+def _density(text: str) -> float:
+    try:
+        return validate_density(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _positive(kind: type, unit: str):
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number in {unit}, got {text!r}") from None
+        if not (isinstance(value, int) or math.isfinite(value)) or value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a positive number in {unit}, got {text!r}")
+        return value
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="lanefree", description="Deep RL in lane-free traffic on Eclipse SUMO.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    sim = sub.add_parser(
+        "simulate",
+        help="run background traffic only and write trajectories and a summary",
+        description="Run the force-based background traffic on the ring road and write a per-step "
+        "trajectory CSV (t, id, x, y, vx, vy, ax, ay) plus summary.json, config.yaml and command.txt "
+        "into --out.",
+    )
+    sim.add_argument("--density", type=_density, default=70.0, help="background density in veh/km (default 70)")
+    sim.add_argument("--seconds", type=_positive(float, "s"), default=200.0,
+                     help="simulated time in s (default 200 = 800 steps of 0.25 s)")
+    sim.add_argument("--seed", type=int, default=0, help="random seed of the initial traffic (default 0)")
+    sim.add_argument("--out", type=Path, default=None,
+                     help="output folder (default runs/sim-d<density>-s<seed>); refused if it exists")
+    sim.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    sim.add_argument("--backend", choices=("libsumo", "traci", "numpy"), default="libsumo",
+                     help="libsumo (SUMO in-process, default), traci (SUMO over a socket) or numpy (no SUMO)")
+    sim.add_argument("--gui", action="store_true", help="show the run in sumo-gui (uses the TraCI backend)")
+    sim.add_argument("--nudging", action="store_true", help="switch on nudging by vehicles behind (off in the paper)")
+    sim.add_argument("--net", type=Path, default=None,
+                     help="SUMO network file (default: the committed 500 m × 10.2 m ring)")
+    sim.add_argument("--length", type=_positive(float, "m"), default=None, help="ring length in m (default 500)")
+    sim.add_argument("--width", type=_positive(float, "m"), default=None, help="road width in m (default 10.2)")
+    sim.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout's last line")
+    sim.add_argument("--no-trajectory", action="store_true", help="skip the per-step trajectory CSV")
+
+    net = sub.add_parser(
+        "net",
+        help="build a ring network with netconvert",
+        description="Write plain node/edge files of a one-lane ring and build the SUMO network with netconvert.",
+    )
+    net.add_argument("--length", type=_positive(float, "m"), default=500.0, help="centre-line length in m (default 500)")
+    net.add_argument("--width", type=_positive(float, "m"), default=10.2, help="road (lane) width in m (default 10.2)")
+    net.add_argument("--out-dir", type=Path, default=None, help="folder for the files (default sumo_nets/)")
+    return parser
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if out.exists():
+        if not overwrite:
+            raise UsageError(f"output folder {out} exists; choose another --out or pass --overwrite")
+        if out.is_dir():
+            shutil.rmtree(out)
+        else:
+            out.unlink()
+    out.mkdir(parents=True)
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    overrides: dict[str, Any] = {
+        "seed": args.seed,
+        "backend": "traci" if args.gui else args.backend,
+        "gui": args.gui,
+        "scenario": {"density_veh_per_km": args.density, "driver": {"nudging": args.nudging}},
+    }
+    road: dict[str, float] = {}
+    if args.length is not None:
+        road["length_m"] = args.length
+    if args.width is not None:
+        road["width_m"] = args.width
+    if road:
+        overrides["road"] = road
+    if args.net is not None:
+        overrides["net_file"] = str(args.net)
+    cfg = merge_config(LaneFreeConfig(), overrides)
+    steps = int(round(args.seconds / cfg.sim.step_s))
+
+    from .spawn import spawn  # noqa: PLC0415
+
+    spawn(cfg, np.random.default_rng(cfg.seed))  # density check before anything is written
+    out = args.out or Path("runs") / f"sim-d{args.density:g}-s{args.seed}"
+    _prepare_out(out, args.overwrite)
+    (out / "command.txt").write_text(shlex.join(["lanefree", *sys.argv[1:]]) + "\n")
+    (out / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+    summary = run_simulation(cfg, steps, out, write_trajectory=not args.no_trajectory, progress=not args.json)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"{summary['steps']} steps, {summary['vehicles']} vehicles, "
+            f"{summary['background_collisions']} collisions, mean speed {summary['mean_speed_mps']:.2f} m/s "
+            f"(desired {summary['mean_desired_speed_mps']:.2f}), min margin {summary['min_lateral_margin_m']:.3f} m, "
+            f"{summary['wall_s']:.1f} s -> {out}"
+        )
+    return 0 if not summary["interrupted"] else EXIT_INTERRUPTED
+
+
+def run_simulation(
+    cfg: LaneFreeConfig, steps: int, out: Path | None, write_trajectory: bool = True, progress: bool = False
+) -> dict[str, Any]:
+    """Run background traffic for ``steps``; write ``out/trajectory.csv`` (flushed every simulated
+    second) and return the summary.  Ctrl-C stops early and returns what was simulated."""
+    from tqdm import tqdm  # noqa: PLC0415
+
+    from .simulation import Simulation  # noqa: PLC0415
+
+    sim = Simulation(cfg)
+    t0 = time.perf_counter()
+    state = sim.reset(cfg.seed)
+    n = state.n
+    width = cfg.road.width_m
+    collisions = boundary_contacts = done = 0
+    speed_sum = 0.0
+    min_margin = float(np.min(np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)))
+    flush_every = max(1, int(round(1.0 / cfg.sim.step_s)))
+    handle = open(out / "trajectory.csv", "w", newline="") if (out is not None and write_trajectory) else None
+    writer = csv.writer(handle) if handle else None
+    if writer:
+        writer.writerow(TRAJECTORY_COLUMNS)
+    interrupted = False
+    try:
+        for k in tqdm(range(steps), disable=not progress or not sys.stderr.isatty(), unit="step", desc="simulate"):
+            result = sim.step()
+            done = k + 1
+            collisions += len(result.new_collisions)
+            boundary_contacts += int(result.boundary_contact.sum())
+            speed_sum += float(state.vx.mean())
+            margin = np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)
+            min_margin = min(min_margin, float(margin.min()))
+            if writer:
+                t = round(done * cfg.sim.step_s, 6)
+                writer.writerows(
+                    zip([t] * n, state.ids, np.round(state.x, 6), np.round(state.y, 6), np.round(state.vx, 6),
+                        np.round(state.vy, 6), np.round(result.ax, 6), np.round(result.ay, 6))
+                )
+                if done % flush_every == 0:
+                    handle.flush()
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        if handle:
+            handle.close()
+        sim.close()
+    wall = time.perf_counter() - t0
+    return {
+        "steps": done,
+        "vehicles": n,
+        "density_veh_per_km": cfg.scenario.density_veh_per_km,
+        "seed": cfg.seed,
+        "backend": cfg.backend,
+        "nudging": cfg.scenario.driver.nudging,
+        "background_collisions": collisions,
+        "boundary_contacts": boundary_contacts,
+        "mean_speed_mps": speed_sum / done if done else float("nan"),
+        "mean_desired_speed_mps": float(state.v_desired.mean()),
+        "min_lateral_margin_m": min_margin,
+        "wall_s": wall,
+        "steps_per_s": done / wall if wall > 0 else float("nan"),
+        "interrupted": interrupted,
+    }
+
+
+def _net(args: argparse.Namespace) -> int:
+    from .network import NETS_DIR  # noqa: PLC0415
+    from .sumo_backend import build_ring_net  # noqa: PLC0415
+
+    cfg = merge_config(LaneFreeConfig(), {"road": {"length_m": args.length, "width_m": args.width}})
+    net = build_ring_net(cfg, args.out_dir or NETS_DIR)
+    print(net)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``lanefree`` console script."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help()
+            return EXIT_BAD_INPUT
+        handler = {"simulate": _simulate, "net": _net}[args.command]
+        return handler(args)
+    except (UsageError, ConfigError) as exc:
+        print(f"lanefree: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("lanefree: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # SUMO errors and anything unexpected: one line, no traceback
+        from .sumo_backend import SumoError  # noqa: PLC0415
+
+        if isinstance(exc, SumoError):
+            print(f"lanefree: SUMO error: {exc}", file=sys.stderr)
+            return EXIT_SUMO
+        print(f"lanefree: unexpected {type(exc).__name__}: {exc} (please report this)", file=sys.stderr)
+        return EXIT_SUMO
+
+
+if __name__ == "__main__":
+    sys.exit(main())

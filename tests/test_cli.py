@@ -1,0 +1,114 @@
+"""``lanefree`` end to end in a subprocess: outputs, JSON summary, and one-line errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def lanefree(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "lanefree_sumo.cli", *args],
+        capture_output=True, text=True, cwd=cwd or ROOT, timeout=300,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+
+
+def test_simulate_writes_trajectory_and_json_summary(tmp_path):
+    out = tmp_path / "sim"
+    res = lanefree("simulate", "--density", "90", "--seconds", "5", "--seed", "0", "--out", str(out), "--json")
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    for key in ("steps", "vehicles", "background_collisions", "mean_speed_mps", "mean_desired_speed_mps",
+                "min_lateral_margin_m", "wall_s"):
+        assert key in summary
+    assert summary["steps"] == 20 and summary["vehicles"] == 45
+    assert summary["min_lateral_margin_m"] > 0
+    with open(out / "trajectory.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["t", "id", "x", "y", "vx", "vy", "ax", "ay"]
+    assert len(rows) == 20 * 45
+    assert {r["id"] for r in rows} == {f"bg{i}" for i in range(45)}
+    assert json.loads((out / "summary.json").read_text()) == summary
+    assert "density_veh_per_km: 90.0" in (out / "config.yaml").read_text()
+    assert (out / "command.txt").read_text().startswith("lanefree simulate")
+
+
+def test_same_seed_gives_identical_trajectories(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        assert lanefree("simulate", "--seconds", "3", "--seed", "4", "--out", str(out)).returncode == 0
+    assert (a / "trajectory.csv").read_bytes() == (b / "trajectory.csv").read_bytes()
+
+
+def test_numpy_backend_matches_sumo_output(tmp_path):
+    a, b = tmp_path / "sumo", tmp_path / "numpy"
+    assert lanefree("simulate", "--seconds", "10", "--out", str(a)).returncode == 0
+    assert lanefree("simulate", "--seconds", "10", "--out", str(b), "--backend", "numpy").returncode == 0
+    assert (a / "trajectory.csv").read_bytes() == (b / "trajectory.csv").read_bytes()
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["--density", "abc"], "density must be a number"),
+        (["--density", "0"], "positive finite"),
+        (["--density", "-3"], "positive finite"),
+        (["--density", "nan"], "positive finite"),
+        (["--density", "5000"], "the maximum is"),
+        (["--frobnicate"], "unrecognized arguments"),
+        (["--seconds", "x"], "expected a number in s"),
+        (["--net", "/no/such/file.net.xml"], "does not exist"),
+    ],
+)
+def test_bad_input_is_one_line_and_nonzero(tmp_path, args, needle):
+    res = lanefree("simulate", "--seconds", "1", "--out", str(tmp_path / "o"), *args)
+    assert res.returncode != 0
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert needle in lines[0]
+    assert "Traceback" not in res.stderr
+
+
+def test_corrupt_network_is_one_line(tmp_path):
+    bad = tmp_path / "bad.net.xml"
+    bad.write_text("not xml at all <<<")
+    res = lanefree("simulate", "--seconds", "1", "--out", str(tmp_path / "o"), "--net", str(bad))
+    assert res.returncode == 1
+    assert res.stderr.strip().count("\n") == 0 and "not a readable SUMO network" in res.stderr
+
+
+def test_existing_output_is_refused_unless_overwrite(tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    res = lanefree("simulate", "--seconds", "1", "--out", str(out))
+    assert res.returncode == 2 and "--overwrite" in res.stderr
+    assert (out / "keep.txt").read_text() == "precious"
+    res = lanefree("simulate", "--seconds", "1", "--out", str(out), "--overwrite")
+    assert res.returncode == 0 and not (out / "keep.txt").exists()
+
+
+def test_net_command_builds_a_ring(tmp_path):
+    res = lanefree("net", "--length", "300", "--width", "7", "--out-dir", str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    net = Path(res.stdout.strip().splitlines()[-1])
+    assert net.exists() and net.name == "ring_L300_W7.net.xml"
+    res = lanefree("simulate", "--seconds", "2", "--density", "70", "--length", "300", "--width", "7",
+                   "--net", str(net), "--out", str(tmp_path / "o"), "--json")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout.strip().splitlines()[-1])["vehicles"] == 21
+
+
+def test_help_explains_units():
+    res = lanefree("simulate", "--help")
+    assert res.returncode == 0
+    assert "veh/km" in res.stdout and "in s" in res.stdout
