@@ -1,1 +1,11 @@
-"""lanefree_sumo: deep RL in lane-free traffic on Eclipse SUMO."""
+"""lanefree_sumo: deep RL in lane-free traffic on Eclipse SUMO.
+
+Importing the package registers the gymnasium environment ``LaneFree-v0``::
+
+    import gymnasium, lanefree_sumo
+    env = gymnasium.make("LaneFree-v0", config={"scenario": {"density_veh_per_km": 90}})
+"""
+
+from gymnasium.envs.registration import register
+
+register(id="LaneFree-v0", entry_point="lanefree_sumo.env:LaneFreeEnv")

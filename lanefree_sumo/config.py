@@ -201,6 +201,30 @@ class ObservationConfig:
     """Rows of the set observation (padding above the vehicles in range)."""
     scale: bool = True
     """Scale features to O(1); False returns raw SI values."""
+    speed_scale_mps: float = 25.0
+    """Longitudinal speeds (vx, v_d, vx_j) are divided by this when scaling (m/s)."""
+    lateral_speed_scale_mps: float = 2.0
+    """Lateral speeds (vy, vy_j) are divided by this when scaling (m/s)."""
+
+
+@dataclass
+class ActionConfig:
+    """Agent actions (SPEC §6)."""
+
+    kind: str = "continuous"
+    """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
+    discrete_ax_mps2: float = 2.0
+    """|ax| of the discrete accelerate/brake actions (m/s²)."""
+    discrete_ay_mps2: float = 1.0
+    """|ay| of the discrete left/right actions (m/s²)."""
+
+
+@dataclass
+class EpisodeConfig:
+    """Episode handling of the environment."""
+
+    terminate_on_collision: bool = False
+    """End the episode when the agent collides (the paper does not: collisions only cost)."""
 
 
 @dataclass
@@ -212,6 +236,8 @@ class LaneFreeConfig:
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
+    action: ActionConfig = field(default_factory=ActionConfig)
+    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
     seed: int = 0
     backend: str = "libsumo"
     """``libsumo`` (fast, default), ``traci`` (socket; needed for the GUI) or ``numpy`` (no SUMO)."""

@@ -15,7 +15,7 @@ padded arrays can be passed directly.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any, Union
 
 import numpy as np
@@ -46,8 +46,13 @@ _DEFAULTS = RewardConfig()
 _TIE_TOL_M = 1e-9
 
 
-def _flat(a: ArrayLike) -> np.ndarray:
-    return np.atleast_1d(np.asarray(a, dtype=float))
+def _rows(*arrays: ArrayLike) -> list[np.ndarray]:
+    """The arrays as aligned 1-D float arrays (broadcast only when they are not already)."""
+    flat = [np.atleast_1d(np.asarray(a, dtype=float)) for a in arrays]
+    n = flat[0].shape
+    if all(f.ndim == 1 and f.shape == n for f in flat):
+        return flat
+    return list(np.broadcast_arrays(*flat))
 
 
 # --------------------------------------------------------------------------------------------
@@ -115,21 +120,24 @@ def field_cost(
 
     Empty neighbour arrays (or only NaN rows) give 0.0.
     """
-    dx_, dy_, dvx_, dvy_, lens_, wids_ = np.broadcast_arrays(
-        _flat(dx), _flat(dy), _flat(dvx), _flat(dvy), _flat(lens), _flat(wids)
-    )
-    ok = np.isfinite(dx_) & np.isfinite(dy_) & np.isfinite(dvx_) & np.isfinite(dvy_)
-    if not ok.any():
-        return 0.0
-    dx_, dy_, dvx_, dvy_ = dx_[ok], dy_[ok], dvx_[ok], dvy_[ok]
-    a_c = 0.5 * (agent_len + lens_[ok])
-    b_c = 0.5 * (agent_wid + wids_[ok])
-    e_c = ellipsoid(dx_, dy_, a_c, b_c, *critical_exponents, magnitude)
+    dx_, dy_, dvx_, dvy_, lens_, wids_ = _rows(dx, dy, dvx, dvy, lens, wids)
+    ok = np.isfinite(dx_ + dy_ + dvx_ + dvy_)  # NaN/inf in any of them propagates
+    if not ok.all():
+        if not ok.any():
+            return 0.0
+        dx_, dy_, dvx_, dvy_, lens_, wids_ = dx_[ok], dy_[ok], dvx_[ok], dvy_[ok], lens_[ok], wids_[ok]
+    a_c = 0.5 * (agent_len + lens_)
+    b_c = 0.5 * (agent_wid + wids_)
+    rx = np.abs(dx_) / a_c
+    ry = np.abs(dy_) / b_c
     ux = np.maximum(0.0, np.sign(dx_) * dvx_)
     uy = np.maximum(0.0, np.sign(dy_) * dvy_)
-    e_b = ellipsoid(dx_, dy_, a_c * (1.0 + k_r * ux), b_c * (1.0 + e_v * uy), *broad_exponents,
-                    magnitude)
-    return float(min(1.0, float(np.sum(e_c) + np.sum(e_b))))
+    pcx, pcy, pct = critical_exponents
+    pbx, pby, pbt = broad_exponents
+    # the ellipsoid() formula, on |dx|/a and |dy|/b computed once
+    e_c = magnitude / (rx**pcx + ry**pcy + 1.0) ** pct
+    e_b = magnitude / ((rx / (1.0 + k_r * ux)) ** pbx + (ry / (1.0 + e_v * uy)) ** pby + 1.0) ** pbt
+    return min(1.0, float(e_c.sum() + e_b.sum()))
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,9 +180,7 @@ def zone_target(
     5. no zone fits: ``(y of the fastest blocker, min(v_desired, min blocker vx), True)``; among
        equally fast blockers the first in array order.
     """
-    dx_, dy_, vx_, lens_, wids_ = np.broadcast_arrays(
-        _flat(dx), _flat(dy), _flat(vxs), _flat(lens), _flat(wids)
-    )
+    dx_, dy_, vx_, lens_, wids_ = _rows(dx, dy, vxs, lens, wids)
     half_len = 0.5 * (agent_len + lens_)
     d_o = agent_vx * time_gap
     with np.errstate(invalid="ignore"):
@@ -250,6 +256,11 @@ def reciprocal_reward(
     vehicle).  ``use_collision`` / ``use_overtake`` switch the r_c / r_o terms off (presets).
     Arrays broadcast; scalar inputs give a ``float``.
     """
+    if all(np.ndim(v) == 0 for v in (c_x, c_y, c_f, collided, overtook)):  # one step: plain floats
+        r0 = epsilon_r / (epsilon_r + w_x * float(c_x) + w_y * float(c_y) + w_f * float(c_f))
+        hit, passed = bool(collided), bool(overtook)
+        return (r0 + (collision_reward if use_collision and hit else 0.0)
+                + (overtake_reward if use_overtake and passed and not hit else 0.0))
     col = np.asarray(collided).astype(bool)
     ovt = np.asarray(overtook).astype(bool)
     denom = epsilon_r + w_x * np.asarray(c_x, float) + w_y * np.asarray(c_y, float) \
@@ -276,7 +287,7 @@ def detect_overtakes(
     at both steps, so a jump across the ring seam (dx ≈ ±L/2) is never a pass, nor is a vehicle
     entering or leaving range.
     """
-    p, c = np.broadcast_arrays(_flat(prev_dx), _flat(dx))
+    p, c = _rows(prev_dx, dx)
     quarter = 0.25 * ring_length
     with np.errstate(invalid="ignore"):
         valid = (
@@ -301,7 +312,7 @@ def agent_overlaps(
     Overlap: ``|dx| < (agent_len + len_j)/2`` and ``|dy| < (agent_wid + wid_j)/2`` (m); touching
     edges do not overlap.
     """
-    dx_, dy_, lens_, wids_ = np.broadcast_arrays(_flat(dx), _flat(dy), _flat(lens), _flat(wids))
+    dx_, dy_, lens_, wids_ = _rows(dx, dy, lens, wids)
     with np.errstate(invalid="ignore"):
         hit = (np.abs(dx_) < 0.5 * (agent_len + lens_)) & (np.abs(dy_) < 0.5 * (agent_wid + wids_))
     return bool(hit.any())
@@ -371,7 +382,7 @@ class RewardTerms:
 
     def as_dict(self) -> dict[str, Any]:
         """Plain dict of the terms."""
-        return asdict(self)
+        return dict(self.__dict__)
 
 
 def compute_reward(
@@ -413,9 +424,7 @@ def compute_reward(
     """
     cfg = _DEFAULTS if config is None else config
     w = get_preset(weights) if isinstance(weights, str) else weights
-    dx_, dy_, vx_, vy_, lens_, wids_ = np.broadcast_arrays(
-        _flat(dx), _flat(dy), _flat(vx), _flat(vy), _flat(lens), _flat(wids)
-    )
+    dx_, dy_, vx_, vy_, lens_, wids_ = _rows(dx, dy, vx, vy, lens, wids)
 
     if w.w_y > 0.0:
         y_d, v_d_eff, blocked = zone_target(

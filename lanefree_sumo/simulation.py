@@ -116,11 +116,14 @@ def clip_acceleration(ax: float, ay: float, bounds: AccelerationBounds) -> tuple
 
 
 class Simulation:
-    """Background traffic (and optionally one externally controlled agent) on the ring."""
+    """Background traffic (and optionally one externally controlled agent) on the ring.
+
+    The backend (and so SUMO) starts at the first ``reset``, not at construction, and
+    ``close`` stops it; a later ``reset`` starts a new one."""
 
     def __init__(self, cfg: LaneFreeConfig, backend: Backend | None = None) -> None:
         self.cfg = cfg
-        self.backend = backend if backend is not None else make_backend(cfg)
+        self.backend: Backend | None = backend
         self.state: VehicleState | None = None
         self.offsets: tuple[np.ndarray, np.ndarray] | None = None
         """(dx, dy) matrices of the current state, shared by collisions, forces, observations."""
@@ -133,6 +136,8 @@ class Simulation:
         """Spawn a new random traffic state (reproducible for a seed) and place it."""
         rng = np.random.default_rng(self.cfg.seed if seed is None else seed)
         state = spawn(self.cfg, rng)
+        if self.backend is None:
+            self.backend = make_backend(self.cfg)
         self.backend.reset(state)
         self.state = state
         self.steps = 0
@@ -145,7 +150,7 @@ class Simulation:
         """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent, clipped to its
         bounds; required when the scenario has an agent."""
         state = self.state
-        if state is None:
+        if state is None or self.backend is None:
             raise RuntimeError("call reset() before step()")
         cfg = self.cfg
         ax, ay = driver_accelerations(
@@ -172,4 +177,7 @@ class Simulation:
         return StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
 
     def close(self) -> None:
-        self.backend.close()
+        """Stop the backend (idempotent)."""
+        if self.backend is not None:
+            self.backend.close()
+            self.backend = None

@@ -1,0 +1,259 @@
+"""``LaneFree-v0``: one learning agent among the force-driven background traffic (SPEC §5–§8).
+
+The environment orchestrates: the simulation core moves every vehicle, :mod:`.rewards` scores
+the step, and this module only selects neighbours, scales observations and keeps the episode's
+books.  Every step's ``info`` carries each reward term (c_x, c_y, c_f, y_d, v_d_eff, blocked,
+collided, overtook, reward); the last step of an episode also carries ``episode_metrics``
+(SPEC §8).
+
+Observation scaling (``observation.scale``, default on): positions and lengths along x are
+divided by the observation range d, lateral positions by the road width W, longitudinal speeds
+by ``speed_scale_mps`` (25 m/s) and lateral speeds by ``lateral_speed_scale_mps`` (2 m/s); so
+every feature is O(1).  With ``scale=False`` the raw SI values are returned.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Mapping
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
+from .rewards import compute_reward, detect_overtakes, get_preset
+from .simulation import Simulation
+
+OBSERVATION_KINDS = ("vector", "set")
+ACTION_KINDS = ("continuous", "discrete")
+EGO_FEATURES = 4  # y, vx, vy, v_d
+NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
+# Discrete actions (SPEC §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
+# four combinations.
+DISCRETE_ACTIONS = np.array(
+    [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1)], dtype=float
+)
+METRIC_TERMS = ("c_x", "c_y", "c_f", "reward")
+
+
+def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFreeConfig:
+    """A full config with the agent on the road; a dict is merged into the defaults."""
+    if config is None:
+        cfg = LaneFreeConfig()
+    elif isinstance(config, LaneFreeConfig):
+        cfg = config
+    else:
+        cfg = merge_config(LaneFreeConfig(), config)
+    cfg = merge_config(cfg, {"scenario": {"with_agent": True}})
+    if cfg.observation.kind not in OBSERVATION_KINDS:
+        raise ConfigError(f"unknown observation.kind '{cfg.observation.kind}'; valid: {', '.join(OBSERVATION_KINDS)}")
+    if cfg.action.kind not in ACTION_KINDS:
+        raise ConfigError(f"unknown action.kind '{cfg.action.kind}'; valid: {', '.join(ACTION_KINDS)}")
+    try:
+        get_preset(cfg.reward.preset)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    return cfg
+
+
+class LaneFreeEnv(gym.Env):
+    """Gymnasium environment of the paper's MDP on the SUMO ring road.
+
+    ``config``: a :class:`~lanefree_sumo.config.LaneFreeConfig` or a nested dict of overrides.
+    Episodes last ``sim.episode_steps`` steps and end by truncation; collisions end them only
+    with ``episode.terminate_on_collision``.  ``reset(seed=...)`` is reproducible.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, config: LaneFreeConfig | Mapping[str, Any] | None = None, render_mode: str | None = None) -> None:
+        super().__init__()
+        if render_mode is not None:
+            raise ValueError("LaneFree-v0 renders through sumo-gui: pass config={'gui': True} instead of render_mode")
+        self.cfg = resolve_config(config)
+        self.weights = get_preset(self.cfg.reward.preset)
+        self.sim = Simulation(self.cfg)
+        obs_cfg = self.cfg.observation
+        n_feat = EGO_FEATURES + NEIGHBOUR_FEATURES * obs_cfg.n_neighbours
+        if obs_cfg.kind == "vector":
+            self.observation_space: spaces.Space = spaces.Box(-np.inf, np.inf, (n_feat,), np.float32)
+        else:
+            self.observation_space = spaces.Dict(
+                {
+                    "ego": spaces.Box(-np.inf, np.inf, (EGO_FEATURES,), np.float32),
+                    "others": spaces.Box(-np.inf, np.inf, (obs_cfg.max_rows, NEIGHBOUR_FEATURES + 1), np.float32),
+                }
+            )
+        if self.cfg.action.kind == "continuous":
+            self.action_space: spaces.Space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        else:
+            self.action_space = spaces.Discrete(len(DISCRETE_ACTIONS))
+        self.episode = 0
+        self.env_seconds = 0.0
+        """Wall time of the env's own work in ``step`` (observation, reward, books) (s)."""
+        self._scales = self._feature_scales()
+        self._agent = -1
+        self._episode_seed = 0
+        self._prev_dx = np.zeros(0)
+        self._books: dict[str, float] = {}
+
+    # -- configuration helpers -----------------------------------------------------------------
+    def _feature_scales(self) -> tuple[np.ndarray, np.ndarray]:
+        o = self.cfg.observation
+        if not o.scale:
+            return np.ones(EGO_FEATURES), np.ones(NEIGHBOUR_FEATURES)
+        w, v, vy = self.cfg.road.width_m, o.speed_scale_mps, o.lateral_speed_scale_mps
+        return np.array([w, v, vy, v]), np.array([o.range_m, w, v, vy])
+
+    def action_to_acceleration(self, action: Any) -> tuple[float, float]:
+        """(ax, ay) in m/s² for an action (SPEC §6); continuous actions are clipped to [−1, 1].
+
+        A NaN or infinite action raises ``ValueError`` naming the step: a diverged policy must
+        not silently drive the car."""
+        values = np.asarray(action, dtype=float).ravel()
+        if not np.isfinite(values).all():
+            raise ValueError(
+                f"action {action!r} at step {self.sim.steps + 1} of episode {self.episode} is not finite; "
+                "a diverged policy must not drive the car"
+            )
+        if self.cfg.action.kind == "discrete":
+            sign_x, sign_y = DISCRETE_ACTIONS[int(values[0])]
+            return sign_x * self.cfg.action.discrete_ax_mps2, sign_y * self.cfg.action.discrete_ay_mps2
+        if values.size != 2:
+            raise ValueError(f"a continuous action has 2 components (ax, ay in [-1, 1]), got {action!r}")
+        bounds = self.cfg.scenario.agent_bounds
+        a0 = min(1.0, max(-1.0, float(values[0])))
+        a1 = min(1.0, max(-1.0, float(values[1])))
+        return (a0 * bounds.ax_max if a0 >= 0.0 else -a0 * bounds.ax_min), a1 * bounds.ay_max
+
+    # -- gymnasium API ---------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
+        super().reset(seed=seed)
+        self._episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31 - 1))
+        state = self.sim.reset(self._episode_seed)
+        self._agent = state.n - 1
+        self.episode += 1
+        self._books = {
+            "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
+            "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
+            **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
+        }
+        obs, _, _ = self._observe()
+        self._prev_dx = self.sim.offsets[0][self._agent].copy()
+        return obs, {"episode_seed": self._episode_seed}
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        if self._agent < 0:
+            raise RuntimeError("call reset() before step()")
+        ax, ay = self.action_to_acceleration(action)
+        result = self.sim.step((ax, ay))
+        t0 = time.perf_counter()
+        state, a, cfg = self.sim.state, self._agent, self.cfg
+        obs, idx, observed = self._observe()
+        dx_row = self.sim.offsets[0][a]
+
+        new_pairs = result.new_collisions
+        agent_events = int(np.count_nonzero((new_pairs == a).any(axis=1))) if len(new_pairs) else 0
+        collided = bool(result.overlap[a].any())
+        passes = detect_overtakes(self._prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
+        self._prev_dx = dx_row.copy()
+
+        terms = compute_reward(
+            dx_row[idx], self.sim.offsets[1][a][idx], state.vx[idx], state.vy[idx], state.length[idx],
+            state.width[idx], float(state.y[a]), float(state.vx[a]), float(state.vy[a]),
+            float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), cfg.road.width_m,
+            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
+            config=cfg.reward,
+        )
+
+        b = self._books
+        vx_a = float(state.vx[a])
+        contact = bool(result.boundary_contact[a])
+        b["return"] += terms.reward
+        b["collisions"] += agent_events
+        b["collision_steps"] += collided
+        b["background_collisions"] += len(new_pairs) - agent_events
+        b["speed_dev_sum"] += abs(vx_a - float(state.v_desired[a]))
+        b["speed_sum"] += vx_a
+        b["overtakes"] += passes
+        b["boundary_contacts"] += contact
+        b["sum_c_x"] += terms.c_x
+        b["sum_c_y"] += terms.c_y
+        b["sum_c_f"] += terms.c_f
+        b["sum_reward"] += terms.reward
+
+        terminated = bool(cfg.episode.terminate_on_collision and collided)
+        truncated = self.sim.steps >= cfg.sim.episode_steps
+        info: dict[str, Any] = {
+            **terms.as_dict(),
+            "overtakes": passes,
+            "collision_events": agent_events,
+            "boundary_contact": contact,
+            "ax": ax,
+            "ay": ay,
+        }
+        if terminated or truncated:
+            info["episode_metrics"] = self.episode_metrics()
+        self.env_seconds += time.perf_counter() - t0
+        return obs, float(terms.reward), terminated, truncated, info
+
+    def close(self) -> None:
+        self.sim.close()
+
+    # -- internals -----------------------------------------------------------------------------
+    def _observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
+        """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
+        state, a, o = self.sim.state, self._agent, self.cfg.observation
+        dx = self.sim.offsets[0][a]
+        dy = self.sim.offsets[1][a]
+        in_range = np.abs(dx) <= o.range_m
+        in_range[a] = False
+        idx = np.flatnonzero(in_range)
+        order = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")]
+        ego = np.array([state.y[a], state.vx[a], state.vy[a], state.v_desired[a]]) / self._scales[0]
+        observed = order[: o.n_neighbours]
+        if o.kind == "vector":
+            rows = np.empty((o.n_neighbours, NEIGHBOUR_FEATURES))
+            rows[:] = (o.range_m, 0.0, state.vx[a], state.vy[a])  # placeholders: far ahead, same speed
+            k = len(observed)
+            rows[:k, 0] = dx[observed]
+            rows[:k, 1] = dy[observed]
+            rows[:k, 2] = state.vx[observed]
+            rows[:k, 3] = state.vy[observed]
+            obs: Any = np.concatenate([ego, (rows / self._scales[1]).ravel()]).astype(np.float32)
+        else:
+            shown = order[: o.max_rows]
+            k = len(shown)
+            table = np.zeros((o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
+            table[:k, :NEIGHBOUR_FEATURES] = (
+                np.column_stack([dx[shown], dy[shown], state.vx[shown], state.vy[shown]]) / self._scales[1]
+            )
+            table[:k, NEIGHBOUR_FEATURES] = 1.0
+            obs = {"ego": ego.astype(np.float32), "others": table}
+        return obs, idx, observed
+
+    def episode_metrics(self) -> dict[str, Any]:
+        """SPEC §8 metrics of the episode so far (one CSV row)."""
+        b, steps = self._books, max(self.sim.steps, 1)
+        return {
+            "episode": self.episode,
+            "steps": self.sim.steps,
+            "return": b["return"],
+            "collisions": b["collisions"],
+            "collision_steps": b["collision_steps"],
+            "background_collisions": b["background_collisions"],
+            "speed_dev_mps": b["speed_dev_sum"] / steps,
+            "mean_speed_mps": b["speed_sum"] / steps,
+            "overtakes": b["overtakes"],
+            "boundary_contacts": b["boundary_contacts"],
+            **{f"mean_{t}": b[f"sum_{t}"] / steps for t in METRIC_TERMS},
+            "density": self.cfg.scenario.density_veh_per_km,
+            "seed": self._episode_seed,
+            "reward_preset": self.cfg.reward.preset,
+            "wall_s": time.perf_counter() - b["t0"],
+        }
+
+    def config_dict(self) -> dict[str, Any]:
+        """The full resolved configuration as a plain dict."""
+        return config_to_dict(self.cfg)
