@@ -1,5 +1,5 @@
 # lanefree_sumo — everything runs inside .venv, bootstrapped on first use.
-# Main jobs:  make test  ·  make simulate DENSITY=90  ·  make bench
+# Main jobs:  make test  ·  make train DENSITY=90  ·  make simulate DENSITY=90  ·  make bench
 
 PYTHON ?= python3
 VENV   := .venv
@@ -8,12 +8,18 @@ STAMP  := $(VENV)/.installed
 
 DENSITY ?= 90
 SEED    ?= 0
+ALGO    ?= ddpg
+REWARD  ?= fields_zones_overtake_collision
+EPISODES ?= 625
+ENVS    ?= 1
+OBS     ?= vector
+RUN     ?=
 SECONDS ?= 200
 LENGTH  ?= 500
 WIDTH   ?= 10.2
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv test simulate nets bench traffic clean-venv
+.PHONY: venv test train evaluate simulate nets bench traffic clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -28,6 +34,14 @@ venv: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+train: $(STAMP)
+	$(BIN)/lanefree train --algo $(ALGO) --reward $(REWARD) --density $(DENSITY) --episodes $(EPISODES) \
+		--seed $(SEED) --envs $(ENVS) --obs $(OBS)
+
+evaluate: $(STAMP)
+	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
+	$(BIN)/lanefree evaluate $(RUN) --record
 
 simulate: $(STAMP)
 	$(BIN)/lanefree simulate --density $(DENSITY) --seconds $(SECONDS) --seed $(SEED) \

@@ -77,6 +77,44 @@ def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[st
     return out
 
 
+def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600) -> float:
+    """Env steps per second of a training run of ``algo`` including its learning updates,
+    measured over ``steps`` steps after learning has started (SPEC §9 settings)."""
+    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415
+
+    from .train import build_model, make_vec_env, training_config  # noqa: PLC0415
+
+    cfg = training_config(merge_config(LaneFreeConfig(), {
+        "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}}))
+    starts = cfg.train.dqn.learning_starts_steps if algo in ("dqn", "ddqn", "dueling", "per") \
+        else cfg.train.actor_critic.learning_starts_steps
+    import torch  # noqa: PLC0415
+
+    torch.set_num_threads(cfg.train.torch_threads)
+
+    class Clock(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.t_start = self.t_end = 0.0
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps == starts:
+                self.t_start = time.perf_counter()
+            if self.num_timesteps == starts + steps:
+                self.t_end = time.perf_counter()
+                return False
+            return True
+
+    env = make_vec_env(cfg, seed, 1)
+    try:
+        model = build_model(cfg, env, seed, None)
+        clock = Clock()
+        model.learn(total_timesteps=starts + steps + 1, callback=clock)
+    finally:
+        env.close()
+    return steps / (clock.t_end - clock.t_start)
+
+
 def run(steps: int, seed: int, out_dir: Path) -> str:
     rows = []
     profile = []
@@ -122,6 +160,16 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         "",
         "| observation | env work (ms/step) | core step (ms/step) | share |\n|---|---|---|---|",
     ] + [f"| {kind} | {work:.3f} | {core:.3f} | {work / core:.1%} |" for kind, work, core in env_overhead(steps, seed)]
+    lines += [
+        "",
+        "Training throughput at 90 veh/km (libsumo, one env, learning updates every step, SPEC §9 settings):",
+        "",
+        "| algorithm | env steps/s incl. learning | projected 625-episode run |\n|---|---|---|",
+    ]
+    for algo in ("ddpg", "dqn"):
+        rate = training_rate(algo, seed)
+        hours = 625 * 800 / rate / 3600.0
+        lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,5 @@
-"""``lanefree`` command line: ``simulate`` (background traffic) and ``net`` (build a ring).
+"""``lanefree`` command line: ``simulate`` (background traffic), ``train``, ``evaluate`` and
+``net`` (build a ring).
 
 Every bad input ends in ONE line on stderr saying what was wrong and what to do, and a
 non-zero exit code (2 for bad input, 1 when SUMO fails, 130 on Ctrl-C); never a traceback.
@@ -7,7 +8,6 @@ non-zero exit code (2 for bad input, 1 when SUMO fails, 130 on Ctrl-C); never a 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import shlex
@@ -21,11 +21,11 @@ import numpy as np
 import yaml
 
 from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_density
+from .train import RunError
 
 EXIT_BAD_INPUT = 2
 EXIT_SUMO = 1
 EXIT_INTERRUPTED = 130
-TRAJECTORY_COLUMNS = ("t", "id", "x", "y", "vx", "vy", "ax", "ay")
 
 
 class UsageError(Exception):
@@ -87,6 +87,55 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--width", type=_positive(float, "m"), default=None, help="road width in m (default 10.2)")
     sim.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout's last line")
     sim.add_argument("--no-trajectory", action="store_true", help="skip the per-step trajectory CSV")
+
+    tr = sub.add_parser(
+        "train",
+        help="train an agent; writes a run folder under runs/",
+        description="Train an agent on LaneFree-v0 with the paper's hyperparameters (SPEC §9) and write a run "
+        "folder runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/ (config.yaml, command.txt, versions.json, "
+        "episodes.csv, TensorBoard logs in tb/, checkpoints/, model.zip). Ctrl-C or SIGTERM saves a checkpoint; "
+        "--resume RUN continues from the newest one.",
+    )
+    from .rewards import PRESETS  # noqa: PLC0415
+    from .train import ALGOS  # noqa: PLC0415
+
+    tr.add_argument("--algo", choices=ALGOS, default="ddpg",
+                    help="ddpg (default; Ornstein-Uhlenbeck noise), td3, sac, ppo on continuous actions; "
+                    "dqn, ddqn (double), dueling (dueling double), per (double + prioritised replay) on the 9 discrete actions")
+    tr.add_argument("--reward", choices=tuple(PRESETS), default="fields_zones_overtake_collision",
+                    help="reward preset of SPEC §7 (default fields_zones_overtake_collision)")
+    tr.add_argument("--density", type=_density, default=70.0, help="background density in veh/km (default 70)")
+    tr.add_argument("--episodes", type=_positive(int, "episodes"), default=625,
+                    help="training episodes of 800 steps = 200 s each (default 625)")
+    tr.add_argument("--seed", type=int, default=0, help="random seed of networks and traffic (default 0)")
+    tr.add_argument("--obs", choices=("vector", "set"), default="vector",
+                    help="vector = the paper's 5 nearest; set = every vehicle in range through the set encoder")
+    tr.add_argument("--envs", type=_positive(int, "processes"), default=1,
+                    help="parallel environments, one process each (default 1)")
+    tr.add_argument("--episode-steps", type=_positive(int, "steps"), default=800,
+                    help="steps of 0.25 s per episode (default 800 = 200 s, the paper's)")
+    tr.add_argument("--checkpoint-every", type=_positive(int, "episodes"), default=25,
+                    help="save a checkpoint every K episodes (default 25)")
+    tr.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>_...)")
+    tr.add_argument("--resume", type=Path, default=None, metavar="RUN",
+                    help="continue RUN from its newest checkpoint (other options are taken from RUN/config.yaml)")
+    tr.add_argument("--backend", choices=("libsumo", "traci", "numpy"), default="libsumo",
+                    help="simulation backend (default libsumo; numpy = the same physics without SUMO)")
+
+    ev = sub.add_parser(
+        "evaluate",
+        help="run a trained policy deterministically on fresh seeds",
+        description="Evaluate RUN's final model (or newest checkpoint) deterministically; writes RUN/eval/episodes.csv "
+        "(RUN/eval_d<density>/ at another density) and, with --record, one trajectory CSV of all vehicles per episode.",
+    )
+    ev.add_argument("run", type=Path, metavar="RUN", help="run folder made by 'lanefree train'")
+    ev.add_argument("--episodes", type=_positive(int, "episodes"), default=20, help="episodes (default 20)")
+    ev.add_argument("--density", type=_density, default=None, help="veh/km (default: the training density)")
+    ev.add_argument("--seed", type=int, default=None,
+                    help="base seed; episode k uses seed+100000+k (default: the training seed)")
+    ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
+    ev.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval or RUN/eval_d<density>)")
+    ev.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
     net = sub.add_parser(
         "net",
@@ -159,6 +208,7 @@ def run_simulation(
     from tqdm import tqdm  # noqa: PLC0415
 
     from .simulation import Simulation  # noqa: PLC0415
+    from .trajectory import TrajectoryWriter  # noqa: PLC0415
 
     sim = Simulation(cfg)
     t0 = time.perf_counter()
@@ -168,11 +218,9 @@ def run_simulation(
     collisions = boundary_contacts = done = 0
     speed_sum = 0.0
     min_margin = float(np.min(np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)))
-    flush_every = max(1, int(round(1.0 / cfg.sim.step_s)))
-    handle = open(out / "trajectory.csv", "w", newline="") if (out is not None and write_trajectory) else None
-    writer = csv.writer(handle) if handle else None
-    if writer:
-        writer.writerow(TRAJECTORY_COLUMNS)
+    writer = (
+        TrajectoryWriter(out / "trajectory.csv", cfg.sim.step_s) if (out is not None and write_trajectory) else None
+    )
     interrupted = False
     try:
         for k in tqdm(range(steps), disable=not progress or not sys.stderr.isatty(), unit="step", desc="simulate"):
@@ -184,18 +232,12 @@ def run_simulation(
             margin = np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)
             min_margin = min(min_margin, float(margin.min()))
             if writer:
-                t = round(done * cfg.sim.step_s, 6)
-                writer.writerows(
-                    zip([t] * n, state.ids, np.round(state.x, 6), np.round(state.y, 6), np.round(state.vx, 6),
-                        np.round(state.vy, 6), np.round(result.ax, 6), np.round(result.ay, 6))
-                )
-                if done % flush_every == 0:
-                    handle.flush()
+                writer.write(done, state, result)
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        if handle:
-            handle.close()
+        if writer:
+            writer.close()
         sim.close()
     wall = time.perf_counter() - t0
     return {
@@ -216,6 +258,47 @@ def run_simulation(
     }
 
 
+def _train(args: argparse.Namespace) -> int:
+    from .train import train  # noqa: PLC0415
+
+    if args.resume is not None:
+        run, done = train(LaneFreeConfig(), run=args.resume, resume=True)
+    else:
+        cfg = merge_config(LaneFreeConfig(), {
+            "seed": args.seed,
+            "backend": args.backend,
+            "scenario": {"density_veh_per_km": args.density},
+            "reward": {"preset": args.reward},
+            "observation": {"kind": args.obs},
+            "sim": {"episode_steps": args.episode_steps},
+            "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs,
+                      "checkpoint_every_episodes": args.checkpoint_every},
+        })
+        run, done = train(cfg, run=args.out)
+    target = _episodes_target(run)
+    if done < target:
+        print(f"stopped after {done}/{target} episodes; checkpoint saved. Resume with: lanefree train --resume {run}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"trained {done} episodes -> {run}")
+    return 0
+
+
+def _episodes_target(run: Path) -> int:
+    from .train import load_run_config  # noqa: PLC0415
+
+    return load_run_config(run).train.episodes
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate  # noqa: PLC0415
+
+    out = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
+                   out=args.out, overwrite=args.overwrite)
+    print(f"evaluated {args.episodes} episodes -> {out / 'episodes.csv'}")
+    return 0
+
+
 def _net(args: argparse.Namespace) -> int:
     from .network import NETS_DIR  # noqa: PLC0415
     from .sumo_backend import build_ring_net  # noqa: PLC0415
@@ -234,9 +317,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return EXIT_BAD_INPUT
-        handler = {"simulate": _simulate, "net": _net}[args.command]
+        handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "net": _net}[args.command]
         return handler(args)
-    except (UsageError, ConfigError) as exc:
+    except (UsageError, ConfigError, RunError) as exc:
         print(f"lanefree: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:

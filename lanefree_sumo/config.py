@@ -156,6 +156,9 @@ class ScenarioConfig:
     with_agent: bool = False
     """Whether one externally controlled agent vehicle is on the road."""
     agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
+    agent_max_speed_mps: float = 30.0
+    """The agent's top speed (m/s); SPEC §2 bounds only its accelerations, but without a top
+    speed a policy learns to lap the ring at hundreds of m/s and farm overtake bonuses."""
     driver: DriverConfig = field(default_factory=DriverConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
 
@@ -228,6 +231,65 @@ class EpisodeConfig:
 
 
 @dataclass
+class ActorCriticConfig:
+    """DDPG (paper Table 1) and the other continuous-action algorithms (TD3, SAC, PPO)."""
+
+    actor_layers: tuple[int, ...] = (256, 128)
+    """Hidden layers of the actor; output 2 (tanh)."""
+    critic_layers: tuple[int, ...] = (256, 128)
+    """Hidden layers of the critic; output 1."""
+    learning_rate: float = 1e-3
+    batch_size: int = 64
+    gamma: float = 0.98
+    buffer_size: int = 100_000
+    tau: float = 0.001
+    """Soft target update rate (DDPG/TD3/SAC)."""
+    learning_starts_steps: int = 800
+    """Random steps before the first update (one episode)."""
+    ou_sigma: float = 0.2
+    """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
+    ou_theta: float = 0.15
+    """Ornstein–Uhlenbeck mean reversion θ (1/step)."""
+    ppo_n_steps: int = 800
+    """PPO rollout length per environment (steps)."""
+
+
+@dataclass
+class DQNConfig:
+    """The DQN family (paper Table 1 and §4.1)."""
+
+    layers: tuple[int, ...] = (128, 64)
+    """Hidden layers; output 9 Q-values."""
+    learning_rate: float = 1e-3
+    batch_size: int = 64
+    gamma: float = 0.98
+    buffer_size: int = 50_000
+    epsilon_start: float = 1.0
+    epsilon_end: float = 0.1
+    epsilon_decay_episodes: int = 200
+    """ε falls linearly from start to end over this many episodes, then stays."""
+    target_update_steps: int = 1000
+    """Hard target-network update interval (steps; the paper does not give it)."""
+    learning_starts_steps: int = 800
+
+
+@dataclass
+class TrainConfig:
+    """A training run (SPEC §9)."""
+
+    algo: str = "ddpg"
+    """ddpg, td3, sac, ppo (continuous actions) or dqn, ddqn, dueling, per (discrete)."""
+    episodes: int = 625
+    envs: int = 1
+    """Parallel environments, one process each (libsumo runs one simulation per process)."""
+    checkpoint_every_episodes: int = 25
+    torch_threads: int = 1
+    """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
+    actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+
+
+@dataclass
 class LaneFreeConfig:
     """Everything: road, simulation, scenario, rewards, observations."""
 
@@ -238,6 +300,7 @@ class LaneFreeConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     action: ActionConfig = field(default_factory=ActionConfig)
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
     backend: str = "libsumo"
     """``libsumo`` (fast, default), ``traci`` (socket; needed for the GUI) or ``numpy`` (no SUMO)."""

@@ -107,10 +107,14 @@ class StepResult:
     """(k, 2) index pairs (i < j) whose overlap started this step."""
 
 
-def clip_acceleration(ax: float, ay: float, bounds: AccelerationBounds) -> tuple[float, float]:
-    """Clip an agent's acceleration to its bounds (m/s²)."""
+def clip_acceleration(
+    ax: float, ay: float, bounds: AccelerationBounds, vx: float, max_speed: float, step_s: float
+) -> tuple[float, float]:
+    """Clip an agent's acceleration (m/s²) to its bounds and so that its speed vx (m/s) does
+    not exceed ``max_speed`` (m/s) at the end of the step."""
+    ax_top = min(bounds.ax_max, (max_speed - vx) / step_s)
     return (
-        float(np.clip(ax, bounds.ax_min, bounds.ax_max)),
+        float(min(max(ax, bounds.ax_min), ax_top)),
         float(np.clip(ay, bounds.ay_min, bounds.ay_max)),
     )
 
@@ -125,6 +129,8 @@ class Simulation:
         self.cfg = cfg
         self.backend: Backend | None = backend
         self.state: VehicleState | None = None
+        self.last_result: StepResult | None = None
+        """What happened in the latest step (for recorders)."""
         self.offsets: tuple[np.ndarray, np.ndarray] | None = None
         """(dx, dy) matrices of the current state, shared by collisions, forces, observations."""
         self.steps = 0
@@ -160,8 +166,11 @@ class Simulation:
         if not state.controlled.all():
             if agent_accel is None:
                 raise ValueError("this scenario has an agent: pass agent_accel=(ax, ay)")
-            agent = ~state.controlled
-            ax[agent], ay[agent] = clip_acceleration(*agent_accel, cfg.scenario.agent_bounds)
+            agent = np.flatnonzero(~state.controlled)[0]
+            ax[agent], ay[agent] = clip_acceleration(
+                *agent_accel, cfg.scenario.agent_bounds, float(state.vx[agent]), cfg.scenario.agent_max_speed_mps,
+                cfg.sim.step_s,
+            )
         cmd = plan_step(
             state.x, state.y, state.vx, state.vy, state.width, ax, ay,
             cfg.sim.step_s, cfg.road.width_m, cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
@@ -174,7 +183,8 @@ class Simulation:
         self.offsets = pairwise_offsets(state, cfg.road.length_m)
         overlap = overlap_matrix(state, cfg.road.length_m, self.offsets)
         new = self._tracker.update(overlap)
-        return StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
+        self.last_result = StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
+        return self.last_result
 
     def close(self) -> None:
         """Stop the backend (idempotent)."""

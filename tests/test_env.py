@@ -177,3 +177,13 @@ def test_set_encoder_trains_on_the_real_env(make):
     obs, _ = env.reset(seed=9)
     action, _ = model.predict(obs, deterministic=True)
     assert env.action_space.contains(int(action))
+
+
+def test_agent_speed_is_capped(make):
+    env = make({"scenario": {"agent_max_speed_mps": 25.0}})
+    env.reset(seed=0)
+    top = 0.0
+    for _ in range(80):  # 20 s of full throttle: would reach 18 + 40 m/s without the cap
+        env.step(np.array([1.0, 0.0]))
+        top = max(top, float(env.sim.state.vx[env._agent]))
+    assert top == pytest.approx(25.0)

@@ -1,0 +1,417 @@
+"""Training and evaluation runs: run folders, algorithms with the paper's hyperparameters,
+per-episode CSV, checkpoints, interruption and resume.
+
+A run folder ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` holds::
+
+    config.yaml          the full resolved LaneFreeConfig (env + algorithm), enough to rebuild both
+    command.txt          the command line
+    versions.json        python, torch, SB3, gymnasium, SUMO, lanefree_sumo, git commit
+    episodes.csv         one row per finished episode (SPEC §8 + algorithm, timesteps), flushed each time
+    tb/                  TensorBoard logs
+    checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json — every K episodes
+                         and on Ctrl-C / SIGTERM
+    model.zip            the final model
+
+``resume`` continues from the newest checkpoint: model and replay buffer are restored,
+``episodes.csv`` is cut back to the checkpoint's episode count, and episode numbers continue.
+The environments' random streams and the exploration noise state are not checkpointed: a
+resumed run is a valid continuation, not a bit-identical replay of an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import yaml
+
+from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
+
+CONTINUOUS_ALGOS = ("ddpg", "td3", "sac", "ppo")
+DISCRETE_ALGOS = ("dqn", "ddqn", "dueling", "per")
+ALGOS = CONTINUOUS_ALGOS + DISCRETE_ALGOS
+OFF_POLICY = ("ddpg", "td3", "sac") + DISCRETE_ALGOS
+EPISODE_COLUMNS = (
+    "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
+    "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
+    "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s",
+)
+CHECKPOINT_DIR = "checkpoints"
+
+
+class RunError(Exception):
+    """A run folder or checkpoint that cannot be used; the message says what to do."""
+
+
+# -- configuration -------------------------------------------------------------------------------
+
+def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
+    """Fix the parts of the config the algorithm decides: action kind from the algorithm."""
+    algo = base.train.algo
+    if algo not in ALGOS:
+        raise ConfigError(f"unknown algorithm '{algo}'; choose one of {', '.join(ALGOS)}")
+    kind = "discrete" if algo in DISCRETE_ALGOS else "continuous"
+    if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
+        raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
+    return merge_config(base, {"action": {"kind": kind}, "scenario": {"with_agent": True}})
+
+
+def load_run_config(run: Path) -> LaneFreeConfig:
+    """The configuration saved in a run folder."""
+    path = run / "config.yaml"
+    if not path.is_file():
+        raise RunError(f"{run} is not a run folder (no config.yaml); pass the folder that 'lanefree train' made")
+    try:
+        data = yaml.safe_load(path.read_text())
+        return merge_config(LaneFreeConfig(), data)
+    except (yaml.YAMLError, ConfigError, TypeError) as exc:
+        raise RunError(f"{path} is unreadable ({exc}); restore it or start a new run") from None
+
+
+def versions() -> dict[str, str]:
+    """Versions of everything that shapes a result."""
+    import gymnasium  # noqa: PLC0415
+    import stable_baselines3  # noqa: PLC0415
+    import torch  # noqa: PLC0415
+
+    from .sumo_backend import sumo_version  # noqa: PLC0415
+
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False,
+            cwd=Path(__file__).resolve().parent,
+        ).stdout.strip()
+    except OSError:
+        commit = ""
+    from importlib.metadata import version  # noqa: PLC0415
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "stable_baselines3": stable_baselines3.__version__,
+        "gymnasium": gymnasium.__version__,
+        "numpy": np.__version__,
+        "sumo": sumo_version(),
+        "lanefree_sumo": version("lanefree_sumo"),
+        "git_commit": commit or "unknown",
+    }
+
+
+def total_timesteps(cfg: LaneFreeConfig) -> int:
+    """Steps of a whole run: every episode, plus one round of the parallel envs as slack (the
+    callback stops learning at the episode count; this only has to be enough)."""
+    return (cfg.train.episodes + cfg.train.envs) * cfg.sim.episode_steps
+
+
+# -- environments and models ------------------------------------------------------------------------
+
+def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int) -> Callable[[], Any]:
+    def make() -> Any:
+        from stable_baselines3.common.monitor import Monitor  # noqa: PLC0415
+
+        from .env import LaneFreeEnv  # noqa: PLC0415
+
+        env = Monitor(LaneFreeEnv(cfg_dict))
+        env.reset(seed=seed + 1000 * rank)
+        return env
+
+    return make
+
+
+def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
+    """``n_envs`` environments: in this process for 1, else one process each."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv  # noqa: PLC0415
+
+    cfg_dict = config_to_dict(cfg)
+    factories = [_env_factory(cfg_dict, rank, seed) for rank in range(n_envs)]
+    if n_envs == 1:
+        vec = DummyVecEnv(factories)
+    else:
+        vec = SubprocVecEnv(factories, start_method="spawn")
+    vec.seed(seed)
+    return vec
+
+
+def algorithm_class(algo: str) -> Any:
+    """The SB3(-compatible) class of an algorithm name."""
+    from stable_baselines3 import DDPG, DQN, PPO, SAC, TD3  # noqa: PLC0415
+
+    if algo in ("ddqn", "dueling", "per"):
+        from . import algorithms  # noqa: PLC0415
+
+        return algorithms.PrioritizedDoubleDQN if algo == "per" else algorithms.DoubleDQN
+    return {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO, "dqn": DQN}[algo]
+
+
+def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
+    """A new model for ``cfg.train.algo`` with the paper's hyperparameters (SPEC §9)."""
+    import torch  # noqa: PLC0415
+    from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise  # noqa: PLC0415
+
+    algo = cfg.train.algo
+    cls = algorithm_class(algo)
+    set_obs = cfg.observation.kind == "set"
+    extractor: dict[str, Any] = {}
+    if set_obs:
+        from .encoder import SetFeaturesExtractor  # noqa: PLC0415
+
+        extractor = {"features_extractor_class": SetFeaturesExtractor}
+    common = {"seed": seed, "verbose": 0, "tensorboard_log": tensorboard_log, "device": "cpu"}
+    if algo in CONTINUOUS_ALGOS:
+        ac = cfg.train.actor_critic
+        policy = "MultiInputPolicy" if set_obs else "MlpPolicy"
+        nets = {"pi": list(ac.actor_layers), "qf": list(ac.critic_layers)}
+        kwargs: dict[str, Any] = {"learning_rate": ac.learning_rate, "gamma": ac.gamma, **common}
+        if algo == "ppo":
+            nets = {"pi": list(ac.actor_layers), "vf": list(ac.critic_layers)}
+            kwargs.update(n_steps=ac.ppo_n_steps, batch_size=ac.batch_size)
+        else:
+            kwargs.update(
+                buffer_size=ac.buffer_size, batch_size=ac.batch_size, tau=ac.tau,
+                learning_starts=ac.learning_starts_steps, train_freq=1, gradient_steps=1,
+            )
+        if algo in ("ddpg", "td3"):
+            n_actions = env.action_space.shape[0]
+            kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
+                mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
+            )
+        kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
+        return cls(policy, env, **kwargs)
+
+    dq = cfg.train.dqn
+    from . import algorithms  # noqa: PLC0415
+
+    if algo == "dueling":
+        policy: Any = algorithms.MultiInputDuelingDQNPolicy if set_obs else algorithms.DuelingDQNPolicy
+    else:
+        policy = "MultiInputPolicy" if set_obs else "MlpPolicy"
+    decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps / total_timesteps(cfg))
+    return cls(
+        policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,
+        gamma=dq.gamma, learning_starts=dq.learning_starts_steps, target_update_interval=dq.target_update_steps,
+        exploration_initial_eps=dq.epsilon_start, exploration_final_eps=dq.epsilon_end,
+        exploration_fraction=decay, train_freq=1, gradient_steps=1,
+        policy_kwargs={"net_arch": list(dq.layers), "activation_fn": torch.nn.ReLU, **extractor},
+        **common,
+    )
+
+
+# -- episode log and checkpoints ------------------------------------------------------------------
+
+class EpisodeLog:
+    """``episodes.csv``: one row per finished episode, appended and flushed at once."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        new = not path.exists() or path.stat().st_size == 0
+        self._fh = open(path, "a", newline="")
+        self._writer = csv.DictWriter(self._fh, fieldnames=EPISODE_COLUMNS, extrasaction="ignore")
+        if new:
+            self._writer.writeheader()
+            self._fh.flush()
+
+    def append(self, row: dict[str, Any]) -> None:
+        self._writer.writerow(row)
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+
+    @staticmethod
+    def truncate(path: Path, episodes: int) -> None:
+        """Keep the header and the rows of episodes 1..``episodes`` (drops rows a crash left
+        beyond the checkpoint, so a resumed run has no duplicates)."""
+        if not path.exists():
+            return
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        kept = [r for r in rows if r.get("episode", "").isdigit() and int(r["episode"]) <= episodes]
+        with open(path, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=EPISODE_COLUMNS, extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows(kept)
+
+
+@dataclass
+class Checkpoint:
+    path: Path
+    episodes: int
+    timesteps: int
+
+
+def save_checkpoint(model: Any, run: Path, episodes: int, algo: str) -> Path:
+    """Model, replay buffer (off-policy) and counters under ``checkpoints/ep_NNNNN``."""
+    folder = run / CHECKPOINT_DIR / f"ep_{episodes:05d}"
+    folder.mkdir(parents=True, exist_ok=True)
+    model.save(folder / "model.zip")
+    if algo in OFF_POLICY:
+        model.save_replay_buffer(folder / "replay_buffer.pkl")
+    state = {"episodes": episodes, "timesteps": int(model.num_timesteps), "algo": algo,
+             "saved": datetime.now().isoformat(timespec="seconds")}
+    (folder / "state.json").write_text(json.dumps(state, indent=2))  # written last: marks completeness
+    return folder
+
+
+def newest_checkpoint(run: Path) -> Checkpoint:
+    """The newest complete checkpoint of a run; RunError when there is none usable."""
+    root = run / CHECKPOINT_DIR
+    folders = sorted(root.glob("ep_*")) if root.is_dir() else []
+    for folder in reversed(folders):
+        try:
+            state = json.loads((folder / "state.json").read_text())
+            if (folder / "model.zip").is_file():
+                return Checkpoint(folder, int(state["episodes"]), int(state["timesteps"]))
+        except (OSError, ValueError, KeyError):
+            continue
+    raise RunError(f"{run} has no usable checkpoint under {CHECKPOINT_DIR}/; start a new run instead of resuming")
+
+
+# -- the training loop ----------------------------------------------------------------------------
+
+class _Stop:
+    """Set by SIGINT/SIGTERM; the callback ends learning at the next step."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.signal_name = ""
+
+    def __call__(self, signum: int, _frame: Any) -> None:
+        self.requested = True
+        self.signal_name = signal.Signals(signum).name
+
+
+def _make_callback(run: Path, cfg: LaneFreeConfig, log: EpisodeLog, done: int, stop: _Stop, progress: bool) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415
+    from tqdm import tqdm  # noqa: PLC0415
+
+    target = cfg.train.episodes
+    algo = cfg.train.algo
+
+    class EpisodeCallback(BaseCallback):
+        """Writes a CSV row per finished episode, logs to TensorBoard, checkpoints every K
+        episodes, and stops at the target episode count or on a signal."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.episodes = done
+            self.bar = tqdm(total=target, initial=done, unit="ep", desc=f"{algo}", disable=not progress,
+                            dynamic_ncols=True)
+
+        def _on_step(self) -> bool:
+            for info in self.locals["infos"]:
+                metrics = info.get("episode_metrics")
+                if metrics is None or self.episodes >= target:
+                    continue
+                self.episodes += 1
+                row = {**metrics, "episode": self.episodes, "algorithm": algo, "timesteps": self.num_timesteps}
+                log.append(row)
+                for key in ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps"):
+                    self.logger.record(f"episode/{key}", float(metrics[key]))
+                self.logger.dump(self.num_timesteps)
+                self.bar.update(1)
+                self.bar.set_postfix(collisions=metrics["collisions"], speed_dev=f"{metrics['speed_dev_mps']:.2f}",
+                                     ret=f"{metrics['return']:.1f}")
+                if self.episodes % cfg.train.checkpoint_every_episodes == 0 and self.episodes < target:
+                    save_checkpoint(self.model, run, self.episodes, algo)
+            return not stop.requested and self.episodes < target
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return EpisodeCallback()
+
+
+def run_name(cfg: LaneFreeConfig) -> str:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}_d{cfg.scenario.density_veh_per_km:g}"
+            f"_s{cfg.seed}")
+
+
+def train(
+    cfg: LaneFreeConfig,
+    run: Path | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    command: str | None = None,
+) -> tuple[Path, int]:
+    """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
+    checkpoint and return early."""
+    if resume:
+        assert run is not None
+        cfg = load_run_config(run)
+        ckpt = newest_checkpoint(run)
+        done, timesteps = ckpt.episodes, ckpt.timesteps
+    else:
+        cfg = training_config(cfg)
+        run = run or Path("runs") / run_name(cfg)
+        if run.exists() and any(run.iterdir()):
+            raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        (run / "versions.json").write_text(json.dumps(versions(), indent=2) + "\n")
+        done, timesteps = 0, 0
+    cmd = command or shlex.join(["lanefree", *sys.argv[1:]])
+    with open(run / "command.txt", "a") as fh:
+        fh.write(cmd + "\n")
+    if done >= cfg.train.episodes:
+        return run, done
+
+    import torch  # noqa: PLC0415
+
+    torch.set_num_threads(cfg.train.torch_threads)
+    algo = cfg.train.algo
+    env = make_vec_env(cfg, cfg.seed + done, cfg.train.envs)
+    stop = _Stop()
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    log: EpisodeLog | None = None
+    try:
+        if resume:
+            EpisodeLog.truncate(run / "episodes.csv", done)
+            try:
+                model = algorithm_class(algo).load(ckpt.path / "model.zip", env=env, device="cpu")
+                if algo in OFF_POLICY:
+                    buffer = ckpt.path / "replay_buffer.pkl"
+                    if not buffer.is_file():
+                        raise RunError(f"checkpoint {ckpt.path} lacks replay_buffer.pkl; it is incomplete")
+                    model.load_replay_buffer(buffer)
+            except RunError:
+                raise
+            except Exception as exc:
+                raise RunError(f"checkpoint {ckpt.path} is corrupt ({type(exc).__name__}: {exc}); "
+                               "delete that folder to resume from an older one") from None
+        else:
+            model = build_model(cfg, env, cfg.seed, str(run / "tb"))
+        log = EpisodeLog(run / "episodes.csv")
+        callback = _make_callback(run, cfg, log, done, stop, progress)
+        remaining = total_timesteps(cfg) - timesteps
+        t0 = time.perf_counter()
+        model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=not resume,
+                    tb_log_name="tb", progress_bar=False)
+        done = callback.episodes
+        wall = time.perf_counter() - t0
+        if stop.requested or done < cfg.train.episodes:
+            save_checkpoint(model, run, done, algo)
+        else:
+            model.save(run / "model.zip")
+        (run / "last_session.json").write_text(json.dumps(
+            {"episodes_done": done, "timesteps": int(model.num_timesteps), "wall_s": wall,
+             "steps_per_s": (model.num_timesteps - timesteps) / wall if wall > 0 else None,
+             "stopped_by": stop.signal_name or None}, indent=2) + "\n")
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if log is not None:
+            log.close()
+        env.close()
+    return run, done

@@ -1,0 +1,144 @@
+"""Training runs end to end: every algorithm's run folder, interruption and resume of a real
+training subprocess, evaluation of a saved model, broken checkpoints."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.evaluate import evaluate
+from lanefree_sumo.train import ALGOS, EPISODE_COLUMNS, RunError, train
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = {
+    "sim": {"episode_steps": 100},
+    "train": {
+        "episodes": 2, "checkpoint_every_episodes": 1,
+        "actor_critic": {"learning_starts_steps": 50, "buffer_size": 1000, "ppo_n_steps": 100},
+        "dqn": {"learning_starts_steps": 50, "buffer_size": 1000, "target_update_steps": 50},
+    },
+}
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def tiny_config(algo: str, **extra) -> LaneFreeConfig:
+    return merge_config(LaneFreeConfig(), {**TINY, **extra, "train": {**TINY["train"], "algo": algo}})
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
+    run, done = train(tiny_config(algo), run=tmp_path / algo, progress=False, command="test")
+    assert done == 2
+    for name in ("config.yaml", "command.txt", "versions.json", "episodes.csv", "model.zip"):
+        assert (run / name).is_file(), name
+    assert any((run / "tb").rglob("events.out.tfevents*"))
+    table = rows(run / "episodes.csv")
+    assert list(table[0]) == list(EPISODE_COLUMNS)
+    assert [int(r["episode"]) for r in table] == [1, 2]
+    assert all(r["algorithm"] == algo and int(r["steps"]) == 100 for r in table)
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert config["train"]["algo"] == algo
+    assert config["action"]["kind"] == ("discrete" if algo in ("dqn", "ddqn", "dueling", "per") else "continuous")
+    versions = json.loads((run / "versions.json").read_text())
+    assert {"python", "torch", "stable_baselines3", "sumo", "lanefree_sumo", "git_commit"} <= set(versions)
+    ckpt = run / "checkpoints" / "ep_00001"
+    assert (ckpt / "model.zip").is_file() and (ckpt / "state.json").is_file()
+    assert (ckpt / "replay_buffer.pkl").is_file() == (algo != "ppo")
+
+
+def test_set_observation_trains_with_the_encoder(tmp_path):
+    run, done = train(tiny_config("dueling", observation={"kind": "set"}), run=tmp_path / "set", progress=False)
+    assert done == 2 and (run / "model.zip").is_file()
+
+
+def lanefree(*args: str, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "lanefree_sumo.cli", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)}, **kwargs)
+
+
+def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
+    run = tmp_path / "run"
+    proc = lanefree("train", "--algo", "dqn", "--episodes", "6", "--episode-steps", "100", "--out", str(run),
+                    "--checkpoint-every", "100")
+    csv_path = run / "episodes.csv"
+    deadline = time.time() + 240
+    while time.time() < deadline:
+        if csv_path.exists() and len(rows(csv_path)) >= 2:
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Resume with: lanefree train --resume" in err and "Traceback" not in err
+    first = [int(r["episode"]) for r in rows(csv_path)]
+    assert 2 <= len(first) < 6 and first == list(range(1, len(first) + 1))
+    state = json.loads(next((run / "checkpoints").glob("ep_*/state.json")).read_text())
+    assert state["episodes"] == len(first)
+
+    resumed = lanefree("train", "--resume", str(run))
+    out, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    episodes = [int(r["episode"]) for r in rows(csv_path)]
+    assert episodes == [1, 2, 3, 4, 5, 6]
+    timesteps = [int(r["timesteps"]) for r in rows(csv_path)]
+    assert timesteps == sorted(timesteps)
+    assert (run / "model.zip").is_file()
+    assert len((run / "command.txt").read_text().splitlines()) == 2
+
+
+def test_evaluate_a_saved_model_with_recording(tmp_path):
+    run, _ = train(tiny_config("ddpg"), run=tmp_path / "run", progress=False)
+    out = evaluate(run, episodes=2, record=True, progress=False)
+    assert out == run / "eval"
+    table = rows(out / "episodes.csv")
+    assert [r["episode"] for r in table] == ["1", "2"]
+    assert {r["seed"] for r in table} == {"100001", "100002"}
+    traj = rows(out / "trajectories" / "episode_0001.csv")
+    assert list(traj[0]) == ["t", "id", "x", "y", "vx", "vy", "ax", "ay", "overlap"]
+    agent = [r for r in traj if r["id"] == "agent"]
+    assert len(agent) == 101 and agent[0]["t"] == "0.0"
+    with pytest.raises(RunError, match="exists; pass --overwrite"):
+        evaluate(run, episodes=1, progress=False)
+    other = evaluate(run, episodes=1, density=120, progress=False)
+    assert other.name == "eval_d120" and rows(other / "episodes.csv")[0]["density"] == "120.0"
+
+
+def test_broken_checkpoints_give_clear_errors(tmp_path):
+    run, _ = train(tiny_config("dqn"), run=tmp_path / "run", progress=False)
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    cfg["train"]["episodes"] = 4
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    (run / "checkpoints" / "ep_00001" / "model.zip").write_bytes(b"not a zip")
+    with pytest.raises(RunError, match="is corrupt"):
+        train(LaneFreeConfig(), run=run, resume=True, progress=False)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(RunError, match="no config.yaml"):
+        train(LaneFreeConfig(), run=empty, resume=True, progress=False)
+    (empty / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(RunError, match="no usable checkpoint"):
+        train(LaneFreeConfig(), run=empty, resume=True, progress=False)
+
+
+def test_cli_refuses_an_existing_run_folder(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "keep").write_text("x")
+    proc = lanefree("train", "--episodes", "1", "--out", str(run))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and "exists; resume it" in err and err.count("\n") == 1
