@@ -1,5 +1,5 @@
-"""``lanefree`` command line: ``simulate`` (background traffic), ``train``, ``evaluate`` and
-``net`` (build a ring).
+"""``lanefree`` command line: ``simulate`` (background traffic), ``train``, ``evaluate``,
+``replay`` (sumo-gui), ``export`` (CSV + FCD XML), ``report`` (figures, tables) and ``net``.
 
 Every bad input ends in ONE line on stderr saying what was wrong and what to do, and a
 non-zero exit code (2 for bad input, 1 when SUMO fails, 130 on Ctrl-C); never a traceback.
@@ -57,6 +57,26 @@ def _positive(kind: type, unit: str):
         return value
 
     return parse
+
+
+def _nonnegative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in s, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number in s, got {text!r}")
+    return value
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels, e.g. 1024x768, got {text!r}") from None
+    if w < 16 or h < 16:
+        raise argparse.ArgumentTypeError(f"size must be at least 16x16 pixels, got {text!r}")
+    return w, h
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -136,6 +156,38 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
     ev.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval or RUN/eval_d<density>)")
     ev.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+
+    rp = sub.add_parser(
+        "replay",
+        help="replay a recorded evaluation episode in sumo-gui",
+        description="Replay episode K recorded by 'lanefree evaluate RUN --record' in sumo-gui, exactly, step by step: "
+        "the agent green and tracked, background vehicles coloured by desired speed (blue slow, orange fast), "
+        "overlapping vehicles red. Prints the largest deviation between SUMO and the recording.",
+    )
+    rp.add_argument("run", type=Path, metavar="RUN", help="run folder (or its eval folder) with a recording")
+    rp.add_argument("--episode", type=_positive(int, "episodes"), default=1, help="recorded episode number (default 1)")
+    rp.add_argument("--delay", type=_nonnegative, default=0.05, help="wall-clock delay per step in s (default 0.05)")
+    rp.add_argument("--screenshot", type=Path, default=None, help="save a PNG of the view at --screenshot-step")
+    rp.add_argument("--screenshot-step", type=_positive(int, "steps"), default=None,
+                    help="step of the screenshot (default: the last)")
+    rp.add_argument("--frames", type=Path, default=None, help="folder for one PNG per --every steps")
+    rp.add_argument("--every", type=_positive(int, "steps"), default=1, help="frame interval in steps (default 1)")
+    rp.add_argument("--gif", type=Path, default=None, help="write an animated GIF of the frames")
+    rp.add_argument("--size", type=_size, default=(1024, 768), help="view size WIDTHxHEIGHT in pixels (default 1024x768)")
+    rp.add_argument("--zoom", type=_positive(float, "%"), default=400.0, help="view zoom in %% (default 400)")
+    rp.add_argument("--no-gui", action="store_true", help="replay without a window (with --fcd: export only)")
+    rp.add_argument("--fcd", type=Path, default=None, help="also write SUMO FCD XML (with posLat) of the replay")
+
+    ex = sub.add_parser(
+        "export",
+        help="export a recorded episode as CSV and SUMO FCD XML",
+        description="Write episode K of RUN's recording as trajectory CSV and as SUMO's own FCD XML (x, y, angle, "
+        "type, speed, pos, lane, posLat) into --out, by replaying it headless in SUMO.",
+    )
+    ex.add_argument("run", type=Path, metavar="RUN", help="run folder (or its eval folder) with a recording")
+    ex.add_argument("--episode", type=_positive(int, "episodes"), default=1, help="recorded episode (default 1)")
+    ex.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval/export)")
+    ex.add_argument("--overwrite", action="store_true", help="replace existing export files")
 
     net = sub.add_parser(
         "net",
@@ -299,6 +351,32 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay(args: argparse.Namespace) -> int:
+    from .replay import replay  # noqa: PLC0415
+
+    result = replay(args.run, episode=args.episode, gui=not args.no_gui, delay_s=args.delay,
+                    screenshot=args.screenshot, screenshot_step=args.screenshot_step, frames=args.frames,
+                    every=args.every, gif=args.gif, fcd=args.fcd, size=args.size, zoom=args.zoom)
+    print(f"replayed {result.steps} steps; largest deviation from the recording: "
+          f"x {result.max_dx_m:.2e} m, y {result.max_dy_m:.2e} m")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from .replay import find_eval_dir, replay  # noqa: PLC0415
+
+    source = find_eval_dir(args.run) / "trajectories" / f"episode_{args.episode:04d}.csv"
+    out = args.out or find_eval_dir(args.run) / "export"
+    csv_out = out / f"episode_{args.episode:04d}.csv"
+    fcd_out = out / f"episode_{args.episode:04d}.fcd.xml"
+    if (csv_out.exists() or fcd_out.exists()) and not args.overwrite:
+        raise UsageError(f"{csv_out.parent} already holds episode {args.episode}; pass --overwrite to replace it")
+    result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out)
+    shutil.copyfile(source, csv_out)
+    print(f"exported {result.steps} steps -> {csv_out} and {fcd_out}")
+    return 0
+
+
 def _net(args: argparse.Namespace) -> int:
     from .network import NETS_DIR  # noqa: PLC0415
     from .sumo_backend import build_ring_net  # noqa: PLC0415
@@ -317,7 +395,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return EXIT_BAD_INPUT
-        handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "net": _net}[args.command]
+        handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "replay": _replay,
+                   "export": _export, "net": _net}[args.command]
         return handler(args)
     except (UsageError, ConfigError, RunError) as exc:
         print(f"lanefree: error: {exc}", file=sys.stderr)

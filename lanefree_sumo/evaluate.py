@@ -4,7 +4,8 @@ Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at anoth
 trained), one row per episode with the SPEC §8 columns, and with ``record`` one trajectory file
 per episode, ``trajectories/episode_NNNN.csv`` — every vehicle at every step including the
 initial state, in the format of :mod:`lanefree_sumo.trajectory` with the ``overlap`` column;
-the agent's id is ``agent``.  ``recording.json`` beside them names the network and the config
+the agent's id is ``agent`` — and ``episode_NNNN.vehicles.csv`` with each vehicle's length,
+width and desired speed.  ``recording.json`` beside them names the network and the config
 so that a replay can rebuild the scene.
 """
 
@@ -52,7 +53,7 @@ def evaluate(
     from tqdm import tqdm  # noqa: PLC0415
 
     from .env import LaneFreeEnv  # noqa: PLC0415
-    from .trajectory import TrajectoryWriter  # noqa: PLC0415
+    from .trajectory import TrajectoryWriter, write_vehicles  # noqa: PLC0415
 
     cfg = load_run_config(run)
     trained_density = cfg.scenario.density_veh_per_km
@@ -88,6 +89,7 @@ def evaluate(
                                       overlap=True) if record else None
             if writer:
                 writer.write(0, env.sim.state, None)
+                write_vehicles(out / "trajectories" / f"episode_{k:04d}.vehicles.csv", env.sim.state)
             info: dict[str, Any] = {}
             done = False
             while not done:

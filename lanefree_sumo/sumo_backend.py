@@ -14,7 +14,7 @@ import subprocess
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import sumo
@@ -37,6 +37,7 @@ from .network import (
 from .spawn import AGENT_ID
 from .state import VehicleState
 
+GUI_VIEW = "View #0"
 _SUBSCRIBED = (tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED)
 
 
@@ -139,7 +140,15 @@ class SumoBackend:
     :class:`StepCommand` and returns the positions and speeds SUMO reports afterwards.
     """
 
-    def __init__(self, cfg: LaneFreeConfig, kind: str = "libsumo", gui: bool = False, label: str | None = None) -> None:
+    def __init__(
+        self,
+        cfg: LaneFreeConfig,
+        kind: str = "libsumo",
+        gui: bool = False,
+        label: str | None = None,
+        extra_args: Sequence[str] = (),
+    ) -> None:
+        """``extra_args``: further SUMO options (e.g. ``--fcd-output``, GUI settings)."""
         if kind not in ("libsumo", "traci"):
             raise SumoError(f"unknown SUMO backend '{kind}'; use libsumo or traci")
         if gui and kind != "traci":
@@ -150,6 +159,7 @@ class SumoBackend:
         self.net = resolve_net(cfg)
         check_ring_net(self.net, cfg)
         self._label = label or f"lanefree-{os.getpid()}-{id(self)}"
+        self._extra_args = list(extra_args)
         self._ids: list[str] = []
         self._edge_offset = {edge_id(k): k * cfg.road.length_m / EDGES for k in range(EDGES)}
         self._half_width = 0.5 * cfg.road.width_m
@@ -167,6 +177,7 @@ class SumoBackend:
         args = [sumo_binary("sumo-gui" if self.gui else "sumo"), *sumo_options(self.cfg, self.net, additional)]
         if self.gui:
             args += ["--start", "true", "--quit-on-end", "true"]
+        args += self._extra_args
         try:
             if self.kind == "libsumo":
                 import libsumo  # noqa: PLC0415 - libsumo is loaded only when used
@@ -231,7 +242,7 @@ class SumoBackend:
                 v.setPreviousSpeed(vid, float(state.vx[i]))
                 v.subscribe(vid, _SUBSCRIBED)
             if self.gui and AGENT_ID in state.ids:
-                self._conn.gui.trackVehicle("View #0", AGENT_ID)
+                self._conn.gui.trackVehicle(GUI_VIEW, AGENT_ID)
         except SumoError:
             raise
         except Exception as exc:
@@ -281,10 +292,21 @@ class SumoBackend:
         return self.read()
 
     def set_color(self, vid: str, rgba: tuple[int, int, int, int]) -> None:
+        """Colour of a vehicle in sumo-gui (0–255 each)."""
         self._conn.vehicle.setColor(vid, rgba)
 
     def screenshot(self, path: Path, width: int, height: int) -> None:
-        self._conn.gui.screenshot("View #0", str(path), width, height)
+        """Ask sumo-gui for a PNG of the view; SUMO writes it during the next simulation step."""
+        self._conn.gui.screenshot(GUI_VIEW, str(path), width, height)
+
+    def track(self, vid: str, zoom: float) -> None:
+        """Centre the sumo-gui view on ``vid`` and follow it, at ``zoom`` (%)."""
+        self._conn.gui.setZoom(GUI_VIEW, zoom)
+        self._conn.gui.trackVehicle(GUI_VIEW, vid)
+
+    def idle_step(self) -> None:
+        """One simulation step without commands (lets SUMO finish pending screenshots)."""
+        self._conn.simulationStep()
 
 
 def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> float:

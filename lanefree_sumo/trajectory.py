@@ -21,6 +21,14 @@ COLUMNS = ("t", "id", "x", "y", "vx", "vy", "ax", "ay")
 DECIMALS = 6
 
 
+def write_vehicles(path: Path, state: VehicleState) -> None:
+    """The fixed attributes of a recording's vehicles: id, length, width (m), v_desired (m/s)."""
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(("id", "length", "width", "v_desired"))
+        writer.writerows(zip(state.ids, state.length, state.width, np.round(state.v_desired, 9)))
+
+
 class TrajectoryWriter:
     """Appends the state of every vehicle after each step to a CSV file."""
 
