@@ -14,12 +14,14 @@ EPISODES ?= 625
 ENVS    ?= 1
 OBS     ?= vector
 RUN     ?=
+RUNS    ?= runs/*/
+EPISODE ?= 1
 SECONDS ?= 200
 LENGTH  ?= 500
 WIDTH   ?= 10.2
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv test train evaluate simulate nets bench traffic clean-venv
+.PHONY: venv test train evaluate replay report simulate nets bench traffic clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -42,6 +44,13 @@ train: $(STAMP)
 evaluate: $(STAMP)
 	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
 	$(BIN)/lanefree evaluate $(RUN) --record
+
+replay: $(STAMP)
+	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1]"; exit 2; }
+	$(BIN)/lanefree replay $(RUN) --episode $(EPISODE)
+
+report: $(STAMP)
+	$(BIN)/lanefree report $(RUNS) --out runs/report
 
 simulate: $(STAMP)
 	$(BIN)/lanefree simulate --density $(DENSITY) --seconds $(SECONDS) --seed $(SEED) \

@@ -189,6 +189,21 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval/export)")
     ex.add_argument("--overwrite", action="store_true", help="replace existing export files")
 
+    rep = sub.add_parser(
+        "report",
+        help="learning curves and paper-style tables from run folders",
+        description="Group run folders by (algorithm, reward preset, density), average the seeds, and write "
+        "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
+        "and a table of last-50-episode means ± std with the paper's numbers (SPEC §10) as summary.csv and "
+        "summary.md. Unusable runs are named and skipped.",
+    )
+    rep.add_argument("runs", type=Path, nargs="+", metavar="RUN", help="run folders made by 'lanefree train'")
+    rep.add_argument("--out", type=Path, default=Path("runs/report"), help="output folder (default runs/report)")
+    rep.add_argument("--last", type=_positive(int, "episodes"), default=50,
+                     help="episodes at the end of each run averaged in the table (default 50, as the paper)")
+    rep.add_argument("--smooth", type=_positive(int, "episodes"), default=20,
+                     help="trailing moving-average window of the curves in episodes (default 20)")
+
     net = sub.add_parser(
         "net",
         help="build a ring network with netconvert",
@@ -377,6 +392,22 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _report(args: argparse.Namespace) -> int:
+    from .report import ReportError, report  # noqa: PLC0415
+
+    try:
+        result = report(args.runs, args.out, last=args.last, smooth=args.smooth)
+    except ReportError as exc:
+        raise UsageError(str(exc)) from None
+    for path, reason in result.skipped:
+        print(f"skipped {path}: {reason}", file=sys.stderr)
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"{len(result.table)} group(s) -> {args.out}")
+    print((args.out / "summary.md").read_text())
+    return 0
+
+
 def _net(args: argparse.Namespace) -> int:
     from .network import NETS_DIR  # noqa: PLC0415
     from .sumo_backend import build_ring_net  # noqa: PLC0415
@@ -396,7 +427,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.print_help()
             return EXIT_BAD_INPUT
         handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "replay": _replay,
-                   "export": _export, "net": _net}[args.command]
+                   "export": _export, "report": _report, "net": _net}[args.command]
         return handler(args)
     except (UsageError, ConfigError, RunError) as exc:
         print(f"lanefree: error: {exc}", file=sys.stderr)

@@ -1,0 +1,518 @@
+"""Reports over training runs: learning curves and the paper-style results table.
+
+``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in
+:mod:`lanefree_sumo.train`), groups them by (algorithm, reward preset, density) and writes into
+``out``::
+
+    curves_return.png       episode return per training episode
+    curves_collisions.png   agent collisions per episode
+    curves_speed_dev.png    speed deviation mean |vx − v_d| per episode (m/s)
+    summary.csv             one row per group: last-``last``-episode means, std over seeds, paper values
+    summary.md              the same as a Markdown table, cells ``0.520 ± 0.100 (paper 0.449)``
+
+Definitions (SPEC §8, §10):
+
+* **Grouping.** The group key is read from each run's ``config.yaml``: ``train.algo``,
+  ``reward.preset``, ``scenario.density_veh_per_km`` (veh/km); the run's seed is ``seed``.
+  (The ``seed`` column of ``episodes.csv`` is the per-episode environment seed, not the run seed.)
+* **Table cells.** For each run, the mean of a metric over its last ``last`` episodes (by episode
+  number; all episodes if the run has fewer — the ``episodes_min`` column and a note say so). The
+  cell is the mean of these per-run values over the group's runs, ± their *sample* standard
+  deviation over runs (``ddof=1``; undefined — NaN in the CSV, ``n/a`` in Markdown — for a
+  single run). ``n_seeds`` counts the runs in the group.
+* **Curves.** Each run's per-episode series is smoothed with a *trailing* moving average of
+  ``smooth`` episodes (the value at episode e is the mean of episodes e−smooth+1 … e; the first
+  episodes average over what exists), then the mean over the group's runs is drawn as a line and
+  ± the sample std over runs (``ddof=1``) as a shaded band, at every episode that at least one
+  run reached. Where the paper has a reference value, it is drawn as a dashed horizontal line in
+  the group's colour.
+* **Paper values.** :data:`PAPER_REFERENCE` holds SPEC §10 (paper Tables 5–8): collisions per
+  episode and speed deviation (m/s), keyed by (algorithm, preset, density).
+
+Damaged runs never crash a report. A run folder is *skipped* — listed in
+:attr:`ReportResult.skipped` and in ``summary.md`` with the reason — when ``config.yaml`` or
+``episodes.csv`` is missing or unreadable, the config lacks the group keys, the CSV misses one of
+:data:`REQUIRED_COLUMNS`, any row has a different number of fields than the header (this includes
+a last line cut in the middle by a killed writer: the whole run is skipped, not just that line,
+so that no table silently mixes complete and damaged files — ``lanefree resume`` rewrites the
+CSV cleanly), a required value is not a finite number, or an episode number repeats.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from .train import ALGOS
+
+# -- constants -----------------------------------------------------------------------------------
+
+REQUIRED_COLUMNS: tuple[str, ...] = ("episode", "return", "collisions", "speed_dev_mps", "overtakes")
+"""Columns of ``episodes.csv`` the report needs; the others of ``EPISODE_COLUMNS`` are ignored."""
+
+TABLE_METRICS: tuple[tuple[str, str, str], ...] = (
+    # (column, Markdown header, number format)
+    ("collisions", "collisions / episode", ".3f"),
+    ("speed_dev_mps", "speed deviation (m/s)", ".3f"),
+    ("return", "return", ".2f"),
+    ("overtakes", "overtakes / episode", ".2f"),
+)
+"""Metrics of the summary table, in column order."""
+
+CURVE_METRICS: tuple[tuple[str, str, str], ...] = (
+    # (column, file name, y-axis label with unit)
+    ("return", "curves_return.png", "episode return (sum of step rewards, dimensionless)"),
+    ("collisions", "curves_collisions.png", "agent collisions per episode (count)"),
+    ("speed_dev_mps", "curves_speed_dev.png", "speed deviation mean |vx − v_d| (m/s)"),
+)
+"""Learning-curve figures: one per metric, all groups as lines."""
+
+DEFAULT_DENSITY = 70.0
+"""Density (veh/km) of the paper's tables that do not vary it (Tables 5, 6, 8)."""
+
+GroupKey = tuple[str, str, float]
+"""(algorithm, reward preset, density in veh/km)."""
+
+
+class PaperReference(NamedTuple):
+    """One reference result of the paper (SPEC §10): last-50-episode means over 10 runs."""
+
+    collisions: float
+    """Agent collisions per episode."""
+    speed_dev_mps: float
+    """Speed deviation mean |vx − v_d| (m/s)."""
+    source: str
+    """Paper table(s) reporting it, e.g. ``"Tables 6, 7, 8"``."""
+
+
+# (table, algorithm, preset, density veh/km, collisions / episode, speed deviation m/s) — SPEC §10.
+_PAPER_ROWS: tuple[tuple[int, str, str, float, float, float], ...] = (
+    # Table 5: DDPG, reward presets, 70 veh/km
+    (5, "ddpg", "collision", DEFAULT_DENSITY, 2.256, 0.135),
+    (5, "ddpg", "fields", DEFAULT_DENSITY, 1.761, 0.323),
+    (5, "ddpg", "fields_collision", DEFAULT_DENSITY, 0.726, 0.698),
+    (5, "ddpg", "overtake_collision", DEFAULT_DENSITY, 2.293, 0.058),
+    (5, "ddpg", "fields_overtake_collision", DEFAULT_DENSITY, 0.649, 0.613),
+    # Table 6: DDPG, zones vs fields, 70 veh/km
+    (6, "ddpg", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.449, 0.723),
+    (6, "ddpg", "fields_overtake_collision", DEFAULT_DENSITY, 0.649, 0.613),
+    (6, "ddpg", "zones_overtake_collision", DEFAULT_DENSITY, 1.282, 0.403),
+    # Table 7: DDPG, densities
+    (7, "ddpg", "fields_zones_overtake_collision", 70.0, 0.449, 0.723),
+    (7, "ddpg", "fields_zones_overtake_collision", 90.0, 0.508, 0.998),
+    (7, "ddpg", "fields_zones_overtake_collision", 120.0, 0.591, 1.718),
+    (7, "ddpg", "fields_overtake_collision", 70.0, 0.649, 0.613),
+    (7, "ddpg", "fields_overtake_collision", 90.0, 0.771, 0.956),
+    (7, "ddpg", "fields_overtake_collision", 120.0, 1.066, 1.715),
+    # Table 8: algorithms, fields_zones_overtake_collision, 70 veh/km
+    (8, "ddpg", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.449, 0.723),
+    (8, "dqn", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.952, 0.471),
+    (8, "ddqn", "fields_zones_overtake_collision", DEFAULT_DENSITY, 1.094, 0.483),
+    (8, "dueling", "fields_zones_overtake_collision", DEFAULT_DENSITY, 1.04, 0.496),
+    (8, "per", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.792, 0.617),
+)
+
+
+def _build_paper_reference() -> dict[GroupKey, PaperReference]:
+    """Merge the per-table rows; a setting in several tables must have the same numbers there."""
+    values: dict[GroupKey, tuple[float, float]] = {}
+    tables: dict[GroupKey, list[int]] = {}
+    for table, algo, preset, density, collisions, speed_dev in _PAPER_ROWS:
+        key = (algo, preset, float(density))
+        if key in values and values[key] != (collisions, speed_dev):
+            raise AssertionError(f"paper tables disagree for {key}: {values[key]} vs {(collisions, speed_dev)}")
+        values[key] = (collisions, speed_dev)
+        tables.setdefault(key, []).append(table)
+    out: dict[GroupKey, PaperReference] = {}
+    for key, (collisions, speed_dev) in values.items():
+        nums = sorted(set(tables[key]))
+        source = ("Table " if len(nums) == 1 else "Tables ") + ", ".join(str(n) for n in nums)
+        out[key] = PaperReference(collisions, speed_dev, source)
+    return out
+
+
+PAPER_REFERENCE: dict[GroupKey, PaperReference] = _build_paper_reference()
+"""SPEC §10 reference numbers keyed by (algorithm, reward preset, density veh/km)."""
+
+
+def paper_reference(algorithm: str, preset: str, density: float) -> PaperReference | None:
+    """The paper's result for a setting, or None if the paper has none (density in veh/km)."""
+    return PAPER_REFERENCE.get((algorithm, preset, round(float(density), 6)))
+
+
+# -- results -------------------------------------------------------------------------------------
+
+class ReportError(ValueError):
+    """No report can be made (no usable run, output not writable); the message is one line."""
+
+
+@dataclass
+class ReportResult:
+    """What :func:`report` produced."""
+
+    table: pd.DataFrame
+    """One row per group, the columns of ``summary.csv`` (see :func:`summary_table`)."""
+    files: list[Path]
+    """Files written, in order: the three curve PNGs, ``summary.csv``, ``summary.md``."""
+    skipped: list[tuple[Path, str]]
+    """Run folders left out, each with the reason."""
+    notes: list[str] = field(default_factory=list)
+    """Things worth knowing that did not stop a run being used (short runs, repeated seeds)."""
+
+
+@dataclass
+class RunData:
+    """One usable run: its group key, seed and per-episode metrics."""
+
+    path: Path
+    algorithm: str
+    preset: str
+    density: float
+    """Background density (veh/km)."""
+    seed: int
+    episodes: pd.DataFrame
+    """Index ``episode`` (ascending, unique), float columns ``REQUIRED_COLUMNS[1:]``."""
+
+    @property
+    def key(self) -> GroupKey:
+        return (self.algorithm, self.preset, self.density)
+
+
+class _Unusable(Exception):
+    """A run folder that must be skipped; the message is the reason."""
+
+
+# -- reading runs --------------------------------------------------------------------------------
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _config_value(data: dict[str, Any], dotted: str) -> Any:
+    node: Any = data
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise _Unusable(f"config.yaml has no '{dotted}'")
+        node = node[part]
+    return node
+
+
+def read_run_config(run: Path) -> tuple[str, str, float, int]:
+    """(algorithm, reward preset, density veh/km, seed) from ``run/config.yaml``.
+
+    Raises ``_Unusable`` (internal) with the reason when the file is missing or malformed.
+    """
+    path = run / "config.yaml"
+    if not path.is_file():
+        raise _Unusable("no config.yaml")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise _Unusable(f"config.yaml unreadable ({_one_line(exc)})") from None
+    if not isinstance(data, dict):
+        raise _Unusable("config.yaml is not a mapping")
+    algo = _config_value(data, "train.algo")
+    preset = _config_value(data, "reward.preset")
+    density = _config_value(data, "scenario.density_veh_per_km")
+    seed = _config_value(data, "seed")
+    if not isinstance(algo, str) or not algo:
+        raise _Unusable(f"config.yaml train.algo is not a name: {algo!r}")
+    if not isinstance(preset, str) or not preset:
+        raise _Unusable(f"config.yaml reward.preset is not a name: {preset!r}")
+    if isinstance(density, bool) or not isinstance(density, (int, float)) or not math.isfinite(density) \
+            or density <= 0:
+        raise _Unusable(f"config.yaml scenario.density_veh_per_km is not a positive number: {density!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise _Unusable(f"config.yaml seed is not an integer: {seed!r}")
+    return algo, preset, round(float(density), 6), seed
+
+
+def read_episodes(path: Path) -> pd.DataFrame:
+    """The required metrics of an ``episodes.csv``, indexed by episode (ascending).
+
+    Strict: every non-blank row must have as many fields as the header (a last line cut in the
+    middle fails here), required values must be finite numbers, episode numbers integral and
+    unique. Raises ``_Unusable`` (internal) with the reason, naming the line.
+    """
+    if not path.is_file():
+        raise _Unusable("no episodes.csv")
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if header is None:
+                raise _Unusable("episodes.csv is empty")
+            header = [h.strip() for h in header]
+            missing = [c for c in REQUIRED_COLUMNS if c not in header]
+            if missing:
+                raise _Unusable(f"episodes.csv lacks column(s) {', '.join(missing)}")
+            index = {c: header.index(c) for c in REQUIRED_COLUMNS}
+            rows: list[list[float]] = []
+            for fields in reader:
+                if not fields or all(not f.strip() for f in fields):
+                    continue
+                line = reader.line_num
+                if len(fields) != len(header):
+                    cut = " (file cut mid-row?)" if len(fields) < len(header) else ""
+                    raise _Unusable(
+                        f"episodes.csv line {line} has {len(fields)} fields, header has {len(header)}{cut}")
+                row = []
+                for col in REQUIRED_COLUMNS:
+                    text = fields[index[col]].strip()
+                    try:
+                        value = float(text)
+                    except ValueError:
+                        value = math.nan
+                    if not math.isfinite(value):
+                        raise _Unusable(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
+                    row.append(value)
+                rows.append(row)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise _Unusable(f"episodes.csv unreadable ({_one_line(exc)})") from None
+    if not rows:
+        raise _Unusable("episodes.csv has no episodes")
+    frame = pd.DataFrame(rows, columns=list(REQUIRED_COLUMNS))
+    if not np.all(frame["episode"] == np.round(frame["episode"])):
+        raise _Unusable("episodes.csv has a non-integer episode number")
+    frame["episode"] = frame["episode"].astype(int)
+    repeated = frame["episode"][frame["episode"].duplicated()]
+    if len(repeated):
+        raise _Unusable(f"episodes.csv has episode {int(repeated.iloc[0])} more than once")
+    return frame.set_index("episode").sort_index()
+
+
+def read_run(run: Path) -> RunData:
+    """Read one run folder; raises ``_Unusable`` (internal) with the reason to skip it."""
+    if not run.is_dir():
+        raise _Unusable("not a folder" if run.exists() else "folder does not exist")
+    algo, preset, density, seed = read_run_config(run)
+    return RunData(run, algo, preset, density, seed, read_episodes(run / "episodes.csv"))
+
+
+# -- tables --------------------------------------------------------------------------------------
+
+def _sort_key(key: GroupKey) -> tuple[int, str, str, float]:
+    algo, preset, density = key
+    return (ALGOS.index(algo) if algo in ALGOS else len(ALGOS), algo, preset, density)
+
+
+def group_runs(runs: Sequence[RunData]) -> dict[GroupKey, list[RunData]]:
+    """Runs by (algorithm, preset, density), groups in a stable order (algorithm as in ``ALGOS``),
+    runs within a group by seed."""
+    groups: dict[GroupKey, list[RunData]] = {}
+    for run in runs:
+        groups.setdefault(run.key, []).append(run)
+    return {k: sorted(groups[k], key=lambda r: (r.seed, str(r.path))) for k in sorted(groups, key=_sort_key)}
+
+
+def summary_table(groups: dict[GroupKey, list[RunData]], last: int = 50) -> pd.DataFrame:
+    """One row per group with columns::
+
+        algorithm, reward_preset, density_veh_per_km, n_seeds, seeds, episodes_min,
+        <m>_mean, <m>_std  for m in collisions, speed_dev_mps, return, overtakes,
+        collisions_paper, speed_dev_mps_paper, paper_source
+
+    ``<m>_mean`` is the mean over runs of each run's mean over its last ``last`` episodes,
+    ``<m>_std`` the sample std over runs (ddof=1, NaN for one run). ``episodes_min`` is the
+    fewest episodes any run of the group has. Paper columns are NaN / "" where SPEC §10 has no
+    value. Units: collisions and overtakes per episode, speed deviation m/s.
+    """
+    records = []
+    for (algo, preset, density), runs in groups.items():
+        per_run = pd.DataFrame([r.episodes.tail(last).mean() for r in runs])
+        rec: dict[str, Any] = {
+            "algorithm": algo, "reward_preset": preset, "density_veh_per_km": density,
+            "n_seeds": len(runs), "seeds": ";".join(str(r.seed) for r in runs),
+            "episodes_min": min(len(r.episodes) for r in runs),
+        }
+        for col, _, _ in TABLE_METRICS:
+            rec[f"{col}_mean"] = float(per_run[col].mean())
+            rec[f"{col}_std"] = float(per_run[col].std(ddof=1)) if len(runs) > 1 else math.nan
+        ref = paper_reference(algo, preset, density)
+        rec["collisions_paper"] = ref.collisions if ref else math.nan
+        rec["speed_dev_mps_paper"] = ref.speed_dev_mps if ref else math.nan
+        rec["paper_source"] = ref.source if ref else ""
+        records.append(rec)
+    return pd.DataFrame.from_records(records)
+
+
+def _cell(mean: float, std: float, fmt: str, paper: float | None) -> str:
+    text = f"{mean:{fmt}} ± {std:{fmt}}" if math.isfinite(std) else f"{mean:{fmt}} ± n/a"
+    if paper is not None and math.isfinite(paper):
+        text += f" (paper {paper:g})"
+    return text
+
+
+def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Path, str]] = (),
+                     notes: Sequence[str] = ()) -> str:
+    """The summary table as Markdown, with a short explanation, skipped runs and notes."""
+    headers = ["algorithm", "reward preset", "density (veh/km)", "seeds"] + [h for _, h, _ in TABLE_METRICS]
+    lines = [
+        "# lanefree_sumo training report",
+        "",
+        f"Means over the last {last} episodes of each run, then mean ± sample std (ddof=1) over runs "
+        "(seeds); paper values from SPEC §10 in parentheses.",
+        "",
+        "| " + " | ".join(headers) + " |",
+        "|" + "|".join("---" for _ in headers) + "|",
+    ]
+    for _, row in table.iterrows():
+        cells = [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density_veh_per_km']:g}",
+                 str(int(row["n_seeds"]))]
+        for col, _, fmt in TABLE_METRICS:
+            paper = row.get(f"{col}_paper")
+            cells.append(_cell(row[f"{col}_mean"], row[f"{col}_std"], fmt,
+                               None if paper is None or pd.isna(paper) else float(paper)))
+        lines.append("| " + " | ".join(cells) + " |")
+    if skipped:
+        lines += ["", "## Skipped runs", ""] + [f"- `{p}`: {reason}" for p, reason in skipped]
+    if notes:
+        lines += ["", "## Notes", ""] + [f"- {n}" for n in notes]
+    return "\n".join(lines) + "\n"
+
+
+# -- curves --------------------------------------------------------------------------------------
+
+def group_label(key: GroupKey) -> str:
+    """Legend label ``algo / preset / d70``."""
+    algo, preset, density = key
+    return f"{algo} / {preset} / d{density:g}"
+
+
+def smoothed_curve(runs: Sequence[RunData], column: str, smooth: int) -> pd.DataFrame:
+    """Columns ``mean``, ``std``, ``n`` per episode: each run's trailing ``smooth``-episode moving
+    average, then mean and sample std (ddof=1) over the runs that reached that episode."""
+    series = [r.episodes[column].rolling(window=smooth, min_periods=1).mean() for r in runs]
+    aligned = pd.concat(series, axis=1)
+    return pd.DataFrame({"mean": aligned.mean(axis=1), "std": aligned.std(axis=1, ddof=1),
+                         "n": aligned.count(axis=1)})
+
+
+def plot_curves(groups: dict[GroupKey, list[RunData]], column: str, ylabel: str, path: Path,
+                smooth: int) -> None:
+    """One PNG: every group as a line (mean over runs) with a ± std band; paper value dashed."""
+    try:
+        from matplotlib import colormaps
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+        from matplotlib.lines import Line2D
+    except ImportError as exc:  # matplotlib is an optional dependency
+        raise ReportError(f"matplotlib is needed for the curves ({exc}); pip install matplotlib") from None
+    fig = Figure(figsize=(9.0, 5.5), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    if len(groups) <= 10:
+        colours: list[Any] = [f"C{i}" for i in range(len(groups))]
+    else:  # more groups than the default cycle: spread over tab20 (repeats beyond 20)
+        colours = [colormaps["tab20"](i % 20) for i in range(len(groups))]
+    any_paper = False
+    for colour, (key, runs) in zip(colours, groups.items()):
+        curve = smoothed_curve(runs, column, smooth)
+        x = curve.index.to_numpy(dtype=float)
+        mean = curve["mean"].to_numpy(dtype=float)
+        std = curve["std"].to_numpy(dtype=float)
+        ax.plot(x, mean, color=colour, lw=1.6, label=f"{group_label(key)} (n={len(runs)})")
+        band = np.isfinite(std)
+        if band.any():
+            ax.fill_between(x, mean - np.where(band, std, 0), mean + np.where(band, std, 0),
+                            where=band, color=colour, alpha=0.2, lw=0)
+        ref = paper_reference(*key)
+        if ref is not None and column in ("collisions", "speed_dev_mps"):
+            ax.axhline(getattr(ref, column), color=colour, ls="--", lw=1.0)
+            any_paper = True
+    handles, labels = ax.get_legend_handles_labels()
+    if any_paper:
+        handles.append(Line2D([], [], color="grey", ls="--"))
+        labels.append("paper value (SPEC §10)")
+    ax.set_xlabel("training episode")
+    ax.set_ylabel(ylabel)
+    ax.set_title(f"trailing {smooth}-episode moving average; line = mean, band = ± std over seeds", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8, frameon=False)
+    fig.savefig(path, format="png", bbox_inches="tight")
+
+
+# -- the report ----------------------------------------------------------------------------------
+
+def _check_writable(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".report-probe-"):
+            pass
+    except OSError as exc:
+        raise ReportError(f"cannot write the report to {out}: {_one_line(exc.strerror or exc)}") from None
+
+
+def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) -> ReportResult:
+    """Learning curves and the last-``last``-episode summary table of training runs.
+
+    ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
+    ``out``: folder for ``curves_return.png``, ``curves_collisions.png``, ``curves_speed_dev.png``,
+    ``summary.csv``, ``summary.md`` (created if missing; existing files are overwritten).
+    ``last``: episodes per run averaged for the table (paper: 50).
+    ``smooth``: width in episodes of the trailing moving average of the curves.
+
+    Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, or
+    when ``out`` cannot be written.
+    """
+    if isinstance(last, bool) or not isinstance(last, int) or last < 1:
+        raise ReportError(f"last must be a whole number of episodes ≥ 1, got {last!r}")
+    if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
+        raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
+    out = Path(out)
+    usable: list[RunData] = []
+    skipped: list[tuple[Path, str]] = []
+    notes: list[str] = []
+    seen: set[Path] = set()
+    for raw in runs:
+        run = Path(raw)
+        resolved = run.resolve()
+        if resolved in seen:
+            notes.append(f"{run} given more than once; counted once")
+            continue
+        seen.add(resolved)
+        try:
+            usable.append(read_run(run))
+        except _Unusable as exc:
+            skipped.append((run, _one_line(str(exc))))
+    if not usable:
+        if not skipped:
+            raise ReportError("no run folders given; pass the folders that 'lanefree train' made")
+        reasons = "; ".join(f"{p.name}: {r}" for p, r in skipped[:5])
+        more = f"; and {len(skipped) - 5} more" if len(skipped) > 5 else ""
+        raise ReportError(f"no usable run among {len(skipped)} folder(s) ({reasons}{more})")
+
+    groups = group_runs(usable)
+    for key, members in groups.items():
+        for run in members:
+            if len(run.episodes) < last:
+                notes.append(f"{run.path} has {len(run.episodes)} episodes (< {last}); its mean uses all of them")
+        seeds = [r.seed for r in members]
+        if len(set(seeds)) < len(seeds):
+            notes.append(f"group {group_label(key)} has runs with the same seed ({seeds}); each counts separately")
+
+    table = summary_table(groups, last)
+    _check_writable(out)
+    files: list[Path] = []
+    try:
+        for column, name, ylabel in CURVE_METRICS:
+            path = out / name
+            plot_curves(groups, column, ylabel, path, smooth)
+            files.append(path)
+        csv_path = out / "summary.csv"
+        table.to_csv(csv_path, index=False)
+        files.append(csv_path)
+        md_path = out / "summary.md"
+        md_path.write_text(summary_markdown(table, last, skipped, notes), encoding="utf-8")
+        files.append(md_path)
+    except OSError as exc:
+        raise ReportError(f"cannot write the report to {out}: {_one_line(exc)}") from None
+    return ReportResult(table=table, files=files, skipped=skipped, notes=notes)

@@ -1,0 +1,254 @@
+"""The training report on synthetic run folders: grouping, last-50 means over seeds to the number,
+paper values beside the right cells, damaged runs skipped by name, the written files."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lanefree_sumo.report import PAPER_REFERENCE, ReportError, RunData, report, smoothed_curve
+from lanefree_sumo.train import EPISODE_COLUMNS
+
+FZOC = "fields_zones_overtake_collision"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def make_run(root: Path, name: str, algo: str = "ddpg", preset: str = FZOC, density: float = 70.0,
+             seed: int = 0, *, collisions: list[float] | None = None, speed_dev: list[float] | None = None,
+             returns: list[float] | None = None, overtakes: list[float] | None = None,
+             episodes: int = 80) -> Path:
+    """A run folder like ``lanefree train`` writes (config.yaml + episodes.csv, all columns)."""
+    run = root / name
+    run.mkdir(parents=True)
+    config = {"train": {"algo": algo, "episodes": episodes}, "reward": {"preset": preset},
+              "scenario": {"density_veh_per_km": density}, "seed": seed, "road": {"length_m": 500.0}}
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    collisions = collisions if collisions is not None else [1.0] * episodes
+    speed_dev = speed_dev if speed_dev is not None else [0.5] * episodes
+    returns = returns if returns is not None else [10.0] * episodes
+    overtakes = overtakes if overtakes is not None else [1.0] * episodes
+    with open(run / "episodes.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=EPISODE_COLUMNS)
+        writer.writeheader()
+        for i in range(episodes):
+            writer.writerow({
+                "episode": i + 1, "steps": 800, "return": returns[i], "collisions": collisions[i],
+                "collision_steps": 3 * collisions[i], "background_collisions": 0, "speed_dev_mps": speed_dev[i],
+                "mean_speed_mps": 20.0 - speed_dev[i], "overtakes": overtakes[i], "boundary_contacts": 0,
+                "mean_c_x": 0.1, "mean_c_y": 0.2, "mean_c_f": 0.3, "mean_reward": returns[i] / 800,
+                "density": density, "seed": 1000 + i, "algorithm": algo, "reward_preset": preset,
+                "timesteps": 800 * (i + 1), "wall_s": 1.0,
+            })
+    return run
+
+
+def early_then_last(early: float, last_values: list[float], episodes: int = 80) -> list[float]:
+    """``episodes`` values: ``early`` for the first ones, then ``last_values`` (the last 50)."""
+    return [early] * (episodes - len(last_values)) + last_values
+
+
+@pytest.fixture
+def two_seed_runs(tmp_path: Path) -> list[Path]:
+    """ddpg/FZOC/70 seeds 0 and 1 with known last-50 means, dqn/FZOC/70 seed 0.
+
+    Seed 0, last 50: collisions 25×0 + 25×1 → 0.5, speed dev 0.4, return 100, overtakes 2.
+    Seed 1, last 50: collisions 15×0 + 35×1 → 0.7, speed dev 0.8, return 120, overtakes 4.
+    The first 30 episodes carry very different values (10, 9, −500, 50) and must not count.
+    """
+    runs = tmp_path / "runs"
+    a = make_run(runs, "ddpg_s0", seed=0,
+                 collisions=early_then_last(10.0, [0.0] * 25 + [1.0] * 25),
+                 speed_dev=early_then_last(9.0, [0.4] * 50), returns=early_then_last(-500.0, [100.0] * 50),
+                 overtakes=early_then_last(50.0, [2.0] * 50))
+    b = make_run(runs, "ddpg_s1", seed=1,
+                 collisions=early_then_last(10.0, [1.0, 0.0] * 15 + [1.0] * 20),
+                 speed_dev=early_then_last(9.0, [0.8] * 50), returns=early_then_last(-500.0, [120.0] * 50),
+                 overtakes=early_then_last(50.0, [4.0] * 50))
+    c = make_run(runs, "dqn_s0", algo="dqn", seed=0, collisions=[2.0] * 80, speed_dev=[0.3] * 80)
+    return [a, b, c]
+
+
+def row(table, algo: str, preset: str = FZOC, density: float = 70.0):
+    sel = table[(table.algorithm == algo) & (table.reward_preset == preset) & (table.density_veh_per_km == density)]
+    assert len(sel) == 1, table
+    return sel.iloc[0]
+
+
+def test_grouping_by_algorithm_preset_density(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    result = report(two_seed_runs, tmp_path / "out")
+    assert result.skipped == []
+    assert len(result.table) == 2
+    assert row(result.table, "ddpg").n_seeds == 2
+    assert row(result.table, "ddpg").seeds == "0;1"
+    assert row(result.table, "dqn").n_seeds == 1
+
+
+def test_last_50_means_averaged_over_seeds_exactly(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    table = report(two_seed_runs, tmp_path / "out").table
+    ddpg = row(table, "ddpg")
+    # mean over seeds of (0.5, 0.7); sample std (ddof=1) = sqrt(((−0.1)² + 0.1²) / 1)
+    assert ddpg.collisions_mean == pytest.approx(0.6, abs=1e-12)
+    assert ddpg.collisions_std == pytest.approx(math.sqrt(0.02), abs=1e-12)
+    assert ddpg.speed_dev_mps_mean == pytest.approx(0.6, abs=1e-12)
+    assert ddpg.speed_dev_mps_std == pytest.approx(math.sqrt(0.08), abs=1e-12)
+    assert ddpg.return_mean == pytest.approx(110.0, abs=1e-9)
+    assert ddpg.return_std == pytest.approx(math.sqrt(200.0), abs=1e-9)
+    assert ddpg.overtakes_mean == pytest.approx(3.0, abs=1e-12)
+    assert ddpg.overtakes_std == pytest.approx(math.sqrt(2.0), abs=1e-12)
+    assert ddpg.episodes_min == 80
+    dqn = row(table, "dqn")
+    assert dqn.collisions_mean == pytest.approx(2.0) and dqn.speed_dev_mps_mean == pytest.approx(0.3)
+    assert math.isnan(dqn.collisions_std)  # one seed: no std
+
+
+def test_other_window_lengths_change_the_means(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    # last=80 takes every episode: seed 0 = (30·10 + 25)/80, seed 1 = (30·10 + 35)/80
+    table = report(two_seed_runs, tmp_path / "out", last=80).table
+    expected = ((300 + 25) / 80 + (300 + 35) / 80) / 2
+    assert row(table, "ddpg").collisions_mean == pytest.approx(expected, abs=1e-12)
+
+
+def test_paper_numbers_beside_matching_cells_only(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    extra = make_run(tmp_path / "runs", "ddpg_d100", density=100.0, seed=3)  # paper has no 100 veh/km
+    extra2 = make_run(tmp_path / "runs", "td3_d70", algo="td3", seed=0)  # paper has no TD3
+    out = tmp_path / "out"
+    table = report(two_seed_runs + [extra, extra2], out).table
+    ddpg = row(table, "ddpg")
+    assert ddpg.collisions_paper == 0.449 and ddpg.speed_dev_mps_paper == 0.723
+    assert row(table, "dqn").collisions_paper == 0.952 and row(table, "dqn").speed_dev_mps_paper == 0.471
+    for missing in (row(table, "ddpg", density=100.0), row(table, "td3")):
+        assert math.isnan(missing.collisions_paper) and math.isnan(missing.speed_dev_mps_paper)
+        assert missing.paper_source == ""
+
+    md = (out / "summary.md").read_text()
+    lines = {ln.split("|")[1].strip() + "/" + ln.split("|")[3].strip(): ln for ln in md.splitlines()
+             if ln.startswith("| ") and FZOC in ln}
+    assert "0.600 ± 0.141 (paper 0.449)" in lines["ddpg/70"]
+    assert "0.600 ± 0.283 (paper 0.723)" in lines["ddpg/70"]
+    assert "(paper 0.952)" in lines["dqn/70"] and "(paper 0.471)" in lines["dqn/70"]
+    assert "paper" not in lines["ddpg/100"]
+    assert "paper" not in lines["td3/70"]
+
+    with open(out / "summary.csv", newline="") as fh:
+        csv_rows = list(csv.DictReader(fh))
+    by_key = {(r["algorithm"], r["density_veh_per_km"]): r for r in csv_rows}
+    assert float(by_key[("ddpg", "70.0")]["collisions_paper"]) == 0.449
+    assert float(by_key[("ddpg", "70.0")]["collisions_mean"]) == pytest.approx(0.6, abs=1e-12)
+    assert by_key[("ddpg", "100.0")]["collisions_paper"] == ""
+
+
+def test_paper_reference_table_matches_spec() -> None:
+    assert len(PAPER_REFERENCE) == 15  # distinct settings of SPEC §10 Tables 5–8
+    assert PAPER_REFERENCE[("ddpg", "collision", 70.0)][:2] == (2.256, 0.135)
+    assert PAPER_REFERENCE[("ddpg", "fields_overtake_collision", 120.0)][:2] == (1.066, 1.715)
+    assert PAPER_REFERENCE[("per", FZOC, 70.0)][:2] == (0.792, 0.617)
+    assert PAPER_REFERENCE[("ddpg", "fields_overtake_collision", 70.0)].source == "Tables 5, 6, 7"
+    assert PAPER_REFERENCE[("ddpg", FZOC, 70.0)].source == "Tables 6, 7, 8"
+    assert PAPER_REFERENCE[("dueling", FZOC, 70.0)].source == "Table 8"
+
+
+def test_damaged_runs_are_skipped_by_name(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    bad = tmp_path / "bad"
+    truncated = make_run(bad, "truncated", seed=7)
+    text = (truncated / "episodes.csv").read_text()
+    (truncated / "episodes.csv").write_text(text[: len(text) - 40])  # last line cut mid-row
+    abc = make_run(bad, "abc", seed=8)
+    lines = (abc / "episodes.csv").read_text().splitlines(keepends=True)
+    fields = lines[10].split(",")
+    fields[EPISODE_COLUMNS.index("collisions")] = "abc"
+    lines[10] = ",".join(fields)
+    (abc / "episodes.csv").write_text("".join(lines))
+    nocol = make_run(bad, "no_overtakes", seed=9)
+    with open(nocol / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    with open(nocol / "episodes.csv", "w", newline="") as fh:
+        cols = [c for c in EPISODE_COLUMNS if c != "overtakes"]
+        writer = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    noconf = make_run(bad, "no_config", seed=10)
+    (noconf / "config.yaml").unlink()
+    badyaml = make_run(bad, "bad_yaml", seed=11)
+    (badyaml / "config.yaml").write_text("train: [unclosed\n  algo: ddpg\n")
+
+    damaged = [truncated, abc, nocol, noconf, badyaml, bad / "missing_folder"]
+    result = report(two_seed_runs + damaged, tmp_path / "out")
+    reasons = {p.name: r for p, r in result.skipped}
+    assert set(reasons) == {p.name for p in damaged}
+    assert "line 81" in reasons["truncated"] and "fields" in reasons["truncated"]
+    assert "collisions" in reasons["abc"] and "'abc'" in reasons["abc"]
+    assert "overtakes" in reasons["no_overtakes"]
+    assert "config.yaml" in reasons["no_config"]
+    assert "config.yaml" in reasons["bad_yaml"]
+    assert all("\n" not in r for r in reasons.values())
+    # the report is made from the good runs only, with the same numbers as without the bad ones
+    assert len(result.table) == 2
+    assert row(result.table, "ddpg").n_seeds == 2
+    assert row(result.table, "ddpg").collisions_mean == pytest.approx(0.6, abs=1e-12)
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "truncated" in md and "Skipped runs" in md
+
+
+def test_all_bad_input_raises_report_error(tmp_path: Path) -> None:
+    run = make_run(tmp_path, "only", seed=0)
+    (run / "episodes.csv").write_text(",".join(EPISODE_COLUMNS) + "\n")  # header only
+    other = make_run(tmp_path, "other", seed=1)
+    (other / "episodes.csv").unlink()
+    with pytest.raises(ReportError) as info:
+        report([run, other, tmp_path / "nope"], tmp_path / "out")
+    message = str(info.value)
+    assert "\n" not in message and "no usable run" in message and "only" in message
+    assert isinstance(info.value, ValueError)
+    with pytest.raises(ReportError):
+        report([], tmp_path / "out")
+
+
+def test_unwritable_output_raises_report_error(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    with pytest.raises(ReportError) as info:
+        report(two_seed_runs, blocker / "out")
+    assert "\n" not in str(info.value) and "cannot write" in str(info.value)
+
+
+def test_written_files_are_valid(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    import matplotlib.image
+
+    out = tmp_path / "out"
+    result = report(two_seed_runs, out, smooth=5)
+    names = [p.name for p in result.files]
+    assert names == ["curves_return.png", "curves_collisions.png", "curves_speed_dev.png",
+                     "summary.csv", "summary.md"]
+    for name in names[:3]:
+        data = (out / name).read_bytes()
+        assert data[:8] == PNG_MAGIC
+        assert len(data) > 10_000
+        pixels = matplotlib.image.imread(out / name)
+        assert pixels.ndim == 3 and pixels.shape[0] > 300 and pixels.shape[1] > 500
+        assert float(np.std(pixels)) > 0.01  # not a blank canvas
+    md = (out / "summary.md").read_text()
+    assert ("| algorithm | reward preset | density (veh/km) | seeds | collisions / episode | "
+            "speed deviation (m/s) | return | overtakes / episode |") in md
+
+
+def _run_data(values: list[float], seed: int) -> RunData:
+    import pandas as pd
+
+    frame = pd.DataFrame({"return": values, "collisions": values, "speed_dev_mps": values, "overtakes": values},
+                         index=pd.Index(range(1, len(values) + 1), name="episode"))
+    return RunData(Path(f"r{seed}"), "ddpg", FZOC, 70.0, seed, frame)
+
+
+def test_curves_use_trailing_moving_average_and_std_over_seeds() -> None:
+    curve = smoothed_curve([_run_data([1, 2, 3, 4, 5, 6], 0), _run_data([3, 4, 5, 6, 7, 8], 1)], "collisions", 3)
+    # trailing window of 3: run 0 → 1, 1.5, 2, 3, 4, 5; run 1 → 3, 3.5, 4, 5, 6, 7
+    assert curve["mean"].tolist() == pytest.approx([2, 2.5, 3, 4, 5, 6])
+    assert curve["std"].tolist() == pytest.approx([math.sqrt(2)] * 6)
+    shorter = smoothed_curve([_run_data([1, 2, 3, 4], 0), _run_data([3, 4, 5, 6, 7, 8], 1)], "collisions", 2)
+    assert shorter["n"].tolist() == [2, 2, 2, 2, 1, 1]  # episodes 5–6 only from the longer run
+    assert shorter["mean"].iloc[-1] == pytest.approx(7.5) and math.isnan(shorter["std"].iloc[-1])
