@@ -145,13 +145,13 @@ def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
 
 def algorithm_class(algo: str) -> Any:
     """The SB3(-compatible) class of an algorithm name."""
-    from stable_baselines3 import DDPG, DQN, PPO, SAC, TD3  # noqa: PLC0415
+    from stable_baselines3 import DDPG, PPO, SAC, TD3  # noqa: PLC0415
 
-    if algo in ("ddqn", "dueling", "per"):
-        from . import algorithms  # noqa: PLC0415
+    if algo in DISCRETE_ALGOS:
+        from .algorithms import DQN_VARIANTS  # noqa: PLC0415
 
-        return algorithms.PrioritizedDoubleDQN if algo == "per" else algorithms.DoubleDQN
-    return {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO, "dqn": DQN}[algo]
+        return DQN_VARIANTS[algo]
+    return {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}[algo]
 
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
@@ -190,12 +190,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
         return cls(policy, env, **kwargs)
 
     dq = cfg.train.dqn
-    from . import algorithms  # noqa: PLC0415
-
-    if algo == "dueling":
-        policy: Any = algorithms.MultiInputDuelingDQNPolicy if set_obs else algorithms.DuelingDQNPolicy
-    else:
-        policy = "MultiInputPolicy" if set_obs else "MlpPolicy"
+    policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
     decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps / total_timesteps(cfg))
     return cls(
         policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,

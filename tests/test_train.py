@@ -17,7 +17,7 @@ import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.evaluate import evaluate
-from lanefree_sumo.train import ALGOS, EPISODE_COLUMNS, RunError, train
+from lanefree_sumo.train import ALGOS, EPISODE_COLUMNS, RunError, algorithm_class, train
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = {
@@ -58,6 +58,13 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
     ckpt = run / "checkpoints" / "ep_00001"
     assert (ckpt / "model.zip").is_file() and (ckpt / "state.json").is_file()
     assert (ckpt / "replay_buffer.pkl").is_file() == (algo != "ppo")
+    model = algorithm_class(algo).load(run / "model.zip", device="cpu")
+    if algo == "dueling":
+        assert type(model.q_net).__name__ == "DuelingQNetwork"
+    if algo == "per":
+        assert type(model.replay_buffer).__name__ == "PrioritizedReplayBuffer" or model.replay_buffer is None
+    if algo == "ddqn":
+        assert type(model).__name__ == "DoubleDQN"
 
 
 def test_set_observation_trains_with_the_encoder(tmp_path):
