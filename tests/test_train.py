@@ -62,7 +62,8 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
     if algo == "dueling":
         assert type(model.q_net).__name__ == "DuelingQNetwork"
     if algo == "per":
-        assert type(model.replay_buffer).__name__ == "PrioritizedReplayBuffer" or model.replay_buffer is None
+        model.load_replay_buffer(ckpt / "replay_buffer.pkl")
+        assert type(model.replay_buffer).__name__ == "PrioritizedReplayBuffer"
     if algo == "ddqn":
         assert type(model).__name__ == "DoubleDQN"
 
