@@ -519,35 +519,6 @@ class PrioritizedReplayBuffer(_PrioritizedMixin, ReplayBuffer):
     weights, float32); feed them back with ``update_priorities``.
     """
 
-    def __init__(
-        self,
-        buffer_size: int,
-        observation_space: spaces.Space,
-        action_space: spaces.Space,
-        device: th.device | str = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        alpha: float = 0.6,
-        beta0: float = 0.4,
-        eps: float = 1e-6,
-    ) -> None:
-        super().__init__(
-            buffer_size,
-            observation_space,
-            action_space,
-            device=device,
-            n_envs=n_envs,
-            optimize_memory_usage=optimize_memory_usage,
-            handle_timeout_termination=handle_timeout_termination,
-            alpha=alpha,
-            beta0=beta0,
-            eps=eps,
-        )
-
-    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
-        return super().sample(batch_size, env)
-
     def _gather(self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None) -> ReplayBufferSamples:
         data = (
             self._normalize_obs(self.observations[batch_inds, env_inds, :], env),
@@ -561,37 +532,6 @@ class PrioritizedReplayBuffer(_PrioritizedMixin, ReplayBuffer):
 
 class PrioritizedDictReplayBuffer(_PrioritizedMixin, DictReplayBuffer):
     """:class:`PrioritizedReplayBuffer` for ``spaces.Dict`` observations (same arguments)."""
-
-    def __init__(
-        self,
-        buffer_size: int,
-        observation_space: spaces.Dict,
-        action_space: spaces.Space,
-        device: th.device | str = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        alpha: float = 0.6,
-        beta0: float = 0.4,
-        eps: float = 1e-6,
-    ) -> None:
-        super().__init__(
-            buffer_size,
-            observation_space,
-            action_space,
-            device=device,
-            n_envs=n_envs,
-            optimize_memory_usage=optimize_memory_usage,
-            handle_timeout_termination=handle_timeout_termination,
-            alpha=alpha,
-            beta0=beta0,
-            eps=eps,
-        )
-
-    def sample(  # type: ignore[override]
-        self, batch_size: int, env: VecNormalize | None = None
-    ) -> DictReplayBufferSamples:
-        return super().sample(batch_size, env)
 
     def _gather(
         self, batch_inds: np.ndarray, env_inds: np.ndarray, env: VecNormalize | None
