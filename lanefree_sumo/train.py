@@ -116,11 +116,16 @@ def total_timesteps(cfg: LaneFreeConfig) -> int:
 
 # -- environments and models ------------------------------------------------------------------------
 
-def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int) -> Callable[[], Any]:
+def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env: bool) -> Callable[[], Any]:
     def make() -> Any:
         from stable_baselines3.common.monitor import Monitor  # noqa: PLC0415
 
         from .env import LaneFreeEnv  # noqa: PLC0415
+
+        if subprocess_env:
+            # Ctrl-C reaches the whole process group: only the trainer handles it (checkpoint,
+            # then closing the workers); a worker dying first would lose the checkpoint.
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
         env = Monitor(LaneFreeEnv(cfg_dict))
         env.reset(seed=seed + 1000 * rank)
@@ -134,7 +139,7 @@ def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv  # noqa: PLC0415
 
     cfg_dict = config_to_dict(cfg)
-    factories = [_env_factory(cfg_dict, rank, seed) for rank in range(n_envs)]
+    factories = [_env_factory(cfg_dict, rank, seed, n_envs > 1) for rank in range(n_envs)]
     if n_envs == 1:
         vec = DummyVecEnv(factories)
     else:

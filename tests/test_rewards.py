@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -447,6 +448,6 @@ def test_unknown_preset_lists_names():
 
 
 def test_presets_are_frozen():
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         get_preset("fields").w_f = 2.0  # type: ignore[misc]
     assert math.isclose(get_preset("fields").w_f, 1.0)

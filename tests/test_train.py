@@ -150,3 +150,12 @@ def test_cli_refuses_an_existing_run_folder(tmp_path):
     proc = lanefree("train", "--episodes", "1", "--out", str(run))
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 2 and "exists; resume it" in err and err.count("\n") == 1
+
+
+def test_parallel_environments_in_separate_processes(tmp_path):
+    cfg = merge_config(tiny_config("ddpg"), {"train": {"envs": 2, "episodes": 4}})
+    run, done = train(cfg, run=tmp_path / "par", progress=False)
+    table = rows(run / "episodes.csv")
+    assert done == 4 and [int(r["episode"]) for r in table] == [1, 2, 3, 4]
+    # two environments with different traffic seeds ran side by side
+    assert len({r["seed"] for r in table}) == 4
