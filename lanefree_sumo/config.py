@@ -90,24 +90,26 @@ class DriverConfig:
     """τx: longitudinal ramp length L_x = vx_i·τx (s)."""
     time_headway_y_s: float = 0.25
     """τy: lateral ramp length L_y = uy·τy + ``lateral_ramp_offset_m`` (s)."""
-    braking_decel_mps2: float = 3.0
-    """c_x in D_x = ux²/(2·c_x) + len: assumed braking deceleration (m/s²)."""
+    gain_x: float = 3.0
+    """k_x = c_x with nudging off (the paper's setting): the gain on Σf_x (m/s² per unit force)
+    and the braking deceleration c_x in D_x = ux²/(2·c_x) + len (m/s²). The reference uses one
+    parameter for both (SPEC §3, Revision 2)."""
+    gain_x_nudging: float = 5.0
+    """k_x = c_x with nudging on (the reference's nudging configuration)."""
     longitudinal_margin_m: float = 2.5
     """Extra flat part of the longitudinal trapezoid (m)."""
     lateral_ramp_offset_m: float = 0.5
     """Constant part of L_y (m)."""
     lateral_margin_m: float = 0.5
     """Extra flat part of the lateral trapezoid beyond the half widths (m)."""
-    coef_fx: float = 5.0
-    """Gain on the summed longitudinal forces Σf_x (m/s² per unit force)."""
     coef_fy: float = 1.0
     """Gain on the summed lateral forces Σf_y (m/s² per unit force)."""
     max_repulsions: int = 6
-    """How many of the largest repulsions (vehicles ahead) are summed."""
+    """How many repulsions (vehicles ahead) of largest magnitude ``mag`` are summed."""
     nudging: bool = False
     """Whether vehicles behind push forward (nudge). OFF in the paper's training setting."""
     max_nudges: int = 3
-    """How many of the largest nudges are summed when nudging is on."""
+    """How many nudges of largest magnitude ``mag`` are summed when nudging is on."""
     nudge_scale_x: float = 0.9
     nudge_scale_y: float = 1.0
     wall_exponent: float = 0.25
@@ -115,15 +117,23 @@ class DriverConfig:
     wall_time_gap_s: float = 0.25
     """x-wall safe speed v_s = min(gap / this, vx_leader − ``wall_speed_margin_mps``) (s)."""
     wall_speed_margin_mps: float = 0.1
-    edge_decel_mps2: float = -1.8
-    """ū of the road-edge bound U(v, d, ū): lateral deceleration assumed available (m/s²)."""
+    edge_decel_mps2: float = -1.0
+    """ū of the road-edge bound U(v, d, ū): lateral deceleration assumed available (m/s²); the
+    reference's effective (integer) value."""
     edge_speed_factor: float = 1.05
     """Lateral speed safety factor in the road-edge bound (–)."""
     overspeed_factor: float = 1.2
     """Longitudinal speed never exceeds this × desired speed (–)."""
     lateral_speed_ratio: float = 0.5
     """|vy| ≤ this × vx after the step (–)."""
-    bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
+    bounds: AccelerationBounds = field(default_factory=lambda: AccelerationBounds(-4.0, 2.0, -1.0, 1.0))
+    """Hard bounds of the background accelerations: the reference declares them as integers, so
+    its effective bounds are F_x ∈ [−4, 2], F_y ∈ [−1, 1] m/s² (SPEC §3, Revision 2)."""
+
+    @property
+    def effective_gain_x(self) -> float:
+        """k_x = c_x in force: ``gain_x_nudging`` with nudging on, else ``gain_x``."""
+        return self.gain_x_nudging if self.nudging else self.gain_x
 
 
 @dataclass

@@ -8,9 +8,7 @@ Interpretation choices where SPEC §3 leaves room (documented here and in the RE
 
 * A neighbour with ``dx ≥ 0`` is *ahead*; its force has ``f_x ≤ 0`` and counts as a repulsion.
   A neighbour with ``dx < 0`` is *behind*; its ``f_x > 0`` is a nudge.
-* "The 6 largest repulsions" are the 6 with the largest ``|f_x|``; their ``f_y`` is summed
-  with them.  Nudges likewise by the largest ``f_x``.
-* The x-wall (regulation step 1) applies only when at least one summed repulsion is non-zero.
+* The x-wall (regulation step 1) applies only when at least one summed repulsion has f_x < 0.
 * A ramp of zero width is a step: value 1 on the plateau side of the edge, 0 beyond it.
 """
 
@@ -66,16 +64,16 @@ def symmetric_trapezoid(abs_t: np.ndarray, w: np.ndarray, l: np.ndarray) -> np.n
     return np.where(positive, np.clip(num / w_safe, 0.0, 1.0), (num >= 0.0).astype(float))
 
 
-def _strongest_sum(values: np.ndarray, other: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the sum of the k entries of ``values`` with the largest magnitude, and the sum of
-    the matching entries of ``other``.  Rows with at most k non-zero entries are summed whole."""
-    if values.shape[1] <= k or (values != 0.0).sum(axis=1).max() <= k:
-        return values.sum(axis=1), other.sum(axis=1)
-    idx = np.argpartition(-np.abs(values), k - 1, axis=1)[:, :k]
-    return (
-        np.take_along_axis(values, idx, axis=1).sum(axis=1),
-        np.take_along_axis(other, idx, axis=1).sum(axis=1),
-    )
+def strongest_mask(mag: np.ndarray, k: int) -> np.ndarray:
+    """Per row, True at the (at most) k entries of largest magnitude ``mag`` among the non-zero
+    ones (SPEC §3: the 6 repulsions, or 3 nudges, of largest magnitude are summed)."""
+    nonzero = mag > 0.0
+    if mag.shape[1] <= k or nonzero.sum(axis=1).max() <= k:
+        return nonzero
+    idx = np.argpartition(-mag, k - 1, axis=1)[:, :k]
+    chosen = np.zeros_like(nonzero)
+    np.put_along_axis(chosen, idx, True, axis=1)
+    return chosen & nonzero
 
 
 def driver_accelerations(
@@ -115,7 +113,8 @@ def driver_accelerations(
     ux = np.where(ahead, np.maximum(0.0, vx[:, None] - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
     half_len = 0.5 * (length[:, None] + length[None, :])
     lx_half = (0.5 * cfg.time_headway_x_s) * vx[:, None]
-    plateau = lx_half + (ux * ux) / (2.0 * cfg.braking_decel_mps2) + half_len + cfg.longitudinal_margin_m
+    gain_x = cfg.effective_gain_x  # k_x = c_x
+    plateau = lx_half + (ux * ux) / (2.0 * gain_x) + half_len + cfg.longitudinal_margin_m
     mag = symmetric_trapezoid(abs_dx, lx_half, plateau) * mag_y
     mag[abs_dx > cfg.neighbour_range_m] = 0.0
     np.fill_diagonal(mag, 0.0)
@@ -125,20 +124,21 @@ def driver_accelerations(
     fx = -dx * scale  # −cos θ · mag
     fy = -dy * scale  # −sin θ · mag
 
-    rep_fx = np.where(ahead, fx, 0.0)
-    rep_fy = np.where(ahead, fy, 0.0)
-    sum_fx, sum_fy = _strongest_sum(rep_fx, rep_fy, cfg.max_repulsions)
+    summed = strongest_mask(np.where(ahead, mag, 0.0), cfg.max_repulsions)
+    rep_fx = np.where(summed, fx, 0.0)
+    sum_fx = rep_fx.sum(axis=1)
+    sum_fy = np.where(summed, fy, 0.0).sum(axis=1)
     if cfg.nudging:
-        nfx, nfy = _strongest_sum(fx - rep_fx, fy - rep_fy, cfg.max_nudges)
-        sum_fx = sum_fx + cfg.nudge_scale_x * nfx
-        sum_fy = sum_fy + cfg.nudge_scale_y * nfy
+        nudges = strongest_mask(np.where(ahead, 0.0, mag), cfg.max_nudges)
+        sum_fx = sum_fx + cfg.nudge_scale_x * np.where(nudges, fx, 0.0).sum(axis=1)
+        sum_fy = sum_fy + cfg.nudge_scale_y * np.where(nudges, fy, 0.0).sum(axis=1)
 
     fts_x = erfc(vx - vd) - 1.0
     fts_y = erfc(vy) - 1.0
-    ax = cfg.coef_fx * sum_fx + fts_x
+    ax = gain_x * sum_fx + fts_x
     ay = cfg.coef_fy * sum_fy + fts_y
 
-    # 1. x-wall towards the strongest summed repulsion (the most negative f_x)
+    # 1. x-wall towards the summed repulsion of largest degree δ (the most negative f_x)
     leader = np.argmin(rep_fx, axis=1)
     lead_fx = rep_fx[np.arange(state.n), leader]
     has_leader = lead_fx < 0.0
@@ -169,4 +169,5 @@ def driver_accelerations(
     r = cfg.lateral_speed_ratio
     ay = np.minimum(ay, (r * vx - vy) / t)
     ay = np.maximum(ay, -(r * vx + vy) / t)
+    ay = np.clip(ay, b.ay_min, b.ay_max)  # the lateral hard bound again (SPEC §3, Revision 2)
     return ax, ay

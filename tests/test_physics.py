@@ -95,7 +95,7 @@ def test_leader_in_ramp_region_by_hand():
     plateau = lx / 2 + dxx + 2.5          # 18.5 m
     mag = (lx / 2 + plateau - 22) / (lx / 2)  # falling ramp: 3 / 6.5
     fx = -mag
-    expected = 5.0 * fx + (erfc(0.0) - 1.0)
+    expected = 3.0 * fx + (erfc(0.0) - 1.0)  # k_x = c_x = 3.0 with nudging off
     degree = abs(fx) ** 0.25
     gap = 22 - 3.5
     v_safe = min(gap / 0.25, 20 - 0.1)
@@ -108,9 +108,62 @@ def test_leader_in_ramp_region_by_hand():
 
 
 def test_close_leader_saturates_braking():
-    state = make_state([100.0, 110.0], [5.0, 5.0], [20.0, 20.0], [20.0, 20.0])
+    state = make_state([100.0, 110.0], [5.0, 5.0], [20.0, 10.0], [20.0, 20.0])
     ax, _ = accel(state)
-    assert ax[0] == -4.5
+    assert ax[0] == -4.0  # the reference's effective (integer) bound, not −4.5
+
+
+def test_gain_and_braking_decel_are_one_parameter():
+    # nudging on: k_x = c_x = 5.0 for both the gain on Σf_x and D_x (the reference's nudging setting)
+    state = make_state([100.0, 120.0], [5.0, 5.0], [20.0, 20.0], [20.0, 20.0])
+    ax, _ = accel(state, nudging=True)
+    ux, lx = 6.0, 13.0
+    plateau = lx / 2 + ux**2 / (2 * 5.0) + 3.5 + 2.5  # 16.1 m
+    fx = -(lx / 2 + plateau - 20.0) / (lx / 2)  # 0.4
+    wall = abs(fx) ** 0.25 * (19.9 - 20.0) / T
+    assert ax[0] == pytest.approx(min(5.0 * fx, wall))
+    # the old mix (gain 5.0, c_x 3.0) gave a plateau of 18.5 m: f_x ≈ −0.77, ax ≈ −3.85
+    assert ax[0] > -2.5
+
+
+def test_background_lateral_bound_is_one_mps2():
+    # a vehicle squeezed from the left and alongside: its lateral force saturates at −1.0, not −1.8
+    state = make_state([100.0, 101.0, 101.0], [5.0, 6.9, 5.0 + 2.0], [20.0, 20.0, 20.0], [20.0, 20.0, 20.0])
+    _, ay = accel(state)
+    assert ay[0] == -1.0
+
+
+def test_summed_repulsions_are_those_of_largest_magnitude():
+    # A almost alongside (dx 1 m, dy 2.3 m): mag 1 but |f_x| = cos θ ≈ 0.40; B straight ahead at
+    # 20 m: mag = |f_x| ≈ 0.85. With one summed repulsion, the largest *magnitude* is A's, so its
+    # f_y ≈ −0.92 is summed (the old |f_x| rule summed B and gave ay = 0).
+    state = make_state([100.0, 101.0, 120.0], [5.0, 7.3, 5.0], [20.0, 20.0, 20.0], [20.0, 20.0, 20.0])
+    _, ay = accel(state, max_repulsions=1)
+    theta = math.atan2(2.3, 1.0)
+    assert ay[0] == pytest.approx(-math.sin(theta))
+
+
+def test_wall_leader_is_chosen_among_the_summed_repulsions_only():
+    # same scene: B has the most negative f_x of all repulsions, but only A is summed, so A leads the
+    # x-wall. A's bumper gap is negative (alongside), so the wall brakes at the hard bound; with B as
+    # leader (gap 16.5 m, v_s = 19.9 m/s) the wall would allow ≈ −0.4·Σ only.
+    state = make_state([100.0, 101.0, 120.0], [5.0, 7.3, 5.0], [20.0, 20.0, 20.0], [20.0, 20.0, 20.0])
+    ax_one, _ = accel(state, max_repulsions=1)
+    ax_two, _ = accel(state, max_repulsions=2)
+    assert ax_one[0] == -4.0
+    fx_a = -math.cos(math.atan2(2.3, 1.0))
+    fx_b = -((13.0 / 2 + 13.0 / 2 + 6.0**2 / 6.0 + 3.5 + 2.5 - 20.0) / (13.0 / 2))
+    assert fx_b < fx_a  # B is the stronger |f_x|: with both summed, B leads
+    degree = abs(fx_b) ** 0.25
+    wall = degree * (19.9 - 20.0) / T
+    assert ax_two[0] == pytest.approx(max(min(3.0 * (fx_a + fx_b), wall), -4.0))
+
+
+def test_lateral_force_is_clipped_again_after_the_lateral_speed_rule():
+    # slow vehicle with a large lateral speed: |vy'| ≤ 0.5·vx asks for −8 m/s², the bound is −1
+    state = make_state([100.0], [5.1], [2.0], [20.0], vy=[3.0])
+    _, ay = accel(state)
+    assert ay[0] == -1.0
 
 
 def test_nudge_from_behind_only_when_switched_on():
@@ -145,10 +198,10 @@ def test_road_edge_bound_limits_lateral_acceleration():
     y = W - 0.9 - 0.2
     state = make_state([100.0], [y], [20.0], [20.0], vy=[0.5])
     _, ay = accel(state)
-    lower = -float(edge_bound(np.array(-1.05 * 0.5), np.array(y - 0.9), T, -1.8))
-    upper = float(edge_bound(np.array(1.05 * 0.5), np.array(0.2), T, -1.8))
+    lower = -float(edge_bound(np.array(-1.05 * 0.5), np.array(y - 0.9), T, -1.0))
+    upper = float(edge_bound(np.array(1.05 * 0.5), np.array(0.2), T, -1.0))
     assert ay[0] <= upper + 1e-12
-    assert ay[0] >= max(lower, -1.8) - 1e-12
+    assert ay[0] >= max(lower, -1.0) - 1e-12
     assert ay[0] < 0
 
 
