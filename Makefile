@@ -60,10 +60,10 @@ nets: $(STAMP)
 	$(BIN)/lanefree net --length $(LENGTH) --width $(WIDTH)
 
 bench: $(STAMP)
-	$(BIN)/python -m lanefree_sumo.bench
+	$(BIN)/python -m lanefree_sumo.tools.bench
 
 clean-venv:
 	rm -rf $(VENV)
 
 traffic: $(STAMP)
-	$(BIN)/python -m lanefree_sumo.traffic_check
+	$(BIN)/python -m lanefree_sumo.tools.traffic_check

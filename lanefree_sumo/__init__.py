@@ -8,4 +8,4 @@ Importing the package registers the gymnasium environment ``LaneFree-v0``::
 
 from gymnasium.envs.registration import register
 
-register(id="LaneFree-v0", entry_point="lanefree_sumo.env:LaneFreeEnv")
+register(id="LaneFree-v0", entry_point="lanefree_sumo.rl.env:LaneFreeEnv")

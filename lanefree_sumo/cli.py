@@ -20,8 +20,8 @@ from typing import Any, Sequence
 import numpy as np
 import yaml
 
-from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_density
-from .train import RunError
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_density
+from lanefree_sumo.experiments.train import RunError
 
 EXIT_BAD_INPUT = 2
 EXIT_SUMO = 1
@@ -116,8 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
         "episodes.csv, TensorBoard logs in tb/, checkpoints/, model.zip). Ctrl-C or SIGTERM saves a checkpoint; "
         "--resume RUN continues from the newest one.",
     )
-    from .rewards import PRESETS  # noqa: PLC0415
-    from .train import ALGOS  # noqa: PLC0415
+    from lanefree_sumo.rl.rewards import PRESETS  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import ALGOS  # noqa: PLC0415
 
     tr.add_argument("--algo", choices=ALGOS, default="ddpg",
                     help="ddpg (default; Ornstein-Uhlenbeck noise), td3, sac, ppo on continuous actions; "
@@ -245,7 +245,7 @@ def _simulate(args: argparse.Namespace) -> int:
     cfg = merge_config(LaneFreeConfig(), overrides)
     steps = int(round(args.seconds / cfg.sim.step_s))
 
-    from .spawn import spawn  # noqa: PLC0415
+    from lanefree_sumo.sim.spawn import spawn  # noqa: PLC0415
 
     spawn(cfg, np.random.default_rng(cfg.seed))  # density check before anything is written
     out = args.out or Path("runs") / f"sim-d{args.density:g}-s{args.seed}"
@@ -274,8 +274,8 @@ def run_simulation(
     second) and return the summary.  Ctrl-C stops early and returns what was simulated."""
     from tqdm import tqdm  # noqa: PLC0415
 
-    from .simulation import Simulation  # noqa: PLC0415
-    from .trajectory import TrajectoryWriter  # noqa: PLC0415
+    from lanefree_sumo.sim.simulation import Simulation  # noqa: PLC0415
+    from lanefree_sumo.experiments.trajectory import TrajectoryWriter  # noqa: PLC0415
 
     sim = Simulation(cfg)
     t0 = time.perf_counter()
@@ -326,7 +326,7 @@ def run_simulation(
 
 
 def _train(args: argparse.Namespace) -> int:
-    from .train import train  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import train  # noqa: PLC0415
 
     if args.resume is not None:
         run, done = train(LaneFreeConfig(), run=args.resume, resume=True)
@@ -352,13 +352,13 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _episodes_target(run: Path) -> int:
-    from .train import load_run_config  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import load_run_config  # noqa: PLC0415
 
     return load_run_config(run).train.episodes
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate  # noqa: PLC0415
+    from lanefree_sumo.experiments.evaluate import evaluate  # noqa: PLC0415
 
     out = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
                    out=args.out, overwrite=args.overwrite)
@@ -367,7 +367,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from .replay import replay  # noqa: PLC0415
+    from lanefree_sumo.experiments.replay import replay  # noqa: PLC0415
 
     result = replay(args.run, episode=args.episode, gui=not args.no_gui, delay_s=args.delay,
                     screenshot=args.screenshot, screenshot_step=args.screenshot_step, frames=args.frames,
@@ -378,7 +378,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from .replay import find_eval_dir, replay  # noqa: PLC0415
+    from lanefree_sumo.experiments.replay import find_eval_dir, replay  # noqa: PLC0415
 
     source = find_eval_dir(args.run) / "trajectories" / f"episode_{args.episode:04d}.csv"
     out = args.out or find_eval_dir(args.run) / "export"
@@ -393,7 +393,7 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from .report import ReportError, report  # noqa: PLC0415
+    from lanefree_sumo.experiments.report import ReportError, report  # noqa: PLC0415
 
     try:
         result = report(args.runs, args.out, last=args.last, smooth=args.smooth)
@@ -409,8 +409,8 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _net(args: argparse.Namespace) -> int:
-    from .network import NETS_DIR  # noqa: PLC0415
-    from .sumo_backend import build_ring_net  # noqa: PLC0415
+    from lanefree_sumo.sim.network import NETS_DIR  # noqa: PLC0415
+    from lanefree_sumo.sim.backends.sumo import build_ring_net  # noqa: PLC0415
 
     cfg = merge_config(LaneFreeConfig(), {"road": {"length_m": args.length, "width_m": args.width}})
     net = build_ring_net(cfg, args.out_dir or NETS_DIR)
@@ -436,7 +436,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("lanefree: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as exc:  # SUMO errors and anything unexpected: one line, no traceback
-        from .sumo_backend import SumoError  # noqa: PLC0415
+        from lanefree_sumo.sim.backends.sumo import SumoError  # noqa: PLC0415
 
         if isinstance(exc, SumoError):
             print(f"lanefree: SUMO error: {exc}", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""Tests for lanefree_sumo.algorithms (double / dueling / prioritised DQN variants)."""
+"""Tests for lanefree_sumo.rl.algorithms.dqn_variants (double / dueling / prioritised DQN variants)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from torch.nn import functional as F
 
-from lanefree_sumo.algorithms import (
+from lanefree_sumo.rl.algorithms.dqn_variants import (
     DQN_VARIANTS,
     DoubleDQN,
     DuelingDoubleDQN,

@@ -1,4 +1,4 @@
-"""Tests for lanefree_sumo.encoder (set encoder of Liu, Zhang & Zhou 2023, SPEC §5)."""
+"""Tests for lanefree_sumo.rl.encoder (set encoder of Liu, Zhang & Zhou 2023, SPEC §5)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 from gymnasium import spaces
 
-from lanefree_sumo.encoder import SetEncoder, SetFeaturesExtractor
+from lanefree_sumo.rl.encoder import SetEncoder, SetFeaturesExtractor
 
 F = 5  # [dx, dy, vx, vy, presence]
 ATOL = 1e-5

@@ -10,8 +10,8 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import lanefree_sumo  # noqa: F401 - registers LaneFree-v0
 from lanefree_sumo.config import ConfigError
-from lanefree_sumo.env import LaneFreeEnv
-from lanefree_sumo.rewards import PRESETS, reciprocal_reward
+from lanefree_sumo.rl.env import LaneFreeEnv
+from lanefree_sumo.rl.rewards import PRESETS, reciprocal_reward
 
 SPEC8_COLUMNS = {
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
@@ -168,7 +168,7 @@ def test_collision_can_terminate_when_asked(make):
 def test_set_encoder_trains_on_the_real_env(make):
     from stable_baselines3 import DQN
 
-    from lanefree_sumo.encoder import SetFeaturesExtractor
+    from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
     env = make({"observation": {"kind": "set"}, "action": {"kind": "discrete"}})
     model = DQN("MultiInputPolicy", env, learning_starts=50, buffer_size=500, batch_size=16, seed=0,

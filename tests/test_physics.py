@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from scipy.special import erfc
 
-from lanefree_sumo.collisions import CollisionTracker, overlap_matrix
+from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.config import ConfigError, DriverConfig, LaneFreeConfig, merge_config
-from lanefree_sumo.dynamics import ballistic_distance, plan_step
-from lanefree_sumo.forces import driver_accelerations, edge_bound, ramp_g, trapezoid_h
-from lanefree_sumo.simulation import Simulation
-from lanefree_sumo.spawn import max_density, spawn
-from lanefree_sumo.state import VehicleState, wrap
+from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
+from lanefree_sumo.sim.forces import driver_accelerations, edge_bound, ramp_g, trapezoid_h
+from lanefree_sumo.sim.simulation import Simulation
+from lanefree_sumo.sim.spawn import max_density, spawn
+from lanefree_sumo.sim.state import VehicleState, wrap
 
 T = 0.25
 L = 500.0
@@ -309,7 +309,7 @@ def test_config_rejects_unknown_keys_with_the_valid_ones():
 
 
 def test_fast_symmetric_trapezoid_equals_the_general_h():
-    from lanefree_sumo.forces import symmetric_trapezoid
+    from lanefree_sumo.sim.forces import symmetric_trapezoid
 
     rng = np.random.default_rng(0)
     t = rng.uniform(-30, 30, 500)

@@ -15,9 +15,9 @@ import pytest
 from PIL import Image
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.evaluate import evaluate
-from lanefree_sumo.replay import ReplayError, load_recording, replay
-from lanefree_sumo.train import train
+from lanefree_sumo.experiments.evaluate import evaluate
+from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
+from lanefree_sumo.experiments.train import train
 
 ROOT = Path(__file__).resolve().parent.parent
 

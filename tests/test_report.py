@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from lanefree_sumo.report import PAPER_REFERENCE, ReportError, RunData, report, smoothed_curve
-from lanefree_sumo.train import EPISODE_COLUMNS
+from lanefree_sumo.experiments.report import PAPER_REFERENCE, ReportError, RunData, report, smoothed_curve
+from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
 FZOC = "fields_zones_overtake_collision"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lanefree_sumo.config import RewardConfig
-from lanefree_sumo.rewards import (
+from lanefree_sumo.rl.rewards import (
     PRESETS,
     RewardTerms,
     RewardWeights,

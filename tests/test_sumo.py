@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.network import default_net_path
-from lanefree_sumo.simulation import Simulation
-from lanefree_sumo.spawn import spawn
-from lanefree_sumo.state import wrap
-from lanefree_sumo.sumo_backend import SumoBackend, SumoError
+from lanefree_sumo.sim.network import default_net_path
+from lanefree_sumo.sim.simulation import Simulation
+from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.state import wrap
+from lanefree_sumo.sim.backends.sumo import SumoBackend, SumoError
 
 L = 500.0
 
@@ -112,7 +112,7 @@ def test_network_of_another_size_is_rejected():
 
 
 def test_other_ring_sizes_are_built_on_demand(tmp_path):
-    from lanefree_sumo.sumo_backend import build_ring_net
+    from lanefree_sumo.sim.backends.sumo import build_ring_net
 
     cfg = merge_config(config("libsumo", 70), {"road": {"length_m": 300.0, "width_m": 7.0}})
     net = build_ring_net(cfg, tmp_path)

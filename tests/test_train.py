@@ -16,8 +16,8 @@ import pytest
 import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.evaluate import evaluate
-from lanefree_sumo.train import ALGOS, EPISODE_COLUMNS, RunError, algorithm_class, train
+from lanefree_sumo.experiments.evaluate import evaluate
+from lanefree_sumo.experiments.train import ALGOS, EPISODE_COLUMNS, RunError, algorithm_class, train
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = {

@@ -3,7 +3,7 @@
 Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at another density than
 trained), one row per episode with the SPEC §8 columns, and with ``record`` one trajectory file
 per episode, ``trajectories/episode_NNNN.csv`` — every vehicle at every step including the
-initial state, in the format of :mod:`lanefree_sumo.trajectory` with the ``overlap`` column;
+initial state, in the format of :mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column;
 the agent's id is ``agent`` — and ``episode_NNNN.vehicles.csv`` with each vehicle's length,
 width and desired speed.  ``recording.json`` beside them names the network and the config
 so that a replay can rebuild the scene.
@@ -18,8 +18,8 @@ from typing import Any
 
 import yaml
 
-from .config import config_to_dict, merge_config, validate_density
-from .train import EPISODE_COLUMNS, EpisodeLog, RunError, algorithm_class, load_run_config
+from lanefree_sumo.config import config_to_dict, merge_config, validate_density
+from lanefree_sumo.experiments.train import EPISODE_COLUMNS, EpisodeLog, RunError, algorithm_class, load_run_config
 
 EVAL_SEED_OFFSET = 100_000
 """Evaluation episode k of a run with training seed s uses seed s + 100000 + k (never a
@@ -31,7 +31,7 @@ def find_model(run: Path) -> Path:
     final = run / "model.zip"
     if final.is_file():
         return final
-    from .train import newest_checkpoint  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import newest_checkpoint  # noqa: PLC0415
 
     try:
         return newest_checkpoint(run).path / "model.zip"
@@ -52,8 +52,8 @@ def evaluate(
     """Run the deterministic policy for ``episodes`` episodes; return the eval folder."""
     from tqdm import tqdm  # noqa: PLC0415
 
-    from .env import LaneFreeEnv  # noqa: PLC0415
-    from .trajectory import TrajectoryWriter, write_vehicles  # noqa: PLC0415
+    from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
+    from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles  # noqa: PLC0415
 
     cfg = load_run_config(run)
     trained_density = cfg.scenario.density_veh_per_km
@@ -78,7 +78,7 @@ def evaluate(
         (out / "recording.json").write_text(json.dumps({
             "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
             "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
-            "agent_id": "agent", "format": "lanefree_sumo.trajectory (t,id,x,y,vx,vy,ax,ay,overlap)",
+            "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap)",
         }, indent=2) + "\n")
     log = EpisodeLog(out / "episodes.csv")
     env = LaneFreeEnv(cfg)

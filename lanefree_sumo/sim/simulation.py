@@ -16,13 +16,13 @@ from typing import Protocol
 
 import numpy as np
 
-from .collisions import CollisionTracker, overlap_matrix
-from .config import AccelerationBounds, ConfigError, LaneFreeConfig
-from .dynamics import StepCommand, ballistic_distance, plan_step
-from .network import EDGES
-from .forces import driver_accelerations
-from .spawn import spawn
-from .state import VehicleState, pairwise_offsets
+from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
+from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig
+from lanefree_sumo.sim.dynamics import StepCommand, ballistic_distance, plan_step
+from lanefree_sumo.sim.network import EDGES
+from lanefree_sumo.sim.forces import driver_accelerations
+from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
 
 BACKENDS = ("libsumo", "traci", "numpy")
 
@@ -86,7 +86,7 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
         return NumpyBackend(cfg)
-    from .sumo_backend import SumoBackend  # noqa: PLC0415 - SUMO only when asked for
+    from lanefree_sumo.sim.backends.sumo import SumoBackend  # noqa: PLC0415 - SUMO only when asked for
 
     return SumoBackend(cfg, kind=cfg.backend, gui=cfg.gui)
 

@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .config import LaneFreeConfig, merge_config
-from .dynamics import StepCommand
-from .spawn import AGENT_ID
-from .state import VehicleState, wrap
-from .train import RunError, load_run_config
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.sim.dynamics import StepCommand
+from lanefree_sumo.sim.spawn import AGENT_ID
+from lanefree_sumo.sim.state import VehicleState, wrap
+from lanefree_sumo.experiments.train import RunError, load_run_config
 
 COLLISION_RGBA = (255, 0, 0, 255)
 AGENT_RGBA = (0, 200, 0, 255)
@@ -153,7 +153,7 @@ def replay(
 ) -> ReplayResult:
     """Replay a recorded episode; see the module docstring.  ``screenshot_step`` defaults to the
     last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them."""
-    from .sumo_backend import SumoBackend  # noqa: PLC0415
+    from lanefree_sumo.sim.backends.sumo import SumoBackend  # noqa: PLC0415
 
     rec = load_recording(run, episode)
     cfg = merge_config(rec.cfg, {"gui": gui, "backend": "traci" if gui else "libsumo"})

@@ -1,7 +1,7 @@
 """Reports over training runs: learning curves and the paper-style results table.
 
 ``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in
-:mod:`lanefree_sumo.train`), groups them by (algorithm, reward preset, density) and writes into
+:mod:`lanefree_sumo.experiments.train`), groups them by (algorithm, reward preset, density) and writes into
 ``out``::
 
     curves_return.png       episode return per training episode
@@ -51,7 +51,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .train import ALGOS
+from lanefree_sumo.experiments.train import ALGOS
 
 # -- constants -----------------------------------------------------------------------------------
 

@@ -17,11 +17,11 @@ import dataclasses
 import math
 from pathlib import Path
 
-from .config import LaneFreeConfig, VehicleClassConfig
+from lanefree_sumo.config import LaneFreeConfig, VehicleClassConfig
 
 EDGES = 4
 SHAPE_POINTS_PER_EDGE = 24
-NETS_DIR = Path(__file__).resolve().parent.parent / "sumo_nets"
+NETS_DIR = Path(__file__).resolve().parents[2] / "sumo_nets"
 ROUTE_ID = "ring_loop"
 VTYPE_AGENT = "agent"
 VTYPE_BG_SLOW = "bg_slow"

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .state import VehicleState, pairwise_offsets
+from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
 
 
 def overlap_matrix(
     state: VehicleState, ring_length: float, offsets: tuple[np.ndarray, np.ndarray] | None = None
 ) -> np.ndarray:
     """Symmetric boolean matrix: ``[i, j]`` is True when vehicles i ≠ j overlap.
-    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.state.pairwise_offsets` if already computed."""
+    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed."""
     dx, dy = pairwise_offsets(state, ring_length) if offsets is None else offsets
     half_len = 0.5 * (state.length[:, None] + state.length[None, :])
     half_wid = 0.5 * (state.width[:, None] + state.width[None, :])

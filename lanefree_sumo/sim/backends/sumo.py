@@ -21,9 +21,9 @@ import sumo
 import traci
 import traci.constants as tc
 
-from .config import LaneFreeConfig
-from .dynamics import StepCommand
-from .network import (
+from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.sim.dynamics import StepCommand
+from lanefree_sumo.sim.network import (
     EDGES,
     ROUTE_ID,
     VTYPE_AGENT,
@@ -34,8 +34,8 @@ from .network import (
     write_additional,
     write_plain_ring,
 )
-from .spawn import AGENT_ID
-from .state import VehicleState
+from lanefree_sumo.sim.spawn import AGENT_ID
+from lanefree_sumo.sim.state import VehicleState
 
 GUI_VIEW = "View #0"
 _SUBSCRIBED = (tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED)

@@ -36,7 +36,7 @@ from typing import Any, Callable
 import numpy as np
 import yaml
 
-from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
 
 CONTINUOUS_ALGOS = ("ddpg", "td3", "sac", "ppo")
 DISCRETE_ALGOS = ("dqn", "ddqn", "dueling", "per")
@@ -85,7 +85,7 @@ def versions() -> dict[str, str]:
     import stable_baselines3  # noqa: PLC0415
     import torch  # noqa: PLC0415
 
-    from .sumo_backend import sumo_version  # noqa: PLC0415
+    from lanefree_sumo.sim.backends.sumo import sumo_version  # noqa: PLC0415
 
     try:
         commit = subprocess.run(
@@ -120,7 +120,7 @@ def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env:
     def make() -> Any:
         from stable_baselines3.common.monitor import Monitor  # noqa: PLC0415
 
-        from .env import LaneFreeEnv  # noqa: PLC0415
+        from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
 
         if subprocess_env:
             # Ctrl-C reaches the whole process group: only the trainer handles it (checkpoint,
@@ -153,7 +153,7 @@ def algorithm_class(algo: str) -> Any:
     from stable_baselines3 import DDPG, PPO, SAC, TD3  # noqa: PLC0415
 
     if algo in DISCRETE_ALGOS:
-        from .algorithms import DQN_VARIANTS  # noqa: PLC0415
+        from lanefree_sumo.rl.algorithms.dqn_variants import DQN_VARIANTS  # noqa: PLC0415
 
         return DQN_VARIANTS[algo]
     return {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}[algo]
@@ -169,7 +169,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
     if set_obs:
-        from .encoder import SetFeaturesExtractor  # noqa: PLC0415
+        from lanefree_sumo.rl.encoder import SetFeaturesExtractor  # noqa: PLC0415
 
         extractor = {"features_extractor_class": SetFeaturesExtractor}
     common = {"seed": seed, "verbose": 0, "tensorboard_log": tensorboard_log, "device": "cpu"}

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import ConfigError, LaneFreeConfig
-from .state import VehicleState
+from lanefree_sumo.config import ConfigError, LaneFreeConfig
+from lanefree_sumo.sim.state import VehicleState
 
 AGENT_ID = "agent"
 

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import LaneFreeConfig, merge_config
-from .simulation import Simulation
-from .spawn import spawn
-from .sumo_backend import bare_step_rate, sumo_version
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.sim.simulation import Simulation
+from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.backends.sumo import bare_step_rate, sumo_version
 
 DENSITIES = (70, 90, 120)
 REPEATS = 3
@@ -58,7 +58,7 @@ def _rate(cfg: LaneFreeConfig, steps: int, seed: int) -> tuple[float, float, dic
 def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[str, float, float]]:
     """(observation kind, env work ms per step, core step ms) of LaneFree-v0 on libsumo: the
     env's own work (observation, reward, bookkeeping) against the simulation core's step."""
-    from .env import LaneFreeEnv  # noqa: PLC0415
+    from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
 
     out = []
     for kind in ("vector", "set"):
@@ -82,7 +82,7 @@ def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600
     measured over ``steps`` steps after learning has started (SPEC §9 settings)."""
     from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415
 
-    from .train import build_model, make_vec_env, training_config  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import build_model, make_vec_env, training_config  # noqa: PLC0415
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
         "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}}))
@@ -183,7 +183,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.bench", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.tools.bench", description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=800, help="steps per measurement (default 800)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the traffic (default 0)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench"), help="folder for the table")

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .simulation import StepResult
-from .state import VehicleState
+from lanefree_sumo.sim.simulation import StepResult
+from lanefree_sumo.sim.state import VehicleState
 
 COLUMNS = ("t", "id", "x", "y", "vx", "vy", "ax", "ay")
 DECIMALS = 6

@@ -1,6 +1,6 @@
 """The force-based lane-free background driver (SPEC §3), vectorised over all vehicles.
 
-Pure numpy: ``driver_accelerations`` maps a :class:`~lanefree_sumo.state.VehicleState` to the
+Pure numpy: ``driver_accelerations`` maps a :class:`~lanefree_sumo.sim.state.VehicleState` to the
 longitudinal and lateral accelerations (m/s²) that every vehicle would choose.  The environment
 uses the rows of background vehicles; the agent's row is ignored there.
 
@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erfc
 
-from .config import DriverConfig
-from .state import VehicleState, pairwise_offsets, wrap
+from lanefree_sumo.config import DriverConfig
+from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, wrap
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -91,7 +91,7 @@ def driver_accelerations(
     strongest repulsions (and nudges when ``cfg.nudging``), then the regulation steps 1–5.
     The road-edge bound (step 2) treats the edges as ``edge_clearance`` (m) inside the road, the
     line the dynamics clip at, so a driver that obeys it never touches the clip.
-    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.state.pairwise_offsets` if already computed.
+    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed.
     """
     x, y, vx, vy = state.x, state.y, state.vx, state.vy
     length, width, vd = state.length, state.width, state.v_desired

@@ -21,9 +21,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
-from .rewards import compute_reward, detect_overtakes, get_preset
-from .simulation import Simulation
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.rl.rewards import compute_reward, detect_overtakes, get_preset
+from lanefree_sumo.sim.simulation import Simulation
 
 OBSERVATION_KINDS = ("vector", "set")
 ACTION_KINDS = ("continuous", "discrete")
