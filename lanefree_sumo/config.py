@@ -8,9 +8,13 @@ with its unit, and nowhere else (SPEC §1–§7).  A plain ``dict`` can override
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import typing
 from dataclasses import dataclass, field, fields, is_dataclass
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping, get_args, get_origin
+
+from lanefree_sumo.errors import ConfigError
 
 
 @dataclass
@@ -153,6 +157,14 @@ class SpawnConfig:
     """Every vehicle starts at this vx (m/s), so no pair starts out closing in (vy = 0)."""
 
 
+Backend = Literal["libsumo", "traci", "numpy"]
+ObservationKind = Literal["vector", "set"]
+ActionKind = Literal["continuous", "discrete"]
+BACKENDS: tuple[str, ...] = get_args(Backend)
+OBSERVATION_KINDS: tuple[str, ...] = get_args(ObservationKind)
+ACTION_KINDS: tuple[str, ...] = get_args(ActionKind)
+
+
 @dataclass
 class ScenarioConfig:
     """What is on the road."""
@@ -178,6 +190,7 @@ class RewardConfig:
     """Reward components (SPEC §7, paper Tables 3–4). Weights are set by the preset."""
 
     preset: str = "fields_zones_overtake_collision"
+    """One of the presets of SPEC §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
     epsilon_r: float = 0.1
     """ε_r of the reciprocal reward (–)."""
     collision_reward: float = -2.5
@@ -206,7 +219,7 @@ class RewardConfig:
 class ObservationConfig:
     """Agent observation (SPEC §5)."""
 
-    kind: str = "vector"
+    kind: ObservationKind = "vector"
     """``vector`` (the paper's n nearest) or ``set`` (all in range, padded)."""
     n_neighbours: int = 5
     range_m: float = 80.0
@@ -224,7 +237,7 @@ class ObservationConfig:
 class ActionConfig:
     """Agent actions (SPEC §6)."""
 
-    kind: str = "continuous"
+    kind: ActionKind = "continuous"
     """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
     discrete_ax_mps2: float = 2.0
     """|ax| of the discrete accelerate/brake actions (m/s²)."""
@@ -259,7 +272,8 @@ class ActorCriticConfig:
     ou_sigma: float = 0.2
     """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
     ou_theta: float = 0.15
-    """Ornstein–Uhlenbeck mean reversion θ (1/step)."""
+    """Ornstein–Uhlenbeck mean reversion θ per unit time (SB3's OU process with its dt = 0.01, so
+    0.0015 per step; the paper gives no value)."""
     ppo_n_steps: int = 800
     """PPO rollout length per environment (steps)."""
 
@@ -288,7 +302,7 @@ class TrainConfig:
     """A training run (SPEC §9)."""
 
     algo: str = "ddpg"
-    """ddpg, td3, sac, ppo (continuous actions) or dqn, ddqn, dueling, per (discrete)."""
+    """A name of the algorithm registry (:data:`lanefree_sumo.rl.algorithms.ALGORITHMS`)."""
     episodes: int = 625
     envs: int = 1
     """Parallel environments, one process each (libsumo runs one simulation per process)."""
@@ -312,7 +326,7 @@ class LaneFreeConfig:
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = 0
-    backend: str = "libsumo"
+    backend: Backend = "libsumo"
     """``libsumo`` (fast, default), ``traci`` (socket; needed for the GUI) or ``numpy`` (no SUMO)."""
     gui: bool = False
     """Open sumo-gui (forces the TraCI backend)."""
@@ -325,8 +339,39 @@ class LaneFreeConfig:
         return int(round(self.scenario.density_veh_per_km * self.road.length_m / 1000.0))
 
 
-class ConfigError(ValueError):
-    """A configuration value or key that cannot be used."""
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """Defaults of ``lanefree evaluate`` (not part of a run's config)."""
+
+    episodes: int = 20
+    seed_offset: int = 100_000
+    """Evaluation episode k of a run with seed s uses seed s + this + k: never a training seed."""
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Defaults of ``lanefree replay`` in sumo-gui. Vehicle colours come from the scenario."""
+
+    delay_s: float = 0.05
+    """Wall-clock delay per step (s)."""
+    zoom_percent: float = 400.0
+    """View zoom (%)."""
+    size_px: tuple[int, int] = (1024, 768)
+    """View size, width × height (pixels)."""
+    collision_color_rgb: tuple[int, int, int] = (255, 0, 0)
+    """Colour of vehicles while they overlap another (0–255 each)."""
+    display_timeout_s: float = 10.0
+    """How long sumo-gui may take to open its window before replay gives up (s)."""
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """Defaults of ``lanefree report``."""
+
+    last_episodes: int = 50
+    """Episodes at the end of each run averaged in the tables (the paper's 50)."""
+    smooth_episodes: int = 20
+    """Trailing moving-average window of the learning curves (episodes)."""
 
 
 def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any:
@@ -352,8 +397,80 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
         else:
             if isinstance(current, tuple) and isinstance(value, list):
                 value = tuple(value)
-            changes[key] = value
+            changes[key] = check_value(where, _field_types(type(base))[key], value)
     return dataclasses.replace(base, **changes)
+
+
+def validate_config(cfg: Any, path: str = "") -> Any:
+    """Check every field of a (nested) config dataclass with :func:`check_value`; return it."""
+    types = _field_types(type(cfg))
+    for f in fields(cfg):
+        where = f"{path}.{f.name}" if path else f.name
+        value = getattr(cfg, f.name)
+        if is_dataclass(value):
+            validate_config(value, where)
+        else:
+            check_value(where, types[f.name], value)
+    return cfg
+
+
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _registered_names(where: str) -> tuple[str, ...] | None:
+    """Allowed values of the two fields whose names live in a registry of the RL layer."""
+    leaf = where.rsplit(".", 1)[-1]
+    if where.endswith("train.algo") or where == "algo":
+        from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES  # noqa: PLC0415 - registry lives in rl/
+
+        return ALGORITHM_NAMES
+    if where.endswith("reward.preset") or leaf == "preset":
+        from lanefree_sumo.rl.rewards import PRESETS  # noqa: PLC0415 - presets live in rl/
+
+        return tuple(PRESETS)
+    return None
+
+
+def check_value(where: str, annotation: Any, value: Any) -> Any:
+    """THE validation of one config value against its field's type (``Literal`` values, numbers,
+    flags, names, tuples); returns the value, ints widened to float where a float is expected.
+    Raises ConfigError naming the key and what is allowed."""
+    origin = get_origin(annotation)
+    if origin is Literal:
+        allowed = get_args(annotation)
+        if value not in allowed:
+            raise ConfigError(f"config '{where}' = {value!r} is not allowed; valid: {', '.join(map(str, allowed))}")
+        return value
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"config '{where}' must be true or false, got {value!r}")
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config '{where}' must be a whole number, got {value!r}")
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"config '{where}' must be a finite number, got {value!r}")
+        return float(value)
+    if annotation is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"config '{where}' must be text, got {value!r}")
+        names = _registered_names(where)
+        if names is not None and value not in names:
+            raise ConfigError(f"config '{where}' = {value!r} is unknown; valid: {', '.join(names)}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            raise ConfigError(f"config '{where}' must be a list, got {value!r}")
+        args = get_args(annotation)
+        item_types = [args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else list(args)
+        if len(item_types) != len(value):
+            raise ConfigError(f"config '{where}' must have {len(item_types)} entries, got {len(value)}")
+        return tuple(check_value(f"{where}[{i}]", t, v) for i, (t, v) in enumerate(zip(item_types, value)))
+    return value
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:

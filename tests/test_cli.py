@@ -4,22 +4,10 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def lanefree(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "lanefree_sumo.cli", *args],
-        capture_output=True, text=True, cwd=cwd or ROOT, timeout=300,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
+from conftest import lanefree
 
 
 def test_simulate_writes_trajectory_and_json_summary(tmp_path):

@@ -12,31 +12,21 @@ so that a replay can rebuild the scene.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 from typing import Any
 
-import yaml
 
-from lanefree_sumo.config import config_to_dict, merge_config, validate_density
-from lanefree_sumo.experiments.train import EPISODE_COLUMNS, EpisodeLog, RunError, algorithm_class, load_run_config
+from lanefree_sumo.config import merge_config, validate_density
+from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.rundir import (
+    EPISODES, RECORDING, TRAJECTORIES, RunDir, prepare_output, trajectory_path, vehicles_path, write_config,
+)
+from lanefree_sumo.experiments.train import EpisodeLog
+from lanefree_sumo.rl.algorithms import get_algorithm
 
 EVAL_SEED_OFFSET = 100_000
 """Evaluation episode k of a run with training seed s uses seed s + 100000 + k (never a
 training seed)."""
-
-
-def find_model(run: Path) -> Path:
-    """The final ``model.zip`` of a run, else its newest checkpoint's."""
-    final = run / "model.zip"
-    if final.is_file():
-        return final
-    from lanefree_sumo.experiments.train import newest_checkpoint  # noqa: PLC0415
-
-    try:
-        return newest_checkpoint(run).path / "model.zip"
-    except RunError:
-        raise RunError(f"{run} has no model.zip and no checkpoint; train it first with 'lanefree train'") from None
 
 
 def evaluate(
@@ -55,41 +45,39 @@ def evaluate(
     from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
     from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles  # noqa: PLC0415
 
-    cfg = load_run_config(run)
+    folder = RunDir(run)
+    cfg = folder.load_config()
     trained_density = cfg.scenario.density_veh_per_km
     if density is not None:
         cfg = merge_config(cfg, {"scenario": {"density_veh_per_km": validate_density(density)}})
     d = cfg.scenario.density_veh_per_km
-    out = out or run / ("eval" if d == trained_density else f"eval_d{d:g}")
-    if out.exists():
-        if not overwrite:
-            raise RunError(f"{out} exists; pass --overwrite to replace it or --out for another folder")
-        shutil.rmtree(out)
-    model_path = find_model(run)
+    out = out or folder.eval_dir(None if d == trained_density else d)
+    if out.exists() and not overwrite:
+        raise RunError(f"{out} exists; pass --overwrite to replace it or --out for another folder")
+    model_path = folder.find_model()
     try:
-        model = algorithm_class(cfg.train.algo).load(model_path, device="cpu")
+        model = get_algorithm(cfg.train.algo).cls.load(model_path, device="cpu")
     except Exception as exc:
         raise RunError(f"{model_path} cannot be loaded ({type(exc).__name__}: {exc})") from None
-    out.mkdir(parents=True)
+    prepare_output(out, overwrite)
     base_seed = (cfg.seed if seed is None else seed) + EVAL_SEED_OFFSET
-    (out / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    write_config(out, cfg)
     if record:
-        (out / "trajectories").mkdir()
-        (out / "recording.json").write_text(json.dumps({
+        (out / TRAJECTORIES).mkdir()
+        (out / RECORDING).write_text(json.dumps({
             "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
             "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
             "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap)",
         }, indent=2) + "\n")
-    log = EpisodeLog(out / "episodes.csv")
+    log = EpisodeLog(out / EPISODES)
     env = LaneFreeEnv(cfg)
     try:
         for k in tqdm(range(1, episodes + 1), desc="evaluate", unit="ep", disable=not progress):
             obs, _ = env.reset(seed=base_seed + k)
-            writer = TrajectoryWriter(out / "trajectories" / f"episode_{k:04d}.csv", cfg.sim.step_s,
-                                      overlap=True) if record else None
+            writer = TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True) if record else None
             if writer:
                 writer.write(0, env.sim.state, None)
-                write_vehicles(out / "trajectories" / f"episode_{k:04d}.vehicles.csv", env.sim.state)
+                write_vehicles(vehicles_path(out, k), env.sim.state)
             info: dict[str, Any] = {}
             done = False
             while not done:
@@ -108,4 +96,3 @@ def evaluate(
     return out
 
 
-__all__ = ["evaluate", "find_model", "EPISODE_COLUMNS"]

@@ -20,16 +20,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.config import LaneFreeConfig, ReplayConfig, merge_config
 from lanefree_sumo.sim.dynamics import StepCommand
 from lanefree_sumo.sim.spawn import AGENT_ID
 from lanefree_sumo.sim.state import VehicleState, wrap
-from lanefree_sumo.experiments.train import RunError, load_run_config
+from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.rundir import CONFIG, TRAJECTORIES, find_eval_dir, read_config, trajectory_path, vehicles_path
 
-COLLISION_RGBA = (255, 0, 0, 255)
-AGENT_RGBA = (0, 200, 0, 255)
-SLOW_RGB = np.array([40, 90, 255])
-FAST_RGB = np.array([255, 150, 0])
+REPLAY = ReplayConfig()
 FCD_ATTRIBUTES = "x,y,angle,type,speed,pos,lane,posLat"
 
 
@@ -65,24 +63,19 @@ class Recording:
         )
 
 
-def find_eval_dir(run: Path) -> Path:
-    """RUN itself if it holds trajectories/, else RUN/eval."""
-    return run if (run / "trajectories").is_dir() else run / "eval"
-
-
 def load_recording(run: Path, episode: int = 1) -> Recording:
     """Read episode ``episode`` of the recording in RUN/eval (or in RUN if it is an eval folder)."""
     eval_dir = find_eval_dir(run)
-    traj = eval_dir / "trajectories" / f"episode_{episode:04d}.csv"
-    vehicles = traj.with_suffix(".vehicles.csv")
+    traj = trajectory_path(eval_dir, episode)
+    vehicles = vehicles_path(eval_dir, episode)
     if not traj.is_file() or not vehicles.is_file():
-        have = sorted((eval_dir / "trajectories").glob("episode_*[0-9].csv")) if (eval_dir / "trajectories").is_dir() else []
+        have = sorted((eval_dir / TRAJECTORIES).glob("episode_*[0-9].csv")) if (eval_dir / TRAJECTORIES).is_dir() else []
         hint = f" (recorded: {', '.join(p.stem for p in have[:5])})" if have else ""
         raise ReplayError(
-            f"no recording of episode {episode} in {eval_dir / 'trajectories'}{hint}; "
+            f"no recording of episode {episode} in {eval_dir / TRAJECTORIES}{hint}; "
             f"make one with: lanefree evaluate {run} --record"
         )
-    cfg = load_run_config(eval_dir) if (eval_dir / "config.yaml").is_file() else load_run_config(run)
+    cfg = read_config(eval_dir) if (eval_dir / CONFIG).is_file() else read_config(run)
     try:
         table = pd.read_csv(traj)
         attrs = pd.read_csv(vehicles)
@@ -110,8 +103,13 @@ def desired_speed_colour(v_desired: float, cfg: LaneFreeConfig) -> tuple[int, in
     bg = cfg.scenario.background
     span = max(bg.desired_speed_max_mps - bg.desired_speed_min_mps, 1e-9)
     f = float(np.clip((v_desired - bg.desired_speed_min_mps) / span, 0.0, 1.0))
-    r, g, b = (SLOW_RGB + f * (FAST_RGB - SLOW_RGB)).round().astype(int)
+    slow, fast = np.array(bg.color_rgb), np.array(cfg.scenario.background_fast_color_rgb)
+    r, g, b = (slow + f * (fast - slow)).round().astype(int)
     return int(r), int(g), int(b), 255
+
+
+def _rgba(rgb: tuple[int, int, int]) -> tuple[int, int, int, int]:
+    return (*rgb, 255)
 
 
 def _gui_settings(path: Path, delay_ms: float) -> Path:
@@ -148,8 +146,8 @@ def replay(
     every: int = 1,
     gif: Path | None = None,
     fcd: Path | None = None,
-    size: tuple[int, int] = (1024, 768),
-    zoom: float = 600.0,
+    size: tuple[int, int] = REPLAY.size_px,
+    zoom: float = REPLAY.zoom_percent,
 ) -> ReplayResult:
     """Replay a recorded episode; see the module docstring.  ``screenshot_step`` defaults to the
     last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them."""
@@ -179,7 +177,8 @@ def replay(
     written: list[Path] = []
     try:
         backend.reset(rec.state(0))
-        base_colour = [AGENT_RGBA if vid == AGENT_ID else desired_speed_colour(v, cfg)
+        collision_colour = _rgba(REPLAY.collision_color_rgb)
+        base_colour = [_rgba(cfg.scenario.agent.color_rgb) if vid == AGENT_ID else desired_speed_colour(v, cfg)
                        for vid, v in zip(rec.ids, rec.v_desired)]
         if gui:
             for vid, colour in zip(rec.ids, base_colour):
@@ -201,7 +200,7 @@ def replay(
                     written.append(path)
                 changed = np.flatnonzero(rec.overlap[k] != shown_overlap)
                 for i in changed:
-                    backend.set_color(rec.ids[i], COLLISION_RGBA if rec.overlap[k, i] else base_colour[i])
+                    backend.set_color(rec.ids[i], collision_colour if rec.overlap[k, i] else base_colour[i])
                 shown_overlap = rec.overlap[k].copy()
             vx_next = np.maximum(2.0 * wrap(rec.x[k] - x, length) / step_s - vx, 0.0)
             dy = rec.y[k] - y

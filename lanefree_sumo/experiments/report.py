@@ -1,7 +1,6 @@
 """Reports over training runs: learning curves and the paper-style results table.
 
-``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in
-:mod:`lanefree_sumo.experiments.train`), groups them by (algorithm, reward preset, density) and writes into
+``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in :mod:`lanefree_sumo.experiments.rundir`), groups them by (algorithm, reward preset, density) and writes into
 ``out``::
 
     curves_return.png       episode return per training episode
@@ -34,8 +33,8 @@ Damaged runs never crash a report. A run folder is *skipped* — listed in
 ``episodes.csv`` is missing or unreadable, the config lacks the group keys, the CSV misses one of
 :data:`REQUIRED_COLUMNS`, any row has a different number of fields than the header (this includes
 a last line cut in the middle by a killed writer: the whole run is skipped, not just that line,
-so that no table silently mixes complete and damaged files — ``lanefree resume`` rewrites the
-CSV cleanly), a required value is not a finite number, or an episode number repeats.
+so that no table silently mixes complete and damaged files — ``lanefree train --resume``
+rewrites the CSV cleanly), a required value is not a finite number, or an episode number repeats.
 """
 
 from __future__ import annotations
@@ -45,13 +44,15 @@ import math
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
-import yaml
 
-from lanefree_sumo.experiments.train import ALGOS
+from lanefree_sumo.errors import ReportError, RunError
+from lanefree_sumo.experiments.paper import GroupKey, paper_reference
+from lanefree_sumo.experiments.rundir import EPISODES, read_config
+from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
 # -- constants -----------------------------------------------------------------------------------
 
@@ -75,84 +76,7 @@ CURVE_METRICS: tuple[tuple[str, str, str], ...] = (
 )
 """Learning-curve figures: one per metric, all groups as lines."""
 
-DEFAULT_DENSITY = 70.0
-"""Density (veh/km) of the paper's tables that do not vary it (Tables 5, 6, 8)."""
-
-GroupKey = tuple[str, str, float]
-"""(algorithm, reward preset, density in veh/km)."""
-
-
-class PaperReference(NamedTuple):
-    """One reference result of the paper (SPEC §10): last-50-episode means over 10 runs."""
-
-    collisions: float
-    """Agent collisions per episode."""
-    speed_dev_mps: float
-    """Speed deviation mean |vx − v_d| (m/s)."""
-    source: str
-    """Paper table(s) reporting it, e.g. ``"Tables 6, 7, 8"``."""
-
-
-# (table, algorithm, preset, density veh/km, collisions / episode, speed deviation m/s) — SPEC §10.
-_PAPER_ROWS: tuple[tuple[int, str, str, float, float, float], ...] = (
-    # Table 5: DDPG, reward presets, 70 veh/km
-    (5, "ddpg", "collision", DEFAULT_DENSITY, 2.256, 0.135),
-    (5, "ddpg", "fields", DEFAULT_DENSITY, 1.761, 0.323),
-    (5, "ddpg", "fields_collision", DEFAULT_DENSITY, 0.726, 0.698),
-    (5, "ddpg", "overtake_collision", DEFAULT_DENSITY, 2.293, 0.058),
-    (5, "ddpg", "fields_overtake_collision", DEFAULT_DENSITY, 0.649, 0.613),
-    # Table 6: DDPG, zones vs fields, 70 veh/km
-    (6, "ddpg", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.449, 0.723),
-    (6, "ddpg", "fields_overtake_collision", DEFAULT_DENSITY, 0.649, 0.613),
-    (6, "ddpg", "zones_overtake_collision", DEFAULT_DENSITY, 1.282, 0.403),
-    # Table 7: DDPG, densities
-    (7, "ddpg", "fields_zones_overtake_collision", 70.0, 0.449, 0.723),
-    (7, "ddpg", "fields_zones_overtake_collision", 90.0, 0.508, 0.998),
-    (7, "ddpg", "fields_zones_overtake_collision", 120.0, 0.591, 1.718),
-    (7, "ddpg", "fields_overtake_collision", 70.0, 0.649, 0.613),
-    (7, "ddpg", "fields_overtake_collision", 90.0, 0.771, 0.956),
-    (7, "ddpg", "fields_overtake_collision", 120.0, 1.066, 1.715),
-    # Table 8: algorithms, fields_zones_overtake_collision, 70 veh/km
-    (8, "ddpg", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.449, 0.723),
-    (8, "dqn", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.952, 0.471),
-    (8, "ddqn", "fields_zones_overtake_collision", DEFAULT_DENSITY, 1.094, 0.483),
-    (8, "dueling", "fields_zones_overtake_collision", DEFAULT_DENSITY, 1.04, 0.496),
-    (8, "per", "fields_zones_overtake_collision", DEFAULT_DENSITY, 0.792, 0.617),
-)
-
-
-def _build_paper_reference() -> dict[GroupKey, PaperReference]:
-    """Merge the per-table rows; a setting in several tables must have the same numbers there."""
-    values: dict[GroupKey, tuple[float, float]] = {}
-    tables: dict[GroupKey, list[int]] = {}
-    for table, algo, preset, density, collisions, speed_dev in _PAPER_ROWS:
-        key = (algo, preset, float(density))
-        if key in values and values[key] != (collisions, speed_dev):
-            raise AssertionError(f"paper tables disagree for {key}: {values[key]} vs {(collisions, speed_dev)}")
-        values[key] = (collisions, speed_dev)
-        tables.setdefault(key, []).append(table)
-    out: dict[GroupKey, PaperReference] = {}
-    for key, (collisions, speed_dev) in values.items():
-        nums = sorted(set(tables[key]))
-        source = ("Table " if len(nums) == 1 else "Tables ") + ", ".join(str(n) for n in nums)
-        out[key] = PaperReference(collisions, speed_dev, source)
-    return out
-
-
-PAPER_REFERENCE: dict[GroupKey, PaperReference] = _build_paper_reference()
-"""SPEC §10 reference numbers keyed by (algorithm, reward preset, density veh/km)."""
-
-
-def paper_reference(algorithm: str, preset: str, density: float) -> PaperReference | None:
-    """The paper's result for a setting, or None if the paper has none (density in veh/km)."""
-    return PAPER_REFERENCE.get((algorithm, preset, round(float(density), 6)))
-
-
 # -- results -------------------------------------------------------------------------------------
-
-class ReportError(ValueError):
-    """No report can be made (no usable run, output not writable); the message is one line."""
-
 
 @dataclass
 class ReportResult:
@@ -196,43 +120,16 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _config_value(data: dict[str, Any], dotted: str) -> Any:
-    node: Any = data
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            raise _Unusable(f"config.yaml has no '{dotted}'")
-        node = node[part]
-    return node
-
-
 def read_run_config(run: Path) -> tuple[str, str, float, int]:
     """(algorithm, reward preset, density veh/km, seed) from ``run/config.yaml``.
 
     Raises ``_Unusable`` (internal) with the reason when the file is missing or malformed.
     """
-    path = run / "config.yaml"
-    if not path.is_file():
-        raise _Unusable("no config.yaml")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise _Unusable(f"config.yaml unreadable ({_one_line(exc)})") from None
-    if not isinstance(data, dict):
-        raise _Unusable("config.yaml is not a mapping")
-    algo = _config_value(data, "train.algo")
-    preset = _config_value(data, "reward.preset")
-    density = _config_value(data, "scenario.density_veh_per_km")
-    seed = _config_value(data, "seed")
-    if not isinstance(algo, str) or not algo:
-        raise _Unusable(f"config.yaml train.algo is not a name: {algo!r}")
-    if not isinstance(preset, str) or not preset:
-        raise _Unusable(f"config.yaml reward.preset is not a name: {preset!r}")
-    if isinstance(density, bool) or not isinstance(density, (int, float)) or not math.isfinite(density) \
-            or density <= 0:
-        raise _Unusable(f"config.yaml scenario.density_veh_per_km is not a positive number: {density!r}")
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise _Unusable(f"config.yaml seed is not an integer: {seed!r}")
-    return algo, preset, round(float(density), 6), seed
+        cfg = read_config(run)
+    except RunError as exc:
+        raise _Unusable(str(exc)) from None
+    return cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed
 
 
 def read_episodes(path: Path) -> pd.DataFrame:
@@ -294,18 +191,18 @@ def read_run(run: Path) -> RunData:
     if not run.is_dir():
         raise _Unusable("not a folder" if run.exists() else "folder does not exist")
     algo, preset, density, seed = read_run_config(run)
-    return RunData(run, algo, preset, density, seed, read_episodes(run / "episodes.csv"))
+    return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES))
 
 
 # -- tables --------------------------------------------------------------------------------------
 
 def _sort_key(key: GroupKey) -> tuple[int, str, str, float]:
     algo, preset, density = key
-    return (ALGOS.index(algo) if algo in ALGOS else len(ALGOS), algo, preset, density)
+    return (ALGORITHM_NAMES.index(algo) if algo in ALGORITHM_NAMES else len(ALGORITHM_NAMES), algo, preset, density)
 
 
 def group_runs(runs: Sequence[RunData]) -> dict[GroupKey, list[RunData]]:
-    """Runs by (algorithm, preset, density), groups in a stable order (algorithm as in ``ALGOS``),
+    """Runs by (algorithm, preset, density), groups in a stable order (algorithm as in the registry),
     runs within a group by seed."""
     groups: dict[GroupKey, list[RunData]] = {}
     for run in runs:

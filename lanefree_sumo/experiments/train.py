@@ -1,16 +1,7 @@
 """Training and evaluation runs: run folders, algorithms with the paper's hyperparameters,
 per-episode CSV, checkpoints, interruption and resume.
 
-A run folder ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` holds::
-
-    config.yaml          the full resolved LaneFreeConfig (env + algorithm), enough to rebuild both
-    command.txt          the command line
-    versions.json        python, torch, SB3, gymnasium, SUMO, lanefree_sumo, git commit
-    episodes.csv         one row per finished episode (SPEC §8 + algorithm, timesteps), flushed each time
-    tb/                  TensorBoard logs
-    checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json — every K episodes
-                         and on Ctrl-C / SIGTERM
-    model.zip            the final model
+The run folder layout is defined in :mod:`lanefree_sumo.experiments.rundir`.
 
 ``resume`` continues from the newest checkpoint: model and replay buffer are restored,
 ``episodes.csv`` is cut back to the checkpoint's episode count, and episode numbers continue.
@@ -28,55 +19,32 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import yaml
 
-from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.errors import ConfigError, RunError
+from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, write_config
+from lanefree_sumo.rl.algorithms import get_algorithm
 
-CONTINUOUS_ALGOS = ("ddpg", "td3", "sac", "ppo")
-DISCRETE_ALGOS = ("dqn", "ddqn", "dueling", "per")
-ALGOS = CONTINUOUS_ALGOS + DISCRETE_ALGOS
-OFF_POLICY = ("ddpg", "td3", "sac") + DISCRETE_ALGOS
 EPISODE_COLUMNS = (
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
     "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s",
 )
-CHECKPOINT_DIR = "checkpoints"
-
-
-class RunError(Exception):
-    """A run folder or checkpoint that cannot be used; the message says what to do."""
 
 
 # -- configuration -------------------------------------------------------------------------------
 
 def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     """Fix the parts of the config the algorithm decides: action kind from the algorithm."""
-    algo = base.train.algo
-    if algo not in ALGOS:
-        raise ConfigError(f"unknown algorithm '{algo}'; choose one of {', '.join(ALGOS)}")
-    kind = "discrete" if algo in DISCRETE_ALGOS else "continuous"
+    kind = get_algorithm(base.train.algo).actions
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
     return merge_config(base, {"action": {"kind": kind}, "scenario": {"with_agent": True}})
-
-
-def load_run_config(run: Path) -> LaneFreeConfig:
-    """The configuration saved in a run folder."""
-    path = run / "config.yaml"
-    if not path.is_file():
-        raise RunError(f"{run} is not a run folder (no config.yaml); pass the folder that 'lanefree train' made")
-    try:
-        data = yaml.safe_load(path.read_text())
-        return merge_config(LaneFreeConfig(), data)
-    except (yaml.YAMLError, ConfigError, TypeError) as exc:
-        raise RunError(f"{path} is unreadable ({exc}); restore it or start a new run") from None
 
 
 def versions() -> dict[str, str]:
@@ -148,24 +116,14 @@ def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
     return vec
 
 
-def algorithm_class(algo: str) -> Any:
-    """The SB3(-compatible) class of an algorithm name."""
-    from stable_baselines3 import DDPG, PPO, SAC, TD3  # noqa: PLC0415
-
-    if algo in DISCRETE_ALGOS:
-        from lanefree_sumo.rl.algorithms.dqn_variants import DQN_VARIANTS  # noqa: PLC0415
-
-        return DQN_VARIANTS[algo]
-    return {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}[algo]
-
-
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
     """A new model for ``cfg.train.algo`` with the paper's hyperparameters (SPEC §9)."""
     import torch  # noqa: PLC0415
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise  # noqa: PLC0415
 
     algo = cfg.train.algo
-    cls = algorithm_class(algo)
+    spec = get_algorithm(algo)
+    cls = spec.cls
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
     if set_obs:
@@ -173,7 +131,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
 
         extractor = {"features_extractor_class": SetFeaturesExtractor}
     common = {"seed": seed, "verbose": 0, "tensorboard_log": tensorboard_log, "device": "cpu"}
-    if algo in CONTINUOUS_ALGOS:
+    if spec.config_section == "actor_critic":
         ac = cfg.train.actor_critic
         policy = "MultiInputPolicy" if set_obs else "MlpPolicy"
         nets = {"pi": list(ac.actor_layers), "qf": list(ac.critic_layers)}
@@ -243,38 +201,16 @@ class EpisodeLog:
             writer.writerows(kept)
 
 
-@dataclass
-class Checkpoint:
-    path: Path
-    episodes: int
-    timesteps: int
-
-
-def save_checkpoint(model: Any, run: Path, episodes: int, algo: str) -> Path:
-    """Model, replay buffer (off-policy) and counters under ``checkpoints/ep_NNNNN``."""
-    folder = run / CHECKPOINT_DIR / f"ep_{episodes:05d}"
+def save_checkpoint(model: Any, run: RunDir, episodes: int, algo: str) -> Path:
+    """Model, replay buffer (off-policy) and counters in ``run.checkpoint(episodes)``."""
+    folder = run.checkpoint(episodes)
     folder.mkdir(parents=True, exist_ok=True)
     model.save(folder / "model.zip")
-    if algo in OFF_POLICY:
-        model.save_replay_buffer(folder / "replay_buffer.pkl")
-    state = {"episodes": episodes, "timesteps": int(model.num_timesteps), "algo": algo,
-             "saved": datetime.now().isoformat(timespec="seconds")}
-    (folder / "state.json").write_text(json.dumps(state, indent=2))  # written last: marks completeness
+    if get_algorithm(algo).off_policy:
+        model.save_replay_buffer(Checkpoint(folder, episodes, 0).replay_buffer)
+    run.write_checkpoint_state(folder, {"episodes": episodes, "timesteps": int(model.num_timesteps), "algo": algo,
+                                        "saved": datetime.now().isoformat(timespec="seconds")})
     return folder
-
-
-def newest_checkpoint(run: Path) -> Checkpoint:
-    """The newest complete checkpoint of a run; RunError when there is none usable."""
-    root = run / CHECKPOINT_DIR
-    folders = sorted(root.glob("ep_*")) if root.is_dir() else []
-    for folder in reversed(folders):
-        try:
-            state = json.loads((folder / "state.json").read_text())
-            if (folder / "model.zip").is_file():
-                return Checkpoint(folder, int(state["episodes"]), int(state["timesteps"]))
-        except (OSError, ValueError, KeyError):
-            continue
-    raise RunError(f"{run} has no usable checkpoint under {CHECKPOINT_DIR}/; start a new run instead of resuming")
 
 
 # -- the training loop ----------------------------------------------------------------------------
@@ -291,7 +227,7 @@ class _Stop:
         self.signal_name = signal.Signals(signum).name
 
 
-def _make_callback(run: Path, cfg: LaneFreeConfig, log: EpisodeLog, done: int, stop: _Stop, progress: bool) -> Any:
+def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int, stop: _Stop, progress: bool) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415
     from tqdm import tqdm  # noqa: PLC0415
 
@@ -348,22 +284,23 @@ def train(
     """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
     checkpoint and return early."""
     if resume:
-        assert run is not None
-        cfg = load_run_config(run)
-        ckpt = newest_checkpoint(run)
+        if run is None:
+            raise RunError("resuming needs the run folder")
+        folder = RunDir(run)
+        cfg = folder.load_config()
+        ckpt = folder.newest_checkpoint()
         done, timesteps = ckpt.episodes, ckpt.timesteps
     else:
         cfg = training_config(cfg)
         run = run or Path("runs") / run_name(cfg)
+        folder = RunDir(run)
         if run.exists() and any(run.iterdir()):
             raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
         run.mkdir(parents=True, exist_ok=True)
-        (run / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        (run / "versions.json").write_text(json.dumps(versions(), indent=2) + "\n")
+        write_config(run, cfg)
+        folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
         done, timesteps = 0, 0
-    cmd = command or shlex.join(["lanefree", *sys.argv[1:]])
-    with open(run / "command.txt", "a") as fh:
-        fh.write(cmd + "\n")
+    append_command(run, command or shlex.join(["lanefree", *sys.argv[1:]]))
     if done >= cfg.train.episodes:
         return run, done
 
@@ -371,29 +308,29 @@ def train(
 
     torch.set_num_threads(cfg.train.torch_threads)
     algo = cfg.train.algo
+    spec = get_algorithm(algo)
     env = make_vec_env(cfg, cfg.seed + done, cfg.train.envs)
     stop = _Stop()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     log: EpisodeLog | None = None
     try:
         if resume:
-            EpisodeLog.truncate(run / "episodes.csv", done)
+            EpisodeLog.truncate(folder.episodes, done)
             try:
-                model = algorithm_class(algo).load(ckpt.path / "model.zip", env=env, device="cpu")
-                if algo in OFF_POLICY:
-                    buffer = ckpt.path / "replay_buffer.pkl"
-                    if not buffer.is_file():
-                        raise RunError(f"checkpoint {ckpt.path} lacks replay_buffer.pkl; it is incomplete")
-                    model.load_replay_buffer(buffer)
+                model = spec.cls.load(ckpt.model, env=env, device="cpu")
+                if spec.off_policy:
+                    if not ckpt.replay_buffer.is_file():
+                        raise RunError(f"checkpoint {ckpt.path} lacks {ckpt.replay_buffer.name}; it is incomplete")
+                    model.load_replay_buffer(ckpt.replay_buffer)
             except RunError:
                 raise
             except Exception as exc:
                 raise RunError(f"checkpoint {ckpt.path} is corrupt ({type(exc).__name__}: {exc}); "
                                "delete that folder to resume from an older one") from None
         else:
-            model = build_model(cfg, env, cfg.seed, str(run / "tb"))
-        log = EpisodeLog(run / "episodes.csv")
-        callback = _make_callback(run, cfg, log, done, stop, progress)
+            model = build_model(cfg, env, cfg.seed, str(folder.tensorboard))
+        log = EpisodeLog(folder.episodes)
+        callback = _make_callback(folder, cfg, log, done, stop, progress)
         remaining = total_timesteps(cfg) - timesteps
         t0 = time.perf_counter()
         model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=not resume,
@@ -401,10 +338,10 @@ def train(
         done = callback.episodes
         wall = time.perf_counter() - t0
         if stop.requested or done < cfg.train.episodes:
-            save_checkpoint(model, run, done, algo)
+            save_checkpoint(model, folder, done, algo)
         else:
-            model.save(run / "model.zip")
-        (run / "last_session.json").write_text(json.dumps(
+            model.save(folder.model)
+        folder.last_session.write_text(json.dumps(
             {"episodes_done": done, "timesteps": int(model.num_timesteps), "wall_s": wall,
              "steps_per_s": (model.num_timesteps - timesteps) / wall if wall > 0 else None,
              "stopped_by": stop.signal_name or None}, indent=2) + "\n")

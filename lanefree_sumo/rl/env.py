@@ -21,12 +21,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_config
 from lanefree_sumo.rl.rewards import compute_reward, detect_overtakes, get_preset
 from lanefree_sumo.sim.simulation import Simulation
 
-OBSERVATION_KINDS = ("vector", "set")
-ACTION_KINDS = ("continuous", "discrete")
 EGO_FEATURES = 4  # y, vx, vy, v_d
 NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
 # Discrete actions (SPEC §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
@@ -45,16 +43,7 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
         cfg = config
     else:
         cfg = merge_config(LaneFreeConfig(), config)
-    cfg = merge_config(cfg, {"scenario": {"with_agent": True}})
-    if cfg.observation.kind not in OBSERVATION_KINDS:
-        raise ConfigError(f"unknown observation.kind '{cfg.observation.kind}'; valid: {', '.join(OBSERVATION_KINDS)}")
-    if cfg.action.kind not in ACTION_KINDS:
-        raise ConfigError(f"unknown action.kind '{cfg.action.kind}'; valid: {', '.join(ACTION_KINDS)}")
-    try:
-        get_preset(cfg.reward.preset)
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
-    return cfg
+    return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
 
 
 class LaneFreeEnv(gym.Env):

@@ -17,6 +17,8 @@ import dataclasses
 import math
 from pathlib import Path
 
+import numpy as np
+
 from lanefree_sumo.config import LaneFreeConfig, VehicleClassConfig
 
 EDGES = 4
@@ -26,6 +28,26 @@ ROUTE_ID = "ring_loop"
 VTYPE_AGENT = "agent"
 VTYPE_BG_SLOW = "bg_slow"
 VTYPE_BG_FAST = "bg_fast"
+
+
+def edge_length(length_m: float) -> float:
+    """Length of each of the ring's ``EDGES`` equal edges (m)."""
+    return length_m / EDGES
+
+
+def ring_to_edge(x: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """x along the centre line (m, in [0, L)) → (edge index, position on that edge in m).
+
+    THE mapping between the ring coordinate and SUMO's (edge, lane position); its inverse is
+    ``edge_index · L / EDGES + lane position``."""
+    segment = edge_length(length_m)
+    edge = np.minimum((np.asarray(x) // segment).astype(int), EDGES - 1)
+    return edge, x - edge * segment
+
+
+def edge_to_ring(edge: np.ndarray | int, position_m: np.ndarray | float, length_m: float) -> np.ndarray:
+    """(edge index, position on that edge in m) → x along the centre line (m)."""
+    return np.asarray(edge) * edge_length(length_m) + position_m
 
 
 def edge_id(index: int) -> str:

@@ -4,84 +4,33 @@ Each step the state is read from the backend, the force model computes the backg
 vehicles' accelerations from it (the agent's come from outside), the dynamics turn them into
 commands, the backend executes them, and collisions are counted on the new state.
 
-Backends: ``libsumo`` (default) and ``traci`` execute in SUMO (:mod:`.sumo_backend`);
+Backends: ``libsumo`` (default) and ``traci`` execute in SUMO (:mod:`.backends.sumo`);
 ``numpy`` executes the same dynamics with no SUMO at all — the reference and the fast path.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Callable
 
 import numpy as np
+from tqdm import tqdm
 
 from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
-from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig
-from lanefree_sumo.sim.dynamics import StepCommand, ballistic_distance, plan_step
-from lanefree_sumo.sim.network import EDGES
+from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, validate_config
+from lanefree_sumo.sim.backends.numpy import Backend, NumpyBackend
+from lanefree_sumo.sim.dynamics import plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
 
-BACKENDS = ("libsumo", "traci", "numpy")
-
-
-class Backend(Protocol):
-    """Executes steps; positions and speeds are always read back from it."""
-
-    def reset(self, state: VehicleState) -> None: ...
-
-    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-
-    def close(self) -> None: ...
-
-
-class NumpyBackend:
-    """SUMO-free execution of the same commands.
-
-    Positions are kept the way SUMO keeps them — edge index plus position on the edge, lateral
-    offset from the lane centre — and updated with the same arithmetic (ballistic distance,
-    edge hand-over, small lateral moves set rather than driven), so that both backends produce
-    bit-identical trajectories from the same commands.
-    """
-
-    def __init__(self, cfg: LaneFreeConfig) -> None:
-        self._segment = cfg.road.length_m / EDGES
-        self._step = cfg.sim.step_s
-        self._half_width = 0.5 * cfg.road.width_m
-        self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
-        self._edge = np.zeros(0, dtype=int)
-        self._pos = self._pos_lat = self._vx = self._y = np.zeros(0)
-
-    def reset(self, state: VehicleState) -> None:
-        self._edge = np.minimum((state.x // self._segment).astype(int), EDGES - 1)
-        self._pos = state.x - self._edge * self._segment
-        self._pos_lat = state.y - self._half_width
-        self._vx = state.vx.copy()
-        self._y = state.y.copy()
-
-    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        pos = self._pos + ballistic_distance(self._vx, cmd.vx_next, self._step)
-        passed = pos > self._segment
-        self._pos = np.where(passed, pos - self._segment, pos)
-        self._edge = np.where(passed, (self._edge + 1) % EDGES, self._edge)
-        tiny = np.abs(cmd.dy) < self._min_lateral_move
-        moved = np.where(tiny, (self._y + cmd.dy) - self._half_width, self._pos_lat + cmd.dy)
-        self._pos_lat = np.where(cmd.dy == 0.0, self._pos_lat, moved)
-        self._vx = cmd.vx_next.copy()
-        x = self._edge * self._segment + self._pos
-        self._y = self._pos_lat + self._half_width
-        return x, self._y.copy(), self._vx.copy()
-
-    def close(self) -> None:
-        pass
 
 
 def make_backend(cfg: LaneFreeConfig) -> Backend:
     """The backend named by ``cfg.backend`` (``cfg.gui`` implies TraCI)."""
-    if cfg.backend not in BACKENDS:
-        raise ConfigError(f"unknown backend '{cfg.backend}'; choose one of {', '.join(BACKENDS)}")
+    validate_config(cfg)
     if cfg.backend == "numpy":
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
@@ -191,3 +140,56 @@ class Simulation:
         if self.backend is not None:
             self.backend.close()
             self.backend = None
+
+
+def run_simulation(
+    cfg: LaneFreeConfig,
+    steps: int,
+    on_step: Callable[[int, VehicleState, StepResult], None] | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Run background traffic for ``steps`` and return its summary (speeds in m/s, margins in m).
+
+    ``on_step(step, state, result)`` is called after every step (e.g. a trajectory writer).
+    Ctrl-C stops early and returns what was simulated, with ``interrupted`` set."""
+    sim = Simulation(cfg)
+    t0 = time.perf_counter()
+    state = sim.reset(cfg.seed)
+    n = state.n
+    width = cfg.road.width_m
+    collisions = boundary_contacts = done = 0
+    speed_sum = 0.0
+    min_margin = float(np.min(np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)))
+    interrupted = False
+    try:
+        for k in tqdm(range(steps), disable=not progress or not sys.stderr.isatty(), unit="step", desc="simulate"):
+            result = sim.step()
+            done = k + 1
+            collisions += len(result.new_collisions)
+            boundary_contacts += int(result.boundary_contact.sum())
+            speed_sum += float(state.vx.mean())
+            margin = np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)
+            min_margin = min(min_margin, float(margin.min()))
+            if on_step is not None:
+                on_step(done, state, result)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        sim.close()
+    wall = time.perf_counter() - t0
+    return {
+        "steps": done,
+        "vehicles": n,
+        "density_veh_per_km": cfg.scenario.density_veh_per_km,
+        "seed": cfg.seed,
+        "backend": cfg.backend,
+        "nudging": cfg.scenario.driver.nudging,
+        "background_collisions": collisions,
+        "boundary_contacts": boundary_contacts,
+        "mean_speed_mps": speed_sum / done if done else float("nan"),
+        "mean_desired_speed_mps": float(state.v_desired.mean()),
+        "min_lateral_margin_m": min_margin,
+        "wall_s": wall,
+        "steps_per_s": done / wall if wall > 0 else float("nan"),
+        "interrupted": interrupted,
+    }

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from lanefree_sumo.cli import run_simulation
+from lanefree_sumo.sim.simulation import run_simulation
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 
 
@@ -26,7 +26,7 @@ def main() -> None:
                 LaneFreeConfig(),
                 {"seed": seed, "backend": args.backend, "scenario": {"density_veh_per_km": density}},
             )
-            s = run_simulation(cfg, int(round(args.seconds / cfg.sim.step_s)), None, write_trajectory=False)
+            s = run_simulation(cfg, int(round(args.seconds / cfg.sim.step_s)))
             print(f"| {density:g} | {seed} | {s['vehicles']} | {s['background_collisions']} | {s['boundary_contacts']} "
                   f"| {s['min_lateral_margin_m']:.3f} | {s['mean_speed_mps']:.2f} | {s['mean_desired_speed_mps']:.2f} "
                   f"| {s['mean_speed_mps'] / s['mean_desired_speed_mps']:.3f} |", flush=True)

@@ -1,0 +1,70 @@
+"""THE algorithm registry: name → SB3(-compatible) class, action kind, on/off-policy, config section.
+
+Training, evaluation, the benchmark, the CLI's help and the tests all read :data:`ALGORITHMS`.
+Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
+import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
+:mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from lanefree_sumo.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class AlgorithmSpec:
+    """What the platform needs to know about one algorithm."""
+
+    name: str
+    target: str
+    """``module:attribute`` of the class."""
+    actions: Literal["continuous", "discrete"]
+    off_policy: bool
+    """Keeps a replay buffer (checkpointed with the model)."""
+    config_section: Literal["actor_critic", "dqn"]
+    """Section of ``TrainConfig`` with its hyperparameters."""
+    summary: str
+    """One line for ``--help``."""
+
+    @property
+    def cls(self) -> Any:
+        """The SB3(-compatible) class (imported on first use)."""
+        module, attribute = self.target.split(":")
+        return getattr(importlib.import_module(module), attribute)
+
+
+_ALGOS = "lanefree_sumo.rl.algorithms"
+ALGORITHMS: dict[str, AlgorithmSpec] = {
+    spec.name: spec
+    for spec in (
+        AlgorithmSpec("ddpg", "stable_baselines3:DDPG", "continuous", True, "actor_critic",
+                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)"),
+        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3"),
+        AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC"),
+        AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO"),
+        AlgorithmSpec("dqn", "stable_baselines3:DQN", "discrete", True, "dqn", "DQN"),
+        AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN"),
+        AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
+                      "dueling double DQN"),
+        AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
+                      "double DQN with prioritised replay"),
+    )
+}
+ALGORITHM_NAMES: tuple[str, ...] = tuple(ALGORITHMS)
+
+
+def get_algorithm(name: str) -> AlgorithmSpec:
+    """The registry entry of ``name``; ConfigError naming the valid ones otherwise."""
+    try:
+        return ALGORITHMS[name]
+    except KeyError:
+        raise ConfigError(f"unknown algorithm '{name}'; choose one of {', '.join(ALGORITHM_NAMES)}") from None
+
+
+def help_text() -> str:
+    """``name (summary, action kind)`` of every algorithm, for ``--help``."""
+    return "; ".join(f"{s.name}: {s.summary} ({s.actions} actions)" for s in ALGORITHMS.values())

@@ -9,10 +9,13 @@ subscriptions (lane position, lateral lane position, speed, edge).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import subprocess
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -22,6 +25,7 @@ import traci
 import traci.constants as tc
 
 from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.errors import SumoError
 from lanefree_sumo.sim.dynamics import StepCommand
 from lanefree_sumo.sim.network import (
     EDGES,
@@ -30,7 +34,9 @@ from lanefree_sumo.sim.network import (
     background_vtype,
     default_net_path,
     edge_id,
+    edge_to_ring,
     netconvert_args,
+    ring_to_edge,
     write_additional,
     write_plain_ring,
 )
@@ -39,10 +45,6 @@ from lanefree_sumo.sim.state import VehicleState
 
 GUI_VIEW = "View #0"
 _SUBSCRIBED = (tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED)
-
-
-class SumoError(RuntimeError):
-    """SUMO could not do what was asked; the message says what the user can do."""
 
 
 def sumo_binary(name: str) -> str:
@@ -133,6 +135,12 @@ def sumo_options(cfg: LaneFreeConfig, net: Path, additional: Path) -> list[str]:
     ]
 
 
+def lane_of(x: float, length_m: float) -> tuple[str, float]:
+    """SUMO lane id and lane position (m) of ring coordinate ``x`` (m)."""
+    edge, pos = ring_to_edge(np.asarray(x), length_m)
+    return f"{edge_id(int(edge))}_0", float(pos)
+
+
 class SumoBackend:
     """Executes steps in SUMO through libsumo (in-process) or TraCI (a socket; needed for GUI).
 
@@ -161,11 +169,13 @@ class SumoBackend:
         self._label = label or f"lanefree-{os.getpid()}-{id(self)}"
         self._extra_args = list(extra_args)
         self._ids: list[str] = []
-        self._edge_offset = {edge_id(k): k * cfg.road.length_m / EDGES for k in range(EDGES)}
+        self._edge_offset = {edge_id(k): float(edge_to_ring(k, 0.0, cfg.road.length_m)) for k in range(EDGES)}
         self._half_width = 0.5 * cfg.road.width_m
         self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
         self._y = np.zeros(0)
         self._conn: Any = None
+        self.gui_start_retries = 10
+        """Attempts (about 1 s each) to connect to sumo-gui before giving up."""
         self.sumo_step_seconds = 0.0
         """Wall time spent inside SUMO's simulationStep during ``step`` (s), for profiling."""
         self._start()
@@ -190,11 +200,20 @@ class SumoBackend:
                 libsumo.start(args)
                 self._conn = libsumo
             else:
-                traci.start(args, label=self._label)
+                if self.gui and not os.environ.get("DISPLAY"):
+                    raise SumoError("sumo-gui needs a display and none is set (DISPLAY); "
+                                    "on a headless machine run the command under 'xvfb-run -a'")
+                retries = self.gui_start_retries if self.gui else tc.DEFAULT_NUM_RETRIES
+                with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # traci's "Retrying" noise; we say one line instead
+                    traci.start(args, label=self._label, numRetries=retries, stdout=subprocess.DEVNULL)
                 self._conn = traci.getConnection(self._label)
         except SumoError:
             raise
         except Exception as exc:
+            if self.gui:
+                raise SumoError(f"sumo-gui did not open its window on display {os.environ.get('DISPLAY')!r}; "
+                                "check the display, or on a headless machine run under 'xvfb-run -a'") from None
             raise SumoError(f"SUMO did not start: {str(exc).strip() or type(exc).__name__}; "
                             f"check the network file {self.net}") from None
 
@@ -217,9 +236,7 @@ class SumoBackend:
 
     # -- episodes -----------------------------------------------------------------------
     def _lane_of(self, x: float) -> tuple[str, float]:
-        seg = self.cfg.road.length_m / EDGES
-        k = min(int(x // seg), EDGES - 1)
-        return f"{edge_id(k)}_0", x - k * seg
+        return lane_of(x, self.cfg.road.length_m)
 
     def reset(self, state: VehicleState) -> None:
         """Remove all vehicles and place ``state``'s vehicles at their exact positions/speeds."""
@@ -319,12 +336,10 @@ def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> floa
     additional = write_additional(cfg, Path(tmp.name) / "vtypes.add.xml")
     libsumo.start([sumo_binary("sumo"), *sumo_options(cfg, net, additional)])
     try:
-        seg = cfg.road.length_m / EDGES
         for i, vid in enumerate(state.ids):
-            k = min(int(state.x[i] // seg), EDGES - 1)
             libsumo.vehicle.add(vid, ROUTE_ID, background_vtype(float(state.v_desired[i]), cfg), depart="now",
                                 departSpeed=f"{state.vx[i]:.6f}")
-            libsumo.vehicle.moveTo(vid, f"{edge_id(k)}_0", float(state.x[i]) - k * seg)
+            libsumo.vehicle.moveTo(vid, *lane_of(float(state.x[i]), cfg.road.length_m))
             libsumo.vehicle.setMaxSpeed(vid, float(state.v_desired[i]))
         libsumo.simulationStep()
         for i, vid in enumerate(state.ids):

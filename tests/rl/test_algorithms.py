@@ -1,4 +1,4 @@
-"""Tests for lanefree_sumo.rl.algorithms.dqn_variants (double / dueling / prioritised DQN variants)."""
+"""Tests for the DQN variants of lanefree_sumo.rl.algorithms (double / dueling / prioritised) and the registry."""
 
 from __future__ import annotations
 
@@ -15,19 +15,20 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from torch.nn import functional as F
 
-from lanefree_sumo.rl.algorithms.dqn_variants import (
-    DQN_VARIANTS,
-    DoubleDQN,
+from lanefree_sumo.rl.algorithms import ALGORITHMS
+from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
+from lanefree_sumo.rl.algorithms.dueling import (
     DuelingDoubleDQN,
     DuelingDQNPolicy,
     DuelingQNetwork,
-    MinTree,
     MultiInputDuelingDQNPolicy,
+)
+from lanefree_sumo.rl.algorithms.prioritized import (
     PrioritizedDictReplayBuffer,
     PrioritizedDoubleDQN,
     PrioritizedReplayBuffer,
-    SumTree,
 )
+from lanefree_sumo.rl.algorithms.segment_tree import MinTree, SumTree
 
 ALPHA, EPS = 0.6, 1e-6
 
@@ -598,8 +599,10 @@ def test_per_ddqn_with_multiple_envs():
 
 
 def test_variant_registry():
-    assert DQN_VARIANTS == {
-        "dqn": DQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN, "per": PrioritizedDoubleDQN
-    }
+    discrete = {name: spec.cls for name, spec in ALGORITHMS.items() if spec.actions == "discrete"}
+    assert discrete == {"dqn": DQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN, "per": PrioritizedDoubleDQN}
+    assert all(spec.config_section == "dqn" and spec.off_policy for spec in ALGORITHMS.values()
+               if spec.actions == "discrete")
+    assert [n for n, s in ALGORITHMS.items() if not s.off_policy] == ["ppo"]
     assert issubclass(PrioritizedDoubleDQN, DoubleDQN) and issubclass(DoubleDQN, DQN)
     assert issubclass(PrioritizedReplayBuffer, ReplayBuffer)

@@ -145,7 +145,7 @@ def test_set_observation_lists_everyone_in_range(make):
 def test_config_errors_name_the_valid_choices():
     with pytest.raises(ConfigError, match="valid keys here"):
         LaneFreeEnv({"reward": {"presett": "x"}})
-    with pytest.raises(ConfigError, match="valid presets: collision, overtake_collision"):
+    with pytest.raises(ConfigError, match="valid: collision, overtake_collision"):
         LaneFreeEnv({"reward": {"preset": "speed"}})
     with pytest.raises(ConfigError, match="valid: vector, set"):
         LaneFreeEnv({"observation": {"kind": "image"}})

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.sim.backends.sumo import SumoBackend, SumoError
 from lanefree_sumo.sim.network import default_net_path
 from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import wrap
-from lanefree_sumo.sim.backends.sumo import SumoBackend, SumoError
 
 L = 500.0
 

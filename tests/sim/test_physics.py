@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 from scipy.special import erfc
 
-from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.config import ConfigError, DriverConfig, LaneFreeConfig, merge_config
+from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
-from lanefree_sumo.sim.forces import driver_accelerations, edge_bound, ramp_g, trapezoid_h
+from lanefree_sumo.sim.forces import (
+    driver_accelerations,
+    edge_bound,
+    ramp_g,
+    trapezoid_h,
+)
 from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import max_density, spawn
 from lanefree_sumo.sim.state import VehicleState, wrap

@@ -2,48 +2,18 @@
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
-import sys
-import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import lanefree
 from PIL import Image
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
 from lanefree_sumo.experiments.train import train
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-@pytest.fixture(scope="module")
-def display():
-    """A private Xvfb server for sumo-gui; the tests need it, so a missing Xvfb is a failure."""
-    xvfb = shutil.which("Xvfb")
-    assert xvfb, "Xvfb is not installed: apt-get install xvfb (.ci/run does this)"
-    number = next(n for n in range(90, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists()
-                  and not Path(f"/tmp/.X{n}-lock").exists())
-    proc = subprocess.Popen([xvfb, f":{number}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    for _ in range(100):
-        if Path(f"/tmp/.X11-unix/X{number}").exists():
-            break
-        time.sleep(0.05)
-    old = os.environ.get("DISPLAY")
-    os.environ["DISPLAY"] = f":{number}"
-    yield f":{number}"
-    if old is None:
-        os.environ.pop("DISPLAY", None)
-    else:
-        os.environ["DISPLAY"] = old
-    proc.terminate()
-    proc.wait(timeout=10)
 
 
 @pytest.fixture(scope="module")
@@ -97,9 +67,7 @@ def test_missing_recording_says_how_to_make_one(tmp_path):
 
 def test_export_writes_csv_and_fcd_with_lateral_positions(recorded, tmp_path):
     out = tmp_path / "export"
-    res = subprocess.run([sys.executable, "-m", "lanefree_sumo.cli", "export", str(recorded), "--episode", "1",
-                          "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=300,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    res = lanefree("export", str(recorded), "--episode", "1", "--out", str(out))
     assert res.returncode == 0, res.stderr
     assert (out / "episode_0001.csv").read_bytes() == \
         (recorded / "eval" / "trajectories" / "episode_0001.csv").read_bytes()

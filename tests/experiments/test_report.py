@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from lanefree_sumo.experiments.report import PAPER_REFERENCE, ReportError, RunData, report, smoothed_curve
+from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments.paper import PAPER_REFERENCE
+from lanefree_sumo.experiments.report import RunData, report, smoothed_curve
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
 FZOC = "fields_zones_overtake_collision"

@@ -5,29 +5,19 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import TINY_TRAINING, lanefree_popen
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.train import ALGOS, EPISODE_COLUMNS, RunError, algorithm_class, train
-
-ROOT = Path(__file__).resolve().parent.parent
-TINY = {
-    "sim": {"episode_steps": 100},
-    "train": {
-        "episodes": 2, "checkpoint_every_episodes": 1,
-        "actor_critic": {"learning_starts_steps": 50, "buffer_size": 1000, "ppo_n_steps": 100},
-        "dqn": {"learning_starts_steps": 50, "buffer_size": 1000, "target_update_steps": 50},
-    },
-}
+from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
+from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, get_algorithm
 
 
 def rows(path: Path) -> list[dict[str, str]]:
@@ -36,10 +26,10 @@ def rows(path: Path) -> list[dict[str, str]]:
 
 
 def tiny_config(algo: str, **extra) -> LaneFreeConfig:
-    return merge_config(LaneFreeConfig(), {**TINY, **extra, "train": {**TINY["train"], "algo": algo}})
+    return merge_config(LaneFreeConfig(), {**TINY_TRAINING, **extra, "train": {**TINY_TRAINING["train"], "algo": algo}})
 
 
-@pytest.mark.parametrize("algo", ALGOS)
+@pytest.mark.parametrize("algo", ALGORITHM_NAMES)
 def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
     run, done = train(tiny_config(algo), run=tmp_path / algo, progress=False, command="test")
     assert done == 2
@@ -58,7 +48,7 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
     ckpt = run / "checkpoints" / "ep_00001"
     assert (ckpt / "model.zip").is_file() and (ckpt / "state.json").is_file()
     assert (ckpt / "replay_buffer.pkl").is_file() == (algo != "ppo")
-    model = algorithm_class(algo).load(run / "model.zip", device="cpu")
+    model = get_algorithm(algo).cls.load(run / "model.zip", device="cpu")
     if algo == "dueling":
         assert type(model.q_net).__name__ == "DuelingQNetwork"
     if algo == "per":
@@ -73,15 +63,9 @@ def test_set_observation_trains_with_the_encoder(tmp_path):
     assert done == 2 and (run / "model.zip").is_file()
 
 
-def lanefree(*args: str, **kwargs) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "lanefree_sumo.cli", *args], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONPATH": str(ROOT)}, **kwargs)
-
-
 def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
     run = tmp_path / "run"
-    proc = lanefree("train", "--algo", "dqn", "--episodes", "6", "--episode-steps", "100", "--out", str(run),
+    proc = lanefree_popen("train", "--algo", "dqn", "--episodes", "6", "--episode-steps", "100", "--out", str(run),
                     "--checkpoint-every", "100")
     csv_path = run / "episodes.csv"
     deadline = time.time() + 240
@@ -98,7 +82,7 @@ def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
     state = json.loads(next((run / "checkpoints").glob("ep_*/state.json")).read_text())
     assert state["episodes"] == len(first)
 
-    resumed = lanefree("train", "--resume", str(run))
+    resumed = lanefree_popen("train", "--resume", str(run))
     out, err = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, err
     episodes = [int(r["episode"]) for r in rows(csv_path)]
@@ -147,7 +131,7 @@ def test_cli_refuses_an_existing_run_folder(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     (run / "keep").write_text("x")
-    proc = lanefree("train", "--episodes", "1", "--out", str(run))
+    proc = lanefree_popen("train", "--episodes", "1", "--out", str(run))
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 2 and "exists; resume it" in err and err.count("\n") == 1
 

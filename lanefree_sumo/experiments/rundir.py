@@ -1,0 +1,190 @@
+"""THE module that knows the file names of run folders and output folders.
+
+A training run ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` holds::
+
+    config.yaml          the full resolved LaneFreeConfig (env + algorithm), enough to rebuild both
+    command.txt          every command that worked on the run, one per line
+    versions.json        python, torch, SB3, gymnasium, numpy, SUMO, lanefree_sumo, git commit
+    episodes.csv         one row per finished episode (SPEC §8 + algorithm, timesteps), flushed each time
+    tb/                  TensorBoard logs
+    checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json (written last)
+    model.zip            the final model
+    last_session.json    wall time, steps/s and how the latest session ended
+    eval/ (eval_d<density>/)  an evaluation: config.yaml, episodes.csv, recording.json,
+                         trajectories/episode_NNNN.csv and episode_NNNN.vehicles.csv
+
+``lanefree simulate --out DIR`` writes ``trajectory.csv``, ``summary.json``, ``config.yaml`` and
+``command.txt``.  Every other module asks this one for a path.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.errors import ConfigError, RunError
+
+CONFIG = "config.yaml"
+COMMAND = "command.txt"
+VERSIONS = "versions.json"
+EPISODES = "episodes.csv"
+MODEL = "model.zip"
+LAST_SESSION = "last_session.json"
+TENSORBOARD = "tb"
+CHECKPOINTS = "checkpoints"
+REPLAY_BUFFER = "replay_buffer.pkl"
+CHECKPOINT_STATE = "state.json"
+EVAL = "eval"
+TRAJECTORIES = "trajectories"
+RECORDING = "recording.json"
+SIM_TRAJECTORY = "trajectory.csv"
+SIM_SUMMARY = "summary.json"
+
+
+def prepare_output(out: Path, overwrite: bool, what: str = "output folder") -> None:
+    """Create ``out``; an existing one is refused unless ``overwrite`` (then it is replaced)."""
+    if out.exists():
+        if not overwrite:
+            raise RunError(f"{what} {out} exists; choose another --out or pass --overwrite")
+        if out.is_dir():
+            shutil.rmtree(out)
+        else:
+            out.unlink()
+    out.mkdir(parents=True)
+
+
+def write_config(folder: Path, cfg: LaneFreeConfig) -> None:
+    """``folder/config.yaml``: the full resolved configuration."""
+    (folder / CONFIG).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+
+def append_command(folder: Path, command: str) -> None:
+    """Add one command line to ``folder/command.txt``."""
+    with open(folder / COMMAND, "a") as fh:
+        fh.write(command + "\n")
+
+
+def read_config(folder: Path) -> LaneFreeConfig:
+    """The configuration saved in ``folder/config.yaml`` (a run or an evaluation)."""
+    path = folder / CONFIG
+    if not path.is_file():
+        raise RunError(f"{folder} is not a run folder (no {CONFIG}); pass the folder that 'lanefree train' made")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if not isinstance(data, dict):
+            raise ConfigError("not a mapping")
+        return merge_config(LaneFreeConfig(), data)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, ConfigError, TypeError) as exc:
+        reason = " ".join(str(exc).split())
+        raise RunError(f"{path} is unreadable ({reason}); restore it or start a new run") from None
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A complete checkpoint: its folder and the counters it was saved at."""
+
+    path: Path
+    episodes: int
+    timesteps: int
+
+    @property
+    def model(self) -> Path:
+        return self.path / MODEL
+
+    @property
+    def replay_buffer(self) -> Path:
+        return self.path / REPLAY_BUFFER
+
+
+@dataclass(frozen=True)
+class RunDir:
+    """A training run folder and the paths inside it."""
+
+    path: Path
+
+    @property
+    def config(self) -> Path:
+        return self.path / CONFIG
+
+    @property
+    def episodes(self) -> Path:
+        return self.path / EPISODES
+
+    @property
+    def model(self) -> Path:
+        return self.path / MODEL
+
+    @property
+    def versions(self) -> Path:
+        return self.path / VERSIONS
+
+    @property
+    def last_session(self) -> Path:
+        return self.path / LAST_SESSION
+
+    @property
+    def tensorboard(self) -> Path:
+        return self.path / TENSORBOARD
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.path / CHECKPOINTS
+
+    def checkpoint(self, episodes: int) -> Path:
+        """Folder of the checkpoint taken after ``episodes`` episodes."""
+        return self.checkpoints / f"ep_{episodes:05d}"
+
+    def load_config(self) -> LaneFreeConfig:
+        return read_config(self.path)
+
+    def eval_dir(self, density: float | None = None) -> Path:
+        """``eval/`` at the training density (``density`` None), else ``eval_d<density>/``."""
+        return self.path / (EVAL if density is None else f"{EVAL}_d{density:g}")
+
+    def newest_checkpoint(self) -> Checkpoint:
+        """The newest complete checkpoint; RunError when there is none usable."""
+        folders = sorted(self.checkpoints.glob("ep_*")) if self.checkpoints.is_dir() else []
+        for folder in reversed(folders):
+            try:
+                state = json.loads((folder / CHECKPOINT_STATE).read_text())
+                if (folder / MODEL).is_file():
+                    return Checkpoint(folder, int(state["episodes"]), int(state["timesteps"]))
+            except (OSError, ValueError, KeyError, TypeError):
+                continue
+        raise RunError(f"{self.path} has no usable checkpoint under {CHECKPOINTS}/; "
+                       "start a new run instead of resuming")
+
+    def write_checkpoint_state(self, folder: Path, state: dict[str, Any]) -> None:
+        """Written last: marks a checkpoint complete."""
+        (folder / CHECKPOINT_STATE).write_text(json.dumps(state, indent=2))
+
+    def find_model(self) -> Path:
+        """The final model, else the newest checkpoint's."""
+        if self.model.is_file():
+            return self.model
+        try:
+            return self.newest_checkpoint().model
+        except RunError:
+            raise RunError(f"{self.path} has no {MODEL} and no checkpoint; train it first with 'lanefree train'") \
+                from None
+
+
+def find_eval_dir(folder: Path) -> Path:
+    """``folder`` itself if it holds a recording (``trajectories/``), else ``folder/eval``."""
+    return folder if (folder / TRAJECTORIES).is_dir() else folder / EVAL
+
+
+def trajectory_path(eval_dir: Path, episode: int) -> Path:
+    """Recording of evaluation episode ``episode`` (every vehicle, every step)."""
+    return eval_dir / TRAJECTORIES / f"episode_{episode:04d}.csv"
+
+
+def vehicles_path(eval_dir: Path, episode: int) -> Path:
+    """Length, width and desired speed of each vehicle of a recorded episode."""
+    return eval_dir / TRAJECTORIES / f"episode_{episode:04d}.vehicles.csv"

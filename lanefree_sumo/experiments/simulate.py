@@ -1,0 +1,50 @@
+"""``lanefree simulate``: background traffic alone, written to an output folder.
+
+Writes ``trajectory.csv`` (flushed every simulated second), ``summary.json``, ``config.yaml`` and
+``command.txt`` (names in :mod:`lanefree_sumo.experiments.rundir`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.experiments.rundir import (
+    SIM_SUMMARY,
+    SIM_TRAJECTORY,
+    append_command,
+    prepare_output,
+    write_config,
+)
+from lanefree_sumo.experiments.trajectory import TrajectoryWriter
+from lanefree_sumo.sim.simulation import run_simulation
+from lanefree_sumo.sim.spawn import spawn
+
+
+def simulate(
+    cfg: LaneFreeConfig,
+    seconds: float,
+    out: Path,
+    command: str,
+    overwrite: bool = False,
+    write_trajectory: bool = True,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Simulate ``seconds`` (s) of traffic into ``out``; return the summary (also in summary.json)."""
+    steps = int(round(seconds / cfg.sim.step_s))
+    spawn(cfg, np.random.default_rng(cfg.seed))  # density check before anything is written
+    prepare_output(out, overwrite)
+    append_command(out, command)
+    write_config(out, cfg)
+    writer = TrajectoryWriter(out / SIM_TRAJECTORY, cfg.sim.step_s) if write_trajectory else None
+    try:
+        summary = run_simulation(cfg, steps, on_step=writer.write if writer else None, progress=progress)
+    finally:
+        if writer:
+            writer.close()
+    (out / SIM_SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    return summary

@@ -1,0 +1,71 @@
+"""Shared test helpers: the repository root, the ``lanefree`` command in a subprocess, tiny
+training configs, and a private Xvfb display for sumo-gui.
+
+Markers (registered in pyproject.toml): ``sumo`` — runs the real SUMO; ``gui`` — sumo-gui under
+Xvfb; ``slow`` — trains or runs long (seconds or more). ``make test-fast`` runs what has none.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+"""The repository root (the CLI runs from here)."""
+
+CLI_ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def lanefree(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run ``lanefree ARGS`` to completion in a subprocess; stdout/stderr captured as text."""
+    return subprocess.run([sys.executable, "-m", "lanefree_sumo.cli", *args], capture_output=True, text=True,
+                          cwd=cwd or ROOT, timeout=timeout, env=CLI_ENV)
+
+
+def lanefree_popen(*args: str, **kwargs) -> subprocess.Popen:
+    """Start ``lanefree ARGS`` in the background (to interrupt it)."""
+    return subprocess.Popen([sys.executable, "-m", "lanefree_sumo.cli", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=CLI_ENV, **kwargs)
+
+
+TINY_TRAINING = {
+    "sim": {"episode_steps": 100},
+    "train": {
+        "episodes": 2, "checkpoint_every_episodes": 1,
+        "actor_critic": {"learning_starts_steps": 50, "buffer_size": 1000, "ppo_n_steps": 100},
+        "dqn": {"learning_starts_steps": 50, "buffer_size": 1000, "target_update_steps": 50},
+    },
+}
+"""Config overrides for a 2-episode run of 100 steps that still learns."""
+
+
+@pytest.fixture(scope="session")
+def display() -> Iterator[str]:
+    """A private Xvfb server for sumo-gui; the tests need it, so a missing Xvfb is a failure
+    (``make test`` installs it through ``make system-deps``)."""
+    xvfb = shutil.which("Xvfb")
+    assert xvfb, "Xvfb is not installed: run 'make system-deps' (make test does)"
+    number = next(n for n in range(90, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists()
+                  and not Path(f"/tmp/.X{n}-lock").exists())
+    proc = subprocess.Popen([xvfb, f":{number}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        if Path(f"/tmp/.X11-unix/X{number}").exists():
+            break
+        time.sleep(0.05)
+    old = os.environ.get("DISPLAY")
+    os.environ["DISPLAY"] = f":{number}"
+    yield f":{number}"
+    if old is None:
+        os.environ.pop("DISPLAY", None)
+    else:
+        os.environ["DISPLAY"] = old
+    proc.terminate()
+    proc.wait(timeout=10)
