@@ -262,7 +262,7 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.net is not None:
         overrides["net_file"] = str(args.net)
     cfg = merge_config(LaneFreeConfig(), overrides)
-    from lanefree_sumo.experiments.simulate import simulate  # noqa: PLC0415 - SUMO loads only for this verb
+    from lanefree_sumo.experiments.simulate import simulate
 
     out = args.out or Path("runs") / f"sim-d{args.density:g}-s{args.seed}"
     summary = simulate(cfg, args.seconds, out, _command(), overwrite=args.overwrite,
@@ -280,7 +280,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.train import train  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import train
 
     if args.resume is not None:
         run, done = train(LaneFreeConfig(), run=args.resume, resume=True)
@@ -306,7 +306,7 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _episodes_target(run: Path) -> int:
-    from lanefree_sumo.experiments.rundir import read_config  # noqa: PLC0415
+    from lanefree_sumo.experiments.rundir import read_config
 
     return read_config(run).train.episodes
 
@@ -317,7 +317,7 @@ def _command() -> str:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.evaluate import evaluate  # noqa: PLC0415
+    from lanefree_sumo.experiments.evaluate import evaluate
 
     out = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
                    out=args.out, overwrite=args.overwrite)
@@ -326,7 +326,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.replay import replay  # noqa: PLC0415
+    from lanefree_sumo.experiments.replay import replay
 
     result = replay(args.run, episode=args.episode, gui=not args.no_gui, delay_s=args.delay,
                     screenshot=args.screenshot, screenshot_step=args.screenshot_step, frames=args.frames,
@@ -337,8 +337,8 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.replay import replay  # noqa: PLC0415
-    from lanefree_sumo.experiments.rundir import find_eval_dir, trajectory_path  # noqa: PLC0415
+    from lanefree_sumo.experiments.replay import replay
+    from lanefree_sumo.experiments.rundir import find_eval_dir, trajectory_path
 
     source = trajectory_path(find_eval_dir(args.run), args.episode)
     out = args.out or find_eval_dir(args.run) / "export"
@@ -353,7 +353,7 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.report import report  # noqa: PLC0415
+    from lanefree_sumo.experiments.report import report
 
     result = report(args.runs, args.out, last=args.last, smooth=args.smooth)
     for path, reason in result.skipped:
@@ -366,8 +366,8 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _net(args: argparse.Namespace) -> int:
-    from lanefree_sumo.sim.backends.sumo import build_ring_net  # noqa: PLC0415
-    from lanefree_sumo.sim.network import NETS_DIR  # noqa: PLC0415
+    from lanefree_sumo.sim.backends.sumo import build_ring_net
+    from lanefree_sumo.sim.network import NETS_DIR
 
     cfg = merge_config(LaneFreeConfig(), {"road": {"length_m": args.length, "width_m": args.width}})
     net = build_ring_net(cfg, args.out_dir or NETS_DIR)

@@ -8,11 +8,11 @@ with its unit, and nowhere else (SPEC §1–§7).  A plain ``dict`` can override
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, is_dataclass
-from typing import Any, Literal, Mapping, get_args, get_origin
+from typing import Any, Literal, get_args, get_origin
 
 from lanefree_sumo.errors import ConfigError
 
@@ -414,20 +414,25 @@ def validate_config(cfg: Any, path: str = "") -> Any:
     return cfg
 
 
-@functools.cache
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+_FIELD_TYPES: dict[Any, dict[str, Any]] = {}
+
+
+def _field_types(cls: Any) -> dict[str, Any]:
+    """Resolved annotations of a config dataclass (cached)."""
+    if cls not in _FIELD_TYPES:
+        _FIELD_TYPES[cls] = typing.get_type_hints(cls)
+    return _FIELD_TYPES[cls]
 
 
 def _registered_names(where: str) -> tuple[str, ...] | None:
     """Allowed values of the two fields whose names live in a registry of the RL layer."""
     leaf = where.rsplit(".", 1)[-1]
     if where.endswith("train.algo") or where == "algo":
-        from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES  # noqa: PLC0415 - registry lives in rl/
+        from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
         return ALGORITHM_NAMES
     if where.endswith("reward.preset") or leaf == "preset":
-        from lanefree_sumo.rl.rewards import PRESETS  # noqa: PLC0415 - presets live in rl/
+        from lanefree_sumo.rl.rewards import PRESETS
 
         return tuple(PRESETS)
     return None
@@ -488,10 +493,10 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     return conv(dataclasses.asdict(cfg))
 
 
-def validate_density(density: float) -> float:
+def validate_density(density: object) -> float:
     """Check a density is a finite positive number (veh/km)."""
     try:
-        value = float(density)
+        value = float(density)  # type: ignore[arg-type]  # anything float() takes; the rest is an error
     except (TypeError, ValueError):
         raise ConfigError(f"density must be a number in veh/km, got {density!r}") from None
     if not math.isfinite(value) or value <= 0:

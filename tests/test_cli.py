@@ -7,7 +7,10 @@ import json
 from pathlib import Path
 
 import pytest
+
 from conftest import lanefree
+
+pytestmark = pytest.mark.sumo
 
 
 def test_simulate_writes_trajectory_and_json_summary(tmp_path):

@@ -15,11 +15,17 @@ import json
 from pathlib import Path
 from typing import Any
 
-
 from lanefree_sumo.config import merge_config, validate_density
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.rundir import (
-    EPISODES, RECORDING, TRAJECTORIES, RunDir, prepare_output, trajectory_path, vehicles_path, write_config,
+    EPISODES,
+    RECORDING,
+    TRAJECTORIES,
+    RunDir,
+    prepare_output,
+    trajectory_path,
+    vehicles_path,
+    write_config,
 )
 from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
@@ -40,10 +46,10 @@ def evaluate(
     progress: bool = True,
 ) -> Path:
     """Run the deterministic policy for ``episodes`` episodes; return the eval folder."""
-    from tqdm import tqdm  # noqa: PLC0415
+    from tqdm import tqdm
 
-    from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
-    from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles  # noqa: PLC0415
+    from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles
+    from lanefree_sumo.rl.env import LaneFreeEnv
 
     folder = RunDir(run)
     cfg = folder.load_config()
@@ -76,15 +82,15 @@ def evaluate(
             obs, _ = env.reset(seed=base_seed + k)
             writer = TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True) if record else None
             if writer:
-                writer.write(0, env.sim.state, None)
-                write_vehicles(vehicles_path(out, k), env.sim.state)
+                writer.write(0, env.sim.current()[0], None)
+                write_vehicles(vehicles_path(out, k), env.sim.current()[0])
             info: dict[str, Any] = {}
             done = False
             while not done:
                 action, _ = model.predict(obs, deterministic=True)
                 obs, _, terminated, truncated, info = env.step(action)
                 if writer:
-                    writer.write(env.sim.steps, env.sim.state, env.sim.last_result)
+                    writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result)
                 done = terminated or truncated
             if writer:
                 writer.close()

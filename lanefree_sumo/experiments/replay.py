@@ -16,16 +16,24 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from lanefree_sumo.config import LaneFreeConfig, ReplayConfig, merge_config
+from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.rundir import (
+    CONFIG,
+    TRAJECTORIES,
+    find_eval_dir,
+    read_config,
+    trajectory_path,
+    vehicles_path,
+)
 from lanefree_sumo.sim.dynamics import StepCommand
 from lanefree_sumo.sim.spawn import AGENT_ID
 from lanefree_sumo.sim.state import VehicleState, wrap
-from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import CONFIG, TRAJECTORIES, find_eval_dir, read_config, trajectory_path, vehicles_path
 
 REPLAY = ReplayConfig()
 FCD_ATTRIBUTES = "x,y,angle,type,speed,pos,lane,posLat"
@@ -69,7 +77,8 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
     traj = trajectory_path(eval_dir, episode)
     vehicles = vehicles_path(eval_dir, episode)
     if not traj.is_file() or not vehicles.is_file():
-        have = sorted((eval_dir / TRAJECTORIES).glob("episode_*[0-9].csv")) if (eval_dir / TRAJECTORIES).is_dir() else []
+        folder = eval_dir / TRAJECTORIES
+        have = sorted(folder.glob("episode_*[0-9].csv")) if folder.is_dir() else []
         hint = f" (recorded: {', '.join(p.stem for p in have[:5])})" if have else ""
         raise ReplayError(
             f"no recording of episode {episode} in {eval_dir / TRAJECTORIES}{hint}; "
@@ -125,6 +134,29 @@ def _gui_settings(path: Path, delay_ms: float) -> Path:
     return path
 
 
+def _sumo_args(tmp: Path, gui: bool, size: tuple[int, int], delay_s: float, fcd: Path | None) -> list[str]:
+    """Extra SUMO options: window size and GUI settings, FCD output."""
+    extra: list[str] = []
+    if gui:
+        extra += ["--window-size", f"{size[0]},{size[1]}",
+                  "--gui-settings-file", str(_gui_settings(tmp / "gui.xml", 1000.0 * delay_s))]
+    if fcd is not None:
+        fcd.parent.mkdir(parents=True, exist_ok=True)
+        extra += ["--fcd-output", str(fcd), "--fcd-output.attributes", FCD_ATTRIBUTES]
+    return extra
+
+
+def _paint(backend: Any, rec: Recording, cfg: LaneFreeConfig, zoom: float) -> list[tuple[int, int, int, int]]:
+    """Colour every vehicle (agent, background by desired speed), track the agent; return the colours."""
+    colours = [_rgba(cfg.scenario.agent.color_rgb) if vid == AGENT_ID else desired_speed_colour(v, cfg)
+               for vid, v in zip(rec.ids, rec.v_desired)]
+    for vid, colour in zip(rec.ids, colours):
+        backend.set_color(vid, colour)
+    if AGENT_ID in rec.ids:
+        backend.track(AGENT_ID, zoom)
+    return colours
+
+
 @dataclass
 class ReplayResult:
     steps: int
@@ -151,7 +183,7 @@ def replay(
 ) -> ReplayResult:
     """Replay a recorded episode; see the module docstring.  ``screenshot_step`` defaults to the
     last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them."""
-    from lanefree_sumo.sim.backends.sumo import SumoBackend  # noqa: PLC0415
+    from lanefree_sumo.sim.backends.sumo import SumoBackend
 
     rec = load_recording(run, episode)
     cfg = merge_config(rec.cfg, {"gui": gui, "backend": "traci" if gui else "libsumo"})
@@ -166,25 +198,13 @@ def replay(
         frame_dir = Path(tmp.name) / "frames"
     if frame_dir is not None:
         frame_dir.mkdir(parents=True, exist_ok=True)
-    extra: list[str] = []
-    if gui:
-        extra += ["--window-size", f"{size[0]},{size[1]}",
-                  "--gui-settings-file", str(_gui_settings(Path(tmp.name) / "gui.xml", 1000.0 * delay_s))]
-    if fcd is not None:
-        fcd.parent.mkdir(parents=True, exist_ok=True)
-        extra += ["--fcd-output", str(fcd), "--fcd-output.attributes", FCD_ATTRIBUTES]
+    extra = _sumo_args(Path(tmp.name), gui, size, delay_s, fcd)
     backend = SumoBackend(cfg, kind=cfg.backend, gui=gui, extra_args=extra)
     written: list[Path] = []
     try:
         backend.reset(rec.state(0))
         collision_colour = _rgba(REPLAY.collision_color_rgb)
-        base_colour = [_rgba(cfg.scenario.agent.color_rgb) if vid == AGENT_ID else desired_speed_colour(v, cfg)
-                       for vid, v in zip(rec.ids, rec.v_desired)]
-        if gui:
-            for vid, colour in zip(rec.ids, base_colour):
-                backend.set_color(vid, colour)
-            if AGENT_ID in rec.ids:
-                backend.track(AGENT_ID, zoom)
+        base_colour = _paint(backend, rec, cfg, zoom) if gui else []
         shown_overlap = np.zeros(len(rec.ids), dtype=bool)
         x, y, vx = rec.x[0].copy(), rec.y[0].copy(), rec.vx[0].copy()
         max_dx = max_dy = 0.0
@@ -219,7 +239,7 @@ def replay(
 
 
 def _write_gif(frames: list[Path], path: Path, seconds_per_frame: float) -> None:
-    from PIL import Image  # noqa: PLC0415
+    from PIL import Image
 
     if not frames:
         raise ReplayError("no frames were captured for the GIF")

@@ -1,7 +1,8 @@
 """Reports over training runs: learning curves and the paper-style results table.
 
-``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in :mod:`lanefree_sumo.experiments.rundir`), groups them by (algorithm, reward preset, density) and writes into
-``out``::
+``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in
+:mod:`lanefree_sumo.experiments.rundir`), groups them by (algorithm, reward preset, density) and
+writes into ``out``::
 
     curves_return.png       episode return per training episode
     curves_collisions.png   agent collisions per episode
@@ -42,9 +43,10 @@ from __future__ import annotations
 import csv
 import math
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -110,25 +112,25 @@ class RunData:
         return (self.algorithm, self.preset, self.density)
 
 
-class _Unusable(Exception):
+class _UnusableRunError(Exception):
     """A run folder that must be skipped; the message is the reason."""
 
 
 # -- reading runs --------------------------------------------------------------------------------
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
 def read_run_config(run: Path) -> tuple[str, str, float, int]:
     """(algorithm, reward preset, density veh/km, seed) from ``run/config.yaml``.
 
-    Raises ``_Unusable`` (internal) with the reason when the file is missing or malformed.
+    Raises ``_UnusableRunError`` (internal) with the reason when the file is missing or malformed.
     """
     try:
         cfg = read_config(run)
     except RunError as exc:
-        raise _Unusable(str(exc)) from None
+        raise _UnusableRunError(str(exc)) from None
     return cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed
 
 
@@ -137,20 +139,20 @@ def read_episodes(path: Path) -> pd.DataFrame:
 
     Strict: every non-blank row must have as many fields as the header (a last line cut in the
     middle fails here), required values must be finite numbers, episode numbers integral and
-    unique. Raises ``_Unusable`` (internal) with the reason, naming the line.
+    unique. Raises ``_UnusableRunError`` (internal) with the reason, naming the line.
     """
     if not path.is_file():
-        raise _Unusable("no episodes.csv")
+        raise _UnusableRunError("no episodes.csv")
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:
-                raise _Unusable("episodes.csv is empty")
+                raise _UnusableRunError("episodes.csv is empty")
             header = [h.strip() for h in header]
             missing = [c for c in REQUIRED_COLUMNS if c not in header]
             if missing:
-                raise _Unusable(f"episodes.csv lacks column(s) {', '.join(missing)}")
+                raise _UnusableRunError(f"episodes.csv lacks column(s) {', '.join(missing)}")
             index = {c: header.index(c) for c in REQUIRED_COLUMNS}
             rows: list[list[float]] = []
             for fields in reader:
@@ -159,7 +161,7 @@ def read_episodes(path: Path) -> pd.DataFrame:
                 line = reader.line_num
                 if len(fields) != len(header):
                     cut = " (file cut mid-row?)" if len(fields) < len(header) else ""
-                    raise _Unusable(
+                    raise _UnusableRunError(
                         f"episodes.csv line {line} has {len(fields)} fields, header has {len(header)}{cut}")
                 row = []
                 for col in REQUIRED_COLUMNS:
@@ -169,27 +171,27 @@ def read_episodes(path: Path) -> pd.DataFrame:
                     except ValueError:
                         value = math.nan
                     if not math.isfinite(value):
-                        raise _Unusable(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
+                        raise _UnusableRunError(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
                     row.append(value)
                 rows.append(row)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise _Unusable(f"episodes.csv unreadable ({_one_line(exc)})") from None
+        raise _UnusableRunError(f"episodes.csv unreadable ({_one_line(exc)})") from None
     if not rows:
-        raise _Unusable("episodes.csv has no episodes")
+        raise _UnusableRunError("episodes.csv has no episodes")
     frame = pd.DataFrame(rows, columns=list(REQUIRED_COLUMNS))
     if not np.all(frame["episode"] == np.round(frame["episode"])):
-        raise _Unusable("episodes.csv has a non-integer episode number")
+        raise _UnusableRunError("episodes.csv has a non-integer episode number")
     frame["episode"] = frame["episode"].astype(int)
     repeated = frame["episode"][frame["episode"].duplicated()]
     if len(repeated):
-        raise _Unusable(f"episodes.csv has episode {int(repeated.iloc[0])} more than once")
+        raise _UnusableRunError(f"episodes.csv has episode {int(repeated.iloc[0])} more than once")
     return frame.set_index("episode").sort_index()
 
 
 def read_run(run: Path) -> RunData:
-    """Read one run folder; raises ``_Unusable`` (internal) with the reason to skip it."""
+    """Read one run folder; raises ``_UnusableRunError`` (internal) with the reason to skip it."""
     if not run.is_dir():
-        raise _Unusable("not a folder" if run.exists() else "folder does not exist")
+        raise _UnusableRunError("not a folder" if run.exists() else "folder does not exist")
     algo, preset, density, seed = read_run_config(run)
     return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES))
 
@@ -378,7 +380,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) ->
         seen.add(resolved)
         try:
             usable.append(read_run(run))
-        except _Unusable as exc:
+        except _UnusableRunError as exc:
             skipped.append((run, _one_line(str(exc))))
     if not usable:
         if not skipped:
@@ -389,9 +391,9 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) ->
 
     groups = group_runs(usable)
     for key, members in groups.items():
-        for run in members:
-            if len(run.episodes) < last:
-                notes.append(f"{run.path} has {len(run.episodes)} episodes (< {last}); its mean uses all of them")
+        for member in members:
+            if len(member.episodes) < last:
+                notes.append(f"{member.path} has {len(member.episodes)} episodes (< {last}); its mean uses all of them")
         seeds = [r.seed for r in members]
         if len(set(seeds)) < len(seeds):
             notes.append(f"group {group_label(key)} has runs with the same seed ({seeds}); each counts separately")

@@ -49,11 +49,11 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
 
 def versions() -> dict[str, str]:
     """Versions of everything that shapes a result."""
-    import gymnasium  # noqa: PLC0415
-    import stable_baselines3  # noqa: PLC0415
-    import torch  # noqa: PLC0415
+    import gymnasium
+    import stable_baselines3
+    import torch
 
-    from lanefree_sumo.sim.backends.sumo import sumo_version  # noqa: PLC0415
+    from lanefree_sumo.sim.backends.sumo import sumo_version
 
     try:
         commit = subprocess.run(
@@ -62,7 +62,7 @@ def versions() -> dict[str, str]:
         ).stdout.strip()
     except OSError:
         commit = ""
-    from importlib.metadata import version  # noqa: PLC0415
+    from importlib.metadata import version
 
     return {
         "python": platform.python_version(),
@@ -86,9 +86,9 @@ def total_timesteps(cfg: LaneFreeConfig) -> int:
 
 def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env: bool) -> Callable[[], Any]:
     def make() -> Any:
-        from stable_baselines3.common.monitor import Monitor  # noqa: PLC0415
+        from stable_baselines3.common.monitor import Monitor
 
-        from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
+        from lanefree_sumo.rl.env import LaneFreeEnv
 
         if subprocess_env:
             # Ctrl-C reaches the whole process group: only the trainer handles it (checkpoint,
@@ -104,7 +104,7 @@ def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env:
 
 def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
     """``n_envs`` environments: in this process for 1, else one process each."""
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv  # noqa: PLC0415
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     cfg_dict = config_to_dict(cfg)
     factories = [_env_factory(cfg_dict, rank, seed, n_envs > 1) for rank in range(n_envs)]
@@ -118,8 +118,8 @@ def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
     """A new model for ``cfg.train.algo`` with the paper's hyperparameters (SPEC §9)."""
-    import torch  # noqa: PLC0415
-    from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise  # noqa: PLC0415
+    import torch
+    from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
     algo = cfg.train.algo
     spec = get_algorithm(algo)
@@ -127,7 +127,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
     if set_obs:
-        from lanefree_sumo.rl.encoder import SetFeaturesExtractor  # noqa: PLC0415
+        from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
         extractor = {"features_extractor_class": SetFeaturesExtractor}
     common = {"seed": seed, "verbose": 0, "tensorboard_log": tensorboard_log, "device": "cpu"}
@@ -228,8 +228,8 @@ class _Stop:
 
 
 def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int, stop: _Stop, progress: bool) -> Any:
-    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415
-    from tqdm import tqdm  # noqa: PLC0415
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
 
     target = cfg.train.episodes
     algo = cfg.train.algo
@@ -304,7 +304,7 @@ def train(
     if done >= cfg.train.episodes:
         return run, done
 
-    import torch  # noqa: PLC0415
+    import torch
 
     torch.set_num_threads(cfg.train.torch_threads)
     algo = cfg.train.algo

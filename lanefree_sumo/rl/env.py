@@ -15,7 +15,8 @@ every feature is O(1).  With ``scale=False`` the raw SI values are returned.
 from __future__ import annotations
 
 import time
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -56,7 +57,9 @@ class LaneFreeEnv(gym.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(self, config: LaneFreeConfig | Mapping[str, Any] | None = None, render_mode: str | None = None) -> None:
+    def __init__(
+        self, config: LaneFreeConfig | Mapping[str, Any] | None = None, render_mode: str | None = None
+    ) -> None:
         super().__init__()
         if render_mode is not None:
             raise ValueError("LaneFree-v0 renders through sumo-gui: pass config={'gui': True} instead of render_mode")
@@ -129,7 +132,7 @@ class LaneFreeEnv(gym.Env):
             **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
         }
         obs, _, _ = self._observe()
-        self._prev_dx = self.sim.offsets[0][self._agent].copy()
+        self._prev_dx = self.sim.current()[1][0][self._agent].copy()
         return obs, {"episode_seed": self._episode_seed}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
@@ -138,9 +141,9 @@ class LaneFreeEnv(gym.Env):
         ax, ay = self.action_to_acceleration(action)
         result = self.sim.step((ax, ay))
         t0 = time.perf_counter()
-        state, a, cfg = self.sim.state, self._agent, self.cfg
+        (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self._agent, self.cfg
         obs, idx, observed = self._observe()
-        dx_row = self.sim.offsets[0][a]
+        dx_row = dx_all[a]
 
         new_pairs = result.new_collisions
         agent_events = int(np.count_nonzero((new_pairs == a).any(axis=1))) if len(new_pairs) else 0
@@ -149,7 +152,7 @@ class LaneFreeEnv(gym.Env):
         self._prev_dx = dx_row.copy()
 
         terms = compute_reward(
-            dx_row[idx], self.sim.offsets[1][a][idx], state.vx[idx], state.vy[idx], state.length[idx],
+            dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
             state.width[idx], float(state.y[a]), float(state.vx[a]), float(state.vy[a]),
             float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), cfg.road.width_m,
             self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
@@ -193,9 +196,9 @@ class LaneFreeEnv(gym.Env):
     # -- internals -----------------------------------------------------------------------------
     def _observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
         """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
-        state, a, o = self.sim.state, self._agent, self.cfg.observation
-        dx = self.sim.offsets[0][a]
-        dy = self.sim.offsets[1][a]
+        (state, (dx_all, dy_all)), a, o = self.sim.current(), self._agent, self.cfg.observation
+        dx = dx_all[a]
+        dy = dy_all[a]
         in_range = np.abs(dx) <= o.range_m
         in_range[a] = False
         idx = np.flatnonzero(in_range)

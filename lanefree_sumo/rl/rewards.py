@@ -16,7 +16,7 @@ padded arrays can be passed directly.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -69,7 +69,7 @@ def ellipsoid(
     py: float,
     pt: float,
     m: float,
-) -> Union[float, np.ndarray]:
+) -> float | np.ndarray:
     """Ellipsoid field ``E = m / ((|dx|/a)^px + (|dy|/b)^py + 1)^pt`` element-wise.
 
     dx, dy: offsets (m); a, b: semi-axes (m, > 0); px, py, pt: exponents (–); m: peak value (–),
@@ -248,7 +248,7 @@ def reciprocal_reward(
     overtake_reward: float = _DEFAULTS.overtake_reward,
     use_collision: bool = True,
     use_overtake: bool = True,
-) -> Union[float, np.ndarray]:
+) -> float | np.ndarray:
     """Paper Eq. 16: ``ε_r/(ε_r + w_x c_x + w_y c_y + w_f c_f) + r_c·[collided]
     + r_o·[overtook and not collided]`` (–).
 
@@ -257,7 +257,7 @@ def reciprocal_reward(
     Arrays broadcast; scalar inputs give a ``float``.
     """
     if all(np.ndim(v) == 0 for v in (c_x, c_y, c_f, collided, overtook)):  # one step: plain floats
-        r0 = epsilon_r / (epsilon_r + w_x * float(c_x) + w_y * float(c_y) + w_f * float(c_f))
+        r0 = epsilon_r / (epsilon_r + w_x * float(c_x) + w_y * float(c_y) + w_f * float(c_f))  # type: ignore[arg-type]
         hit, passed = bool(collided), bool(overtook)
         return (r0 + (collision_reward if use_collision and hit else 0.0)
                 + (overtake_reward if use_overtake and passed and not hit else 0.0))
@@ -399,11 +399,11 @@ def compute_reward(
     agent_wid: float,
     v_desired: float,
     road_width: float,
-    weights: Union[RewardWeights, str],
+    weights: RewardWeights | str,
     *,
     observed: ArrayLike | None = None,
     collided: bool | None = None,
-    overtook: Union[bool, int] = False,
+    overtook: bool | int = False,
     config: RewardConfig | None = None,
 ) -> RewardTerms:
     """Combine all terms for one step (paper Eq. 16) and return them.

@@ -12,20 +12,20 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, validate_config
 from lanefree_sumo.sim.backends.numpy import Backend, NumpyBackend
+from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.sim.dynamics import plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
-
 
 
 def make_backend(cfg: LaneFreeConfig) -> Backend:
@@ -35,7 +35,7 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
         return NumpyBackend(cfg)
-    from lanefree_sumo.sim.backends.sumo import SumoBackend  # noqa: PLC0415 - SUMO only when asked for
+    from lanefree_sumo.sim.backends.sumo import SumoBackend
 
     return SumoBackend(cfg, kind=cfg.backend, gui=cfg.gui)
 
@@ -100,6 +100,12 @@ class Simulation:
         self.offsets = pairwise_offsets(state, self.cfg.road.length_m)
         self._tracker.update(overlap_matrix(state, self.cfg.road.length_m, self.offsets))
         return state
+
+    def current(self) -> tuple[VehicleState, tuple[np.ndarray, np.ndarray]]:
+        """The current state and its (dx, dy) offset matrices (m); RuntimeError before ``reset``."""
+        if self.state is None or self.offsets is None:
+            raise RuntimeError("call reset() before reading the state")
+        return self.state, self.offsets
 
     def step(self, agent_accel: tuple[float, float] | None = None) -> StepResult:
         """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent, clipped to its

@@ -34,7 +34,7 @@ class VehicleState:
     def n(self) -> int:
         return len(self.ids)
 
-    def copy(self) -> "VehicleState":
+    def copy(self) -> VehicleState:
         return VehicleState(
             list(self.ids),
             self.x.copy(),

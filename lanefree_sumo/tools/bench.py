@@ -58,7 +58,7 @@ def _rate(cfg: LaneFreeConfig, steps: int, seed: int) -> tuple[float, float, dic
 def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[str, float, float]]:
     """(observation kind, env work ms per step, core step ms) of LaneFree-v0 on libsumo: the
     env's own work (observation, reward, bookkeeping) against the simulation core's step."""
-    from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: PLC0415
+    from lanefree_sumo.rl.env import LaneFreeEnv
 
     out = []
     for kind in ("vector", "set"):
@@ -80,15 +80,15 @@ def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[st
 def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600) -> float:
     """Env steps per second of a training run of ``algo`` including its learning updates,
     measured over ``steps`` steps after learning has started (SPEC §9 settings)."""
-    from stable_baselines3.common.callbacks import BaseCallback  # noqa: PLC0415
+    from stable_baselines3.common.callbacks import BaseCallback
 
-    from lanefree_sumo.experiments.train import build_model, make_vec_env, training_config  # noqa: PLC0415
+    from lanefree_sumo.experiments.train import build_model, make_vec_env, training_config
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
         "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}}))
     starts = cfg.train.dqn.learning_starts_steps if algo in ("dqn", "ddqn", "dueling", "per") \
         else cfg.train.actor_critic.learning_starts_steps
-    import torch  # noqa: PLC0415
+    import torch
 
     torch.set_num_threads(cfg.train.torch_threads)
 

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import argparse
 
-from lanefree_sumo.sim.simulation import run_simulation
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.sim.simulation import run_simulation
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.tools.traffic_check", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.tools.traffic_check",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--densities", type=float, nargs="+", default=[70, 90, 120], help="veh/km (default 70 90 120)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default 0 1 2)")
     parser.add_argument("--seconds", type=float, default=200.0, help="simulated time per run in s (default 200)")

@@ -7,13 +7,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import lanefree
 from PIL import Image
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
 from lanefree_sumo.experiments.train import train
+
+from conftest import lanefree
+
+pytestmark = [pytest.mark.sumo, pytest.mark.gui, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -11,13 +11,16 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import TINY_TRAINING, lanefree_popen
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, get_algorithm
+
+from conftest import TINY_TRAINING, lanefree_popen
+
+pytestmark = [pytest.mark.sumo, pytest.mark.slow]
 
 
 def rows(path: Path) -> list[dict[str, str]]:

@@ -13,6 +13,8 @@ from lanefree_sumo.config import ConfigError
 from lanefree_sumo.rl.env import LaneFreeEnv
 from lanefree_sumo.rl.rewards import PRESETS, reciprocal_reward
 
+pytestmark = pytest.mark.sumo
+
 SPEC8_COLUMNS = {
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
@@ -35,7 +37,8 @@ def make():
 
 
 @pytest.mark.parametrize(
-    "obs_kind,action_kind", [("vector", "continuous"), ("vector", "discrete"), ("set", "continuous"), ("set", "discrete")]
+    "obs_kind,action_kind",
+    [("vector", "continuous"), ("vector", "discrete"), ("set", "continuous"), ("set", "discrete")],
 )
 def test_gymnasium_and_sb3_checkers_pass(make, obs_kind, action_kind):
     config = {"observation": {"kind": obs_kind}, "action": {"kind": action_kind}}

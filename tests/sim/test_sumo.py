@@ -13,6 +13,8 @@ from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import wrap
 
+pytestmark = pytest.mark.sumo
+
 L = 500.0
 
 

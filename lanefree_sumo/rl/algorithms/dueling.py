@@ -79,12 +79,15 @@ class DuelingQNetwork(QNetwork):
         self.net_arch = net_arch
         self.activation_fn = activation_fn
         self.features_dim = features_dim
-        self.q_net = DuelingHead(self.features_dim, int(self.action_space.n), self.net_arch, self.activation_fn)
+        self.q_net = DuelingHead(  # type: ignore[assignment]  # SB3 types q_net as the plain Sequential
+            self.features_dim, int(self.action_space.n), self.net_arch, self.activation_fn
+        )
 
     def value_and_advantage(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
         """Raw head outputs ``(V (batch, 1), A (batch, n_actions))``."""
-        hidden = self.q_net.trunk(self.extract_features(obs, self.features_extractor))
-        return self.q_net.value_head(hidden), self.q_net.advantage_head(hidden)
+        head: DuelingHead = self.q_net  # type: ignore[assignment]
+        hidden = head.trunk(self.extract_features(obs, self.features_extractor))
+        return head.value_head(hidden), head.advantage_head(hidden)
 
 
 class DuelingDQNPolicy(DQNPolicy):

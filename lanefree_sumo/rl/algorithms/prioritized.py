@@ -174,7 +174,7 @@ class PrioritizedReplayBuffer(_PrioritizedMixin, ReplayBuffer):
             (self.dones[batch_inds, env_inds] * (1 - self.timeouts[batch_inds, env_inds])).reshape(-1, 1),
             self._normalize_reward(self.rewards[batch_inds, env_inds].reshape(-1, 1), env),
         )
-        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))  # type: ignore[arg-type]
+        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))
 
 
 class PrioritizedDictReplayBuffer(_PrioritizedMixin, DictReplayBuffer):
@@ -213,7 +213,7 @@ class PrioritizedDoubleDQN(DoubleDQN):
     raise ``ValueError``). ``n_steps > 1`` is not supported.
     """
 
-    replay_buffer: PrioritizedReplayBuffer | PrioritizedDictReplayBuffer  # type: ignore[assignment]
+    replay_buffer: PrioritizedReplayBuffer | PrioritizedDictReplayBuffer
 
     def __init__(
         self,
@@ -228,7 +228,7 @@ class PrioritizedDoubleDQN(DoubleDQN):
     ) -> None:
         if kwargs.get("n_steps", 1) != 1:
             raise ValueError("PrioritizedDoubleDQN does not support n-step returns (n_steps must be 1)")
-        super().__init__(policy, env, *args, _init_setup_model=False, **kwargs)
+        super().__init__(policy, env, *args, _init_setup_model=False, **kwargs)  # type: ignore[misc]
         self.per_alpha = float(per_alpha)
         self.per_beta0 = float(per_beta0)
         self.per_eps = float(per_eps)
@@ -273,7 +273,7 @@ class PrioritizedDoubleDQN(DoubleDQN):
         replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
         weights = th.as_tensor(self.replay_buffer.last_weights, device=self.device).reshape(-1, 1)
         self._per_indices = self.replay_buffer.last_indices.copy()
-        return replay_data, weights  # type: ignore[return-value]
+        return replay_data, weights
 
     def _after_gradient_step(self, td_errors: th.Tensor) -> None:
         assert self._per_indices is not None, "_sample_batch must run before _after_gradient_step"

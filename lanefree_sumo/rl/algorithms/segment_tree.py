@@ -33,7 +33,7 @@ class _SegmentTree:
     def _combine(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
-    def _check(self, indices: np.ndarray) -> np.ndarray:
+    def _check(self, indices: np.ndarray | int) -> np.ndarray:
         idx = np.asarray(indices, dtype=np.int64).reshape(-1)
         if idx.size and (idx.min() < 0 or idx.max() >= self.capacity):
             raise IndexError(f"tree index out of range [0, {self.capacity}): {idx.min()}..{idx.max()}")

@@ -16,8 +16,9 @@ import subprocess
 import tempfile
 import time
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import sumo
@@ -93,7 +94,7 @@ def resolve_net(cfg: LaneFreeConfig) -> Path:
 
 def check_ring_net(path: Path, cfg: LaneFreeConfig) -> None:
     """Fail with a clear message unless ``path`` is a readable SUMO ring of the configured size."""
-    import sumolib  # noqa: PLC0415 - only needed here
+    import sumolib
 
     try:
         net = sumolib.net.readNet(str(path))
@@ -190,7 +191,7 @@ class SumoBackend:
         args += self._extra_args
         try:
             if self.kind == "libsumo":
-                import libsumo  # noqa: PLC0415 - libsumo is loaded only when used
+                import libsumo
 
                 if libsumo.simulation.isLoaded():
                     raise SumoError(
@@ -329,7 +330,7 @@ class SumoBackend:
 def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> float:
     """Steps per second of SUMO alone: the same vehicles on the same ring, driven by SUMO's own
     car-following and sublane models, with no Python control at all (the benchmark baseline)."""
-    import libsumo  # noqa: PLC0415
+    import libsumo
 
     net = resolve_net(cfg)
     tmp = tempfile.TemporaryDirectory(prefix="lanefree-")
