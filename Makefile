@@ -1,5 +1,6 @@
 # lanefree_sumo — everything runs inside .venv, bootstrapped on first use.
 # Main jobs:  make test  ·  make train DENSITY=90  ·  make simulate DENSITY=90  ·  make bench
+# Checks:     make lint  ·  make test-fast (no SUMO, < 30 s)
 
 PYTHON ?= python3
 VENV   := .venv
@@ -21,7 +22,7 @@ LENGTH  ?= 500
 WIDTH   ?= 10.2
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv test train evaluate replay report simulate nets bench traffic clean-venv
+.PHONY: venv test test-fast lint train evaluate replay report simulate nets bench traffic clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -36,6 +37,14 @@ venv: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# Pure-numpy and small-torch tests only (no SUMO, no GUI, no training): < 30 s.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not sumo and not gui and not slow"
+
+lint: $(STAMP)
+	$(BIN)/ruff check lanefree_sumo tests
+	$(BIN)/mypy
 
 train: $(STAMP)
 	$(BIN)/lanefree train --algo $(ALGO) --reward $(REWARD) --density $(DENSITY) --episodes $(EPISODES) \
