@@ -7,19 +7,15 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-DENSITY ?= 90
-SEED    ?= 0
-ALGO    ?= ddpg
-REWARD  ?= fields_zones_overtake_collision
-EPISODES ?= 625
-ENVS    ?= 1
-OBS     ?= vector
+# Options are passed only when set, so every default is the one in lanefree_sumo/config.py
+# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 ...
 RUN     ?=
 RUNS    ?= runs/*/
-EPISODE ?= 1
-SECONDS ?= 200
-LENGTH  ?= 500
-WIDTH   ?= 10.2
+opt = $(if $($(1)),$(2) $($(1)))
+TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENSITY,--density) \
+	$(call opt,EPISODES,--episodes) $(call opt,SEED,--seed) $(call opt,ENVS,--envs) $(call opt,OBS,--obs) \
+	$(call opt,ENCODER,--encoder)
+SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
 .PHONY: venv test test-fast lint train evaluate replay report simulate nets bench traffic clean-venv
@@ -47,8 +43,7 @@ lint: $(STAMP)
 	$(BIN)/mypy
 
 train: $(STAMP)
-	$(BIN)/lanefree train --algo $(ALGO) --reward $(REWARD) --density $(DENSITY) --episodes $(EPISODES) \
-		--seed $(SEED) --envs $(ENVS) --obs $(OBS)
+	$(BIN)/lanefree train $(TRAIN_OPTS)
 
 evaluate: $(STAMP)
 	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
@@ -56,17 +51,16 @@ evaluate: $(STAMP)
 
 replay: $(STAMP)
 	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1]"; exit 2; }
-	$(BIN)/lanefree replay $(RUN) --episode $(EPISODE)
+	$(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
 
 report: $(STAMP)
 	$(BIN)/lanefree report $(RUNS) --out runs/report
 
 simulate: $(STAMP)
-	$(BIN)/lanefree simulate --density $(DENSITY) --seconds $(SECONDS) --seed $(SEED) \
-		--out runs/sim-d$(DENSITY)-s$(SEED)-$(STAMP_NOW)
+	$(BIN)/lanefree simulate $(SIM_OPTS) --out runs/sim-$(STAMP_NOW)
 
 nets: $(STAMP)
-	$(BIN)/lanefree net --length $(LENGTH) --width $(WIDTH)
+	$(BIN)/lanefree net $(call opt,LENGTH,--length) $(call opt,WIDTH,--width)
 
 bench: $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.bench
