@@ -84,6 +84,7 @@ def driver_accelerations(
     step_s: float,
     edge_clearance: float = 0.0,
     offsets: tuple[np.ndarray, np.ndarray] | None = None,
+    details: dict[str, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Accelerations (ax, ay) in m/s² for every vehicle from the forces of its neighbours.
 
@@ -92,6 +93,9 @@ def driver_accelerations(
     The road-edge bound (step 2) treats the edges as ``edge_clearance`` (m) inside the road, the
     line the dynamics clip at, so a driver that obeys it never touches the clip.
     ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed.
+    ``details``, if given, receives per-vehicle diagnostics: ``sum_fx`` (Σ of the summed
+    repulsions' f_x), ``leader_gap_m`` (bumper gap to the x-wall leader, NaN without one) and
+    ``wall_binds`` (the x-wall lowered F_x).
     """
     x, y, vx, vy = state.x, state.y, state.vx, state.vy
     length, width, vd = state.length, state.width, state.v_desired
@@ -146,6 +150,10 @@ def driver_accelerations(
     gap = wrap((x[leader] - 0.5 * length[leader]) - (x + 0.5 * length), ring_length)
     v_safe = np.minimum(gap / cfg.wall_time_gap_s, vx[leader] - cfg.wall_speed_margin_mps)
     wall = ((1.0 - degree) * (vd - vx) + degree * (v_safe - vx)) / t
+    if details is not None:
+        details["sum_fx"] = rep_fx.sum(axis=1)
+        details["leader_gap_m"] = np.where(has_leader, gap, np.nan)
+        details["wall_binds"] = has_leader & (wall < ax)
     ax = np.where(has_leader, np.minimum(ax, wall), ax)
 
     # 2. road edges

@@ -74,8 +74,11 @@ class Simulation:
     The backend (and so SUMO) starts at the first ``reset``, not at construction, and
     ``close`` stops it; a later ``reset`` starts a new one."""
 
-    def __init__(self, cfg: LaneFreeConfig, backend: Backend | None = None) -> None:
+    def __init__(self, cfg: LaneFreeConfig, backend: Backend | None = None, diagnostics: bool = False) -> None:
+        """``diagnostics``: keep the driver model's per-vehicle details of each step in
+        ``force_details`` (see :func:`~lanefree_sumo.sim.forces.driver_accelerations`)."""
         self.cfg = cfg
+        self.force_details: dict[str, np.ndarray] | None = {} if diagnostics else None
         self.backend: Backend | None = backend
         self.state: VehicleState | None = None
         self.last_result: StepResult | None = None
@@ -116,7 +119,7 @@ class Simulation:
         cfg = self.cfg
         ax, ay = driver_accelerations(
             state, cfg.scenario.driver, cfg.road.length_m, cfg.road.width_m, cfg.sim.step_s,
-            cfg.sim.edge_clearance_m, self.offsets,
+            cfg.sim.edge_clearance_m, self.offsets, self.force_details,
         )
         if not state.controlled.all():
             if agent_accel is None:
@@ -153,12 +156,14 @@ def run_simulation(
     steps: int,
     on_step: Callable[[int, VehicleState, StepResult], None] | None = None,
     progress: bool = False,
+    sim: Simulation | None = None,
 ) -> dict[str, Any]:
     """Run background traffic for ``steps`` and return its summary (speeds in m/s, margins in m).
 
     ``on_step(step, state, result)`` is called after every step (e.g. a trajectory writer).
+    ``sim``: a prepared :class:`Simulation` of ``cfg`` (e.g. with diagnostics), else a new one.
     Ctrl-C stops early and returns what was simulated, with ``interrupted`` set."""
-    sim = Simulation(cfg)
+    sim = sim or Simulation(cfg)
     t0 = time.perf_counter()
     state = sim.reset(cfg.seed)
     n = state.n

@@ -322,3 +322,15 @@ def test_fast_symmetric_trapezoid_equals_the_general_h():
     w[:50] = 0.0  # zero-width ramps: steps
     l = rng.uniform(0.0, 15.0, 500)
     assert symmetric_trapezoid(np.abs(t), w, l) == pytest.approx(trapezoid_h(t, w, l, w), abs=1e-12)
+
+
+def test_force_details_report_the_wall_leader_and_its_gap():
+    # the scene of the wall-leader test: with one summed repulsion, A (alongside, gap 1 − 3.5 m) leads
+    state = make_state([100.0, 101.0, 120.0], [5.0, 7.3, 5.0], [20.0, 20.0, 20.0], [20.0, 20.0, 20.0])
+    details: dict[str, np.ndarray] = {}
+    cfg = merge_config(DriverConfig(), {"max_repulsions": 1})
+    driver_accelerations(state, cfg, L, W, T, details=details)
+    assert details["leader_gap_m"][0] == pytest.approx(1.0 - 3.5)
+    assert details["wall_binds"][0]
+    assert details["sum_fx"][0] == pytest.approx(-math.cos(math.atan2(2.3, 1.0)))
+    assert np.isnan(details["leader_gap_m"][2])  # the front vehicle has nobody ahead within 100 m
