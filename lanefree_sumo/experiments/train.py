@@ -104,14 +104,11 @@ def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env:
 
 def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
     """``n_envs`` environments: in this process for 1, else one process each."""
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
     cfg_dict = config_to_dict(cfg)
     factories = [_env_factory(cfg_dict, rank, seed, n_envs > 1) for rank in range(n_envs)]
-    if n_envs == 1:
-        vec = DummyVecEnv(factories)
-    else:
-        vec = SubprocVecEnv(factories, start_method="spawn")
+    vec: VecEnv = DummyVecEnv(factories) if n_envs == 1 else SubprocVecEnv(factories, start_method="spawn")
     vec.seed(seed)
     return vec
 
