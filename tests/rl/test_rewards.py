@@ -451,3 +451,10 @@ def test_presets_are_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         get_preset("fields").w_f = 2.0  # type: ignore[misc]
     assert math.isclose(get_preset("fields").w_f, 1.0)
+
+
+def test_spec_module_path_lanefree_sumo_rewards_is_the_rewards_module():
+    import lanefree_sumo.rewards as spec_path
+    from lanefree_sumo.rl import rewards as module
+
+    assert spec_path is module and spec_path.ellipsoid(0.0, 0.0, 1.0, 1.0, 4, 4, 1, 0.5) == 0.5
