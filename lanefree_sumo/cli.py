@@ -45,7 +45,12 @@ REPORT = ReportConfig()
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse that reports errors as one line instead of usage + error."""
+    """argparse that reports errors as one line instead of usage + error, and takes no
+    abbreviated options (``--dens`` is an error, not ``--density``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
@@ -160,7 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"save a checkpoint every K episodes (default {t.checkpoint_every_episodes})")
     tr.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>_...)")
     tr.add_argument("--resume", type=Path, default=None, metavar="RUN",
-                    help="continue RUN from its newest checkpoint (other options are taken from RUN/config.yaml)")
+                    help="continue RUN from its newest checkpoint with the options in RUN/config.yaml; with "
+                    "--episodes N, extend RUN (finished or not) to N episodes; other options are refused")
     tr.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
                     help=f"simulation backend (default {DEFAULTS.backend}; numpy = the same physics without SUMO)")
 
@@ -283,7 +289,12 @@ def _train(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.train import train
 
     if args.resume is not None:
-        run, done = train(LaneFreeConfig(), run=args.resume, resume=True)
+        ignored = sorted(args.given - {"--resume", "--episodes"})
+        if ignored:
+            raise UsageError(f"--resume continues RUN with the options saved in RUN/config.yaml; {', '.join(ignored)} "
+                             "cannot be changed (only --episodes N, to extend the run to N episodes)")
+        run, done = train(LaneFreeConfig(), run=args.resume, resume=True,
+                          episodes=args.episodes if "--episodes" in args.given else None)
     else:
         cfg = merge_config(LaneFreeConfig(), {
             "seed": args.seed,
@@ -319,9 +330,12 @@ def _command() -> str:
 def _evaluate(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.evaluate import evaluate
 
-    out = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
-                   out=args.out, overwrite=args.overwrite)
-    print(f"evaluated {args.episodes} episodes -> {out / 'episodes.csv'}")
+    result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
+                      out=args.out, overwrite=args.overwrite)
+    if result.interrupted:
+        print(f"lanefree: interrupted; kept {result.episodes} complete episode(s) in {result.out}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"evaluated {result.episodes} episodes -> {result.out / 'episodes.csv'}")
     return 0
 
 
@@ -338,7 +352,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _export(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.replay import replay
-    from lanefree_sumo.experiments.rundir import find_eval_dir, trajectory_path
+    from lanefree_sumo.experiments.rundir import check_writable, find_eval_dir, trajectory_path
 
     source = trajectory_path(find_eval_dir(args.run), args.episode)
     out = args.out or find_eval_dir(args.run) / "export"
@@ -346,6 +360,7 @@ def _export(args: argparse.Namespace) -> int:
     fcd_out = out / f"episode_{args.episode:04d}.fcd.xml"
     if (csv_out.exists() or fcd_out.exists()) and not args.overwrite:
         raise UsageError(f"{csv_out.parent} already holds episode {args.episode}; pass --overwrite to replace it")
+    check_writable(out, folder=True)
     result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out)
     shutil.copyfile(source, csv_out)
     print(f"exported {result.steps} steps -> {csv_out} and {fcd_out}")
@@ -379,7 +394,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``lanefree`` console script."""
     parser = build_parser()
     try:
+        argv = list(sys.argv[1:] if argv is None else argv)
         args = parser.parse_args(argv)
+        args.given = {token.split("=", 1)[0] for token in argv if token.startswith("--")}
         if args.command is None:
             parser.print_help()
             return EXIT_BAD_INPUT

@@ -21,9 +21,9 @@ from lanefree_sumo.errors import ConfigError
 class RoadConfig:
     """The ring road hosted by SUMO: one lane as wide as the road."""
 
-    length_m: float = 500.0
+    length_m: float = field(default=500.0, metadata={"range": (50.0, 10_000.0)})
     """Centre-line length of the closed loop (m)."""
-    width_m: float = 10.2
+    width_m: float = field(default=10.2, metadata={"range": (2.5, 100.0)})
     """Road (= lane) width (m)."""
     speed_limit_mps: float = 50.0
     """SUMO lane speed limit (m/s); only needs to exceed every commanded speed."""
@@ -33,9 +33,9 @@ class RoadConfig:
 class SimulationConfig:
     """Time stepping and SUMO options."""
 
-    step_s: float = 0.25
+    step_s: float = field(default=0.25, metadata={"range": (0.01, 1.0)})
     """Simulation step T (s)."""
-    episode_steps: int = 800
+    episode_steps: int = field(default=800, metadata={"range": (1, 10_000_000)})
     """Steps per episode (800 × 0.25 s = 200 s)."""
     lateral_resolution_m: float = 0.8
     """SUMO ``--lateral-resolution`` (m): switches on the sublane model."""
@@ -169,7 +169,7 @@ ACTION_KINDS: tuple[str, ...] = get_args(ActionKind)
 class ScenarioConfig:
     """What is on the road."""
 
-    density_veh_per_km: float = 70.0
+    density_veh_per_km: float = field(default=70.0, metadata={"range": (1e-9, 1e6)})
     """Background vehicles = round(density · L / 1000) (veh/km)."""
     background: VehicleClassConfig = field(default_factory=_background_class)
     background_fast_color_rgb: tuple[int, int, int] = (255, 150, 40)
@@ -325,7 +325,8 @@ class LaneFreeConfig:
     action: ActionConfig = field(default_factory=ActionConfig)
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
-    seed: int = 0
+    seed: int = field(default=0, metadata={"range": (0, 2**31 - 1)})
+    """Random seed of traffic and networks; SUMO takes 0 … 2³¹ − 1."""
     backend: Backend = "libsumo"
     """``libsumo`` (fast, default), ``traci`` (socket; needed for the GUI) or ``numpy`` (no SUMO)."""
     gui: bool = False
@@ -397,8 +398,28 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
         else:
             if isinstance(current, tuple) and isinstance(value, list):
                 value = tuple(value)
-            changes[key] = check_value(where, _field_types(type(base))[key], value)
+            changes[key] = check_value(where, _field_types(type(base))[key], value, valid[key].metadata.get("range"))
     return dataclasses.replace(base, **changes)
+
+
+ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner")
+"""Config keys added after run folders were first written; a saved config without them gets their
+default. Every other key must be present in a saved config (a missing one means a cut file)."""
+
+
+def missing_keys(base: Any, data: Mapping[str, Any], path: str = "") -> list[str]:
+    """Dotted keys of config dataclass ``base`` that the saved mapping ``data`` lacks (leaves and
+    whole sections), except those in :data:`ADDED_LATER`."""
+    missing: list[str] = []
+    for f in fields(base):
+        where = f"{path}.{f.name}" if path else f.name
+        if where in ADDED_LATER:
+            continue
+        if f.name not in data:
+            missing.append(where)
+        elif is_dataclass(getattr(base, f.name)) and isinstance(data[f.name], Mapping):
+            missing += missing_keys(getattr(base, f.name), data[f.name], where)
+    return missing
 
 
 def validate_config(cfg: Any, path: str = "") -> Any:
@@ -410,7 +431,7 @@ def validate_config(cfg: Any, path: str = "") -> Any:
         if is_dataclass(value):
             validate_config(value, where)
         else:
-            check_value(where, types[f.name], value)
+            check_value(where, types[f.name], value, f.metadata.get("range"))
     return cfg
 
 
@@ -438,10 +459,18 @@ def _registered_names(where: str) -> tuple[str, ...] | None:
     return None
 
 
-def check_value(where: str, annotation: Any, value: Any) -> Any:
-    """THE validation of one config value against its field's type (``Literal`` values, numbers,
-    flags, names, tuples); returns the value, ints widened to float where a float is expected.
-    Raises ConfigError naming the key and what is allowed."""
+def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, float] | None = None) -> Any:
+    """THE validation of one config value against its field's type (``Literal`` values, numbers
+    within the field's ``range`` metadata, flags, names, tuples); returns the value, ints widened to
+    float where a float is expected. Raises ConfigError naming the key and what is allowed."""
+    value = _check_type(where, annotation, value)
+    if bounds is not None and not bounds[0] <= value <= bounds[1]:
+        low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
+        raise ConfigError(f"config '{where}' = {value!r} is out of range; allowed {low} … {high}")
+    return value
+
+
+def _check_type(where: str, annotation: Any, value: Any) -> Any:
     origin = get_origin(annotation)
     if origin is Literal:
         allowed = get_args(annotation)

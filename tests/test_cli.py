@@ -84,8 +84,12 @@ def test_existing_output_is_refused_unless_overwrite(tmp_path):
     res = lanefree("simulate", "--seconds", "1", "--out", str(out))
     assert res.returncode == 2 and "--overwrite" in res.stderr
     assert (out / "keep.txt").read_text() == "precious"
-    res = lanefree("simulate", "--seconds", "1", "--out", str(out), "--overwrite")
-    assert res.returncode == 0 and not (out / "keep.txt").exists()
+    res = lanefree("simulate", "--seconds", "1", "--out", str(out), "--overwrite")  # not a simulate output
+    assert res.returncode == 2 and (out / "keep.txt").read_text() == "precious"
+    sim = tmp_path / "sim"
+    assert lanefree("simulate", "--seconds", "1", "--out", str(sim)).returncode == 0
+    res = lanefree("simulate", "--seconds", "2", "--out", str(sim), "--overwrite")
+    assert res.returncode == 0 and '"steps": 8' in (sim / "summary.json").read_text()
 
 
 def test_net_command_builds_a_ring(tmp_path):

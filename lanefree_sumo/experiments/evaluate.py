@@ -12,45 +12,55 @@ so that a replay can rebuild the scene.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lanefree_sumo.config import merge_config, validate_density
+from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config, validate_density
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.rundir import (
     EPISODES,
     RECORDING,
     TRAJECTORIES,
     RunDir,
-    prepare_output,
+    check_replaceable,
+    fresh_output,
     trajectory_path,
     vehicles_path,
     write_config,
 )
+from lanefree_sumo.experiments.signals import sigterm_as_interrupt
 from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
 
-EVAL_SEED_OFFSET = 100_000
-"""Evaluation episode k of a run with training seed s uses seed s + 100000 + k (never a
-training seed)."""
+EVALUATION = EvaluationConfig()
+
+
+@dataclass
+class EvaluationResult:
+    """Where an evaluation went and how far it got."""
+
+    out: Path
+    episodes: int
+    """Complete episodes written."""
+    interrupted: bool
 
 
 def evaluate(
     run: Path,
-    episodes: int = 20,
+    episodes: int = EVALUATION.episodes,
     density: float | None = None,
     seed: int | None = None,
     record: bool = False,
     out: Path | None = None,
     overwrite: bool = False,
     progress: bool = True,
-) -> Path:
-    """Run the deterministic policy for ``episodes`` episodes; return the eval folder."""
-    from tqdm import tqdm
+) -> EvaluationResult:
+    """Run the deterministic policy for ``episodes`` episodes into the eval folder.
 
-    from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles
-    from lanefree_sumo.rl.env import LaneFreeEnv
-
+    The output is written beside ``out`` and replaces it only at the end (an old evaluation is
+    never lost to a failed one). Ctrl-C or SIGTERM keep the complete episodes and drop the one in
+    progress, so no partial recording looks complete."""
     folder = RunDir(run)
     cfg = folder.load_config()
     trained_density = cfg.scenario.density_veh_per_km
@@ -58,47 +68,65 @@ def evaluate(
         cfg = merge_config(cfg, {"scenario": {"density_veh_per_km": validate_density(density)}})
     d = cfg.scenario.density_veh_per_km
     out = out or folder.eval_dir(None if d == trained_density else d)
-    if out.exists() and not overwrite:
-        raise RunError(f"{out} exists; pass --overwrite to replace it or --out for another folder")
+    check_replaceable(out, overwrite, "evaluate")
     model_path = folder.find_model()
     try:
         model = get_algorithm(cfg.train.algo).cls.load(model_path, device="cpu")
     except Exception as exc:
         raise RunError(f"{model_path} cannot be loaded ({type(exc).__name__}: {exc})") from None
-    prepare_output(out, overwrite)
-    base_seed = (cfg.seed if seed is None else seed) + EVAL_SEED_OFFSET
-    write_config(out, cfg)
-    if record:
-        (out / TRAJECTORIES).mkdir()
-        (out / RECORDING).write_text(json.dumps({
-            "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
-            "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
-            "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap)",
-        }, indent=2) + "\n")
+    base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
+    with fresh_output(out, overwrite, "evaluate") as tmp, sigterm_as_interrupt():
+        write_config(tmp, cfg)
+        if record:
+            (tmp / TRAJECTORIES).mkdir()
+            (tmp / RECORDING).write_text(json.dumps({
+                "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
+                "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
+                "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap)",
+            }, indent=2) + "\n")
+        done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress)
+    return EvaluationResult(out, done, done < episodes)
+
+
+def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, episodes: int, record: bool,
+                  progress: bool) -> int:
+    """Episodes 1..``episodes`` into ``out``; returns how many completed (fewer after Ctrl-C)."""
+    from tqdm import tqdm
+
+    from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles
+    from lanefree_sumo.rl.env import LaneFreeEnv
+
     log = EpisodeLog(out / EPISODES)
     env = LaneFreeEnv(cfg)
+    done = 0
     try:
         for k in tqdm(range(1, episodes + 1), desc="evaluate", unit="ep", disable=not progress):
             obs, _ = env.reset(seed=base_seed + k)
             writer = TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True) if record else None
-            if writer:
-                writer.write(0, env.sim.current()[0], None)
-                write_vehicles(vehicles_path(out, k), env.sim.current()[0])
-            info: dict[str, Any] = {}
-            done = False
-            while not done:
-                action, _ = model.predict(obs, deterministic=True)
-                obs, _, terminated, truncated, info = env.step(action)
+            try:
                 if writer:
-                    writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result)
-                done = terminated or truncated
+                    writer.write(0, env.sim.current()[0], None)
+                    write_vehicles(vehicles_path(out, k), env.sim.current()[0])
+                info: dict[str, Any] = {}
+                finished = False
+                while not finished:
+                    action, _ = model.predict(obs, deterministic=True)
+                    obs, _, terminated, truncated, info = env.step(action)
+                    if writer:
+                        writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result)
+                    finished = terminated or truncated
+            except KeyboardInterrupt:
+                if writer:
+                    writer.close()
+                trajectory_path(out, k).unlink(missing_ok=True)
+                vehicles_path(out, k).unlink(missing_ok=True)
+                break
             if writer:
                 writer.close()
             log.append({**info["episode_metrics"], "episode": k, "algorithm": cfg.train.algo,
                         "timesteps": int(model.num_timesteps)})
+            done = k
     finally:
         log.close()
         env.close()
-    return out
-
-
+    return done

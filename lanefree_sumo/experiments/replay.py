@@ -26,6 +26,7 @@ from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.rundir import (
     CONFIG,
     TRAJECTORIES,
+    check_writable,
     find_eval_dir,
     read_config,
     trajectory_path,
@@ -92,9 +93,15 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
         n = len(ids)
         table["id"] = pd.Categorical(table["id"], categories=ids, ordered=True)
         table = table.sort_values(["t", "id"], kind="stable")
-        steps = len(table) // n
+        steps = len(table) // n if n else 0
+        if steps < 2:
+            raise ValueError("it holds no steps to replay")
         if steps * n != len(table) or table["id"].isna().any():
             raise ValueError("rows are not one per vehicle and step")
+        numbers = table[["t", "x", "y", "vx", "vy", "overlap"]].to_numpy(dtype=float)
+        sizes = attrs[["length", "width", "v_desired"]].to_numpy(dtype=float)
+        if not (np.isfinite(numbers).all() and np.isfinite(sizes).all()):
+            raise ValueError("it has NaN or infinite values")
 
         def grid(col: str) -> np.ndarray:
             return table[col].to_numpy(dtype=float).reshape(steps, n)
@@ -103,8 +110,9 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
             ids, grid("t")[:, 0], grid("x"), grid("y"), grid("vx"), grid("vy"), grid("overlap").astype(bool),
             attrs["length"].to_numpy(float), attrs["width"].to_numpy(float), attrs["v_desired"].to_numpy(float), cfg,
         )
-    except (KeyError, ValueError, pd.errors.ParserError) as exc:
-        raise ReplayError(f"{traj} is not a readable recording ({exc}); record it again") from None
+    except (KeyError, ValueError, TypeError, UnicodeDecodeError, pd.errors.ParserError) as exc:
+        raise ReplayError(f"{traj} is not a usable recording ({' '.join(str(exc).split())[:200]}); "
+                          "record it again with 'lanefree evaluate RUN --record'") from None
 
 
 def desired_speed_colour(v_desired: float, cfg: LaneFreeConfig) -> tuple[int, int, int, int]:
@@ -185,6 +193,9 @@ def replay(
     last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them."""
     from lanefree_sumo.sim.backends.sumo import SumoBackend
 
+    for target, is_folder in ((screenshot, False), (gif, False), (fcd, False), (frames, True)):
+        if target is not None:
+            check_writable(target, folder=is_folder)
     rec = load_recording(run, episode)
     cfg = merge_config(rec.cfg, {"gui": gui, "backend": "traci" if gui else "libsumo"})
     if (screenshot or frames or gif) and not gui:

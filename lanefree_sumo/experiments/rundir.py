@@ -19,15 +19,18 @@ A training run ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` holds::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, missing_keys
 from lanefree_sumo.errors import ConfigError, RunError
 
 CONFIG = "config.yaml"
@@ -47,16 +50,68 @@ SIM_TRAJECTORY = "trajectory.csv"
 SIM_SUMMARY = "summary.json"
 
 
-def prepare_output(out: Path, overwrite: bool, what: str = "output folder") -> None:
-    """Create ``out``; an existing one is refused unless ``overwrite`` (then it is replaced)."""
+OUTPUT_MARKER = ".lanefree-output"
+"""File in every folder a verb writes (simulate, evaluate), naming the verb: ``--overwrite``
+replaces only such folders."""
+
+
+def check_replaceable(out: Path, overwrite: bool, verb: str) -> None:
+    """Refuse an existing ``out`` unless ``overwrite``, and even then unless it is a previous
+    output of ``lanefree VERB`` (marker file) or empty: never a run folder, a file, the current
+    folder or one of its parents."""
+    if not out.exists():
+        return
+    if not overwrite:
+        raise RunError(f"{out} exists; choose another --out or pass --overwrite to replace it")
+    resolved, cwd = out.resolve(), Path.cwd().resolve()
+    if resolved == cwd or resolved in cwd.parents:
+        raise RunError(f"refusing to replace {out}: it is the current folder or one of its parents")
+    if not out.is_dir():
+        raise RunError(f"refusing to replace {out}: it is a file, not an output folder")
+    if any((out / name).exists() for name in (CHECKPOINTS, MODEL, VERSIONS)):
+        raise RunError(f"refusing to replace {out}: it is a training run folder")
+    marker = out / OUTPUT_MARKER
+    made_by = marker.read_text().strip() if marker.is_file() else None
+    if made_by != verb and any(out.iterdir()):
+        raise RunError(f"refusing to replace {out}: it is not the output of an earlier 'lanefree {verb}' "
+                       "(no marker file); remove it yourself or choose another --out")
+
+
+def check_writable(path: Path, folder: bool = False) -> None:
+    """Fail now, not after the work, when ``path`` (a file, or a ``folder``) cannot be written."""
+    where = path if folder else path.parent
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=where):
+            pass
+    except OSError as exc:
+        raise RunError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+@contextlib.contextmanager
+def fresh_output(out: Path, overwrite: bool, verb: str) -> Iterator[Path]:
+    """Write a verb's output safely: yields a new folder beside ``out``; when the block ends
+    without an exception it replaces ``out`` (an old output is removed only then), else it is
+    deleted and ``out`` is untouched."""
+    check_replaceable(out, overwrite, verb)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
+    except OSError as exc:
+        raise RunError(f"cannot write {out}: {exc.strerror or exc}") from None
+    (tmp / OUTPUT_MARKER).write_text(verb + "\n")
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     if out.exists():
-        if not overwrite:
-            raise RunError(f"{what} {out} exists; choose another --out or pass --overwrite")
-        if out.is_dir():
-            shutil.rmtree(out)
-        else:
-            out.unlink()
-    out.mkdir(parents=True)
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        out.rename(old / out.name)
+        tmp.rename(out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        tmp.rename(out)
 
 
 def write_config(folder: Path, cfg: LaneFreeConfig) -> None:
@@ -71,18 +126,23 @@ def append_command(folder: Path, command: str) -> None:
 
 
 def read_config(folder: Path) -> LaneFreeConfig:
-    """The configuration saved in ``folder/config.yaml`` (a run or an evaluation)."""
+    """The configuration saved in ``folder/config.yaml`` (a run or an evaluation), validated whole:
+    unreadable text, a missing or unknown key, a wrong type or value is a RunError naming it."""
     path = folder / CONFIG
     if not path.is_file():
         raise RunError(f"{folder} is not a run folder (no {CONFIG}); pass the folder that 'lanefree train' made")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
         if not isinstance(data, dict):
-            raise ConfigError("not a mapping")
+            raise ConfigError("it is not a mapping of config keys")
+        missing = missing_keys(LaneFreeConfig(), data)
+        if missing:
+            more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+            raise ConfigError(f"key '{missing[0]}'{more} missing (file cut short?)")
         return merge_config(LaneFreeConfig(), data)
     except (OSError, UnicodeDecodeError, yaml.YAMLError, ConfigError, TypeError) as exc:
-        reason = " ".join(str(exc).split())
-        raise RunError(f"{path} is unreadable ({reason}); restore it or start a new run") from None
+        reason = " ".join(str(exc).split())[:300]
+        raise RunError(f"{path} is unusable ({reason}); restore it or start a new run") from None
 
 
 @dataclass(frozen=True)
@@ -159,6 +219,12 @@ class RunDir:
                 continue
         raise RunError(f"{self.path} has no usable checkpoint under {CHECKPOINTS}/; "
                        "start a new run instead of resuming")
+
+    def prune_replay_buffers(self, keep: int) -> None:
+        """Delete the replay buffers of all but the ``keep`` newest checkpoints (models stay)."""
+        folders = sorted(self.checkpoints.glob("ep_*")) if self.checkpoints.is_dir() else []
+        for folder in folders[:-keep] if keep > 0 else folders:
+            (folder / REPLAY_BUFFER).unlink(missing_ok=True)
 
     def write_checkpoint_state(self, folder: Path, state: dict[str, Any]) -> None:
         """Written last: marks a checkpoint complete."""

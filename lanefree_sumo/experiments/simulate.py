@@ -13,13 +13,15 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.experiments.rundir import (
     SIM_SUMMARY,
     SIM_TRAJECTORY,
     append_command,
-    prepare_output,
+    fresh_output,
     write_config,
 )
+from lanefree_sumo.experiments.signals import sigterm_as_interrupt
 from lanefree_sumo.experiments.trajectory import TrajectoryWriter
 from lanefree_sumo.sim.simulation import run_simulation
 from lanefree_sumo.sim.spawn import spawn
@@ -34,17 +36,20 @@ def simulate(
     write_trajectory: bool = True,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """Simulate ``seconds`` (s) of traffic into ``out``; return the summary (also in summary.json)."""
+    """Simulate ``seconds`` (s) of traffic into ``out``; return the summary (also in summary.json).
+    Ctrl-C (or SIGTERM) stops early and keeps what was simulated, marked ``interrupted``."""
     steps = int(round(seconds / cfg.sim.step_s))
+    if steps < 1:
+        raise ConfigError(f"--seconds {seconds:g} is shorter than one step of {cfg.sim.step_s:g} s")
     spawn(cfg, np.random.default_rng(cfg.seed))  # density check before anything is written
-    prepare_output(out, overwrite)
-    append_command(out, command)
-    write_config(out, cfg)
-    writer = TrajectoryWriter(out / SIM_TRAJECTORY, cfg.sim.step_s) if write_trajectory else None
-    try:
-        summary = run_simulation(cfg, steps, on_step=writer.write if writer else None, progress=progress)
-    finally:
-        if writer:
-            writer.close()
-    (out / SIM_SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    with fresh_output(out, overwrite, "simulate") as folder, sigterm_as_interrupt():
+        append_command(folder, command)
+        write_config(folder, cfg)
+        writer = TrajectoryWriter(folder / SIM_TRAJECTORY, cfg.sim.step_s) if write_trajectory else None
+        try:
+            summary = run_simulation(cfg, steps, on_step=writer.write if writer else None, progress=progress)
+        finally:
+            if writer:
+                writer.close()
+        (folder / SIM_SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     return summary

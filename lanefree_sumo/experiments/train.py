@@ -12,16 +12,19 @@ resumed run is a valid continuation, not a bit-identical replay of an uninterrup
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import platform
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +32,7 @@ from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
 from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
+from lanefree_sumo.sim.spawn import spawn
 
 EPISODE_COLUMNS = (
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
@@ -198,6 +202,11 @@ class EpisodeLog:
             writer.writerows(kept)
 
 
+KEEP_REPLAY_BUFFERS = 2
+"""Checkpoints whose replay buffer is kept (the newest ones; older checkpoints keep their model):
+a buffer of 100 000 transitions is ~20 MB, 25 of them per run would be half a gigabyte."""
+
+
 def save_checkpoint(model: Any, run: RunDir, episodes: int, algo: str) -> Path:
     """Model, replay buffer (off-policy) and counters in ``run.checkpoint(episodes)``."""
     folder = run.checkpoint(episodes)
@@ -207,6 +216,7 @@ def save_checkpoint(model: Any, run: RunDir, episodes: int, algo: str) -> Path:
         model.save_replay_buffer(Checkpoint(folder, episodes, 0).replay_buffer)
     run.write_checkpoint_state(folder, {"episodes": episodes, "timesteps": int(model.num_timesteps), "algo": algo,
                                         "saved": datetime.now().isoformat(timespec="seconds")})
+    run.prune_replay_buffers(keep=KEEP_REPLAY_BUFFERS)
     return folder
 
 
@@ -271,38 +281,105 @@ def run_name(cfg: LaneFreeConfig) -> str:
             f"_s{cfg.seed}")
 
 
+def new_run_folder(cfg: LaneFreeConfig, run: Path | None) -> Path:
+    """Create the run folder atomically: ``run`` (refused if it holds anything), else a fresh
+    ``runs/<date-time>_...`` (``-2``, ``-3``, … when two runs start in the same second)."""
+    if run is not None:
+        if run.exists() and (not run.is_dir() or any(run.iterdir())):
+            raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
+        run.mkdir(parents=True, exist_ok=True)
+        return run
+    base = Path("runs") / run_name(cfg)
+    for k in itertools.count(1):
+        candidate = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            candidate.mkdir(parents=True)
+            return candidate
+        except FileExistsError:
+            continue
+    raise AssertionError("unreachable")
+
+
+def _resume_point(folder: RunDir, cfg: LaneFreeConfig, episodes: int | None) -> tuple[Checkpoint, int]:
+    """The checkpoint to continue from and the episode target; refuses what would lose episodes."""
+    have = cfg.train.episodes
+    if folder.model.is_file():
+        if episodes is None:
+            raise RunError(f"{folder.path} is finished ({have} episodes); nothing to resume. "
+                           f"To train it further pass --episodes N with N > {have}")
+        ckpt = folder.newest_checkpoint()
+        if ckpt.episodes < have:
+            raise RunError(f"{folder.path} finished without a final checkpoint (newest: {ckpt.episodes} episodes); "
+                           "extending it would retrain episodes: start a new run")
+    else:
+        ckpt = folder.newest_checkpoint()
+    target = have if episodes is None else episodes
+    if target <= ckpt.episodes:
+        raise RunError(f"{folder.path} already has {ckpt.episodes} episodes; --episodes must exceed that")
+    return ckpt, target
+
+
+def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any) -> Any:
+    """The model (and replay buffer) of a checkpoint; RunError naming it when unusable."""
+    try:
+        model = spec.cls.load(ckpt.model, env=env, device="cpu")
+        if spec.off_policy:
+            if not ckpt.replay_buffer.is_file():
+                raise RunError(f"checkpoint {ckpt.path} lacks {ckpt.replay_buffer.name}; it is incomplete")
+            model.load_replay_buffer(ckpt.replay_buffer)
+    except RunError:
+        raise
+    except Exception as exc:
+        raise RunError(f"checkpoint {ckpt.path} is corrupt ({type(exc).__name__}: {exc}); "
+                       "delete that folder to resume from an older one") from None
+    return model
+
+
 def train(
     cfg: LaneFreeConfig,
     run: Path | None = None,
     resume: bool = False,
     progress: bool = True,
     command: str | None = None,
+    episodes: int | None = None,
 ) -> tuple[Path, int]:
     """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
-    checkpoint and return early."""
+    checkpoint and return early.  ``resume`` with ``episodes`` extends a run (finished or not)
+    to that many episodes; a finished run is never resumed without it.  A new run that fails
+    before its first episode leaves no folder behind."""
+    created = False
     if resume:
         if run is None:
             raise RunError("resuming needs the run folder")
         folder = RunDir(run)
         cfg = folder.load_config()
-        ckpt = folder.newest_checkpoint()
-        done, timesteps = ckpt.episodes, ckpt.timesteps
+        ckpt, target = _resume_point(folder, cfg, episodes)
+        timesteps = ckpt.timesteps
     else:
         cfg = training_config(cfg)
-        run = run or Path("runs") / run_name(cfg)
+        spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
+        run = new_run_folder(cfg, run)
+        created = True
         folder = RunDir(run)
-        if run.exists() and any(run.iterdir()):
-            raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
-        run.mkdir(parents=True, exist_ok=True)
         write_config(run, cfg)
         folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
-        done, timesteps = 0, 0
-    append_command(run, command or shlex.join(["lanefree", *sys.argv[1:]]))
-    if done >= cfg.train.episodes:
-        return run, done
+        timesteps, target = 0, cfg.train.episodes
+    try:
+        return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress,
+                              command or shlex.join(["lanefree", *sys.argv[1:]]))
+    except BaseException:
+        if created and not folder.checkpoints.is_dir():  # nothing learned: a retry starts clean
+            shutil.rmtree(run, ignore_errors=True)
+        raise
 
+
+def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None, timesteps: int, target: int,
+                   progress: bool, command: str) -> tuple[Path, int]:
+    """One training session of a run: from scratch (``ckpt`` None) or from ``ckpt``."""
     import torch
 
+    resume = ckpt is not None
+    done = ckpt.episodes if ckpt is not None else 0
     torch.set_num_threads(cfg.train.torch_threads)
     algo = cfg.train.algo
     spec = get_algorithm(algo)
@@ -311,21 +388,15 @@ def train(
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     log: EpisodeLog | None = None
     try:
-        if resume:
+        if ckpt is not None:
+            model = _load_checkpoint(spec, ckpt, env)  # validated before anything changes
             EpisodeLog.truncate(folder.episodes, done)
-            try:
-                model = spec.cls.load(ckpt.model, env=env, device="cpu")
-                if spec.off_policy:
-                    if not ckpt.replay_buffer.is_file():
-                        raise RunError(f"checkpoint {ckpt.path} lacks {ckpt.replay_buffer.name}; it is incomplete")
-                    model.load_replay_buffer(ckpt.replay_buffer)
-            except RunError:
-                raise
-            except Exception as exc:
-                raise RunError(f"checkpoint {ckpt.path} is corrupt ({type(exc).__name__}: {exc}); "
-                               "delete that folder to resume from an older one") from None
+            if target != cfg.train.episodes:
+                cfg = merge_config(cfg, {"train": {"episodes": target}})
+                write_config(folder.path, cfg)
         else:
             model = build_model(cfg, env, cfg.seed, str(folder.tensorboard))
+        append_command(folder.path, command)
         log = EpisodeLog(folder.episodes)
         callback = _make_callback(folder, cfg, log, done, stop, progress)
         remaining = total_timesteps(cfg) - timesteps
@@ -334,9 +405,8 @@ def train(
                     tb_log_name="tb", progress_bar=False)
         done = callback.episodes
         wall = time.perf_counter() - t0
-        if stop.requested or done < cfg.train.episodes:
-            save_checkpoint(model, folder, done, algo)
-        else:
+        save_checkpoint(model, folder, done, algo)  # also at the end: a finished run can be extended
+        if not stop.requested and done >= cfg.train.episodes:
             model.save(folder.model)
         folder.last_session.write_text(json.dumps(
             {"episodes_done": done, "timesteps": int(model.num_timesteps), "wall_s": wall,
@@ -348,4 +418,4 @@ def train(
         if log is not None:
             log.close()
         env.close()
-    return run, done
+    return folder.path, done

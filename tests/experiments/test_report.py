@@ -9,11 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
+from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments.paper import PAPER_REFERENCE
 from lanefree_sumo.experiments.report import RunData, report, smoothed_curve
+from lanefree_sumo.experiments.rundir import write_config
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
 FZOC = "fields_zones_overtake_collision"
@@ -29,7 +30,7 @@ def make_run(root: Path, name: str, algo: str = "ddpg", preset: str = FZOC, dens
     run.mkdir(parents=True)
     config = {"train": {"algo": algo, "episodes": episodes}, "reward": {"preset": preset},
               "scenario": {"density_veh_per_km": density}, "seed": seed, "road": {"length_m": 500.0}}
-    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    write_config(run, merge_config(LaneFreeConfig(), config))
     collisions = collisions if collisions is not None else [1.0] * episodes
     speed_dev = speed_dev if speed_dev is not None else [0.5] * episodes
     returns = returns if returns is not None else [10.0] * episodes

@@ -98,7 +98,7 @@ def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
 
 def test_evaluate_a_saved_model_with_recording(tmp_path):
     run, _ = train(tiny_config("ddpg"), run=tmp_path / "run", progress=False)
-    out = evaluate(run, episodes=2, record=True, progress=False)
+    out = evaluate(run, episodes=2, record=True, progress=False).out
     assert out == run / "eval"
     table = rows(out / "episodes.csv")
     assert [r["episode"] for r in table] == ["1", "2"]
@@ -107,20 +107,18 @@ def test_evaluate_a_saved_model_with_recording(tmp_path):
     assert list(traj[0]) == ["t", "id", "x", "y", "vx", "vy", "ax", "ay", "overlap"]
     agent = [r for r in traj if r["id"] == "agent"]
     assert len(agent) == 101 and agent[0]["t"] == "0.0"
-    with pytest.raises(RunError, match="exists; pass --overwrite"):
+    with pytest.raises(RunError, match="exists; choose another --out or pass --overwrite"):
         evaluate(run, episodes=1, progress=False)
-    other = evaluate(run, episodes=1, density=120, progress=False)
+    other = evaluate(run, episodes=1, density=120, progress=False).out
     assert other.name == "eval_d120" and rows(other / "episodes.csv")[0]["density"] == "120.0"
 
 
 def test_broken_checkpoints_give_clear_errors(tmp_path):
     run, _ = train(tiny_config("dqn"), run=tmp_path / "run", progress=False)
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    cfg["train"]["episodes"] = 4
-    (run / "config.yaml").write_text(yaml.safe_dump(cfg))
-    (run / "checkpoints" / "ep_00001" / "model.zip").write_bytes(b"not a zip")
+    (run / "checkpoints" / "ep_00002" / "model.zip").write_bytes(b"not a zip")
     with pytest.raises(RunError, match="is corrupt"):
-        train(LaneFreeConfig(), run=run, resume=True, progress=False)
+        train(LaneFreeConfig(), run=run, resume=True, progress=False, episodes=4)
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(RunError, match="no config.yaml"):

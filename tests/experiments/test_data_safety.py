@@ -1,0 +1,166 @@
+"""No command destroys a result, and every mistake gets one clear line (issue: data safety).
+
+One test per data-loss case found by probing the verbs; each failed on the code before the fix.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.errors import LaneFreeError, RunError
+from lanefree_sumo.experiments.evaluate import evaluate
+from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, read_config, write_config
+from lanefree_sumo.experiments.train import new_run_folder, train
+
+from conftest import TINY_TRAINING, lanefree
+
+pytestmark = pytest.mark.sumo
+
+
+def tiny(episodes: int = 2, **extra) -> LaneFreeConfig:
+    """A DQN run of ``episodes`` episodes of 100 steps."""
+    train_cfg = {**TINY_TRAINING["train"], "algo": "dqn", "episodes": episodes}
+    return merge_config(LaneFreeConfig(), {**TINY_TRAINING, **extra, "train": train_cfg})
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` with its bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    run, done = train(tiny(), run=tmp_path_factory.mktemp("finished") / "run", progress=False)
+    assert done == 2
+    return run
+
+
+# -- 1. resuming a finished run --------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_resume_of_a_finished_run_changes_nothing_and_extending_is_explicit(tmp_path, finished_run):
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    before = snapshot(run)
+    with pytest.raises(RunError, match="is finished .* pass --episodes N"):
+        train(LaneFreeConfig(), run=run, resume=True, progress=False)
+    assert snapshot(run) == before
+    res = lanefree("train", "--resume", str(run), "--density", "90")
+    assert res.returncode == 2 and "--density cannot be changed" in res.stderr and res.stderr.count("\n") == 1
+    assert snapshot(run) == before
+    _, done = train(LaneFreeConfig(), run=run, resume=True, progress=False, episodes=3)
+    assert done == 3 and read_config(run).train.episodes == 3
+    episodes = [line.split(",")[0] for line in (run / "episodes.csv").read_text().splitlines()[1:]]
+    assert episodes == ["1", "2", "3"]
+
+
+# -- 2. --overwrite never removes what is not its own output ---------------------------------------
+
+def test_evaluate_overwrite_refuses_a_run_folder_and_the_current_folder(tmp_path, finished_run, monkeypatch):
+    before = snapshot(finished_run)
+    with pytest.raises(RunError, match="training run folder"):
+        evaluate(finished_run, episodes=1, out=finished_run, overwrite=True, progress=False)
+    assert snapshot(finished_run) == before
+    data = tmp_path / "data.csv"
+    data.write_text("precious\n")
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    monkeypatch.chdir(sub)
+    res = lanefree("simulate", "--seconds", "1", "--out", "..", "--overwrite", cwd=sub)
+    assert res.returncode == 2 and "current folder or one of its parents" in res.stderr
+    assert data.read_text() == "precious\n"
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    res = lanefree("simulate", "--seconds", "1", "--out", str(foreign), "--overwrite")
+    assert res.returncode == 2 and "not the output of an earlier 'lanefree simulate'" in res.stderr
+    assert (foreign / "notes.txt").read_text() == "mine"
+
+
+# -- 3. a failing new output leaves the old one ----------------------------------------------------
+
+def test_overwrite_that_fails_keeps_the_previous_output(tmp_path):
+    out = tmp_path / "sim"
+    assert lanefree("simulate", "--seconds", "2", "--out", str(out)).returncode == 0
+    before = snapshot(out)
+    assert (out / OUTPUT_MARKER).read_text().strip() == "simulate"
+    bad = tmp_path / "bad.net.xml"
+    bad.write_text("<net>")
+    res = lanefree("simulate", "--seconds", "2", "--out", str(out), "--overwrite", "--net", str(bad))
+    assert res.returncode != 0 and res.stderr.count("\n") == 1
+    assert snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.net.xml", "sim"]  # no temporary left
+
+
+# -- 4. a corrupt checkpoint is found before episodes.csv is cut ------------------------------------
+
+@pytest.mark.slow
+def test_resume_with_a_corrupt_checkpoint_cuts_nothing(tmp_path):
+    run, _ = train(tiny(episodes=3), run=tmp_path / "run", progress=False)
+    (run / "model.zip").unlink()  # as if interrupted after episode 3 ...
+    newest = sorted((run / "checkpoints").glob("ep_*"))[-1]
+    (newest / "model.zip").write_bytes(b"garbage")  # ... with a damaged newest checkpoint
+    rows = (run / "episodes.csv").read_bytes()
+    with pytest.raises(RunError, match="is corrupt"):
+        train(LaneFreeConfig(), run=run, resume=True, progress=False, episodes=5)
+    assert (run / "episodes.csv").read_bytes() == rows
+
+
+# -- 5. run folders are unique even within one second ----------------------------------------------
+
+def test_two_runs_started_in_the_same_second_get_different_folders(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cfg = tiny()
+    folders = {new_run_folder(cfg, None) for _ in range(3)}
+    assert len(folders) == 3 and all(f.is_dir() for f in folders)
+
+
+# -- 6. a cut or wrong config.yaml is refused, naming the key --------------------------------------
+
+def test_truncated_or_wrong_config_is_refused_by_key(tmp_path):
+    write_config(tmp_path, LaneFreeConfig())
+    text = (tmp_path / "config.yaml").read_text()
+    (tmp_path / "config.yaml").write_text(text[: text.rindex("\n", 0, len(text) // 3) + 1])  # cut at a line end
+    with pytest.raises(RunError, match="key '.*' .*missing"):
+        read_config(tmp_path)
+    data = yaml.safe_load(text)
+    data["seed"] = "zero"
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(RunError, match="'seed' must be a whole number"):
+        read_config(tmp_path)
+    (tmp_path / "config.yaml").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(RunError, match="unusable"):
+        read_config(tmp_path)
+
+
+# -- 7. a failed start leaves nothing that blocks a retry ------------------------------------------
+
+def test_a_start_that_fails_leaves_no_run_folder(tmp_path):
+    bad = tmp_path / "bad.net.xml"
+    bad.write_text("<net>")
+    run = tmp_path / "run"
+    with pytest.raises(LaneFreeError):  # SUMO cannot read the network: fails before the first episode
+        train(tiny(net_file=str(bad)), run=run, progress=False)
+    assert not run.exists()
+    res = lanefree("train", "--density", "5000", "--episodes", "1", "--out", str(run))
+    assert res.returncode == 2 and "veh/km" in res.stderr and not run.exists()
+
+
+# -- clear one-line errors -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args,needle", [
+    (("--seed", "-1"), "'seed' = -1 is out of range"),
+    (("--seed", str(2**31)), "'seed' = 2147483648 is out of range"),
+    (("--length", "1e300"), "'road.length_m' = 1e+300 is out of range"),
+    (("--width", "0.001"), "'road.width_m' = 0.001 is out of range"),
+    (("--seconds", "0.1"), "shorter than one step"),
+])
+def test_out_of_range_values_get_one_line(tmp_path, args, needle):
+    res = lanefree("simulate", "--out", str(tmp_path / "o"), *args)
+    assert res.returncode == 2 and needle in res.stderr and res.stderr.count("\n") == 1
+    assert not (tmp_path / "o").exists()
