@@ -107,3 +107,11 @@ def test_help_explains_units():
     res = lanefree("simulate", "--help")
     assert res.returncode == 0
     assert "veh/km" in res.stdout and "in s" in res.stdout
+
+
+def test_output_under_a_file_is_refused_before_simulating(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    res = lanefree("simulate", "--seconds", "1", "--out", str(blocker / "sim"))
+    assert res.returncode == 2 and "cannot write" in res.stderr and res.stderr.count("\n") == 1
+    assert blocker.read_text() == "x"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -10,6 +12,7 @@ import pytest
 from PIL import Image
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.errors import SumoError
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
 from lanefree_sumo.experiments.train import train
@@ -83,3 +86,38 @@ def test_export_writes_csv_and_fcd_with_lateral_positions(recorded, tmp_path):
     rec = load_recording(recorded, 1)
     last = {v.attrib["id"]: float(v.attrib["posLat"]) + 5.1 for v in vehicles}
     assert max(abs(last[vid] - y) for vid, y in zip(rec.ids, rec.y[-1])) < 0.01
+
+
+def _damaged_copy(recorded: Path, tmp_path: Path, damage) -> Path:
+    """A copy of the recorded run whose episode-1 recording is changed by ``damage(text) -> text``."""
+    copy = tmp_path / "copy"
+    shutil.copytree(recorded, copy)
+    traj = copy / "eval" / "trajectories" / "episode_0001.csv"
+    traj.write_text(damage(traj.read_text()))
+    return copy
+
+
+@pytest.mark.parametrize("damage,reason", [
+    (lambda text: text.splitlines(keepends=True)[0], "no steps"),
+    (lambda text: text.replace(text.splitlines()[5].split(",")[2], "nan", 1), "NaN or infinite"),
+    (lambda text: text.replace(text.splitlines()[7].split(",")[3], "inf", 1), "NaN or infinite"),
+])
+def test_damaged_recordings_get_one_clear_error(recorded, tmp_path, damage, reason):
+    copy = _damaged_copy(recorded, tmp_path, damage)
+    with pytest.raises(ReplayError, match=reason):
+        replay(copy, episode=1, gui=False)
+
+
+def test_gui_without_a_display_says_so_at_once(recorded, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    t0 = time.perf_counter()
+    with pytest.raises(SumoError, match="xvfb-run"):
+        replay(recorded, episode=1, gui=True)
+    assert time.perf_counter() - t0 < 10
+
+
+def test_unwritable_screenshot_path_is_refused_before_the_replay(recorded, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    res = lanefree("replay", str(recorded), "--screenshot", str(blocker / "view.png"))
+    assert res.returncode == 2 and "cannot write" in res.stderr and res.stderr.count("\n") == 1
