@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import csv
 import json
+import signal
+import time
 from pathlib import Path
 
 import pytest
 
-from conftest import lanefree
+from conftest import lanefree, lanefree_popen
 
 pytestmark = pytest.mark.sumo
 
@@ -115,3 +117,15 @@ def test_output_under_a_file_is_refused_before_simulating(tmp_path):
     res = lanefree("simulate", "--seconds", "1", "--out", str(blocker / "sim"))
     assert res.returncode == 2 and "cannot write" in res.stderr and res.stderr.count("\n") == 1
     assert blocker.read_text() == "x"
+
+
+@pytest.mark.slow
+def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
+    out = tmp_path / "sim"
+    proc = lanefree_popen("simulate", "--seconds", "5000", "--out", str(out))
+    time.sleep(4)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    summary = json.loads((out / "summary.json").read_text())
+    assert proc.returncode == 130 and summary["interrupted"] and 0 < summary["steps"] < 20000
+    assert not list(tmp_path.glob(".sim.*"))  # no temporary folder left

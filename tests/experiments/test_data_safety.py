@@ -6,6 +6,8 @@ One test per data-loss case found by probing the verbs; each failed on the code 
 from __future__ import annotations
 
 import shutil
+import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -17,7 +19,7 @@ from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, read_config, write_config
 from lanefree_sumo.experiments.train import new_run_folder, train
 
-from conftest import TINY_TRAINING, lanefree
+from conftest import TINY_TRAINING, lanefree, lanefree_popen
 
 pytestmark = pytest.mark.sumo
 
@@ -164,3 +166,19 @@ def test_out_of_range_values_get_one_line(tmp_path, args, needle):
     res = lanefree("simulate", "--out", str(tmp_path / "o"), *args)
     assert res.returncode == 2 and needle in res.stderr and res.stderr.count("\n") == 1
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_evaluation_stopped_mid_episode_keeps_only_complete_episodes(finished_run, tmp_path):
+    out = tmp_path / "eval"
+    proc = lanefree_popen("evaluate", str(finished_run), "--episodes", "500", "--record", "--out", str(out))
+    time.sleep(8)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "kept" in err, err
+    episodes = (out / "episodes.csv").read_text().splitlines()[1:]
+    recordings = sorted((out / "trajectories").glob("episode_*[0-9].csv"))
+    assert 0 < len(episodes) == len(recordings) < 500
+    vehicles = len((out / "trajectories" / "episode_0001.vehicles.csv").read_text().splitlines()) - 1
+    for path in recordings:  # every kept recording is whole: 100 steps + the initial state
+        assert len(path.read_text().splitlines()) - 1 == 101 * vehicles
