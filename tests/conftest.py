@@ -69,3 +69,15 @@ def display() -> Iterator[str]:
         os.environ["DISPLAY"] = old
     proc.terminate()
     proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sb3_logs_in_the_test_tmp(tmp_path_factory) -> Iterator[None]:
+    """SB3 makes a log folder in /tmp for every model without a log dir; keep them in pytest's tmp."""
+    old = os.environ.get("SB3_LOGDIR")
+    os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3-logs"))
+    yield
+    if old is None:
+        os.environ.pop("SB3_LOGDIR", None)
+    else:
+        os.environ["SB3_LOGDIR"] = old
