@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -71,7 +72,7 @@ def check_replaceable(out: Path, overwrite: bool, verb: str) -> None:
     if any((out / name).exists() for name in (CHECKPOINTS, MODEL, VERSIONS)):
         raise RunError(f"refusing to replace {out}: it is a training run folder")
     marker = out / OUTPUT_MARKER
-    made_by = marker.read_text().strip() if marker.is_file() else None
+    made_by = marker.read_text(errors="replace").strip() if marker.is_file() else None
     if made_by != verb and any(out.iterdir()):
         raise RunError(f"refusing to replace {out}: it is not the output of an earlier 'lanefree {verb}' "
                        "(no marker file); remove it yourself or choose another --out")
@@ -97,6 +98,9 @@ def fresh_output(out: Path, overwrite: bool, verb: str) -> Iterator[Path]:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; an output folder is an ordinary one
     except OSError as exc:
         raise RunError(f"cannot write {out}: {exc.strerror or exc}") from None
     (tmp / OUTPUT_MARKER).write_text(verb + "\n")
