@@ -156,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--obs", choices=OBSERVATION_KINDS, default=DEFAULTS.observation.kind,
                     help="vector = the paper's 5 nearest; set = every vehicle in range through the set encoder "
                     f"(default {DEFAULTS.observation.kind})")
+    tr.add_argument("--encoder", choices=("small", "paper"), default=DEFAULTS.observation.encoder,
+                    help="set encoder, only with --obs set: small = the project's d1 = d2 = 8 (64 features); "
+                    "paper = Liu et al. Table 1 (f1, f2 5x256 ReLU, mean over one axis, 256x256 ReLU feature "
+                    f"layer) (default {DEFAULTS.observation.encoder})")
     tr.add_argument("--envs", type=_positive(int, "processes"), default=t.envs,
                     help=f"parallel environments, one process each (default {t.envs})")
     tr.add_argument("--episode-steps", type=_positive(int, "steps"), default=DEFAULTS.sim.episode_steps,
@@ -301,7 +305,7 @@ def _train(args: argparse.Namespace) -> int:
             "backend": args.backend,
             "scenario": {"density_veh_per_km": args.density},
             "reward": {"preset": args.reward},
-            "observation": {"kind": args.obs},
+            "observation": {"kind": args.obs, "encoder": args.encoder},
             "sim": {"episode_steps": args.episode_steps},
             "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs,
                       "checkpoint_every_episodes": args.checkpoint_every},

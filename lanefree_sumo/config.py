@@ -221,6 +221,9 @@ class ObservationConfig:
 
     kind: ObservationKind = "vector"
     """``vector`` (the paper's n nearest) or ``set`` (all in range, padded)."""
+    encoder: Literal["small", "paper"] = "small"
+    """Set encoder configuration (``kind = set`` only): ``small`` (the project's default, d1 = d2 = 8)
+    or ``paper`` (Liu et al. Table 1 / Alg. 1); see ``lanefree_sumo.rl.encoder.PRESETS``."""
     n_neighbours: int = 5
     range_m: float = 80.0
     max_rows: int = 32

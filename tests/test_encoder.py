@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from typing import get_args, get_type_hints
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
 
-from lanefree_sumo.rl.encoder import SetEncoder, SetFeaturesExtractor
+from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.rl.encoder import ENCODER_NAMES, PRESETS, SetEncoder, SetFeaturesExtractor, encoder_kwargs
 
 F = 5  # [dx, dy, vx, vy, presence]
 ATOL = 1e-5
@@ -255,3 +258,161 @@ def test_sb3_training_and_predict(algo, use_dict):
         obs_big = _pad(obs, 15)
     action_big, _ = model_big.predict(obs_big, deterministic=True)
     np.testing.assert_allclose(np.asarray(action_big), np.asarray(action), atol=1e-5)
+
+
+# --------------------------------------------------------------------------- named configurations (SPEC §5)
+
+
+def _paper(seed: int = 0) -> SetEncoder:
+    torch.manual_seed(seed)
+    enc = SetEncoder(in_features=4, **encoder_kwargs("paper"))
+    enc.eval()
+    return enc
+
+
+def test_named_configurations_and_unknown_name():
+    assert ENCODER_NAMES == ("small", "paper")
+    assert encoder_kwargs("small") == {"d1": 8, "d2": 8, "hidden": (64,), "pool_over": "rows",
+                                       "presence_input": False, "feature_dim": None}
+    encoder_kwargs("paper")["d1"] = 1  # a copy: the preset is not changed
+    assert PRESETS["paper"]["d1"] == 256
+    for bad in ("big", "", None):
+        with pytest.raises(ConfigError, match="valid: small, paper"):
+            encoder_kwargs(bad)
+    with pytest.raises(ConfigError, match="valid: small, paper"):
+        SetFeaturesExtractor(_dict_space(8), encoder="Paper")
+
+
+def test_config_and_cli_offer_the_same_names():
+    from lanefree_sumo.cli import build_parser
+    from lanefree_sumo.config import LaneFreeConfig, ObservationConfig, merge_config
+
+    assert get_args(get_type_hints(ObservationConfig)["encoder"]) == ENCODER_NAMES
+    assert LaneFreeConfig().observation.encoder == "small"
+    with pytest.raises(ConfigError, match="valid: small, paper"):
+        merge_config(LaneFreeConfig(), {"observation": {"encoder": "large"}})
+    args = build_parser().parse_args(["train", "--obs", "set", "--encoder", "paper"])
+    assert args.encoder == "paper"
+    assert build_parser().parse_args(["train"]).encoder == "small"
+
+
+def test_small_is_the_previous_default():
+    torch.manual_seed(0)
+    enc = SetEncoder(in_features=4, **encoder_kwargs("small"))
+    assert enc.out_dim == 64 and isinstance(enc.feature, torch.nn.Identity)
+    assert [type(m) for m in enc.f1] == [torch.nn.Linear, torch.nn.ReLU, torch.nn.Linear, torch.nn.ReLU]
+    assert (enc.f1[0].in_features, enc.f1[0].out_features, enc.f1[2].out_features) == (4, 64, 8)
+    # same parameters (names and shapes) as SetEncoder's defaults: old checkpoints still load
+    default = SetEncoder(in_features=4)
+    assert {k: v.shape for k, v in default.state_dict().items()} == {k: v.shape for k, v in enc.state_dict().items()}
+
+
+def test_paper_layers_are_table_1():
+    enc = _paper()
+    for f in (enc.f1, enc.f2):  # ONE 5→256 linear layer with ReLU each
+        assert [type(m) for m in f] == [torch.nn.Linear, torch.nn.ReLU]
+        assert (f[0].in_features, f[0].out_features) == (5, 256)
+    assert enc.pooled_dim == 256 and isinstance(enc.norm, torch.nn.LayerNorm)
+    assert [type(m) for m in enc.feature] == [torch.nn.Linear, torch.nn.ReLU]
+    assert (enc.feature[0].in_features, enc.feature[0].out_features) == (256, 256)
+    assert enc.out_dim == 256
+
+
+def test_paper_intermediate_outputs():
+    enc = _paper()
+    x = torch.as_tensor(np.stack([_rows(3, 8, seed=1), _rows(6, 8, seed=2)]))
+    with torch.no_grad():
+        y = enc.matrix(x)
+        pooled = enc.pooled(x)
+        out = enc(x)
+    assert y.shape == (2, 256, 256)
+    # Y by hand: mean over the present rows of f1(x_i)ᵀ f2(x_i), presence (= 1) being the 5th input
+    rows = x[0, :3]
+    manual = torch.einsum("nd,ne->de", enc.f1(rows), enc.f2(rows)) / 3
+    torch.testing.assert_close(y[0], manual, atol=1e-5, rtol=1e-4)
+    # pooling = mean over the d1 axis of Y (computed without forming Y in forward)
+    assert pooled.shape == (2, 256)
+    torch.testing.assert_close(pooled, y.mean(dim=-2), atol=1e-6, rtol=1e-4)
+    with torch.no_grad():
+        torch.testing.assert_close(out, enc.feature(enc.norm(pooled)))
+    assert out.shape == (2, 256) and (out >= 0).all()  # ReLU feature layer
+
+
+def test_paper_permutation_and_padding_invariance():
+    enc = _paper()
+    obs = _rows(4, 10, seed=3)
+    with torch.no_grad():
+        base = enc(_t(obs))
+        rng = np.random.default_rng(4)
+        for _ in range(5):
+            torch.testing.assert_close(enc(_t(obs[rng.permutation(10)])), base, atol=ATOL, rtol=0)
+        for rows in (4, 32, 64):
+            torch.testing.assert_close(enc(_t(_pad(obs[:4], rows))), base, atol=ATOL, rtol=0)
+        junk = obs.copy()
+        junk[4:, :4] = 77.0
+        torch.testing.assert_close(enc(_t(junk)), base, atol=ATOL, rtol=0)
+        assert torch.isfinite(enc(torch.zeros(2, 8, F))).all()
+
+
+def test_paper_extractor_transfers_across_max_rows():
+    torch.manual_seed(0)
+    ext8 = SetFeaturesExtractor(_dict_space(8, k=4), encoder="paper")
+    ext40 = SetFeaturesExtractor(_dict_space(40, k=4), encoder="paper")
+    assert ext8.features_dim == ext40.features_dim == 4 + 256
+    ext40.load_state_dict(ext8.state_dict())
+    ego = torch.tensor([[0.1, -0.2, 0.3, 0.4]])
+    others = _rows(5, 8, seed=5)
+    with torch.no_grad():
+        out8 = ext8({"ego": ego, "others": _t(others)})
+        out40 = ext40({"ego": ego, "others": _t(_pad(others, 40))})
+    torch.testing.assert_close(out40, out8, atol=ATOL, rtol=0)
+    torch.testing.assert_close(out8[:, :4], ego)
+
+
+def _paper_extractors(model) -> list[SetFeaturesExtractor]:
+    extractors = [m for m in model.policy.modules() if isinstance(m, SetFeaturesExtractor)]
+    assert extractors and all(e.encoder_name == "paper" and e.encoder.out_dim == 256 for e in extractors)
+    return extractors
+
+
+@pytest.mark.sumo
+@pytest.mark.slow
+def test_cli_trains_ddpg_with_the_paper_encoder(tmp_path):
+    """``lanefree train --obs set --encoder paper``: a real 2-episode DDPG run whose saved model
+    holds the paper's encoder."""
+    import yaml
+    from stable_baselines3 import DDPG
+
+    from conftest import lanefree
+
+    run = tmp_path / "run"
+    proc = lanefree("train", "--algo", "ddpg", "--obs", "set", "--encoder", "paper", "--episodes", "2",
+                    "--episode-steps", "50", "--out", str(run), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    observation = yaml.safe_load((run / "config.yaml").read_text())["observation"]
+    assert (observation["kind"], observation["encoder"]) == ("set", "paper")
+    model = DDPG.load(run / "model.zip", device="cpu")
+    _paper_extractors(model)
+    assert model.policy.actor.features_extractor.encoder.f1[0].weight.shape == (256, 5)
+
+
+@pytest.mark.sumo
+@pytest.mark.slow
+def test_ddpg_learning_updates_the_paper_encoder(tmp_path):
+    """Two short DDPG episodes with learning from step 50: the encoder's weights change between
+    the first checkpoint and the end (the CLI cannot lower learning_starts, so this uses train())."""
+    from stable_baselines3 import DDPG
+
+    from lanefree_sumo.config import LaneFreeConfig, merge_config
+    from lanefree_sumo.experiments.train import train
+
+    from conftest import TINY_TRAINING
+
+    cfg = merge_config(LaneFreeConfig(), {**TINY_TRAINING, "observation": {"kind": "set", "encoder": "paper"},
+                                          "train": {**TINY_TRAINING["train"], "algo": "ddpg"}})
+    run, done = train(cfg, run=tmp_path / "run", progress=False)
+    assert done == 2
+    first = DDPG.load(run / "checkpoints" / "ep_00001" / "model.zip", device="cpu")
+    last = DDPG.load(run / "model.zip", device="cpu")
+    w_first, w_last = (_paper_extractors(m)[0].encoder.feature[0].weight for m in (first, last))
+    assert torch.isfinite(w_last).all() and not torch.equal(w_first, w_last)

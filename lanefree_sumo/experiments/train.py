@@ -130,7 +130,8 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
     if set_obs:
         from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
-        extractor = {"features_extractor_class": SetFeaturesExtractor}
+        extractor = {"features_extractor_class": SetFeaturesExtractor,
+                     "features_extractor_kwargs": {"encoder": cfg.observation.encoder}}
     common = {"seed": seed, "verbose": 0, "tensorboard_log": tensorboard_log, "device": "cpu"}
     if spec.config_section == "actor_critic":
         ac = cfg.train.actor_critic

@@ -77,15 +77,18 @@ def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[st
     return out
 
 
-def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600) -> float:
+def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600,
+                  encoder: str | None = None) -> float:
     """Env steps per second of a training run of ``algo`` including its learning updates,
-    measured over ``steps`` steps after learning has started (SPEC §9 settings)."""
+    measured over ``steps`` steps after learning has started (SPEC §9 settings); with
+    ``encoder`` (``small`` or ``paper``), on the set observation through that set encoder."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     from lanefree_sumo.experiments.train import build_model, make_vec_env, training_config
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
-        "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}}))
+        "scenario": {"density_veh_per_km": density}, "train": {"algo": algo},
+        **({"observation": {"kind": "set", "encoder": encoder}} if encoder else {})}))
     starts = cfg.train.dqn.learning_starts_steps if algo in ("dqn", "ddqn", "dueling", "per") \
         else cfg.train.actor_critic.learning_starts_steps
     import torch
