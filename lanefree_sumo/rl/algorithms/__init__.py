@@ -3,7 +3,9 @@
 Training, evaluation, the benchmark, the CLI's help and the tests all read :data:`ALGORITHMS`.
 Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
 import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
-:mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`).
+:mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`). ``ddpg`` is :mod:`.fast_ddpg`'s
+subclass of SB3's DDPG: SB3's update bit for bit, faster (``train.fast_learner``); it loads models
+saved by SB3's DDPG, and SB3's DDPG loads its models.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ class AlgorithmSpec:
     """Section of ``TrainConfig`` with its hyperparameters."""
     summary: str
     """One line for ``--help``."""
+    fast_learner: bool = False
+    """The class takes ``fast_learner=`` (from ``train.fast_learner``); False runs SB3's own update."""
 
     @property
     def cls(self) -> Any:
@@ -41,8 +45,8 @@ _ALGOS = "lanefree_sumo.rl.algorithms"
 ALGORITHMS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
-        AlgorithmSpec("ddpg", "stable_baselines3:DDPG", "continuous", True, "actor_critic",
-                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)"),
+        AlgorithmSpec("ddpg", f"{_ALGOS}.fast_ddpg:FastDDPG", "continuous", True, "actor_critic",
+                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", fast_learner=True),
         AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3"),
         AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC"),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO"),
