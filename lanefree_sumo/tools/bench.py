@@ -8,22 +8,29 @@ For 70, 90 and 120 veh/km, 800 steps each:
 (d) the numpy-only physics (no SUMO).
 (a) and (b) are measured alternately ``REPEATS`` times and the median is reported, so that
 machine noise hits both alike.  Timings are not tests: the numbers are for reading.
+Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's update and the fast one,
+against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved
+(``--training-only`` runs just that section).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import os
 import statistics
 import time
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.sim.backends.sumo import bare_step_rate, sumo_version
 from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import spawn
-from lanefree_sumo.sim.backends.sumo import bare_step_rate, sumo_version
 
 DENSITIES = (70, 90, 120)
 REPEATS = 3
@@ -118,6 +125,202 @@ def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600
     return steps / (clock.t_end - clock.t_start)
 
 
+# -- training speed: DDPG's SB3 update against the fast one, and the HighwayEnv peer --------------------
+
+PEER_DENSITY = 90.0
+"""LaneFree-v0's density in the training-speed section: round(90 · 0.5 km) = 45 vehicles besides the agent,
+the count the highway-v0 peer gets."""
+SPEED_STARTS = 100
+"""Random steps before learning in the training-speed runs: an update costs the same however full the
+replay buffer is, and the paper's 800 would cost the slow peer a minute per repeat."""
+
+
+def _highway_env(vehicles: int, sim_hz: int, seed: int) -> Any:
+    """HighwayEnv ``highway-v0`` as a one-env VecEnv: ``vehicles`` others, 0.25 s per env step (policy
+    frequency 4 Hz) in ``sim_hz / 4`` physics steps, continuous actions, the kinematics of the 5 nearest
+    flattened (25 numbers; LaneFree-v0 has 24), 800-step episodes unless the ego crashes."""
+    import gymnasium
+    import highway_env  # noqa: F401  (registers highway-v0)
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    def make() -> Any:
+        env = gymnasium.make("highway-v0", config={
+            "vehicles_count": vehicles, "policy_frequency": 4, "simulation_frequency": sim_hz, "duration": 200,
+            "action": {"type": "ContinuousAction"}, "observation": {"type": "Kinematics"}})
+        env = Monitor(gymnasium.wrappers.FlattenObservation(env))
+        env.reset(seed=seed)
+        return env
+
+    vec = DummyVecEnv([make])
+    vec.seed(seed)
+    return vec
+
+
+def _env_rate(make_env: Callable[[], Any], steps: int, seed: int) -> float:
+    """Env steps per second of a one-env VecEnv under uniform random actions, resets included."""
+    env = make_env()
+    try:
+        env.action_space.seed(seed)
+        env.reset()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            env.step(np.array([env.action_space.sample()]))
+        return steps / (time.perf_counter() - t0)
+    finally:
+        env.close()
+
+
+def _ddpg_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int) -> float:
+    """Env steps per second of a DDPG run (build_model: the paper's settings, ``cfg.train.fast_learner``)
+    over ``steps`` steps after ``SPEED_STARTS`` random ones: env step, exploration, one update per step."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from lanefree_sumo.experiments.train import build_model
+
+    torch.set_num_threads(cfg.train.torch_threads)  # as training does: 2 threads on a busy core crawl
+    cfg = merge_config(cfg, {"train": {"actor_critic": {"learning_starts_steps": SPEED_STARTS}}})
+    stamps: dict[int, float] = {}
+
+    class Clock(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps in (SPEED_STARTS, SPEED_STARTS + steps):
+                stamps[self.num_timesteps] = time.perf_counter()
+            return self.num_timesteps < SPEED_STARTS + steps
+
+    env = make_env()
+    try:
+        build_model(cfg, env, seed, None).learn(total_timesteps=SPEED_STARTS + steps + 1, callback=Clock())
+    finally:
+        env.close()
+    return steps / (stamps[SPEED_STARTS + steps] - stamps[SPEED_STARTS])
+
+
+def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[str, float]:
+    """ms per DDPG update — the learner alone, batch 64, actor and critic 256-128, LaneFree-v0's sizes
+    (24 → 2), a filled replay buffer — median of ``repeats`` interleaved: SB3's ``train``, FastDDPG's, and
+    the update's 28 matrix products alone (``torch.mm`` of the same shapes into preallocated outputs)."""
+    import gymnasium
+    import torch
+    from stable_baselines3.common.logger import configure
+
+    from lanefree_sumo.experiments.train import build_model
+
+    obs_dim, act_dim = 24, 2
+
+    class Shapes(gymnasium.Env):  # LaneFree-v0's spaces without SUMO
+        observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
+        action_space = gymnasium.spaces.Box(-1.0, 1.0, (act_dim,), np.float32)
+
+    cfg = merge_config(LaneFreeConfig(), {"train": {"algo": "ddpg"}})
+    ac, batch = cfg.train.actor_critic, cfg.train.actor_critic.batch_size
+    torch.set_num_threads(cfg.train.torch_threads)
+    rng = np.random.default_rng(seed)
+    runs: dict[str, Callable[[], Any]] = {}
+    for name, fast in (("SB3 `DDPG.train`", False), ("`FastDDPG.train`", True)):
+        model = build_model(merge_config(cfg, {"train": {"fast_learner": fast}}), Shapes(), seed, None)
+        for _ in range(2000):
+            model.replay_buffer.add(rng.normal(size=(1, obs_dim)), rng.normal(size=(1, obs_dim)),
+                                    rng.uniform(-1, 1, (1, act_dim)), rng.normal(size=1), np.array([False]), [{}])
+        model.set_logger(configure(None, [""]))
+        model._current_progress_remaining = 1.0
+        runs[name] = functools.partial(model.train, 1, batch)
+    actor = list(zip([obs_dim, *ac.actor_layers], [*ac.actor_layers, act_dim]))  # (in, out) per layer
+    critic = list(zip([obs_dim + act_dim, *ac.critic_layers], [*ac.critic_layers, 1]))
+    shapes = [(batch, i, o) for i, o in actor * 2 + critic * 3]  # forward: targets, critic, actor, critic
+    shapes += [(o, batch, i) for i, o in critic + actor]  # weight gradients
+    shapes += [(batch, o, i) for i, o in critic[1:] + critic + actor[1:]]  # input gradients
+    operands = [(torch.randn(m, k), torch.randn(k, n), torch.empty(m, n)) for m, k, n in shapes]
+
+    def products() -> None:
+        for a, b, out in operands:
+            torch.mm(a, b, out=out)
+
+    runs[f"its {len(shapes)} matrix products alone"] = products
+    samples: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run_once in runs.items():
+            for _ in range(20):
+                run_once()
+            t0 = time.perf_counter()
+            for _ in range(updates):
+                run_once()
+            samples[name].append(1000.0 * (time.perf_counter() - t0) / updates)
+    return {name: statistics.median(v) for name, v in samples.items()}
+
+
+def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats: int = REPEATS) -> str:
+    """Markdown: env steps/s of DDPG on LaneFree-v0 at 90 veh/km with SB3's update and the fast one, of the
+    peer highway-v0 with as many vehicles and a 0.25 s step, and of both envs alone — every case measured
+    ``repeats`` times interleaved in this run (medians) — plus the update alone and its floor."""
+    from lanefree_sumo.experiments.train import make_vec_env, training_config
+
+    cfg = training_config(merge_config(LaneFreeConfig(), {
+        "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": "ddpg"}}))
+    n = cfg.background_vehicles
+    sb3 = merge_config(cfg, {"train": {"fast_learner": False}})
+
+    def lanefree() -> Any:
+        return make_vec_env(cfg, seed, 1)
+
+    cases: dict[tuple[str, str], Callable[[], float]] = {
+        ("lanefree", "env"): functools.partial(_env_rate, lanefree, steps, seed),
+        ("lanefree", "sb3"): functools.partial(_ddpg_rate, sb3, lanefree, seed, steps),
+        ("lanefree", "fast"): functools.partial(_ddpg_rate, cfg, lanefree, seed, steps),
+    }
+    try:
+        import highway_env  # noqa: F401
+        peers: tuple[int, ...] = (4, 16)
+    except ImportError:
+        peers = ()
+    for hz in peers:
+        highway = functools.partial(_highway_env, n, hz, seed)
+        cases[(f"highway{hz}", "env")] = functools.partial(_env_rate, highway, peer_steps, seed)
+        cases[(f"highway{hz}", "sb3")] = functools.partial(_ddpg_rate, sb3, highway, seed, peer_steps)
+        cases[(f"highway{hz}", "fast")] = functools.partial(_ddpg_rate, cfg, highway, seed, peer_steps)
+    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
+    for _ in range(repeats):  # A, B, C, …, A, B, C, …: machine noise hits every case alike
+        for case, measure in cases.items():
+            samples[case].append(measure())
+            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
+    rate = {case: statistics.median(v) for case, v in samples.items()}
+    total = 625 * cfg.sim.episode_steps
+
+    def hours(r: float) -> str:
+        return f"{total / r / 60:.0f} min" if total / r < 3 * 3600 else f"{total / r / 3600:.1f} h"
+
+    names = {"lanefree": f"LaneFree-v0, libsumo, {PEER_DENSITY:g} veh/km",
+             "highway4": "highway-v0, 4 Hz physics (1 step)", "highway16": "highway-v0, 16 Hz physics (4 steps)"}
+    lines = [
+        f"Training speed (DDPG, paper settings: actor and critic 256-128, batch 64, one update per env step, "
+        f"{cfg.train.torch_threads} torch thread; one env, 0.25 s per env step; {SPEED_STARTS} random steps, then "
+        f"{steps} (highway-v0: {peer_steps}) timed; median of {repeats} interleaved repeats; load average "
+        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end), env steps/s:",
+        "",
+        f"| env | vehicles | env alone | DDPG, SB3 update | DDPG, fast update | fast / SB3 "
+        f"| {total:,} steps (625 episodes), SB3 → fast |\n|---|---|---|---|---|---|---|",
+    ]
+    for env in ("lanefree", *(f"highway{hz}" for hz in peers)):
+        e, s, f = rate[(env, "env")], rate[(env, "sb3")], rate[(env, "fast")]
+        lines.append(f"| {names[env]} | {n} + agent | {e:.1f} | {s:.1f} | {f:.1f} | {f / s:.2f}× "
+                     f"| {hours(s)} → {hours(f)} |")
+    if peers:
+        lines += ["", "| LaneFree-v0 / highway-v0 | env alone | DDPG, SB3 update | DDPG, fast update |"
+                  "\n|---|---|---|---|"]
+        lines += [f"| {names[f'highway{hz}']} | " + " | ".join(
+            f"{rate[('lanefree', k)] / rate[(f'highway{hz}', k)]:.1f}×" for k in ("env", "sb3", "fast")) + " |"
+            for hz in peers]
+    else:
+        lines += ["", "(highway-env is not installed: `pip install -e '.[bench]'` adds the highway-v0 peer.)"]
+    costs = update_costs(seed, repeats=repeats)
+    reference = next(iter(costs.values()))
+    lines += ["", "One update, the learner alone (ms, median of interleaved repeats):", "",
+              "| update | ms | SB3 / this |\n|---|---|---|"]
+    lines += [f"| {name} | {ms:.2f} | {reference / ms:.2f}× |" for name, ms in costs.items()]
+    return "\n".join(lines)
+
+
 def run(steps: int, seed: int, out_dir: Path) -> str:
     rows = []
     profile = []
@@ -173,6 +376,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         rate = training_rate(algo, seed)
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
+    lines += ["", training_speed(seed)]
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -190,8 +394,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=800, help="steps per measurement (default 800)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the traffic (default 0)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench"), help="folder for the table")
+    parser.add_argument("--training-only", action="store_true", help="only the training-speed section")
     args = parser.parse_args()
-    print(run(args.steps, args.seed, args.out))
+    print(training_speed(args.seed) if args.training_only else run(args.steps, args.seed, args.out))
 
 
 if __name__ == "__main__":
