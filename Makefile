@@ -18,7 +18,7 @@ TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENS
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv test test-fast lint train evaluate replay report simulate nets bench traffic clean-venv
+.PHONY: venv system-deps test test-fast lint train evaluate replay report simulate nets bench traffic clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -31,7 +31,11 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-test: $(STAMP)
+# Xvfb and the GL/X11 libraries SUMO's wheels need: installed with apt-get when missing.
+system-deps:
+	@bash scripts/system-deps.sh
+
+test: system-deps $(STAMP)
 	$(BIN)/python -m pytest -q
 
 # Pure-numpy and small-torch tests only (no SUMO, no GUI, no training): < 30 s.
@@ -49,7 +53,7 @@ evaluate: $(STAMP)
 	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
 	$(BIN)/lanefree evaluate $(RUN) --record
 
-replay: $(STAMP)
+replay: system-deps $(STAMP)
 	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1]"; exit 2; }
 	$(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
 

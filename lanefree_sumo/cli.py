@@ -15,9 +15,9 @@ import math
 import shlex
 import shutil
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
-
+from typing import Any
 
 from lanefree_sumo.config import (
     BACKENDS,
@@ -240,7 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help=f"episodes at the end of each run averaged in the table (default {REPORT.last_episodes}, "
                      "as the paper)")
     rep.add_argument("--smooth", type=_positive(int, "episodes"), default=REPORT.smooth_episodes,
-                     help=f"trailing moving-average window of the curves in episodes (default {REPORT.smooth_episodes})")
+                     help="trailing moving-average window of the curves in episodes "
+                     f"(default {REPORT.smooth_episodes})")
 
     net = sub.add_parser(
         "net",
