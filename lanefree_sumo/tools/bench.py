@@ -91,7 +91,7 @@ def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600
     ``encoder`` (``small`` or ``paper``), on the set observation through that set encoder."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from lanefree_sumo.experiments.train import build_model, make_vec_env, training_config
+    from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
         "scenario": {"density_veh_per_km": density}, "train": {"algo": algo},
@@ -177,7 +177,7 @@ def _ddpg_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, step
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from lanefree_sumo.experiments.train import build_model
+    from lanefree_sumo.rl.models import build_model
 
     torch.set_num_threads(cfg.train.torch_threads)  # as training does: 2 threads on a busy core crawl
     cfg = merge_config(cfg, {"train": {"actor_critic": {"learning_starts_steps": SPEED_STARTS}}})
@@ -205,7 +205,7 @@ def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[
     import torch
     from stable_baselines3.common.logger import configure
 
-    from lanefree_sumo.experiments.train import build_model
+    from lanefree_sumo.rl.models import build_model
 
     obs_dim, act_dim = 24, 2
 
@@ -254,7 +254,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     """Markdown: env steps/s of DDPG on LaneFree-v0 at 90 veh/km with SB3's update and the fast one, of the
     peer highway-v0 with as many vehicles and a 0.25 s step, and of both envs alone — every case measured
     ``repeats`` times interleaved in this run (medians) — plus the update alone and its floor."""
-    from lanefree_sumo.experiments.train import make_vec_env, training_config
+    from lanefree_sumo.rl.models import make_vec_env, training_config
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
         "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": "ddpg"}}))

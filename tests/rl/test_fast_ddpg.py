@@ -21,9 +21,9 @@ from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.experiments.train import build_model
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
+from lanefree_sumo.rl.models import build_model
 
 OBS, ACT, STEPS, BATCH = 24, 2, 50, 64
 """LaneFree-v0's vector observation and action sizes; the paper's batch."""
