@@ -1,20 +1,14 @@
-"""One typed, nested configuration for the whole platform.
+"""The configuration's schema: every default, unit and allowed value of the platform.
 
-Every number the simulation, the driver model, the rewards or the observations use lives here,
-with its unit, and nowhere else (SPEC §1–§7).  A plain ``dict`` can override any part of it with
-:func:`merge_config`; unknown keys are an error that names the valid keys.
+Every number the simulation, the driver model, the rewards, the observations and the algorithms
+use lives here, with its unit, and nowhere else (SPEC §1–§9). Allowed values are ``Literal``
+types or a field's ``range`` metadata; :mod:`.validation` checks them.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import typing
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, is_dataclass
-from typing import Any, Literal, get_args, get_origin
-
-from lanefree_sumo.errors import ConfigError
+from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 
 @dataclass
@@ -380,161 +374,3 @@ class ReportConfig:
     """Episodes at the end of each run averaged in the tables (the paper's 50)."""
     smooth_episodes: int = 20
     """Trailing moving-average window of the learning curves (episodes)."""
-
-
-def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any:
-    """Return a copy of dataclass ``base`` with ``overrides`` merged in recursively.
-
-    Unknown keys raise :class:`ConfigError` naming the valid ones.
-    """
-    if not isinstance(overrides, Mapping):
-        raise ConfigError(f"config{path or ''} must be a mapping, got {type(overrides).__name__}")
-    valid = {f.name: f for f in fields(base)}
-    changes: dict[str, Any] = {}
-    for key, value in overrides.items():
-        where = f"{path}.{key}" if path else key
-        if key not in valid:
-            raise ConfigError(
-                f"unknown config key '{where}'; valid keys here: {', '.join(sorted(valid))}"
-            )
-        current = getattr(base, key)
-        if is_dataclass(current) and isinstance(value, Mapping):
-            changes[key] = merge_config(current, value, where)
-        elif is_dataclass(current) and is_dataclass(value):
-            changes[key] = value
-        else:
-            if isinstance(current, tuple) and isinstance(value, list):
-                value = tuple(value)
-            changes[key] = check_value(where, _field_types(type(base))[key], value, valid[key].metadata.get("range"))
-    return dataclasses.replace(base, **changes)
-
-
-ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner")
-"""Config keys added after run folders were first written; a saved config without them gets their
-default. Every other key must be present in a saved config (a missing one means a cut file)."""
-
-
-def missing_keys(base: Any, data: Mapping[str, Any], path: str = "") -> list[str]:
-    """Dotted keys of config dataclass ``base`` that the saved mapping ``data`` lacks (leaves and
-    whole sections), except those in :data:`ADDED_LATER`."""
-    missing: list[str] = []
-    for f in fields(base):
-        where = f"{path}.{f.name}" if path else f.name
-        if where in ADDED_LATER:
-            continue
-        if f.name not in data:
-            missing.append(where)
-        elif is_dataclass(getattr(base, f.name)) and isinstance(data[f.name], Mapping):
-            missing += missing_keys(getattr(base, f.name), data[f.name], where)
-    return missing
-
-
-def validate_config(cfg: Any, path: str = "") -> Any:
-    """Check every field of a (nested) config dataclass with :func:`check_value`; return it."""
-    types = _field_types(type(cfg))
-    for f in fields(cfg):
-        where = f"{path}.{f.name}" if path else f.name
-        value = getattr(cfg, f.name)
-        if is_dataclass(value):
-            validate_config(value, where)
-        else:
-            check_value(where, types[f.name], value, f.metadata.get("range"))
-    return cfg
-
-
-_FIELD_TYPES: dict[Any, dict[str, Any]] = {}
-
-
-def _field_types(cls: Any) -> dict[str, Any]:
-    """Resolved annotations of a config dataclass (cached)."""
-    if cls not in _FIELD_TYPES:
-        _FIELD_TYPES[cls] = typing.get_type_hints(cls)
-    return _FIELD_TYPES[cls]
-
-
-def _registered_names(where: str) -> tuple[str, ...] | None:
-    """Allowed values of the two fields whose names live in a registry of the RL layer."""
-    leaf = where.rsplit(".", 1)[-1]
-    if where.endswith("train.algo") or where == "algo":
-        from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
-
-        return ALGORITHM_NAMES
-    if where.endswith("reward.preset") or leaf == "preset":
-        from lanefree_sumo.rl.rewards import PRESETS
-
-        return tuple(PRESETS)
-    return None
-
-
-def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, float] | None = None) -> Any:
-    """THE validation of one config value against its field's type (``Literal`` values, numbers
-    within the field's ``range`` metadata, flags, names, tuples); returns the value, ints widened to
-    float where a float is expected. Raises ConfigError naming the key and what is allowed."""
-    value = _check_type(where, annotation, value)
-    if bounds is not None and not bounds[0] <= value <= bounds[1]:
-        low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
-        raise ConfigError(f"config '{where}' = {value!r} is out of range; allowed {low} … {high}")
-    return value
-
-
-def _check_type(where: str, annotation: Any, value: Any) -> Any:
-    origin = get_origin(annotation)
-    if origin is Literal:
-        allowed = get_args(annotation)
-        if value not in allowed:
-            raise ConfigError(f"config '{where}' = {value!r} is not allowed; valid: {', '.join(map(str, allowed))}")
-        return value
-    if annotation is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"config '{where}' must be true or false, got {value!r}")
-        return value
-    if annotation is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"config '{where}' must be a whole number, got {value!r}")
-        return value
-    if annotation is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f"config '{where}' must be a finite number, got {value!r}")
-        return float(value)
-    if annotation is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"config '{where}' must be text, got {value!r}")
-        names = _registered_names(where)
-        if names is not None and value not in names:
-            raise ConfigError(f"config '{where}' = {value!r} is unknown; valid: {', '.join(names)}")
-        return value
-    if origin is tuple:
-        if not isinstance(value, tuple):
-            raise ConfigError(f"config '{where}' must be a list, got {value!r}")
-        args = get_args(annotation)
-        item_types = [args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else list(args)
-        if len(item_types) != len(value):
-            raise ConfigError(f"config '{where}' must have {len(item_types)} entries, got {len(value)}")
-        return tuple(check_value(f"{where}[{i}]", t, v) for i, (t, v) in enumerate(zip(item_types, value)))
-    return value
-
-
-def config_to_dict(cfg: Any) -> dict[str, Any]:
-    """Plain nested dict (tuples as lists) for YAML/JSON."""
-
-    def conv(v: Any) -> Any:
-        if isinstance(v, tuple):
-            return [conv(x) for x in v]
-        if isinstance(v, list):
-            return [conv(x) for x in v]
-        if isinstance(v, dict):
-            return {k: conv(x) for k, x in v.items()}
-        return v
-
-    return conv(dataclasses.asdict(cfg))
-
-
-def validate_density(density: object) -> float:
-    """Check a density is a finite positive number (veh/km)."""
-    try:
-        value = float(density)  # type: ignore[arg-type]  # anything float() takes; the rest is an error
-    except (TypeError, ValueError):
-        raise ConfigError(f"density must be a number in veh/km, got {density!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise ConfigError(f"density must be a positive finite number in veh/km, got {density!r}")
-    return value

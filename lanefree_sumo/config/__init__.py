@@ -1,0 +1,51 @@
+"""One typed, nested configuration for the whole platform (``from lanefree_sumo.config import …``).
+
+:mod:`.schema` holds every default, unit and allowed value; :mod:`.validation` merges dict
+overrides and validates every value in one place.
+"""
+
+from lanefree_sumo.config.schema import (
+    ACTION_KINDS,
+    BACKENDS,
+    OBSERVATION_KINDS,
+    AccelerationBounds,
+    ActionConfig,
+    ActionKind,
+    ActorCriticConfig,
+    Backend,
+    DQNConfig,
+    DriverConfig,
+    EpisodeConfig,
+    EvaluationConfig,
+    LaneFreeConfig,
+    ObservationConfig,
+    ObservationKind,
+    ReplayConfig,
+    ReportConfig,
+    RewardConfig,
+    RoadConfig,
+    ScenarioConfig,
+    SimulationConfig,
+    SpawnConfig,
+    TrainConfig,
+    VehicleClassConfig,
+)
+from lanefree_sumo.config.validation import (
+    ADDED_LATER,
+    check_value,
+    config_to_dict,
+    merge_config,
+    missing_keys,
+    validate_config,
+    validate_density,
+)
+from lanefree_sumo.errors import ConfigError
+
+__all__ = [
+    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "AccelerationBounds", "ActionConfig",
+    "ActionKind", "ActorCriticConfig", "Backend", "ConfigError", "DQNConfig", "DriverConfig", "EpisodeConfig",
+    "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
+    "RewardConfig", "RoadConfig", "ScenarioConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
+    "VehicleClassConfig", "check_value", "config_to_dict", "merge_config", "missing_keys", "validate_config",
+    "validate_density",
+]
