@@ -31,7 +31,8 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-# Xvfb and the GL/X11 libraries SUMO's wheels need: installed with apt-get when missing.
+# Xvfb and the system libraries SUMO's wheels need (scripts/system-deps.sh): installed with apt-get
+# when missing. Every target that runs SUMO (libsumo, sumo, sumo-gui, netconvert) depends on it.
 system-deps:
 	@bash scripts/system-deps.sh
 
@@ -46,10 +47,10 @@ lint: $(STAMP)
 	$(BIN)/ruff check lanefree_sumo tests
 	$(BIN)/mypy
 
-train: $(STAMP)
+train: system-deps $(STAMP)
 	$(BIN)/lanefree train $(TRAIN_OPTS)
 
-evaluate: $(STAMP)
+evaluate: system-deps $(STAMP)
 	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
 	$(BIN)/lanefree evaluate $(RUN) --record
 
@@ -60,17 +61,17 @@ replay: system-deps $(STAMP)
 report: $(STAMP)
 	$(BIN)/lanefree report $(RUNS) --out runs/report
 
-simulate: $(STAMP)
+simulate: system-deps $(STAMP)
 	$(BIN)/lanefree simulate $(SIM_OPTS) --out runs/sim-$(STAMP_NOW)
 
-nets: $(STAMP)
+nets: system-deps $(STAMP)
 	$(BIN)/lanefree net $(call opt,LENGTH,--length) $(call opt,WIDTH,--width)
 
-bench: $(STAMP)
+bench: system-deps $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.bench
 
 clean-venv:
 	rm -rf $(VENV)
 
-traffic: $(STAMP)
+traffic: system-deps $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.traffic_check
