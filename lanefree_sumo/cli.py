@@ -1,5 +1,6 @@
 """``lanefree`` command line: ``simulate`` (background traffic), ``train``, ``evaluate``,
-``replay`` (sumo-gui), ``export`` (CSV + FCD XML), ``report`` (figures, tables) and ``net``.
+``rollout`` (built-in or trained policy, optionally shielded), ``replay`` (sumo-gui), ``export``
+(CSV + FCD XML), ``report`` (figures, tables) and ``net``.
 
 This module parses and dispatches only; the work is in :mod:`lanefree_sumo.experiments`.
 Every default shown in ``--help`` comes from :mod:`lanefree_sumo.config`. Every
@@ -31,6 +32,7 @@ from lanefree_sumo.config import (
     validate_density,
 )
 from lanefree_sumo.errors import LaneFreeError, UsageError
+from lanefree_sumo.experiments import rollout
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 from lanefree_sumo.rl.algorithms import help_text as algorithms_help
 from lanefree_sumo.rl.rewards import PRESETS
@@ -173,6 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "--episodes N, extend RUN (finished or not) to N episodes; other options are refused")
     tr.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
                     help=f"simulation backend (default {DEFAULTS.backend}; numpy = the same physics without SUMO)")
+    tr.add_argument("--shield", action="store_true",
+                    help="learn with the safety shield on every action (run folder ..._shield)")
 
     ev = sub.add_parser(
         "evaluate",
@@ -189,6 +193,11 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
     ev.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval or RUN/eval_d<density>)")
     ev.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    ev.add_argument("--shield", action=argparse.BooleanOptionalAction, default=None,
+                    help="switch the safety shield on (or off) for this evaluation, e.g. an unshielded policy "
+                    "shielded (default: as trained; output eval_shield/ or eval_noshield/)")
+
+    rollout.add_parser(sub)
 
     rp = sub.add_parser(
         "replay",
@@ -307,6 +316,7 @@ def _train(args: argparse.Namespace) -> int:
             "scenario": {"density_veh_per_km": args.density},
             "reward": {"preset": args.reward},
             "observation": {"kind": args.obs, "encoder": args.encoder},
+            "shield": {"enabled": args.shield},
             "sim": {"episode_steps": args.episode_steps},
             "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs,
                       "checkpoint_every_episodes": args.checkpoint_every},
@@ -336,7 +346,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.evaluate import evaluate
 
     result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
-                      out=args.out, overwrite=args.overwrite)
+                      out=args.out, overwrite=args.overwrite, shield=args.shield)
     if result.interrupted:
         print(f"lanefree: interrupted; kept {result.episodes} complete episode(s) in {result.out}", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -405,8 +415,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return EXIT_BAD_INPUT
-        handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "replay": _replay,
-                   "export": _export, "report": _report, "net": _net}[args.command]
+        handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "rollout": rollout.run,
+                   "replay": _replay, "export": _export, "report": _report, "net": _net}[args.command]
         return handler(args)
     except LaneFreeError as exc:  # the user's to fix: one line, no traceback
         print(f"lanefree: error: {' '.join(str(exc).split())}", file=sys.stderr)

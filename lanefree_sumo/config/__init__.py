@@ -25,6 +25,7 @@ from lanefree_sumo.config.schema import (
     RewardConfig,
     RoadConfig,
     ScenarioConfig,
+    ShieldConfig,
     SimulationConfig,
     SpawnConfig,
     TrainConfig,
@@ -45,7 +46,7 @@ __all__ = [
     "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "AccelerationBounds", "ActionConfig",
     "ActionKind", "ActorCriticConfig", "Backend", "ConfigError", "DQNConfig", "DriverConfig", "EpisodeConfig",
     "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
-    "RewardConfig", "RoadConfig", "ScenarioConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
+    "RewardConfig", "RoadConfig", "ScenarioConfig", "ShieldConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
     "VehicleClassConfig", "check_value", "config_to_dict", "merge_config", "missing_keys", "validate_config",
     "validate_density",
 ]

@@ -251,6 +251,27 @@ class EpisodeConfig:
 
 
 @dataclass
+class ShieldConfig:
+    """The agent's safety shield (:mod:`lanefree_sumo.rl.shield`, issue 12); off by default."""
+
+    enabled: bool = False
+    """Pass every agent action through the shield (``lanefree train/evaluate/rollout --shield``)."""
+    intervention_penalty: float = field(default=0.0, metadata={"range": (0.0, 1e6)})
+    """Subtracted from the reward on every step the shield changes the action (reward units, ≥ 0)."""
+    horizon_s: float = field(default=1.0, metadata={"range": (0.01, 60.0)})
+    """Look-ahead for the other vehicles' lateral motion (s): a vehicle whose body could reach the
+    agent's committed lateral interval within this time, at its lateral bound, is in the agent's
+    corridor. Must be at least one step."""
+    margin_x_m: float = field(default=0.5, metadata={"range": (0.0, 100.0)})
+    """Bumper gap kept beyond the braking-distance bound to a vehicle ahead (m)."""
+    margin_y_m: float = field(default=0.2, metadata={"range": (0.0, 100.0)})
+    """Lateral clearance kept beyond another vehicle's reachable lateral extent (m)."""
+    lateral_candidates: int = field(default=37, metadata={"range": (2, 10_001)})
+    """Evenly spaced lateral accelerations across the agent's bounds that the shield searches
+    besides the policy's own (–)."""
+
+
+@dataclass
 class ActorCriticConfig:
     """DDPG (paper Table 1) and the other continuous-action algorithms (TD3, SAC, PPO)."""
 
@@ -325,6 +346,7 @@ class LaneFreeConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     action: ActionConfig = field(default_factory=ActionConfig)
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
+    shield: ShieldConfig = field(default_factory=ShieldConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     seed: int = field(default=0, metadata={"range": (0, 2**31 - 1)})
     """Random seed of traffic and networks; SUMO takes 0 … 2³¹ − 1."""
@@ -362,6 +384,8 @@ class ReplayConfig:
     """View size, width × height (pixels)."""
     collision_color_rgb: tuple[int, int, int] = (255, 0, 0)
     """Colour of vehicles while they overlap another (0–255 each)."""
+    shield_color_rgb: tuple[int, int, int] = (230, 0, 230)
+    """Colour of the agent on the steps the safety shield changed its action (0–255 each)."""
     display_timeout_s: float = 10.0
     """How long sumo-gui may take to open its window before replay gives up (s)."""
 

@@ -1,12 +1,15 @@
 """``lanefree evaluate RUN``: the deterministic policy of a run on fresh seeds.
 
 Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at another density than
-trained), one row per episode with the SPEC §8 columns, and with ``record`` one trajectory file
-per episode, ``trajectories/episode_NNNN.csv`` — every vehicle at every step including the
-initial state, in the format of :mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column;
-the agent's id is ``agent`` — and ``episode_NNNN.vehicles.csv`` with each vehicle's length,
+trained; ``eval_shield/`` or ``eval_noshield/``, after the density, when the safety shield is
+switched on or off against the run's config), one row per episode with the SPEC §8 columns, and
+with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
+vehicle at every step including the initial state, in the format of
+:mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column; the agent's id is
+``agent`` — and ``episode_NNNN.vehicles.csv`` with each vehicle's length,
 width and desired speed.  ``recording.json`` beside them names the network and the config
-so that a replay can rebuild the scene.
+so that a replay can rebuild the scene.  A shielded recording has a ``shielded`` column (1 in the
+agent's row on the steps the shield changed its action).
 """
 
 from __future__ import annotations
@@ -55,25 +58,27 @@ def evaluate(
     out: Path | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    shield: bool | None = None,
 ) -> EvaluationResult:
     """Run the deterministic policy for ``episodes`` episodes into the eval folder.
 
     The output is written beside ``out`` and replaces it only at the end (an old evaluation is
     never lost to a failed one). Ctrl-C or SIGTERM keep the complete episodes and drop the one in
-    progress, so no partial recording looks complete."""
+    progress, so no partial recording looks complete. ``shield`` True/False switches the safety
+    shield on/off for the evaluation only (None: as the run's config)."""
     folder = RunDir(run)
     cfg = folder.load_config()
-    trained_density = cfg.scenario.density_veh_per_km
+    trained_density, trained_shield = cfg.scenario.density_veh_per_km, cfg.shield.enabled
     if density is not None:
         cfg = merge_config(cfg, {"scenario": {"density_veh_per_km": validate_density(density)}})
+    if shield is not None:
+        cfg = merge_config(cfg, {"shield": {"enabled": shield}})
     d = cfg.scenario.density_veh_per_km
-    out = out or folder.eval_dir(None if d == trained_density else d)
+    out = out or folder.eval_dir(None if d == trained_density else d,
+                                 None if cfg.shield.enabled == trained_shield else cfg.shield.enabled)
     check_replaceable(out, overwrite, "evaluate")
     model_path = folder.find_model()
-    try:
-        model = get_algorithm(cfg.train.algo).cls.load(model_path, device="cpu")
-    except Exception as exc:
-        raise RunError(f"{model_path} cannot be loaded ({type(exc).__name__}: {exc})") from None
+    model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
     with fresh_output(out, overwrite, "evaluate") as tmp, sigterm_as_interrupt():
         write_config(tmp, cfg)
@@ -82,10 +87,20 @@ def evaluate(
             (tmp / RECORDING).write_text(json.dumps({
                 "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
                 "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
-                "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap)",
+                "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
+                + (",shielded)" if cfg.shield.enabled else ")"),
             }, indent=2) + "\n")
         done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress)
     return EvaluationResult(out, done, done < episodes)
+
+
+def load_model(folder: RunDir, cfg: LaneFreeConfig) -> Any:
+    """RUN's final model (or newest checkpoint's), on the CPU; RunError naming it when unusable."""
+    model_path = folder.find_model()
+    try:
+        return get_algorithm(cfg.train.algo).cls.load(model_path, device="cpu")
+    except Exception as exc:
+        raise RunError(f"{model_path} cannot be loaded ({type(exc).__name__}: {exc})") from None
 
 
 def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, episodes: int, record: bool,
@@ -102,7 +117,8 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     try:
         for k in tqdm(range(1, episodes + 1), desc="evaluate", unit="ep", disable=not progress):
             obs, _ = env.reset(seed=base_seed + k)
-            writer = TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True) if record else None
+            writer = (TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True, shield=cfg.shield.enabled)
+                      if record else None)
             try:
                 if writer:
                     writer.write(0, env.sim.current()[0], None)
@@ -113,7 +129,8 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
                     action, _ = model.predict(obs, deterministic=True)
                     obs, _, terminated, truncated, info = env.step(action)
                     if writer:
-                        writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result)
+                        writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result,
+                                     shielded=info["shield_intervened"])
                     finished = terminated or truncated
             except KeyboardInterrupt:
                 if writer:

@@ -5,8 +5,9 @@ The replay places the recorded initial state, then drives every vehicle with the
 as the simulation does — speed at the end of the step and lateral displacement — chosen so that
 each step lands exactly on the recorded positions (the ballistic update inverted:
 ``v' = 2·Δx/T − v``).  So the replay is exact (the fidelity is measured and returned) and
-vehicles move naturally in sumo-gui: the agent green and tracked by the view, background
-vehicles coloured by desired speed (blue = slow … orange = fast), overlapping vehicles red.
+vehicles move naturally in sumo-gui: the agent green and tracked by the view (magenta on the
+steps the safety shield changed its action, in a shielded recording), background vehicles
+coloured by desired speed (blue = slow … orange = fast), overlapping vehicles red.
 
 Without a GUI the same replay can write SUMO's own FCD XML (``--fcd``), with lateral positions.
 """
@@ -55,6 +56,9 @@ class Recording:
     vx: np.ndarray
     vy: np.ndarray
     overlap: np.ndarray
+    shielded: np.ndarray
+    """True in the agent's column on the steps the shield changed its action (all False when the
+    recording has no ``shielded`` column)."""
     length: np.ndarray
     width: np.ndarray
     v_desired: np.ndarray
@@ -106,8 +110,9 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
         def grid(col: str) -> np.ndarray:
             return table[col].to_numpy(dtype=float).reshape(steps, n)
 
+        shielded = grid("shielded").astype(bool) if "shielded" in table else np.zeros((steps, n), dtype=bool)
         return Recording(
-            ids, grid("t")[:, 0], grid("x"), grid("y"), grid("vx"), grid("vy"), grid("overlap").astype(bool),
+            ids, grid("t")[:, 0], grid("x"), grid("y"), grid("vx"), grid("vy"), grid("overlap").astype(bool), shielded,
             attrs["length"].to_numpy(float), attrs["width"].to_numpy(float), attrs["v_desired"].to_numpy(float), cfg,
         )
     except (KeyError, ValueError, TypeError, UnicodeDecodeError, pd.errors.ParserError) as exc:
@@ -215,8 +220,9 @@ def replay(
     try:
         backend.reset(rec.state(0))
         collision_colour = _rgba(REPLAY.collision_color_rgb)
+        shield_colour = _rgba(REPLAY.shield_color_rgb)
         base_colour = _paint(backend, rec, cfg, zoom) if gui else []
-        shown_overlap = np.zeros(len(rec.ids), dtype=bool)
+        shown = np.zeros(len(rec.ids), dtype=int)  # 0 own colour, 1 shielded, 2 overlapping
         x, y, vx = rec.x[0].copy(), rec.y[0].copy(), rec.vx[0].copy()
         max_dx = max_dy = 0.0
         step_s, length = cfg.sim.step_s, cfg.road.length_m
@@ -229,10 +235,10 @@ def replay(
                     path = frame_dir / f"frame_{k:04d}.png"
                     backend.screenshot(path, *size)
                     written.append(path)
-                changed = np.flatnonzero(rec.overlap[k] != shown_overlap)
-                for i in changed:
-                    backend.set_color(rec.ids[i], collision_colour if rec.overlap[k, i] else base_colour[i])
-                shown_overlap = rec.overlap[k].copy()
+                mode = np.where(rec.overlap[k], 2, rec.shielded[k].astype(int))
+                for i in np.flatnonzero(mode != shown):
+                    backend.set_color(rec.ids[i], (base_colour[i], shield_colour, collision_colour)[mode[i]])
+                shown = mode
             vx_next = np.maximum(2.0 * wrap(rec.x[k] - x, length) / step_s - vx, 0.0)
             dy = rec.y[k] - y
             zeros = np.zeros_like(dy)

@@ -1,6 +1,7 @@
 """THE module that knows the file names of run folders and output folders.
 
-A training run ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` holds::
+A training run ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` (``…_shield/`` when trained
+with the safety shield) holds::
 
     config.yaml          the full resolved LaneFreeConfig (env + algorithm), enough to rebuild both
     command.txt          every command that worked on the run, one per line
@@ -10,8 +11,9 @@ A training run ``runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/`` holds::
     checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json (written last)
     model.zip            the final model
     last_session.json    wall time, steps/s and how the latest session ended
-    eval/ (eval_d<density>/)  an evaluation: config.yaml, episodes.csv, recording.json,
-                         trajectories/episode_NNNN.csv and episode_NNNN.vehicles.csv
+    eval/                an evaluation (eval_d<density>/ at another density; eval[_d<density>]_shield/ or
+                         _noshield/ with the safety shield switched): config.yaml, episodes.csv,
+                         recording.json, trajectories/episode_NNNN.csv and episode_NNNN.vehicles.csv
 
 ``lanefree simulate --out DIR`` writes ``trajectory.csv``, ``summary.json``, ``config.yaml`` and
 ``command.txt``.  Every other module asks this one for a path.
@@ -207,9 +209,12 @@ class RunDir:
     def load_config(self) -> LaneFreeConfig:
         return read_config(self.path)
 
-    def eval_dir(self, density: float | None = None) -> Path:
-        """``eval/`` at the training density (``density`` None), else ``eval_d<density>/``."""
-        return self.path / (EVAL if density is None else f"{EVAL}_d{density:g}")
+    def eval_dir(self, density: float | None = None, shield: bool | None = None) -> Path:
+        """``eval/`` at the training density (``density`` None), else ``eval_d<density>/``; with
+        ``shield`` True/False (the shield switched on/off against the run's config) ``_shield`` or
+        ``_noshield`` appended."""
+        name = EVAL if density is None else f"{EVAL}_d{density:g}"
+        return self.path / (name if shield is None else f"{name}_{'shield' if shield else 'noshield'}")
 
     def newest_checkpoint(self) -> Checkpoint:
         """The newest complete checkpoint; RunError when there is none usable."""

@@ -37,7 +37,7 @@ from lanefree_sumo.sim.spawn import spawn
 EPISODE_COLUMNS = (
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
-    "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s",
+    "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s", "shield_interventions",
 )
 
 
@@ -165,7 +165,8 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
                 self.episodes += 1
                 row = {**metrics, "episode": self.episodes, "algorithm": algo, "timesteps": self.num_timesteps}
                 log.append(row)
-                for key in ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps"):
+                for key in ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps",
+                            "shield_interventions"):
                     self.logger.record(f"episode/{key}", float(metrics[key]))
                 self.logger.dump(self.num_timesteps)
                 self.bar.update(1)
@@ -184,7 +185,7 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
 def run_name(cfg: LaneFreeConfig) -> str:
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}_d{cfg.scenario.density_veh_per_km:g}"
-            f"_s{cfg.seed}")
+            f"_s{cfg.seed}{'_shield' if cfg.shield.enabled else ''}")
 
 
 def new_run_folder(cfg: LaneFreeConfig, run: Path | None) -> Path:

@@ -3,7 +3,9 @@
 Columns: ``t`` (s, end of the step; 0 = the initial state), ``id`` (SUMO vehicle id; the agent
 is ``agent``), ``x`` (m along the ring's centre line, [0, L)), ``y`` (m from the right road
 edge), ``vx``, ``vy`` (m/s), ``ax``, ``ay`` (m/s², realised during the step ending at t), and
-with ``overlap=True`` a column ``overlap`` (1 when the vehicle's body overlaps another's at t).
+with ``overlap=True`` a column ``overlap`` (1 when the vehicle's body overlaps another's at t),
+with ``shield=True`` a column ``shielded`` (1 in the agent's row when the safety shield changed
+the agent's action in the step ending at t).
 Values are rounded to 1 µm, 1 µm/s; the file is flushed every simulated second.
 """
 
@@ -32,17 +34,19 @@ def write_vehicles(path: Path, state: VehicleState) -> None:
 class TrajectoryWriter:
     """Appends the state of every vehicle after each step to a CSV file."""
 
-    def __init__(self, path: Path, step_s: float, overlap: bool = False) -> None:
+    def __init__(self, path: Path, step_s: float, overlap: bool = False, shield: bool = False) -> None:
         self._fh = open(path, "w", newline="")
         self._writer = csv.writer(self._fh)
         self._overlap = overlap
-        self._writer.writerow(COLUMNS + (("overlap",) if overlap else ()))
+        self._shield = shield
+        self._writer.writerow(COLUMNS + (("overlap",) if overlap else ()) + (("shielded",) if shield else ()))
         self._flush_every = max(1, int(round(1.0 / step_s)))
         self._step_s = step_s
         self._rows = 0
 
-    def write(self, step: int, state: VehicleState, result: StepResult | None) -> None:
-        """Rows for the state after ``step`` steps (``result`` None for the initial state)."""
+    def write(self, step: int, state: VehicleState, result: StepResult | None, shielded: bool = False) -> None:
+        """Rows for the state after ``step`` steps (``result`` None for the initial state);
+        ``shielded``: the shield changed the agent's action in this step."""
         n = state.n
         zeros = np.zeros(n)
         ax = zeros if result is None else result.ax
@@ -54,6 +58,8 @@ class TrajectoryWriter:
         if self._overlap:
             hit = np.zeros(n, dtype=int) if result is None else result.overlap.any(axis=1).astype(int)
             cols.append(hit)
+        if self._shield:
+            cols.append((~state.controlled & shielded).astype(int))
         self._writer.writerows(zip(*cols))
         self._rows += 1
         if self._rows % self._flush_every == 0:

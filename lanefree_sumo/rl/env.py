@@ -6,6 +6,13 @@ books.  Every step's ``info`` carries each reward term (c_x, c_y, c_f, y_d, v_d_
 collided, overtook, reward); the last step of an episode also carries ``episode_metrics``
 (SPEC §8).
 
+With ``shield.enabled`` every action passes through :mod:`.shield` before the simulation
+(the env orchestrates, the shield computes): ``info`` then reports ``shield_intervened`` (bool)
+and ``shield_correction`` (m/s², the norm of the change; both also present, False/0, without the
+shield), ``ax``/``ay`` are the accelerations commanded after the shield, the reward loses
+``shield.intervention_penalty`` on every step the shield changed the action, and the episode
+metrics count ``shield_interventions`` (and ``shield_fallbacks``: steps with no certified action).
+
 Observation scaling (``observation.scale``, default on): positions and lengths along x are
 divided by the observation range d, lateral positions by the road width W, longitudinal speeds
 by ``speed_scale_mps`` (25 m/s) and lateral speeds by ``lateral_speed_scale_mps`` (2 m/s); so
@@ -24,6 +31,7 @@ from gymnasium import spaces
 
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_config
 from lanefree_sumo.rl.rewards import compute_reward, detect_overtakes, get_preset
+from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.simulation import Simulation
 
 EGO_FEATURES = 4  # y, vx, vy, v_d
@@ -89,6 +97,7 @@ class LaneFreeEnv(gym.Env):
         self._episode_seed = 0
         self._prev_dx = np.zeros(0)
         self._books: dict[str, float] = {}
+        self._shield_params: ShieldParams | None = None
 
     # -- configuration helpers -----------------------------------------------------------------
     def _feature_scales(self) -> tuple[np.ndarray, np.ndarray]:
@@ -129,6 +138,7 @@ class LaneFreeEnv(gym.Env):
         self._books = {
             "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
             "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
+            "shield_interventions": 0, "shield_fallbacks": 0,
             **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
         }
         obs, _, _ = self._observe()
@@ -138,7 +148,12 @@ class LaneFreeEnv(gym.Env):
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         if self._agent < 0:
             raise RuntimeError("call reset() before step()")
+        t0 = time.perf_counter()
         ax, ay = self.action_to_acceleration(action)
+        decision = self._shield(ax, ay)
+        if decision is not None:
+            ax, ay = decision.ax, decision.ay
+        self.env_seconds += time.perf_counter() - t0
         result = self.sim.step((ax, ay))
         t0 = time.perf_counter()
         (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self._agent, self.cfg
@@ -162,7 +177,9 @@ class LaneFreeEnv(gym.Env):
         b = self._books
         vx_a = float(state.vx[a])
         contact = bool(result.boundary_contact[a])
-        b["return"] += terms.reward
+        intervened = decision is not None and decision.intervened
+        reward = terms.reward - (cfg.shield.intervention_penalty if intervened else 0.0)
+        b["return"] += reward
         b["collisions"] += agent_events
         b["collision_steps"] += collided
         b["background_collisions"] += len(new_pairs) - agent_events
@@ -173,7 +190,9 @@ class LaneFreeEnv(gym.Env):
         b["sum_c_x"] += terms.c_x
         b["sum_c_y"] += terms.c_y
         b["sum_c_f"] += terms.c_f
-        b["sum_reward"] += terms.reward
+        b["sum_reward"] += reward
+        b["shield_interventions"] += intervened
+        b["shield_fallbacks"] += decision is not None and not decision.certified
 
         terminated = bool(cfg.episode.terminate_on_collision and collided)
         truncated = self.sim.steps >= cfg.sim.episode_steps
@@ -184,16 +203,27 @@ class LaneFreeEnv(gym.Env):
             "boundary_contact": contact,
             "ax": ax,
             "ay": ay,
+            "reward": reward,
+            "shield_intervened": intervened,
+            "shield_correction": decision.correction if decision is not None else 0.0,
         }
         if terminated or truncated:
             info["episode_metrics"] = self.episode_metrics()
         self.env_seconds += time.perf_counter() - t0
-        return obs, float(terms.reward), terminated, truncated, info
+        return obs, float(reward), terminated, truncated, info
 
     def close(self) -> None:
         self.sim.close()
 
     # -- internals -----------------------------------------------------------------------------
+    def _shield(self, ax: float, ay: float) -> ShieldDecision | None:
+        """The shield's decision on the policy's (ax, ay) (m/s²), None when the shield is off."""
+        if not self.cfg.shield.enabled:
+            return None
+        if self._shield_params is None:
+            self._shield_params = ShieldParams.from_config(self.cfg)
+        return shield_action(self._agent, self.sim.current()[0], ax, ay, self._shield_params)
+
     def _observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
         """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
         (state, (dx_all, dy_all)), a, o = self.sim.current(), self._agent, self.cfg.observation
@@ -239,6 +269,8 @@ class LaneFreeEnv(gym.Env):
             "mean_speed_mps": b["speed_sum"] / steps,
             "overtakes": b["overtakes"],
             "boundary_contacts": b["boundary_contacts"],
+            "shield_interventions": b["shield_interventions"],
+            "shield_fallbacks": b["shield_fallbacks"],
             **{f"mean_{t}": b[f"sum_{t}"] / steps for t in METRIC_TERMS},
             "density": self.cfg.scenario.density_veh_per_km,
             "seed": self._episode_seed,

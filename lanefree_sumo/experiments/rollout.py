@@ -1,0 +1,179 @@
+"""``lanefree rollout``: LaneFree-v0 driven by a built-in policy or a trained run, with or
+without the safety shield; per-episode rows and a summary, nothing written to disk.
+
+Policies: ``random`` (uniform actions from the action space, seeded with ``--seed``: the same
+action stream with and without ``--shield``), ``idle`` (the zero action: ax = ay = 0) or
+``--run RUN`` (RUN's final model or newest checkpoint, deterministic, with RUN's config; the
+density defaults to RUN's). Episode k (1-based) uses traffic seed ``seed + k − 1``; the seed
+defaults to the config's for a built-in policy and to RUN's seed + the evaluation offset + 1
+(the seed of ``lanefree evaluate``'s first episode) for a run.
+
+With ``--json`` stdout's last line is ONE JSON object: ``episodes``, ``collisions`` (agent
+collision events summed over episodes), ``collisions_per_episode``, ``collision_steps``,
+``background_collisions``, ``shield_interventions``, ``shield_interventions_per_episode``,
+``shield_fallbacks_per_episode``, ``speed_dev_mps`` and ``mean_speed_mps`` (means over episodes),
+``boundary_contacts``, ``mean_return``, plus the settings (policy, density, seed, shield, backend).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lanefree_sumo.config import BACKENDS, EvaluationConfig, LaneFreeConfig, merge_config
+
+POLICIES = ("random", "idle")
+EVALUATION = EvaluationConfig()
+DEFAULTS = LaneFreeConfig()
+ROW = ("episode", "seed", "collisions", "background_collisions", "shield_interventions", "shield_fallbacks",
+       "speed_dev_mps", "mean_speed_mps", "return")
+"""Columns of the per-episode rows."""
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """The ``rollout`` sub-command's parser."""
+    from lanefree_sumo.cli import _density, _positive
+
+    p = subparsers.add_parser(
+        "rollout",
+        help="drive LaneFree-v0 with a built-in policy (random, idle) or a trained run, optionally shielded",
+        description="Run LaneFree-v0 episodes with --policy random|idle or a trained --run RUN, with or without the "
+        "safety shield, and print one row per episode; --json adds ONE JSON summary on stdout's last line. "
+        "Nothing is written to disk.",
+    )
+    who = p.add_mutually_exclusive_group()
+    who.add_argument("--policy", choices=POLICIES, default=None,
+                     help="built-in policy: random (uniform actions, seeded) or idle (ax = ay = 0); default random")
+    who.add_argument("--run", type=Path, default=None, metavar="RUN",
+                     help="a run folder made by 'lanefree train': its model, deterministic, with its config")
+    density = DEFAULTS.scenario.density_veh_per_km
+    p.add_argument("--density", type=_density, default=None,
+                   help=f"background density in veh/km (default {density:g}, or RUN's)")
+    p.add_argument("--episodes", type=_positive(int, "episodes"), default=EVALUATION.episodes,
+                   help=f"episodes of {DEFAULTS.sim.episode_steps} steps (default {EVALUATION.episodes})")
+    p.add_argument("--seed", type=int, default=None,
+                   help=f"episode k uses traffic seed SEED+k-1 (default {DEFAULTS.seed}; with --run, RUN's seed+"
+                   f"{EVALUATION.seed_offset}+1 as 'lanefree evaluate')")
+    p.add_argument("--shield", action=argparse.BooleanOptionalAction, default=None,
+                   help="pass every action through the safety shield (default off; with --run, as RUN was trained)")
+    p.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
+                   help=f"simulation backend (default {DEFAULTS.backend})")
+    p.add_argument("--json", action="store_true", help="print ONE JSON summary object on stdout's last line")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """``lanefree rollout``: print the rows (and the JSON summary); exit code 0."""
+    cfg, model = _setup(args)
+    policy = "run" if model is not None else (args.policy or "random")
+    if args.seed is not None:
+        seed = args.seed
+    elif model is not None:
+        seed = cfg.seed + EVALUATION.seed_offset + 1
+    else:
+        seed = DEFAULTS.seed
+    widths = [max(len(c), 8) for c in ROW]
+    print("  ".join(f"{c:>{w}}" for c, w in zip(ROW, widths)), flush=True)
+
+    def show(row: dict[str, Any]) -> None:
+        print("  ".join(f"{row[c]:>{w}.3f}" if isinstance(row[c], float) else f"{row[c]:>{w}}"
+                        for c, w in zip(ROW, widths)), flush=True)
+
+    summary = rollout(cfg, policy, args.episodes, seed, model=model, on_episode=show)
+    summary["run"] = str(args.run) if args.run is not None else None
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"{summary['episodes']} episodes at {summary['density']:g} veh/km, policy {policy}, shield "
+              f"{'on' if summary['shield'] else 'off'}: {summary['collisions_per_episode']:.2f} agent collisions, "
+              f"{summary['background_collisions']} background collisions, "
+              f"{summary['shield_interventions_per_episode']:.1f} interventions per episode, speed deviation "
+              f"{summary['speed_dev_mps']:.2f} m/s, mean speed {summary['mean_speed_mps']:.2f} m/s")
+    return 0
+
+
+def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
+    """The config (and the model with --run) of a rollout."""
+    overrides: dict[str, Any] = {"backend": args.backend}
+    if args.density is not None:
+        overrides["scenario"] = {"density_veh_per_km": args.density}
+    if args.shield is not None:
+        overrides["shield"] = {"enabled": args.shield}
+    if args.run is None:
+        return merge_config(LaneFreeConfig(), overrides), None
+    from lanefree_sumo.experiments.evaluate import load_model
+    from lanefree_sumo.experiments.rundir import RunDir
+
+    folder = RunDir(args.run)
+    cfg = merge_config(folder.load_config(), overrides)
+    return cfg, load_model(folder, cfg)
+
+
+def rollout(cfg: LaneFreeConfig, policy: str, episodes: int, seed: int, model: Any = None,
+            on_episode: Any = None) -> dict[str, Any]:
+    """Run ``episodes`` episodes of ``policy`` (``random``, ``idle`` or ``run`` with ``model``);
+    call ``on_episode(row)`` after each; return the summary of the module docstring."""
+    from lanefree_sumo.rl.env import LaneFreeEnv
+
+    env = LaneFreeEnv(cfg)
+    env.action_space.seed(seed)
+    zero = np.zeros(env.action_space.shape, dtype=np.float32) if env.action_space.shape else 0
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    try:
+        for k in range(1, episodes + 1):
+            obs, _ = env.reset(seed=seed + k - 1)
+            info: dict[str, Any] = {}
+            done = False
+            while not done:
+                if policy == "random":
+                    action = env.action_space.sample()
+                elif policy == "idle":
+                    action = zero
+                else:
+                    action, _ = model.predict(obs, deterministic=True)
+                obs, _, terminated, truncated, info = env.step(action)
+                done = terminated or truncated
+            row = {**info["episode_metrics"], "episode": k}
+            rows.append(row)
+            if on_episode is not None:
+                on_episode(row)
+    finally:
+        env.close()
+    return _summary(rows, cfg, policy, seed, time.perf_counter() - t0)
+
+
+def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed: int, wall: float) -> dict[str, Any]:
+    n = len(rows)
+
+    def total(key: str) -> int:
+        return int(sum(r[key] for r in rows))
+
+    def mean(key: str) -> float:
+        return float(np.mean([r[key] for r in rows])) if rows else float("nan")
+
+    return {
+        "episodes": n,
+        "policy": policy,
+        "density": cfg.scenario.density_veh_per_km,
+        "seed": seed,
+        "shield": cfg.shield.enabled,
+        "backend": cfg.backend,
+        "collisions": total("collisions"),
+        "collisions_per_episode": total("collisions") / n if n else float("nan"),
+        "collision_steps": total("collision_steps"),
+        "background_collisions": total("background_collisions"),
+        "shield_interventions": total("shield_interventions"),
+        "shield_interventions_per_episode": total("shield_interventions") / n if n else float("nan"),
+        "shield_fallbacks_per_episode": total("shield_fallbacks") / n if n else float("nan"),
+        "speed_dev_mps": mean("speed_dev_mps"),
+        "mean_speed_mps": mean("mean_speed_mps"),
+        "boundary_contacts": total("boundary_contacts"),
+        "mean_return": mean("return"),
+        "wall_s": wall,
+    }
