@@ -33,6 +33,7 @@ from lanefree_sumo.config import (
 )
 from lanefree_sumo.errors import LaneFreeError, UsageError
 from lanefree_sumo.experiments import rollout
+from lanefree_sumo.experiments.sweep import command as sweep_command
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 from lanefree_sumo.rl.algorithms import help_text as algorithms_help
 from lanefree_sumo.rl.rewards import PRESETS
@@ -252,6 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="trailing moving-average window of the curves in episodes "
                      f"(default {REPORT.smooth_episodes})")
 
+    sweep_command.add_parser(sub)
+
     net = sub.add_parser(
         "net",
         help="build a ring network with netconvert",
@@ -415,6 +418,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return EXIT_BAD_INPUT
+        if args.command == "sweep":
+            return sweep_command.run(args)
         handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "rollout": rollout.run,
                    "replay": _replay, "export": _export, "report": _report, "net": _net}[args.command]
         return handler(args)

@@ -1,0 +1,280 @@
+"""``lanefree sweep``: the command line of sweeps (``add_parser`` registers it, ``run`` executes it).
+
+Exit codes: 0 every run complete; 1 some run failed, is damaged or busy elsewhere; 2 bad input
+(one line on stderr, nothing written); 130 interrupted (checkpoints saved; rerun to continue).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import socket
+import sys
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from lanefree_sumo.errors import LaneFreeError, UsageError
+from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
+from lanefree_sumo.experiments.sweep.manifest import (
+    Manifest,
+    SweepDir,
+    check_same_grid,
+    driver_lock,
+    driver_running,
+    read_manifest,
+    write_manifest,
+)
+from lanefree_sumo.experiments.sweep.state import (
+    BUSY,
+    COMPLETE,
+    DAMAGED,
+    FAILED,
+    PARTIAL,
+    PENDING,
+    RUNNING,
+    STALE,
+    RunInfo,
+    inspect_run,
+    open_files,
+    overlay,
+    writers_elsewhere,
+)
+
+EXIT_OK, EXIT_INCOMPLETE, EXIT_INTERRUPTED = 0, 1, 130
+DEFAULT_RETRIES = 3
+
+
+def _count(unit: str):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number of {unit}, got {text!r}") from None
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"expected at least 1 {unit}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _retries(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {text!r}")
+    return value
+
+
+def default_workers() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``sweep`` on the CLI's subparsers."""
+    sw = subparsers.add_parser(
+        "sweep",
+        help="train a grid of runs (the paper's tables) on Ray, resumable",
+        description="Train every (algorithm, reward preset, density, seed) run of GRID, one Ray task per run in a "
+        "fresh process with one CPU, into DIR/runs/<algo>_<preset>_d<density>_s<seed>/ (ordinary run folders), "
+        "then write DIR/summary.csv and summary.md (last-50-episode means with 95 % bootstrap CIs over runs, the "
+        "paper's values) and learning curves per table. GRID: " + ", ".join(BUILTIN_GRIDS) + " (the paper's "
+        "settings, 10 seeds, 625 episodes) or a YAML file (keys algorithms, reward_presets, densities, seeds or "
+        "n_seeds, episodes, overrides). Rerunning the same command (or --resume DIR) skips complete runs, resumes "
+        "interrupted ones from their newest checkpoint and retries failed ones; existing run folders with the same "
+        "config are adopted. Ctrl-C stops every run with a checkpoint.",
+    )
+    sw.add_argument("grid", nargs="?", metavar="GRID", help="built-in grid name or YAML grid file")
+    sw.add_argument("--out", type=Path, default=None, metavar="DIR",
+                    help="sweep folder (default runs/sweep_<grid>); on a cluster, storage every node mounts")
+    sw.add_argument("--resume", type=Path, default=None, metavar="DIR", help="continue the sweep in DIR")
+    sw.add_argument("--status", type=Path, default=None, metavar="DIR",
+                    help="print the state of the sweep in DIR (also while it runs elsewhere) and exit")
+    sw.add_argument("--summary", type=Path, default=None, metavar="DIR",
+                    help="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit")
+    sw.add_argument("--seeds", type=_count("seeds"), default=None, metavar="N",
+                    help="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported)")
+    sw.add_argument("--episodes", type=_count("episodes"), default=None, metavar="N",
+                    help="training episodes per run instead of the grid's (paper: 625)")
+    sw.add_argument("--episode-steps", type=_count("steps"), default=None, metavar="N",
+                    help="steps per episode instead of 800 (0.25 s each; for quick tests)")
+    sw.add_argument("--workers", type=_count("workers"), default=None, metavar="N",
+                    help=f"runs at a time on the embedded local Ray (default: the cores, {default_workers()} here)")
+    sw.add_argument("--address", default=None, metavar="HOST:PORT",
+                    help="join the Ray cluster at HOST:PORT instead of starting a local one (default: $RAY_ADDRESS "
+                    "if set)")
+    sw.add_argument("--retries", type=_retries, default=DEFAULT_RETRIES, metavar="N",
+                    help=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})")
+    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return sw
+
+
+def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
+    """(mode, folder) after checking which options go together; UsageError otherwise."""
+    given: set[str] = getattr(args, "given", set())
+    modes = [m for m in ("resume", "status", "summary") if getattr(args, m) is not None]
+    if len(modes) > 1 or (modes and args.grid is not None):
+        raise UsageError("lanefree sweep: give one of GRID, --resume DIR, --status DIR, --summary DIR")
+    if not modes and args.grid is None:
+        raise UsageError("lanefree sweep: give a GRID (" + ", ".join(BUILTIN_GRIDS) + " or a YAML file), "
+                         "--resume DIR, --status DIR or --summary DIR (see 'lanefree sweep --help')")
+    budget = [o for o in ("--seeds", "--episodes", "--episode-steps") if o in given]
+    ray_opts = [o for o in ("--workers", "--address", "--retries", "--no-progress") if o in given]
+    if modes:
+        mode = modes[0]
+        if args.out is not None or budget:
+            bad = "--out" if args.out is not None else budget[0]
+            raise UsageError(f"lanefree sweep: {bad} goes with GRID, not with --{mode} (the grid is in DIR/sweep.yaml)")
+        if mode != "resume" and ray_opts:
+            raise UsageError(f"lanefree sweep: {ray_opts[0]} does not go with --{mode}")
+        folder = getattr(args, mode)
+    else:
+        mode, folder = "grid", args.out
+    if args.workers is not None and (args.address is not None or (os.environ.get("RAY_ADDRESS") and mode != "status")):
+        raise UsageError("lanefree sweep: --workers sizes the embedded local Ray; a cluster (--address or RAY_ADDRESS) "
+                         "runs as many runs at once as it has CPUs")
+    return mode, folder
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``lanefree sweep``; LaneFreeError for bad input (the CLI prints it as one line)."""
+    mode, folder = _check_args(args)
+    if mode == "status":
+        print(status_text(folder))
+        return EXIT_OK
+    if mode == "summary":
+        from lanefree_sumo.experiments.sweep.summary import summarize
+
+        result = summarize(folder)
+        print(f"{len(result.table)} setting(s), {len(result.incomplete)} run(s) not complete -> "
+              f"{folder / 'summary.md'}")
+        print(result.files[-1].read_text())
+        return EXIT_OK
+    command = shlex.join(["lanefree", *sys.argv[1:]])
+    if mode == "resume":
+        grid = read_manifest(folder).grid
+    else:
+        grid = load_grid(args.grid).with_budget(args.seeds, args.episodes, args.episode_steps)
+        folder = folder if folder is not None else Path("runs") / f"sweep_{grid.name}"
+    address = args.address or os.environ.get("RAY_ADDRESS") or None
+    return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress)
+
+
+def plan(folder: Path, grid: Grid) -> dict[str, RunInfo]:
+    """State of every run before starting; RunError/UsageError (nothing written) when a run folder
+    cannot be adopted: not a run folder, another config, more episodes than the grid's."""
+    from lanefree_sumo.experiments.sweep.worker import check_adoptable
+
+    sweep = SweepDir(folder)
+    if sweep.manifest.exists():
+        check_same_grid(folder, read_manifest(folder).grid, grid)
+    elif folder.exists() and not folder.is_dir():
+        raise UsageError(f"--out {folder} is a file; choose a folder")
+    states = {}
+    opened = open_files()
+    for cell in grid.cells():
+        info = inspect_run(sweep.run(cell), grid.episodes)
+        if info.state != PENDING:
+            check_adoptable(sweep.run(cell), grid.config(cell))
+        if info.state not in (PENDING, COMPLETE):
+            holders = writers_elsewhere(sweep.run(cell) / "episodes.csv", opened)
+            if holders:
+                info = RunInfo(BUSY, info.episodes, f"episodes.csv is open in process {holders[0]} outside this "
+                                                    "sweep; rerun the sweep when it has stopped")
+        states[cell.name] = info
+    return states
+
+
+def _ray_description(workers: int | None, address: str | None) -> str:
+    return f"Ray cluster at {address}" if address else f"embedded local Ray, {workers} worker(s)"
+
+
+def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | None, address: str | None,
+           retries: int, progress: bool) -> int:
+    from lanefree_sumo.experiments.rundir import check_writable
+    from lanefree_sumo.experiments.sweep.runner import check_address, run_sweep
+    from lanefree_sumo.experiments.sweep.summary import summarize
+
+    workers = (workers or default_workers()) if address is None else None
+    states = plan(folder, grid)  # every check before the first write
+    if address is not None:
+        check_address(address)
+    check_writable(folder, folder=True)
+    sweep = SweepDir(folder)
+    with driver_lock(folder, command):
+        manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)
+        manifest.sessions.append({"started": datetime.now().isoformat(timespec="seconds"), "command": command,
+                                  "host": socket.gethostname(), "ray": _ray_description(workers, address)})
+        write_manifest(folder, manifest)
+        cells: dict[str, Cell] = {c.name: c for c in grid.cells()}
+        todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED)]
+        busy = [(n, i) for n, i in states.items() if i.state in (BUSY, DAMAGED)]
+        counts = {s: sum(1 for i in states.values() if i.state == s) for s in (COMPLETE, PARTIAL, STALE, PENDING)}
+        budget = grid.budget()
+        print(f"sweep {grid.name} -> {folder}: {len(cells)} runs ({len(grid.settings)} setting(s) × {len(grid.seeds)} "
+              f"seed(s) × {grid.episodes} episodes of {grid.episode_steps} steps): {counts[COMPLETE]} complete, "
+              f"{counts[PARTIAL]} to resume, {counts[STALE] + counts[PENDING]} to start, {len(busy)} left alone"
+              + (f"; REDUCED BUDGET ({'; '.join(budget['notes'])})" if budget["reduced"] else ""), flush=True)
+        for name, info in busy:
+            print(f"  left alone: runs/{name}: {info.detail}", file=sys.stderr)
+        interrupted = False
+        if todo:
+            print(f"  {len(todo)} run(s) on the {_ray_description(workers, address)}; logs in {folder / 'logs'}",
+                  flush=True)
+            interrupted = run_sweep(sweep, grid, todo, workers, address, retries, command, progress).interrupted
+        else:
+            print("  nothing to train", flush=True)
+        summary = summarize(folder)
+    opened = open_files()
+    final = {n: overlay(sweep, n, inspect_run(sweep.run(n), grid.episodes), opened) for n in cells}
+    complete = sum(1 for i in final.values() if i.state == COMPLETE)
+    for name, info in final.items():
+        if info.state in (FAILED, DAMAGED, BUSY):
+            print(f"  {info.state}: runs/{name}: {info.detail}", file=sys.stderr)
+    print(f"sweep {grid.name}: {complete}/{len(cells)} runs complete -> {summary.files[-1]}")
+    if interrupted:
+        print(f"lanefree: interrupted; checkpoints saved. Continue with: lanefree sweep --resume {folder}",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return EXIT_OK if complete == len(cells) else EXIT_INCOMPLETE
+
+
+def status_text(folder: Path) -> str:
+    """The state of every run of the sweep in ``folder`` (read from the folders; no Ray needed)."""
+    manifest = read_manifest(folder)
+    grid, sweep = manifest.grid, SweepDir(folder)
+    opened = open_files()
+    infos = {c.name: overlay(sweep, c.name, inspect_run(sweep.run(c), grid.episodes), opened) for c in grid.cells()}
+    budget = grid.budget()
+    driver = driver_running(folder)
+    total = len(infos) * grid.episodes
+    done = sum(min(i.episodes, grid.episodes) for i in infos.values())
+    head = f"sweep {grid.name} in {folder}: {len(infos)} runs × {grid.episodes} episodes of {grid.episode_steps} steps"
+    if budget["reduced"]:
+        head += f" (REDUCED BUDGET: {'; '.join(budget['notes'])})"
+    who = (f"running, pid {driver.get('pid')} on {driver.get('host')} since {driver.get('started', '?')}" if driver
+           else f"not running (continue with 'lanefree sweep --resume {folder}')")
+    lines = [head, f"driver: {who}",
+             "runs: " + ", ".join(f"{sum(1 for i in infos.values() if i.state == s)} {s}"
+                                  for s in (COMPLETE, RUNNING, PARTIAL, STALE, PENDING, FAILED, BUSY, DAMAGED)),
+             f"episodes: {done}/{total} ({100.0 * done / max(total, 1):.1f} %)", "",
+             f"{'setting':60} {'complete':>9} {'episodes':>12}"]
+    for setting in grid.settings:
+        names = [Cell(setting, s).name for s in grid.seeds]
+        n_done = sum(1 for n in names if infos[n].state == COMPLETE)
+        eps = sum(min(infos[n].episodes, grid.episodes) for n in names)
+        lines.append(f"{setting.label:60} {n_done:>4}/{len(names):<4} {eps:>6}/{len(names) * grid.episodes}")
+    notable = [(n, i) for n, i in infos.items() if i.state in (RUNNING, FAILED, BUSY, DAMAGED)]
+    if notable:
+        lines.append("")
+        lines += [f"{i.state:>8}: runs/{n} ({i.episodes}/{grid.episodes}): {i.detail}" for n, i in notable]
+    return "\n".join(lines)
+
+
+__all__ = ["add_parser", "run", "status_text", "plan", "LaneFreeError"]

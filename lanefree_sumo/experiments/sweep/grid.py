@@ -1,0 +1,312 @@
+"""Grids of training runs: the paper's tables (SPEC §10) built in, or a YAML file.
+
+A grid is a list of *settings* (algorithm, reward preset, density in veh/km) × a list of seeds,
+with an episode budget and config overrides applied to every run. Built-in grids: ``table5`` …
+``table8`` (the settings of that table of :data:`~lanefree_sumo.experiments.paper.PAPER_ROWS`)
+and ``paper`` (their union, each setting once), each with the paper's 10 seeds and 625 episodes.
+A YAML grid::
+
+    algorithms: [ddpg]                 # registered algorithms (default [ddpg])
+    reward_presets: [collision, fields_collision]
+    densities: [70, 120]               # veh/km (default [70])
+    seeds: [0, 1, 2]                   # or  n_seeds: 10  (seeds 0 … 9; the default)
+    episodes: 625                      # optional budget override, default the paper's
+    overrides: {}                      # optional config overrides applied to every run
+
+Every problem is a :class:`~lanefree_sumo.errors.ConfigError` of one line naming the key.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import yaml
+
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_density
+from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.experiments.paper import PAPER_ROWS
+
+PAPER_EPISODES = 625
+"""Training episodes per run in the paper (SPEC §9)."""
+PAPER_SEEDS = 10
+"""Runs per setting in the paper (SPEC §10)."""
+PAPER_EPISODE_STEPS = LaneFreeConfig().sim.episode_steps
+"""Steps per episode in the paper (800 × 0.25 s)."""
+
+TABLES: tuple[int, ...] = tuple(sorted({row[0] for row in PAPER_ROWS}))
+BUILTIN_GRIDS: tuple[str, ...] = (*(f"table{t}" for t in TABLES), "paper")
+GRID_KEYS: tuple[str, ...] = ("algorithms", "reward_presets", "densities", "seeds", "n_seeds", "episodes",
+                              "overrides")
+"""Keys a YAML grid may have."""
+GRID_OWNED: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
+                               "train.episodes")
+"""Config keys the grid itself sets per run; ``overrides`` may not set them."""
+MAX_SEEDS = 10_000
+
+
+class Setting(NamedTuple):
+    """One row of a results table: algorithm, reward preset, density (veh/km)."""
+
+    algorithm: str
+    preset: str
+    density: float
+
+    @property
+    def label(self) -> str:
+        return f"{self.algorithm} / {self.preset} / d{self.density:g}"
+
+    @property
+    def tables(self) -> tuple[int, ...]:
+        """The paper's tables that report this setting (empty when none does)."""
+        return tuple(sorted({t for t, a, p, d, _, _ in PAPER_ROWS
+                             if (a, p, round(float(d), 6)) == (self.algorithm, self.preset, self.density)}))
+
+
+class Cell(NamedTuple):
+    """One run of a grid: a setting and a seed."""
+
+    setting: Setting
+    seed: int
+
+    @property
+    def name(self) -> str:
+        """The run folder's name: ``<algo>_<preset>_d<density>_s<seed>``."""
+        s = self.setting
+        return f"{s.algorithm}_{s.preset}_d{s.density:g}_s{self.seed}"
+
+
+def make_setting(algorithm: str, preset: str, density: float) -> Setting:
+    return Setting(algorithm, preset, round(float(density), 6))
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A resolved grid: what every run of a sweep is."""
+
+    name: str
+    settings: tuple[Setting, ...]
+    seeds: tuple[int, ...]
+    episodes: int = PAPER_EPISODES
+    overrides: dict[str, Any] = field(default_factory=dict)
+    """Config overrides (nested mapping) applied to every run before the grid's own keys."""
+
+    def cells(self) -> tuple[Cell, ...]:
+        """Every run, seed-major: the first seed of every setting first, so that each setting has
+        results early."""
+        return tuple(Cell(s, seed) for seed in self.seeds for s in self.settings)
+
+    def config(self, cell: Cell) -> LaneFreeConfig:
+        """The full training config of ``cell`` (what its run folder's config.yaml must hold)."""
+        from lanefree_sumo.rl.models import training_config
+
+        s = cell.setting
+        cfg = merge_config(merge_config(LaneFreeConfig(), self.overrides), {
+            "seed": cell.seed, "reward": {"preset": s.preset}, "scenario": {"density_veh_per_km": s.density},
+            "train": {"algo": s.algorithm, "episodes": self.episodes},
+        })
+        return training_config(cfg)
+
+    @property
+    def episode_steps(self) -> int:
+        return int(self.overrides.get("sim", {}).get("episode_steps", PAPER_EPISODE_STEPS))
+
+    def budget(self) -> dict[str, Any]:
+        """The budget against the paper's, for the manifest and every report."""
+        notes = []
+        if self.episodes != PAPER_EPISODES:
+            notes.append(f"{self.episodes} episodes per run instead of the paper's {PAPER_EPISODES}")
+        if len(self.seeds) != PAPER_SEEDS:
+            notes.append(f"{len(self.seeds)} seed(s) per setting instead of the paper's {PAPER_SEEDS}")
+        if self.episode_steps != PAPER_EPISODE_STEPS:
+            notes.append(f"episodes of {self.episode_steps} steps instead of the paper's {PAPER_EPISODE_STEPS}")
+        reduced = (self.episodes < PAPER_EPISODES or len(self.seeds) < PAPER_SEEDS
+                   or self.episode_steps < PAPER_EPISODE_STEPS)
+        return {"episodes": self.episodes, "paper_episodes": PAPER_EPISODES, "seeds": len(self.seeds),
+                "paper_seeds": PAPER_SEEDS, "episode_steps": self.episode_steps,
+                "paper_episode_steps": PAPER_EPISODE_STEPS, "reduced": reduced, "notes": notes}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "settings": [{"algorithm": s.algorithm, "reward_preset": s.preset, "density": s.density,
+                          "tables": list(s.tables)} for s in self.settings],
+            "seeds": list(self.seeds),
+            "episodes": self.episodes,
+            "overrides": self.overrides,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: str) -> Grid:
+        """The grid saved by :meth:`to_dict` (in a manifest); ConfigError naming what is wrong."""
+        try:
+            settings = tuple(make_setting(str(s["algorithm"]), str(s["reward_preset"]), float(s["density"]))
+                             for s in data["settings"])
+            grid = cls(str(data["name"]), settings, tuple(int(x) for x in data["seeds"]), int(data["episodes"]),
+                       dict(data.get("overrides") or {}))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: the grid is unreadable ({type(exc).__name__}: {exc})") from None
+        return validate_grid(grid, source)
+
+    def with_budget(self, seeds: int | None = None, episodes: int | None = None,
+                    episode_steps: int | None = None) -> Grid:
+        """The grid with ``--seeds N`` (seeds 0 … N−1), ``--episodes N``, ``--episode-steps N``."""
+        overrides = {k: dict(v) if isinstance(v, Mapping) else v for k, v in self.overrides.items()}
+        if episode_steps is not None:
+            overrides.setdefault("sim", {})["episode_steps"] = episode_steps
+        grid = Grid(self.name, self.settings, tuple(range(seeds)) if seeds is not None else self.seeds,
+                    episodes if episodes is not None else self.episodes, overrides)
+        return validate_grid(grid, "command line")
+
+
+# -- built-in grids -------------------------------------------------------------------------------
+
+def builtin_grid(name: str) -> Grid:
+    """``table5`` … ``table8``: that table's settings; ``paper``: all of them, each once."""
+    if name not in BUILTIN_GRIDS:
+        raise ConfigError(f"unknown grid '{name}'; use one of {', '.join(BUILTIN_GRIDS)} or a YAML file")
+    rows = [r for r in PAPER_ROWS if name == "paper" or name == f"table{r[0]}"]
+    settings = tuple(dict.fromkeys(make_setting(a, p, d) for _, a, p, d, _, _ in rows))
+    return Grid(name, settings, tuple(range(PAPER_SEEDS)))
+
+
+def load_grid(spec: str | Path) -> Grid:
+    """A built-in grid by name, else a YAML grid file."""
+    text = str(spec)
+    if text in BUILTIN_GRIDS:
+        return builtin_grid(text)
+    path = Path(spec)
+    if not path.is_file():
+        raise ConfigError(f"unknown grid '{text}': neither a built-in grid ({', '.join(BUILTIN_GRIDS)}) "
+                          "nor a YAML file")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        reason = " ".join(str(exc).split())[:200]
+        raise ConfigError(f"grid {path}: unreadable ({reason})") from None
+    return parse_grid(data, path.stem, str(path))
+
+
+def _as_list(value: Any) -> list[Any]:
+    return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def _whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _names(where: str, values: Any, allowed: tuple[str, ...], what: str) -> list[str]:
+    items = _as_list(values)
+    if not items:
+        raise ConfigError(f"{where} is empty; give at least one {what}")
+    for item in items:
+        if not isinstance(item, str) or item not in allowed:
+            raise ConfigError(f"{where}: {item!r} is not a {what}; choose from {', '.join(allowed)}")
+    if len(set(items)) < len(items):
+        raise ConfigError(f"{where} lists a {what} twice")
+    return items
+
+
+def parse_grid(data: Any, name: str, source: str) -> Grid:
+    """A grid from the mapping of a YAML grid file; ConfigError of one line naming the bad key."""
+    from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
+    from lanefree_sumo.rl.rewards import PRESETS
+
+    where = f"grid {source}"
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: expected a mapping with keys {', '.join(GRID_KEYS)}")
+    for key in data:
+        if key not in GRID_KEYS:
+            raise ConfigError(f"{where}: unknown key '{key}'; allowed keys: {', '.join(GRID_KEYS)}")
+    if "reward_presets" not in data:
+        raise ConfigError(f"{where}: key 'reward_presets' is missing; list the reward presets to train")
+    algorithms = _names(f"{where}: algorithms", data.get("algorithms", ["ddpg"]), ALGORITHM_NAMES, "algorithm")
+    presets = _names(f"{where}: reward_presets", data["reward_presets"], tuple(PRESETS), "reward preset")
+    densities = []
+    for d in _as_list(data.get("densities", [70])):
+        try:
+            if isinstance(d, bool):
+                raise ConfigError(f"density must be a number in veh/km, got {d!r}")
+            densities.append(validate_density(d))
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: densities: {exc}") from None
+    if not densities or len(set(densities)) < len(densities):
+        raise ConfigError(f"{where}: densities must list at least one density, each once")
+    if "seeds" in data and "n_seeds" in data:
+        raise ConfigError(f"{where}: give either 'seeds' or 'n_seeds', not both")
+    if "seeds" in data:
+        seeds = _as_list(data["seeds"])
+        bad = [s for s in seeds if not _whole(s) or s < 0]
+        if not seeds or bad or len(set(seeds)) < len(seeds):
+            raise ConfigError(f"{where}: seeds must be distinct whole numbers ≥ 0, got {data['seeds']!r}")
+    else:
+        n = data.get("n_seeds", PAPER_SEEDS)
+        if not _whole(n) or not 1 <= n <= MAX_SEEDS:
+            raise ConfigError(f"{where}: n_seeds must be a whole number from 1 to {MAX_SEEDS}, got {n!r}")
+        seeds = list(range(n))
+    episodes = data.get("episodes", PAPER_EPISODES)
+    if not _whole(episodes) or episodes < 1:
+        raise ConfigError(f"{where}: episodes must be a whole number ≥ 1, got {episodes!r}")
+    overrides = data.get("overrides") or {}
+    settings = tuple(make_setting(a, p, d) for a in algorithms for p in presets for d in densities)
+    return validate_grid(Grid(name, settings, tuple(seeds), episodes, dict(overrides)), source)
+
+
+def _owned(overrides: Mapping[str, Any], path: str = "") -> list[str]:
+    found = []
+    for key, value in overrides.items():
+        where = f"{path}.{key}" if path else str(key)
+        if where in GRID_OWNED:
+            found.append(where)
+        elif isinstance(value, Mapping):
+            found += _owned(value, where)
+    return found
+
+
+def validate_grid(grid: Grid, source: str) -> Grid:
+    """Check the overrides and that every setting's traffic fits on the road (before any run starts)."""
+    from lanefree_sumo.sim.spawn import spawn
+
+    where = f"grid {source}"
+    if not isinstance(grid.overrides, Mapping):
+        raise ConfigError(f"{where}: overrides must be a mapping of config keys, got {grid.overrides!r}")
+    owned = _owned(grid.overrides)
+    if owned:
+        raise ConfigError(f"{where}: overrides.{owned[0]} is set by the grid itself "
+                          "(use algorithms, reward_presets, densities, seeds or episodes)")
+    if not grid.settings or not grid.seeds:
+        raise ConfigError(f"{where}: the grid has no runs")
+    if grid.episodes < 1:
+        raise ConfigError(f"{where}: episodes must be ≥ 1, got {grid.episodes}")
+    try:
+        base = merge_config(LaneFreeConfig(), grid.overrides)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: overrides: {exc}") from None
+    checked = set()
+    for setting in grid.settings:
+        cell = Cell(setting, grid.seeds[0])
+        try:
+            cfg = grid.config(cell)
+            if (setting.density, cfg.road.length_m) not in checked:
+                import numpy as np
+
+                spawn(cfg, np.random.default_rng(0))
+                checked.add((setting.density, cfg.road.length_m))
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {setting.label}: {exc}") from None
+    # the overrides as the config normalises them (tuples → lists), so saved and loaded grids compare equal
+    normal = config_to_dict(base)
+    return Grid(grid.name, grid.settings, grid.seeds, grid.episodes, _subset(normal, grid.overrides))
+
+
+def _subset(full: Mapping[str, Any], keys: Mapping[str, Any]) -> dict[str, Any]:
+    """The entries of ``full`` at the keys of ``keys`` (nested)."""
+    out: dict[str, Any] = {}
+    for key, value in keys.items():
+        if not isinstance(value, Mapping):
+            out[key] = full[key]
+        elif value:
+            out[key] = _subset(full[key], value)
+    return out

@@ -1,0 +1,294 @@
+"""The Ray driver of a sweep: one task per run, one progress bar, a clean Ctrl-C.
+
+* **Embedded** (default): ``ray.init`` starts a private local Ray with ``workers`` CPUs, every
+  process bound to 127.0.0.1, token authentication with a fresh random token, no dashboard, no
+  usage statistics. It stops with the command.
+* **Cluster** (``--address HOST:PORT`` or ``RAY_ADDRESS``): the driver joins an existing cluster;
+  before any run starts, a probe task on every node checks that it can import lanefree_sumo,
+  sees the driver's sweep folder and can write into it (``--out`` must be shared storage).
+
+Each run is one task with ``num_cpus`` = its environments (1 by default; torch uses one thread,
+``train.torch_threads``), ``max_calls=1`` (a fresh process per run: libsumo runs one simulation
+per process) and ``max_retries`` (a worker that dies is retried; the retry resumes from the
+run's newest checkpoint, :mod:`.worker`). Ctrl-C or SIGTERM on the driver cancels the tasks
+without force: Ray raises SIGINT's handler in each running task, ``train()`` saves a checkpoint
+and returns; a second Ctrl-C (or :data:`STOP_TIMEOUT_S`) kills what is left, which then resumes
+from its latest periodic checkpoint next time.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import signal
+import socket
+import sys
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+from lanefree_sumo.config import config_to_dict
+from lanefree_sumo.errors import RunError, UsageError
+from lanefree_sumo.experiments.sweep.grid import Cell, Grid
+from lanefree_sumo.experiments.sweep.manifest import SweepDir, write_atomic
+from lanefree_sumo.experiments.sweep.state import STALE_S, count_rows, heartbeat_age, record_failure
+
+POLL_S = 2.0
+"""Progress refresh interval (s)."""
+STOP_TIMEOUT_S = 180.0
+"""How long Ctrl-C waits for running runs to save their checkpoint (s)."""
+PROBE_TIMEOUT_S = 300.0
+"""How long the cluster check waits for every node to answer (s)."""
+OBJECT_STORE_BYTES = 256 * 1024**2
+"""Object store of the embedded Ray: tasks exchange only small dicts."""
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+@dataclass
+class SweepOutcome:
+    """What a driver session did."""
+
+    results: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Per run name: the task's result dict (status complete / interrupted / failed / busy / cancelled)."""
+    interrupted: bool = False
+
+
+def parse_address(address: str) -> tuple[str, int]:
+    """``HOST:PORT`` → (host, port); UsageError otherwise."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise UsageError(f"--address must be HOST:PORT of a Ray head node (e.g. 10.0.0.5:6379), got {address!r}")
+    return host.strip("[]"), int(port)
+
+
+def check_address(address: str) -> None:
+    """UsageError unless something listens at ``HOST:PORT`` (before anything is written)."""
+    host, port = parse_address(address)
+    try:
+        socket.create_connection((host, port), timeout=10).close()
+    except OSError as exc:
+        raise UsageError(f"no Ray head node answers at {address} ({exc.strerror or exc}); start one with "
+                         f"'ray start --head --port {port}' or check --address / RAY_ADDRESS") from None
+
+
+def _prepare_environment(address: str | None) -> None:
+    """Environment variables Ray reads when it is imported and passes to every process it starts."""
+    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"  # never report usage to anyone
+    if address is None or parse_address(address)[0] in LOOPBACK:
+        # Ray turns 127.0.0.1 into the host's outward address unless clusters are "disabled"; this
+        # keeps every server, and the driver's own, on the loopback interface.
+        os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    if address is None and not any(k in os.environ for k in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")):
+        os.environ["RAY_AUTH_MODE"] = "token"  # a private cluster: a fresh token, not written to disk
+        os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(16)
+
+
+def start_ray(workers: int | None, address: str | None) -> Any:
+    """``ray`` connected to a new embedded Ray (``address`` None) or to the cluster at ``address``."""
+    _prepare_environment(address)
+    try:
+        import ray
+    except ImportError as exc:
+        raise UsageError(f"'lanefree sweep' needs Ray ({exc}); pip install -e '.[rl]'") from None
+    common: dict[str, Any] = {"log_to_driver": False, "logging_level": logging.WARNING}
+    if address is None:
+        ray.init(address="local", num_cpus=workers, num_gpus=0, include_dashboard=False,
+                 object_store_memory=OBJECT_STORE_BYTES, **common)
+        return ray
+    check_address(address)
+    try:
+        ray.init(address=address, **common)
+    except Exception as exc:  # ConnectionError, AuthenticationError, version mismatch, ...
+        reason = " ".join(str(exc).split())[:300]
+        raise UsageError(f"cannot join the Ray cluster at {address} ({type(exc).__name__}: {reason})") from None
+    return ray
+
+
+def cluster_cpus(ray: Any) -> int:
+    return int(ray.cluster_resources().get("CPU", 0))
+
+
+def check_nodes(ray: Any, sweep: SweepDir) -> list[dict[str, Any]]:
+    """Run :func:`.worker.probe` on every alive node with CPUs; UsageError naming the first node
+    that cannot import lanefree_sumo, see the sweep folder or write into it."""
+    from importlib.metadata import version
+
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    from lanefree_sumo.experiments.sweep.worker import probe
+
+    token = uuid.uuid4().hex
+    token_file = sweep.state / f"probe-{token}"
+    write_atomic(token_file, token + "\n")
+    remote = ray.remote(num_cpus=0, max_calls=1, max_retries=0)(probe)
+    nodes = [n for n in ray.nodes() if n.get("Alive") and n.get("Resources", {}).get("CPU", 0) > 0]
+    if not nodes:
+        raise UsageError("the Ray cluster has no alive node with CPUs")
+    refs = {remote.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False))
+            .remote(str(sweep.path), token): n for n in nodes}
+    answers = []
+    try:
+        for ref, node in refs.items():
+            where = f"{node.get('NodeManagerAddress', '?')} (node {node['NodeID'][:12]})"
+            try:
+                answer = ray.get(ref, timeout=PROBE_TIMEOUT_S)
+            except Exception as exc:
+                reason = " ".join(str(exc).split()[-30:])[:300]
+                raise UsageError(f"worker node {where} cannot run lanefree_sumo tasks ({type(exc).__name__}: "
+                                 f"{reason}); install the same lanefree_sumo on every node") from None
+            if not answer["ok"]:
+                raise UsageError(f"worker node {where} {answer['detail']}")
+            mine = version("lanefree_sumo")
+            if answer["version"] != mine:
+                raise UsageError(f"worker node {where} has lanefree_sumo {answer['version']}, the driver {mine}; "
+                                 "install the same version everywhere")
+            answers.append(answer)
+    finally:
+        token_file.unlink(missing_ok=True)
+    return answers
+
+
+class Tracker:
+    """Episodes done over all runs, polled from their episodes.csv (re-read only when changed)."""
+
+    def __init__(self, sweep: SweepDir, names: list[str], target: int) -> None:
+        self.sweep, self.names, self.target = sweep, names, target
+        self._cache: dict[str, tuple[tuple[int, int], int]] = {}
+
+    def episodes(self) -> int:
+        total = 0
+        for name in self.names:
+            path = self.sweep.run(name) / "episodes.csv"
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            key = (st.st_size, st.st_mtime_ns)
+            cached = self._cache.get(name)
+            if cached is None or cached[0] != key:
+                cached = (key, count_rows(path))
+                self._cache[name] = cached
+            total += min(cached[1], self.target)
+        return total
+
+    def running(self, names: list[str]) -> int:
+        return sum(1 for n in names if (age := heartbeat_age(self.sweep, n)) is not None and age < STALE_S)
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    text = lines[-1] if lines else type(exc).__name__
+    return f"{type(exc).__name__}: {text}"[:400]
+
+
+def _collect(ray: Any, sweep: SweepDir, ref: Any, name: str) -> dict[str, Any]:
+    from ray.exceptions import RayError, TaskCancelledError
+
+    try:
+        return dict(ray.get(ref))
+    except TaskCancelledError:
+        return {"name": name, "status": "cancelled", "detail": "cancelled before it started"}
+    except RayError as exc:  # the worker died more often than --retries allows, OOM, a node lost
+        detail = f"{_one_line(exc)} (after all retries)"
+        record_failure(sweep, name, detail)
+        return {"name": name, "status": "failed", "detail": detail}
+
+
+def _raise_interrupt(_signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: int, command: str,
+              progress: bool) -> SweepOutcome:
+    """Submit one task per cell of ``todo`` and wait for all of them with a progress bar over the
+    episodes of the whole grid; Ctrl-C/SIGTERM stop the runs cleanly (module docstring)."""
+    from tqdm import tqdm
+
+    from lanefree_sumo.experiments.sweep.worker import run_cell
+
+    cells = grid.cells()
+    target = grid.episodes
+    tracker = Tracker(sweep, [c.name for c in cells], target)
+    task = ray.remote(max_calls=1, max_retries=retries, retry_exceptions=False)(run_cell)
+    refs: dict[Any, str] = {}
+    for cell in todo:
+        cfg = grid.config(cell)
+        refs[task.options(num_cpus=max(1, cfg.train.envs), name=f"lanefree-sweep:{cell.name}").remote(
+            str(sweep.path), cell.name, config_to_dict(cfg), target, command)] = cell.name
+    outcome = SweepOutcome()
+    complete_before = len(cells) - len(todo)
+    tty = sys.stderr.isatty()
+    bar = tqdm(total=len(cells) * target, initial=tracker.episodes(), unit="ep", desc="sweep", disable=not progress,
+               dynamic_ncols=True, mininterval=1.0 if tty else 60.0, smoothing=0.05)
+
+    def refresh() -> None:
+        done = complete_before + sum(1 for r in outcome.results.values() if r["status"] == "complete")
+        failed = sum(1 for r in outcome.results.values() if r["status"] == "failed")
+        running = tracker.running(list(refs.values()))
+        bar.update(tracker.episodes() - bar.n)
+        bar.set_postfix_str(f"runs {done}/{len(cells)} done, {running} running, "
+                            f"{len(refs) - running} queued, {failed} failed", refresh=False)
+
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        while refs:
+            ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=POLL_S)
+            for ref in ready:
+                name = refs.pop(ref)
+                outcome.results[name] = _collect(ray, sweep, ref, name)
+                if outcome.results[name]["status"] != "complete":
+                    bar.write(f"{name}: {outcome.results[name]['status']}: {outcome.results[name].get('detail', '')}")
+            refresh()
+    except KeyboardInterrupt:
+        outcome.interrupted = True
+        _stop(ray, sweep, refs, outcome, bar)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        refresh()
+        bar.close()
+    return outcome
+
+
+def _stop(ray: Any, sweep: SweepDir, refs: dict[Any, str], outcome: SweepOutcome, bar: Any) -> None:
+    """Cancel every task (running ones save a checkpoint and return); force after a second Ctrl-C
+    or :data:`STOP_TIMEOUT_S`."""
+    bar.write(f"stopping: {len(refs)} run(s) save a checkpoint and stop (Ctrl-C again to kill them at once; "
+              "they then resume from their previous checkpoint)")
+    for ref in refs:
+        try:
+            ray.cancel(ref, force=False, recursive=False)
+        except Exception:  # finished meanwhile
+            pass
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    try:
+        while refs and time.monotonic() < deadline:
+            ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=1.0)
+            for ref in ready:
+                name = refs.pop(ref)
+                outcome.results[name] = _collect(ray, sweep, ref, name)
+    except KeyboardInterrupt:
+        pass
+    for ref, name in list(refs.items()):
+        try:
+            ray.cancel(ref, force=True, recursive=False)
+        except Exception:
+            pass
+        outcome.results[name] = {"name": name, "status": "interrupted", "detail": "killed while stopping"}
+        refs.pop(ref)
+
+
+def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None, address: str | None,
+              retries: int, command: str, progress: bool) -> SweepOutcome:
+    """Start or join Ray, check the nodes (cluster), run ``todo``, and always shut Ray down."""
+    sweep = SweepDir(sweep.path.resolve())  # workers run elsewhere: they get an absolute path
+    ray = start_ray(workers, address)
+    try:
+        if address is not None:
+            check_nodes(ray, sweep)
+            if cluster_cpus(ray) < 1:
+                raise RunError(f"the Ray cluster at {address} has no CPUs")
+        return run_tasks(ray, sweep, grid, todo, retries, command, progress)
+    finally:
+        ray.shutdown()

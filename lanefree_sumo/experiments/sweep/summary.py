@@ -1,0 +1,209 @@
+"""A sweep's results: ``summary.csv``, ``summary.md`` and learning curves grouped per paper table.
+
+Definitions (SPEC §8, §10):
+
+* **Per run**: the mean of a metric over its last ``last`` episodes (50, the paper's; all of them
+  when a run has fewer), as :mod:`lanefree_sumo.experiments.report` computes it. Only *complete*
+  runs count (every episode of the budget and ``model.zip``); the others are listed.
+* **Per setting**: the mean of the per-run values, with a 95 % percentile-bootstrap confidence
+  interval over runs (:func:`bootstrap_ci`: 10 000 resamples of the runs with replacement, fixed
+  random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
+  very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
+* **Paper values**: SPEC §10 where the paper has the setting.
+* **Curves**: one PNG per table of the paper and metric (``curves/table7_collisions.png``; settings
+  in no table in ``curves/other_*.png``) drawn by :func:`report.plot_curves` (mean ± std over runs).
+
+Columns of ``summary.csv``: algorithm, reward_preset, density (veh/km), episodes (budget per run),
+n_runs (complete), collisions_mean, collisions_ci95_low, collisions_ci95_high (agent collisions per
+episode), speed_dev_mps_mean, speed_dev_mps_ci95_low, speed_dev_mps_ci95_high (m/s),
+paper_collisions, paper_speed_dev_mps, then runs_planned, seeds, episode_steps, last_episodes,
+reduced_budget, paper_source.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from lanefree_sumo.config import ReportConfig
+from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments.paper import paper_reference
+from lanefree_sumo.experiments.report import CURVE_METRICS, RunData, group_runs, plot_curves, read_run
+from lanefree_sumo.experiments.sweep.grid import Grid, Setting
+from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
+from lanefree_sumo.experiments.sweep.state import COMPLETE, inspect_run
+
+BOOTSTRAP_RESAMPLES = 10_000
+CI_LEVEL = 0.95
+METRICS = ("collisions", "speed_dev_mps")
+COLUMNS = (
+    "algorithm", "reward_preset", "density", "episodes", "n_runs",
+    "collisions_mean", "collisions_ci95_low", "collisions_ci95_high",
+    "speed_dev_mps_mean", "speed_dev_mps_ci95_low", "speed_dev_mps_ci95_high",
+    "paper_collisions", "paper_speed_dev_mps",
+    "runs_planned", "seeds", "episode_steps", "last_episodes", "reduced_budget", "paper_source",
+)
+
+
+def bootstrap_ci(values: Sequence[float], level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
+                 seed: int = 0) -> tuple[float, float]:
+    """Percentile-bootstrap confidence interval of the mean of ``values`` (resampling the values
+    with replacement); (nan, nan) for fewer than 2 values."""
+    x = np.asarray(values, dtype=float)
+    if x.size < 2:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    means = x[rng.integers(0, x.size, size=(resamples, x.size))].mean(axis=1)
+    low, high = np.quantile(means, [(1 - level) / 2, 1 - (1 - level) / 2])
+    return float(low), float(high)
+
+
+@dataclass
+class SweepSummary:
+    table: pd.DataFrame
+    files: list[Path]
+    incomplete: list[tuple[str, str]] = field(default_factory=list)
+    """(run name, state and episodes) of the runs left out."""
+    notes: list[str] = field(default_factory=list)
+
+
+def _key(setting: Setting) -> tuple[str, str, float]:
+    return (setting.algorithm, setting.preset, round(float(setting.density), 6))
+
+
+def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFrame:
+    budget = grid.budget()
+    records = []
+    for setting in grid.settings:
+        runs = groups.get(_key(setting), [])
+        rec: dict[str, Any] = {"algorithm": setting.algorithm, "reward_preset": setting.preset,
+                               "density": setting.density, "episodes": grid.episodes, "n_runs": len(runs)}
+        for metric in METRICS:
+            per_run = [float(r.episodes[metric].tail(last).mean()) for r in runs]
+            low, high = bootstrap_ci(per_run)
+            rec[f"{metric}_mean"] = float(np.mean(per_run)) if per_run else math.nan
+            rec[f"{metric}_ci95_low"], rec[f"{metric}_ci95_high"] = low, high
+        ref = paper_reference(*_key(setting))
+        rec["paper_collisions"] = ref.collisions if ref else math.nan
+        rec["paper_speed_dev_mps"] = ref.speed_dev_mps if ref else math.nan
+        rec.update(runs_planned=len(grid.seeds), seeds=";".join(str(r.seed) for r in runs),
+                   episode_steps=grid.episode_steps, last_episodes=last, reduced_budget=bool(budget["reduced"]),
+                   paper_source=ref.source if ref else "")
+        records.append(rec)
+    return pd.DataFrame.from_records(records, columns=list(COLUMNS))
+
+
+def _cell(row: pd.Series, metric: str, paper_col: str) -> str:
+    mean, low, high, paper = (row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"],
+                              row[paper_col])
+    if pd.isna(mean):
+        text = "–"
+    elif pd.isna(low):
+        text = f"{mean:.3f} [n/a]"
+    else:
+        text = f"{mean:.3f} [{low:.3f}, {high:.3f}]"
+    if not pd.isna(paper):
+        text += f" (paper {paper:g})"
+    return text
+
+
+def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Path]], out: Path,
+                     incomplete: Sequence[tuple[str, str]], notes: Sequence[str], last: int) -> str:
+    budget = grid.budget()
+    lines = [f"# Sweep `{grid.name}`: summary", ""]
+    if budget["reduced"]:
+        lines += [f"**Reduced budget**: {'; '.join(budget['notes'])}. Not comparable with the paper's numbers.", ""]
+    elif budget["notes"]:
+        lines += [f"Budget differs from the paper's: {'; '.join(budget['notes'])}.", ""]
+    if grid.overrides:
+        lines += [f"Config overrides for every run: `{grid.overrides}`.", ""]
+    lines += [
+        f"Per run: the mean over its last {last} episodes (all of them when it has fewer); only complete runs "
+        f"count. Cell: mean over runs [{CI_LEVEL:.0%} percentile-bootstrap CI over runs, {BOOTSTRAP_RESAMPLES} "
+        "resamples; n/a below 2 runs, too narrow with very few] (paper value, SPEC §10).",
+        "",
+        "| algorithm | reward preset | density (veh/km) | episodes | runs | collisions / episode | "
+        "speed deviation (m/s) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for _, row in table.iterrows():
+        lines.append(f"| {row['algorithm']} | {row['reward_preset']} | {row['density']:g} | {row['episodes']} | "
+                     f"{row['n_runs']}/{row['runs_planned']} | {_cell(row, 'collisions', 'paper_collisions')} | "
+                     f"{_cell(row, 'speed_dev_mps', 'paper_speed_dev_mps')} |")
+    if curves:
+        lines += ["", "## Learning curves", ""]
+        for group, paths in curves.items():
+            links = ", ".join(f"[{p.stem.split('_', 1)[1]}]({p.relative_to(out)})" for p in paths)
+            lines.append(f"- {group}: {links}")
+    if incomplete:
+        lines += ["", f"## Runs not (yet) in the table ({len(incomplete)})", ""]
+        lines += [f"- `runs/{name}`: {state}" for name, state in incomplete]
+    if notes:
+        lines += ["", "## Notes", ""] + [f"- {n}" for n in notes]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(grid: Grid, groups: dict[Any, list[RunData]], folder: Path, smooth: int) -> tuple[dict[str, list[Path]],
+                                                                                             list[str]]:
+    """Curves per paper table (and ``other``); returns {group title: files} and notes."""
+    by_table: dict[str, list[Setting]] = {}
+    for setting in grid.settings:
+        for table in setting.tables or ("other",):
+            by_table.setdefault(f"Table {table}" if table != "other" else "other", []).append(setting)
+    curves: dict[str, list[Path]] = {}
+    for title, settings in by_table.items():
+        subset = {_key(s): groups[_key(s)] for s in settings if groups.get(_key(s))}
+        if not subset:
+            continue
+        stem = title.lower().replace(" ", "")
+        folder.mkdir(parents=True, exist_ok=True)
+        for column, name, ylabel in CURVE_METRICS:
+            path = folder / f"{stem}_{name.removeprefix('curves_')}"
+            try:
+                plot_curves(subset, column, ylabel, path, smooth)
+            except ReportError as exc:
+                return curves, [f"learning curves skipped: {exc}"]
+            curves.setdefault(title, []).append(path)
+    return curves, []
+
+
+def summarize(folder: Path, last: int | None = None, smooth: int | None = None) -> SweepSummary:
+    """Write ``summary.csv``, ``summary.md`` and ``curves/`` of sweep folder ``folder`` from its
+    complete runs (any time: during, after or without a driver)."""
+    defaults = ReportConfig()
+    last = defaults.last_episodes if last is None else last
+    smooth = defaults.smooth_episodes if smooth is None else smooth
+    sweep = SweepDir(folder)
+    grid = read_manifest(folder).grid
+    runs: list[RunData] = []
+    incomplete: list[tuple[str, str]] = []
+    notes: list[str] = []
+    for cell in grid.cells():
+        path = sweep.run(cell)
+        info = inspect_run(path, grid.episodes)
+        if info.state != COMPLETE:
+            incomplete.append((cell.name, f"{info.state}, {info.episodes}/{grid.episodes} episodes"))
+            continue
+        try:
+            runs.append(read_run(path))
+        except Exception as exc:  # report's reader explains why a run is unusable
+            incomplete.append((cell.name, f"unusable: {' '.join(str(exc).split())}"))
+    if grid.episodes < last:
+        notes.append(f"runs have {grid.episodes} episodes (< {last}); each run's mean uses all of them")
+    groups = group_runs(runs)
+    table = _rows(grid, groups, last)
+    try:
+        curves, plot_notes = _plot(grid, groups, sweep.curves, smooth)
+        table.to_csv(sweep.summary_csv, index=False)
+        write_atomic(sweep.summary_md, summary_markdown(grid, table, curves, folder, incomplete,
+                                                        notes + plot_notes, last))
+    except OSError as exc:
+        raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
+    files = [p for paths in curves.values() for p in paths] + [sweep.summary_csv, sweep.summary_md]
+    return SweepSummary(table, files, incomplete, notes + plot_notes)

@@ -1,0 +1,465 @@
+"""``lanefree sweep``: grids, manifest, run states, bootstrap CIs and summaries (fast, no Ray), and
+real sweeps on Ray (slow): a tiny grid on the embedded Ray and its no-op rerun, the same grid on a
+two-node Ray cluster on 127.0.0.1, and a worker killed mid-run plus Ctrl-C and --resume.
+
+Every Ray process binds to 127.0.0.1 only; the cluster test starts its own head and worker node
+(own ports, own temp dirs), checks that none of their processes listens elsewhere, and stops them
+by process id.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import ipaddress
+import json
+import os
+import re
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lanefree_sumo.cli import main
+from lanefree_sumo.errors import ConfigError, RunError, UsageError
+from lanefree_sumo.experiments.rundir import write_config
+from lanefree_sumo.experiments.sweep.command import plan, status_text
+from lanefree_sumo.experiments.sweep.grid import Cell, builtin_grid, load_grid, parse_grid
+from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
+from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
+from lanefree_sumo.experiments.sweep.summary import COLUMNS, bootstrap_ci, summarize
+from lanefree_sumo.experiments.train import EPISODE_COLUMNS
+
+from conftest import CLI_ENV, lanefree, lanefree_popen
+
+TINY = {"reward_presets": ["collision", "fields_collision"], "n_seeds": 2, "episodes": 2,
+        "overrides": {"sim": {"episode_steps": 40}, "train": {"checkpoint_every_episodes": 1}}}
+"""2 presets × 2 seeds × 2 episodes of 40 steps: the smallest grid that still has CIs."""
+
+
+def write_grid(path: Path, data: dict) -> Path:
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def episodes_of(csv_path: Path) -> list[int]:
+    if not csv_path.exists():
+        return []
+    with open(csv_path, newline="") as fh:
+        return [int(r["episode"]) for r in csv.DictReader(fh) if (r.get("episode") or "").isdigit()]
+
+
+def fake_run(folder: Path, grid, cell: Cell, episodes: int, collisions: float = 1.0, model: bool = True,
+             checkpoint: int | None = None, extra_rows: list[int] | None = None) -> None:
+    """A run folder as train() leaves it, without training: config, episodes.csv, checkpoint, model."""
+    folder.mkdir(parents=True)
+    write_config(folder, grid.config(cell))
+    with open(folder / "episodes.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=EPISODE_COLUMNS, extrasaction="ignore", restval="0")
+        writer.writeheader()
+        for e in list(range(1, episodes + 1)) + (extra_rows or []):
+            writer.writerow({"episode": e, "return": 1.0, "collisions": collisions, "speed_dev_mps": collisions / 2,
+                             "overtakes": 0})
+    if checkpoint is not None:
+        ckpt = folder / "checkpoints" / f"ep_{checkpoint:05d}"
+        ckpt.mkdir(parents=True)
+        (ckpt / "model.zip").write_bytes(b"model")
+        (ckpt / "state.json").write_text(json.dumps({"episodes": checkpoint, "timesteps": 40 * checkpoint}))
+    if model:
+        (folder / "model.zip").write_bytes(b"model")
+
+
+# -- grids ----------------------------------------------------------------------------------------
+
+def test_builtin_grids_are_the_papers_tables():
+    assert [len(builtin_grid(f"table{t}").settings) for t in (5, 6, 7, 8)] == [5, 3, 6, 5]
+    paper = builtin_grid("paper")
+    assert len(paper.settings) == 15 and len(set(paper.settings)) == 15  # the union, each setting once
+    assert len(paper.cells()) == 150 and paper.episodes == 625 and paper.seeds == tuple(range(10))
+    assert not paper.budget()["reduced"] and all(s.tables for s in paper.settings)
+    t7 = builtin_grid("table7")
+    assert sorted({s.density for s in t7.settings}) == [70.0, 90.0, 120.0]
+    assert t7.cells()[0].name == "ddpg_fields_zones_overtake_collision_d70_s0"
+    assert {s.algorithm for s in builtin_grid("table8").settings} == {"ddpg", "dqn", "ddqn", "dueling", "per"}
+
+
+def test_yaml_grid_and_budget_overrides(tmp_path):
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {**TINY, "densities": [70, 90]}))
+    assert grid.name == "g" and len(grid.settings) == 4 and grid.seeds == (0, 1)
+    assert [c.name for c in grid.cells()][:2] == ["ddpg_collision_d70_s0", "ddpg_collision_d90_s0"]
+    cfg = grid.config(grid.cells()[-1])
+    assert (cfg.seed, cfg.reward.preset, cfg.scenario.density_veh_per_km, cfg.train.episodes,
+            cfg.sim.episode_steps) == (1, "fields_collision", 90.0, 2, 40)
+    smaller = builtin_grid("table7").with_budget(seeds=3, episodes=100, episode_steps=200)
+    budget = smaller.budget()
+    assert budget["reduced"] and smaller.seeds == (0, 1, 2) and smaller.episode_steps == 200
+    assert any("100 episodes" in n for n in budget["notes"]) and any("3 seed" in n for n in budget["notes"])
+
+
+@pytest.mark.parametrize(("data", "named"), [
+    ({**TINY, "seed": [1]}, "'seed'"),
+    ({**TINY, "algorithms": ["dqnn"]}, "algorithms: 'dqnn'"),
+    ({**TINY, "reward_presets": ["collisions"]}, "reward_presets: 'collisions'"),
+    ({**TINY, "densities": [0]}, "densities"),
+    ({**TINY, "densities": [1000]}, "d1000"),
+    ({**TINY, "seeds": [0, 0]}, "seeds"),
+    ({**TINY, "seeds": [0, 1]}, "either 'seeds' or 'n_seeds'"),
+    ({**TINY, "episodes": 0}, "episodes"),
+    ({**TINY, "overrides": {"seed": 3}}, "overrides.seed"),
+    ({**TINY, "overrides": {"train": {"episodes": 3}}}, "overrides.train.episodes"),
+    ({**TINY, "overrides": {"sim": {"episode_stepz": 3}}}, "sim.episode_stepz"),
+    ({"algorithms": ["ddpg"]}, "'reward_presets' is missing"),
+    ([1, 2], "expected a mapping"),
+])
+def test_bad_grids_are_one_line_errors_naming_the_key(data, named):
+    with pytest.raises(ConfigError) as err:
+        parse_grid(data, "bad", "bad.yaml")
+    assert named in str(err.value) and "\n" not in str(err.value) and "bad.yaml" in str(err.value)
+
+
+def test_cli_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    bad = write_grid(tmp_path / "bad.yaml", {**TINY, "densities": [1000]})
+    for argv in (["sweep", "nosuch", "--out", str(out)], ["sweep", str(bad), "--out", str(out)],
+                 ["sweep"], ["sweep", "table5", "--resume", str(out)], ["sweep", "table5", "--seeds", "0"],
+                 ["sweep", "table5", "--out", str(out), "--address", "nonsense"],
+                 ["sweep", "table5", "--out", str(out), "--workers", "2", "--address", "127.0.0.1:6379"],
+                 ["sweep", "table5", "--out", str(out), "--address", f"127.0.0.1:{free_port()}"],
+                 ["sweep", "--status", str(out)], ["sweep", "--resume", str(out), "--episodes", "3"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("lanefree: error: ") and err.count("\n") == 1, (argv, err)
+    assert not out.exists()
+
+
+# -- manifest and run states ----------------------------------------------------------------------
+
+def test_manifest_roundtrip_and_another_grid_is_refused(tmp_path):
+    grid = parse_grid(TINY, "tiny", "tiny.yaml")
+    manifest = Manifest(grid, sessions=[{"command": "lanefree sweep tiny.yaml"}])
+    write_manifest(tmp_path, manifest)
+    back = read_manifest(tmp_path)
+    assert back.grid == grid and back.sessions == manifest.sessions
+    saved = yaml.safe_load((tmp_path / "sweep.yaml").read_text())
+    assert saved["budget"]["reduced"] and saved["budget"]["paper_episodes"] == 625 and saved["runs"] == 4
+    check_same_grid(tmp_path, back.grid, grid)
+    with pytest.raises(UsageError, match=r"seeds: \[0, 1\] vs \[0, 1, 2\]"):
+        check_same_grid(tmp_path, back.grid, grid.with_budget(seeds=3))
+    with pytest.raises(UsageError, match="episodes"):
+        plan(tmp_path, grid.with_budget(episodes=5))
+    (tmp_path / "sweep.yaml").write_text("grid: [1\n")
+    with pytest.raises(RunError, match="sweep.yaml is unusable"):
+        read_manifest(tmp_path)
+
+
+def test_run_states_and_adoption_of_existing_run_folders(tmp_path):
+    grid = parse_grid({**TINY, "episodes": 3}, "tiny", "tiny.yaml")
+    sweep = SweepDir(tmp_path)
+    a, b, c, d = grid.cells()
+    fake_run(sweep.run(a), grid, a, 3)                                    # complete
+    fake_run(sweep.run(b), grid, b, 2, model=False, checkpoint=1)         # interrupted: resumable
+    fake_run(sweep.run(c), grid, c, 1, model=False)                       # died before its first checkpoint
+    states = plan(tmp_path, grid)
+    assert [states[x.name].state for x in (a, b, c, d)] == [COMPLETE, PARTIAL, STALE, PENDING]
+    assert states[b.name].episodes == 2 and "episode 1" in states[b.name].detail
+    shutil.rmtree(sweep.run(a))
+    fake_run(sweep.run(a), grid, a, 3, extra_rows=[3])                    # a duplicated episode
+    assert inspect_run(sweep.run(a), 3).state == DAMAGED
+    # a run folder of another config, or with more episodes than the grid's, is refused, naming why
+    other = parse_grid({**TINY, "episodes": 3, "overrides": {**TINY["overrides"], "reward": {"epsilon_r": 0.2}}},
+                       "tiny", "tiny.yaml")
+    with pytest.raises(RunError, match=r"reward\.epsilon_r = 0\.1 in the folder vs 0\.2 in the grid"):
+        plan(tmp_path, other)
+    with pytest.raises(RunError, match="run of 3 episodes but the grid asks for 2"):
+        plan(tmp_path, parse_grid(TINY, "tiny", "tiny.yaml"))
+    # a shorter finished run is extended
+    assert plan(tmp_path, parse_grid({**TINY, "episodes": 5}, "tiny", "tiny.yaml"))[b.name].state == PARTIAL
+    (sweep.run(d)).mkdir(parents=True)
+    (sweep.run(d) / "notes.txt").write_text("mine")
+    with pytest.raises(RunError, match="not a run folder"):
+        plan(tmp_path, grid)
+
+
+def test_a_run_trained_by_another_process_is_left_alone(tmp_path):
+    grid = parse_grid(TINY, "tiny", "tiny.yaml")
+    cell = grid.cells()[0]
+    fake_run(SweepDir(tmp_path).run(cell), grid, cell, 1, model=False, checkpoint=1)
+    csv_path = SweepDir(tmp_path).run(cell) / "episodes.csv"
+    holder = subprocess.Popen([sys.executable, "-c", f"f = open({str(csv_path)!r}, 'a'); print('open', flush=True); "
+                               "import time; time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        info = plan(tmp_path, grid)[cell.name]
+        assert info.state == BUSY and str(holder.pid) in info.detail
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+# -- statistics and summary -----------------------------------------------------------------------
+
+def test_bootstrap_ci():
+    assert all(np.isnan(bootstrap_ci([1.0]))) and all(np.isnan(bootstrap_ci([])))
+    assert bootstrap_ci([0.5, 0.5, 0.5]) == (0.5, 0.5)
+    values = [0.2, 0.4, 0.5, 0.7, 1.1]
+    low, high = bootstrap_ci(values)
+    assert low < np.mean(values) < high and bootstrap_ci(values) == (low, high)  # reproducible
+    assert min(values) <= low and high <= max(values)
+    wide = bootstrap_ci([0.0, 2.0, 0.1, 1.9, 1.0])
+    assert wide[1] - wide[0] > high - low
+    rng = np.random.default_rng(1)
+    covered = sum(lo <= 1.0 <= hi for lo, hi in (bootstrap_ci(rng.normal(1.0, 0.5, 10), resamples=2000, seed=k)
+                                                  for k in range(200)))
+    assert covered >= 170  # ~95 % nominal; percentile bootstrap with n = 10 runs a little under
+
+
+def test_summary_and_status_from_run_folders(tmp_path):
+    grid = parse_grid({"reward_presets": ["fields_collision", "collision"], "n_seeds": 3, "episodes": 60},
+                      "pair", "pair.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    sweep = SweepDir(tmp_path)
+    cells = grid.cells()
+    for cell, collisions in zip(cells, [0.4, 1.2, 0.5, 1.3, 0.6, 1.4]):
+        fake_run(sweep.run(cell), grid, cell, 60, collisions=collisions)
+    shutil.rmtree(sweep.run(cells[-1]))
+    fake_run(sweep.run(cells[-1]), grid, cells[-1], 30, model=False, checkpoint=25)  # not complete: left out
+    result = summarize(tmp_path)
+    table = result.table
+    assert tuple(table.columns) == COLUMNS
+    fc = table.iloc[0]
+    assert (fc["algorithm"], fc["reward_preset"], fc["density"], fc["episodes"], fc["n_runs"]) == \
+        ("ddpg", "fields_collision", 70.0, 60, 3)
+    assert fc["collisions_mean"] == pytest.approx(0.5) and fc["speed_dev_mps_mean"] == pytest.approx(0.25)
+    assert fc["collisions_ci95_low"] == pytest.approx(0.4) and fc["collisions_ci95_high"] == pytest.approx(0.6)
+    assert (fc["paper_collisions"], fc["paper_speed_dev_mps"]) == (0.726, 0.698)
+    assert table.iloc[1]["n_runs"] == 2 and table.iloc[1]["paper_collisions"] == 2.256
+    on_disk = list(csv.DictReader(open(tmp_path / "summary.csv")))
+    assert len(on_disk) == 2 and on_disk[0]["collisions_ci95_low"]
+    md = (tmp_path / "summary.md").read_text()
+    assert "**Reduced budget**" in md and "0.500 [0.400, 0.600] (paper 0.726)" in md
+    assert f"runs/{cells[-1].name}" in md and "2/3" in md
+    assert {p.name for p in (tmp_path / "curves").iterdir()} == {"table5_collisions.png", "table5_return.png",
+                                                                 "table5_speed_dev.png"}
+    status = status_text(tmp_path)
+    assert "5 complete" in status and "1 partial" in status and "REDUCED BUDGET" in status
+    assert "episodes: 330/360" in status and "driver: not running" in status
+
+
+# -- real sweeps on Ray (slow) --------------------------------------------------------------------
+
+def run_logs_nodes(out: Path) -> set[str]:
+    return {m for log in (out / "logs").glob("*.log") for m in re.findall(r" node (\w+)", log.read_text())}
+
+
+def assert_complete(out: Path, grid_episodes: int, runs: int) -> None:
+    folders = sorted((out / "runs").iterdir())
+    assert len(folders) == runs
+    for folder in folders:
+        assert episodes_of(folder / "episodes.csv") == list(range(1, grid_episodes + 1)), folder
+        assert (folder / "model.zip").is_file() and (folder / "config.yaml").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_tiny_grid_on_the_embedded_ray_then_a_rerun_trains_nothing(tmp_path):
+    grid, out = write_grid(tmp_path / "tiny.yaml", TINY), tmp_path / "sweep"
+    done = lanefree("sweep", str(grid), "--out", str(out), "--workers", "2", timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "4/4 runs complete" in done.stdout and "REDUCED BUDGET" in done.stdout
+    assert_complete(out, 2, 4)
+    table = list(csv.DictReader(open(out / "summary.csv")))
+    assert [(r["reward_preset"], r["n_runs"], r["episodes"]) for r in table] == \
+        [("collision", "2", "2"), ("fields_collision", "2", "2")]
+    assert (out / "curves" / "table5_collisions.png").is_file()
+    assert "Reduced budget" in (out / "summary.md").read_text()
+    before = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()}
+    again = lanefree("sweep", str(grid), "--out", str(out), timeout=120)
+    assert again.returncode == 0, again.stderr
+    assert "4 complete" in again.stdout and "nothing to train" in again.stdout
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()} == before
+    assert len(read_manifest(out).sessions) == 2
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_a_killed_worker_is_retried_and_ctrl_c_then_resume_finish_every_run_exactly(tmp_path):
+    """A worker SIGKILLed after its first checkpoint: Ray retries the task, which resumes from the
+    checkpoint. Then Ctrl-C on the driver stops the run with a checkpoint (exit 130), and --resume
+    finishes it. The CSV holds episodes 1 … N exactly once."""
+    grid = write_grid(tmp_path / "kill.yaml", {
+        "reward_presets": ["fields_zones_overtake_collision"], "seeds": [0], "episodes": 8,
+        "overrides": {"sim": {"episode_steps": 150},
+                      "train": {"checkpoint_every_episodes": 1, "actor_critic": {"learning_starts_steps": 50}}}})
+    out = tmp_path / "sweep"
+    sweep = SweepDir(out)
+    name = "ddpg_fields_zones_overtake_collision_d70_s0"
+    ckpts = sweep.run(name) / "checkpoints"
+    proc = lanefree_popen("sweep", str(grid), "--out", str(out), "--workers", "1", "--no-progress")
+    try:
+        deadline = time.time() + 300
+        while not (ckpts / "ep_00001" / "state.json").exists():
+            assert time.time() < deadline and proc.poll() is None, "no first checkpoint"
+            time.sleep(0.2)
+        victim = json.loads(sweep.heartbeat(name).read_text())["pid"]
+        os.kill(victim, signal.SIGKILL)
+        while not (sweep.heartbeat(name).exists() and json.loads(sweep.heartbeat(name).read_text())["pid"] != victim
+                   and len(episodes_of(sweep.run(name) / "episodes.csv")) >= 3):
+            assert time.time() < deadline and proc.poll() is None, "the killed run was not resumed"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "--resume" in err and "Traceback" not in err
+    stopped = episodes_of(sweep.run(name) / "episodes.csv")
+    assert 3 <= len(stopped) < 8 and stopped == list(range(1, len(stopped) + 1))
+    assert json.loads((sweep.run(name) / "last_session.json").read_text())["stopped_by"] == "SIGINT"
+    log = sweep.log(name).read_text()
+    assert log.count(f"run {name} on host") == 2 and "resumable from episode" in log
+
+    resumed = lanefree("sweep", "--resume", str(out), "--no-progress", timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert_complete(out, 8, 1)
+    assert len((sweep.run(name) / "command.txt").read_text().splitlines()) == 3
+
+
+# -- a two-node Ray cluster on 127.0.0.1 ----------------------------------------------------------
+
+RAY_START = ("import sys; import ray._private.services as s; s.resolve_ip_for_localhost = lambda host: host; "
+             "from ray.scripts.scripts import main; sys.exit(main())")
+"""``ray start ARGS`` exactly, except that Ray keeps 127.0.0.1 in --address and --node-ip-address as
+it is: by default it swaps the loopback address for the host's outward one (and refuses a worker
+node when told to stay on loopback), which would take the cluster off 127.0.0.1."""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def descendants(pids: set[int]) -> set[int]:
+    found, parents = set(pids), {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            parents[int(stat.parent.name)] = int(fields[1])
+        except (OSError, IndexError, ValueError):
+            continue
+    changed = True
+    while changed:
+        new = {pid for pid, ppid in parents.items() if ppid in found} - found
+        found |= new
+        changed = bool(new)
+    return found
+
+
+def listening_addresses(pids: set[int]) -> set[str]:
+    """Local addresses of the TCP sockets that processes ``pids`` listen on (from /proc/net)."""
+    inodes = set()
+    for pid in pids:
+        for fd in Path(f"/proc/{pid}/fd").glob("*"):
+            try:
+                target = os.readlink(fd)
+            except OSError:
+                continue
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            parts = line.split()
+            if parts[3] == "0A" and parts[9] in inodes:  # LISTEN
+                hexaddr = parts[1].split(":")[0]
+                raw = bytes.fromhex(hexaddr)
+                words = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))  # /proc stores host order
+                found.add(str(ipaddress.ip_address(words)))
+    return found
+
+
+def is_loopback(address: str) -> bool:
+    ip = ipaddress.ip_address(address)
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return (mapped or ip).is_loopback
+
+
+@pytest.fixture
+def ray_cluster() -> Iterator[tuple[str, dict[str, str]]]:
+    """A head and a worker node (1 CPU each) on 127.0.0.1, own ports and temp dirs; yields the
+    address and the environment to reach it; stops both by process id."""
+    temp = Path(tempfile.mkdtemp(prefix="lfr-", dir="/tmp"))  # short: Ray's socket paths must fit 107 chars
+    env = {**CLI_ENV, "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token",
+           "RAY_AUTH_TOKEN": secrets.token_hex(16)}
+    env.pop("RAY_ADDRESS", None)
+    port = free_port()
+    address = f"127.0.0.1:{port}"
+    common = ["--block", "--node-ip-address", "127.0.0.1", "--num-cpus", "1", "--disable-usage-stats"]
+    nodes: list[subprocess.Popen] = []
+    try:
+        nodes.append(subprocess.Popen(
+            [sys.executable, "-c", RAY_START, "start", "--head", "--port", str(port), "--temp-dir", str(temp / "h"),
+             "--include-dashboard", "false", *common], env=env, stdout=open(temp / "head.log", "w"),
+            stderr=subprocess.STDOUT))
+        wait_for_nodes(address, env, 1, nodes)
+        nodes.append(subprocess.Popen(
+            [sys.executable, "-c", RAY_START, "start", "--address", address, "--temp-dir", str(temp / "w"), *common],
+            env=env, stdout=open(temp / "worker.log", "w"), stderr=subprocess.STDOUT))
+        wait_for_nodes(address, env, 2, nodes)
+        outside = {a for a in listening_addresses(descendants({p.pid for p in nodes})) if not is_loopback(a)}
+        assert not outside, f"Ray listens on {outside}"
+        yield address, env
+    finally:
+        for node in reversed(nodes):
+            node.terminate()  # `ray start --block` stops its node's processes on SIGTERM
+        for node in reversed(nodes):
+            try:
+                node.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                node.kill()
+        for pid in [int(p.name) for p in Path("/proc").glob("[0-9]*")]:  # anything of ours still alive
+            if str(temp) in _cmdline(pid):
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGKILL)
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def wait_for_nodes(address: str, env: dict[str, str], count: int, nodes: list[subprocess.Popen]) -> None:
+    probe = ("import ray, sys, time; ray.init(address=sys.argv[1], log_to_driver=False, logging_level='ERROR')\n"
+             "while sum(n['Alive'] for n in ray.nodes()) < int(sys.argv[2]): time.sleep(0.5)")
+    wait = subprocess.run([sys.executable, "-c", probe, address, str(count)], timeout=180, capture_output=True,
+                          text=True, env={**env, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"})
+    assert wait.returncode == 0 and all(n.poll() is None for n in nodes), wait.stderr[-2000:]
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_tiny_grid_on_a_two_node_ray_cluster(tmp_path, ray_cluster):
+    address, env = ray_cluster
+    grid, out = write_grid(tmp_path / "tiny.yaml", {**TINY, "episodes": 1}), tmp_path / "sweep"
+    done = subprocess.run([sys.executable, "-m", "lanefree_sumo.cli", "sweep", str(grid), "--out", str(out),
+                           "--address", address, "--no-progress"], capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert f"Ray cluster at {address}" in done.stdout and "4/4 runs complete" in done.stdout
+    assert_complete(out, 1, 4)
+    assert len(run_logs_nodes(out)) == 2  # both nodes trained runs
+    assert read_manifest(out).sessions[0]["ray"] == f"Ray cluster at {address}"
