@@ -18,7 +18,7 @@ TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENS
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv system-deps test test-fast lint train evaluate replay report simulate nets bench traffic clean-venv
+.PHONY: venv system-deps test test-fast lint train sweep evaluate replay report simulate nets bench traffic clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -69,6 +69,12 @@ nets: system-deps $(STAMP)
 
 bench: system-deps $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.bench
+
+# make sweep GRID=table7 [OUT=runs/sweep_table7] [SEEDS=3] [EPISODES=625] [WORKERS=2] [ADDRESS=host:6379]
+sweep: system-deps $(STAMP)
+	@test -n "$(GRID)" || { echo "usage: make sweep GRID=table5|table6|table7|table8|paper|FILE.yaml [OUT=DIR] [SEEDS=N] [EPISODES=N] [WORKERS=N] [ADDRESS=HOST:PORT]"; exit 2; }
+	$(BIN)/lanefree sweep $(GRID) $(call opt,OUT,--out) $(call opt,SEEDS,--seeds) $(call opt,EPISODES,--episodes) \
+		$(call opt,WORKERS,--workers) $(call opt,ADDRESS,--address)
 
 clean-venv:
 	rm -rf $(VENV)
