@@ -81,3 +81,14 @@ def _sb3_logs_in_the_test_tmp(tmp_path_factory) -> Iterator[None]:
         os.environ.pop("SB3_LOGDIR", None)
     else:
         os.environ["SB3_LOGDIR"] = old
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread() -> Iterator[None]:
+    """Tiny networks: one intra-op thread is much faster (and avoids contention on shared CPUs)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

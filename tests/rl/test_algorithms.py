@@ -33,13 +33,7 @@ from lanefree_sumo.rl.algorithms.segment_tree import MinTree, SumTree
 ALPHA, EPS = 0.6, 1e-6
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_torch_thread():
-    """Tiny networks: one intra-op thread is much faster (and avoids contention on shared CPUs)."""
-    n = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ---------------------------------------------------------------------------

@@ -29,12 +29,7 @@ OBS, ACT, STEPS, BATCH = 24, 2, 50, 64
 """LaneFree-v0's vector observation and action sizes; the paper's batch."""
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_torch_thread():
-    n = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class ToyEnv(gym.Env):
