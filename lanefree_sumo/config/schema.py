@@ -201,6 +201,10 @@ class RewardConfig:
     """Broad-region longitudinal stretch per m/s of closing speed (s/m)."""
     e_v_s_per_m: float = 0.4
     """Broad-region lateral stretch per m/s of lateral closing speed (s/m)."""
+    broad_stretch: Literal["closing", "absolute"] = "closing"
+    """What stretches the broad region: ``closing`` (default) the closing speeds only (a receding
+    neighbour does not stretch it), ``absolute`` any speed difference |Δvx|, |Δvy| — the other
+    reading of the paper's undefined k_r, e_v (issue 9's controlled runs compare the two)."""
     zone_time_gap_s: float = 0.7
     """t_g: zones scan d_o = vx · t_g ahead (s)."""
     zone_margin_m: float = 0.1

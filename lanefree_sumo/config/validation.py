@@ -44,7 +44,7 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
     return dataclasses.replace(base, **changes)
 
 
-ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner")
+ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner", "reward.broad_stretch")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 

@@ -73,6 +73,7 @@ def field_cost(
     broad_exponents: tuple[float, float, float] = _DEFAULTS.broad_exponents,
     k_r: float = _DEFAULTS.k_r_s_per_m,
     e_v: float = _DEFAULTS.e_v_s_per_m,
+    stretch: str = _DEFAULTS.broad_stretch,
 ) -> float:
     """Potential-field cost ``c_f = min(1, Σ_j (E_c,j + E_b,j))`` over the given neighbours (–).
 
@@ -85,7 +86,8 @@ def field_cost(
     ``ux = max(0, sign(dx)·dvx)``, ``uy = max(0, sign(dy)·dvy)`` (m/s):
     ``a_b = a_c·(1 + k_r·ux)``, ``b_b = b_c·(1 + e_v·uy)``.  A positive ``sign(dx)·dvx`` means
     the gap closes (agent faster than a vehicle ahead, or slower than one behind); a receding or
-    exactly aligned (dx = 0) neighbour does not stretch the region.  Both regions peak at
+    exactly aligned (dx = 0) neighbour does not stretch the region.  ``stretch="absolute"`` uses
+    ``ux = |dvx|``, ``uy = |dvy|`` instead (any speed difference stretches).  Both regions peak at
     ``magnitude`` (m_f = 0.5).
 
     k_r (s/m) and e_v (s/m) are THE PROJECT'S INTERPRETATION: the paper lists k_r = 0.5 and
@@ -104,8 +106,13 @@ def field_cost(
     b_c = 0.5 * (agent_wid + wids_)
     rx = np.abs(dx_) / a_c
     ry = np.abs(dy_) / b_c
-    ux = np.maximum(0.0, np.sign(dx_) * dvx_)
-    uy = np.maximum(0.0, np.sign(dy_) * dvy_)
+    if stretch == "absolute":
+        ux, uy = np.abs(dvx_), np.abs(dvy_)
+    elif stretch == "closing":
+        ux = np.maximum(0.0, np.sign(dx_) * dvx_)
+        uy = np.maximum(0.0, np.sign(dy_) * dvy_)
+    else:
+        raise ValueError(f"stretch must be 'closing' or 'absolute', got {stretch!r}")
     pcx, pcy, pct = critical_exponents
     pbx, pby, pbt = broad_exponents
     # the ellipsoid() formula, on |dx|/a and |dy|/b computed once

@@ -277,6 +277,7 @@ def compute_reward(
         lens_[sel], wids_[sel],
         magnitude=cfg.field_magnitude, critical_exponents=cfg.critical_exponents,
         broad_exponents=cfg.broad_exponents, k_r=cfg.k_r_s_per_m, e_v=cfg.e_v_s_per_m,
+        stretch=cfg.broad_stretch,
     )
 
     if collided is None:

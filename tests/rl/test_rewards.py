@@ -108,6 +108,18 @@ def test_field_cost_approaching_vs_receding():
     assert behind_open == pytest.approx(still)
 
 
+def test_field_cost_absolute_stretch_ignores_direction():
+    # stretch="absolute": a receding neighbour (agent 4 m/s slower than the one ahead) stretches the
+    # broad region exactly like a closing one: a_b = 3.35 * (1 + 0.5*4) = 10.05
+    args = (A_LEN, A_WID, _one(B_LEN), _one(B_WID))
+    closing = field_cost(_one(5.0), _one(0.0), _one(4.0), _one(0.0), *args)
+    receding = field_cost(_one(5.0), _one(0.0), _one(-4.0), _one(0.0), *args, stretch="absolute")
+    assert receding == pytest.approx(closing)
+    assert receding > field_cost(_one(5.0), _one(0.0), _one(-4.0), _one(0.0), *args) + 0.1
+    with pytest.raises(ValueError, match="stretch"):
+        field_cost(_one(5.0), _one(0.0), _one(0.0), _one(0.0), *args, stretch="signed")
+
+
 def test_field_cost_lateral_closing_speed():
     # neighbour 2 m to the left (dy > 0), agent drifting left 1 m/s faster: uy = 1,
     # b_b = 1.7 * (1 + 0.4*1) = 2.38; dx = 0 so the x terms vanish
