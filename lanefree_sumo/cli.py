@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shlex
 import shutil
 import sys
@@ -20,16 +19,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from lanefree_sumo import argtypes
 from lanefree_sumo.config import (
     BACKENDS,
     OBSERVATION_KINDS,
-    ConfigError,
     EvaluationConfig,
     LaneFreeConfig,
     ReplayConfig,
     ReportConfig,
     merge_config,
-    validate_density,
 )
 from lanefree_sumo.errors import LaneFreeError, UsageError
 from lanefree_sumo.experiments import rollout
@@ -59,46 +57,6 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
 
 
-def _density(text: str) -> float:
-    try:
-        return validate_density(text)
-    except ConfigError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive(kind: type, unit: str):
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number in {unit}, got {text!r}") from None
-        if not (isinstance(value, int) or math.isfinite(value)) or value <= 0:
-            raise argparse.ArgumentTypeError(f"expected a positive number in {unit}, got {text!r}")
-        return value
-
-    return parse
-
-
-def _nonnegative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in s, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative number in s, got {text!r}")
-    return value
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels, e.g. 1024x768, got {text!r}") from None
-    if w < 16 or h < 16:
-        raise argparse.ArgumentTypeError(f"size must be at least 16x16 pixels, got {text!r}")
-    return w, h
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="lanefree", description="Deep RL in lane-free traffic on Eclipse SUMO.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -112,9 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     density = DEFAULTS.scenario.density_veh_per_km
     episode_s = DEFAULTS.sim.episode_steps * DEFAULTS.sim.step_s
-    sim.add_argument("--density", type=_density, default=density,
+    sim.add_argument("--density", type=argtypes.density, default=density,
                      help=f"background density in veh/km (default {density:g})")
-    sim.add_argument("--seconds", type=_positive(float, "s"), default=episode_s,
+    sim.add_argument("--seconds", type=argtypes.positive(float, "s"), default=episode_s,
                      help=f"simulated time in s (default {episode_s:g} = {DEFAULTS.sim.episode_steps} steps of "
                      f"{DEFAULTS.sim.step_s:g} s)")
     sim.add_argument("--seed", type=int, default=DEFAULTS.seed,
@@ -129,9 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--nudging", action="store_true", help="switch on nudging by vehicles behind (off in the paper)")
     sim.add_argument("--net", type=Path, default=None,
                      help="SUMO network file (default: the committed 500 m × 10.2 m ring)")
-    sim.add_argument("--length", type=_positive(float, "m"), default=None,
+    sim.add_argument("--length", type=argtypes.positive(float, "m"), default=None,
                      help=f"ring length in m (default {DEFAULTS.road.length_m:g})")
-    sim.add_argument("--width", type=_positive(float, "m"), default=None,
+    sim.add_argument("--width", type=argtypes.positive(float, "m"), default=None,
                      help=f"road width in m (default {DEFAULTS.road.width_m:g})")
     sim.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout's last line")
     sim.add_argument("--no-trajectory", action="store_true", help="skip the per-step trajectory CSV")
@@ -149,9 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"algorithm (default {t.algo}): {algorithms_help()}")
     tr.add_argument("--reward", choices=tuple(PRESETS), default=DEFAULTS.reward.preset,
                     help=f"reward preset of SPEC §7 (default {DEFAULTS.reward.preset})")
-    tr.add_argument("--density", type=_density, default=density,
+    tr.add_argument("--density", type=argtypes.density, default=density,
                     help=f"background density in veh/km (default {density:g})")
-    tr.add_argument("--episodes", type=_positive(int, "episodes"), default=t.episodes,
+    tr.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=t.episodes,
                     help=f"training episodes of {DEFAULTS.sim.episode_steps} steps = {episode_s:g} s each "
                     f"(default {t.episodes})")
     tr.add_argument("--seed", type=int, default=DEFAULTS.seed,
@@ -163,12 +121,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="set encoder, only with --obs set: small = the project's d1 = d2 = 8 (64 features); "
                     "paper = Liu et al. Table 1 (f1, f2 5x256 ReLU, mean over one axis, 256x256 ReLU feature "
                     f"layer) (default {DEFAULTS.observation.encoder})")
-    tr.add_argument("--envs", type=_positive(int, "processes"), default=t.envs,
+    tr.add_argument("--envs", type=argtypes.positive(int, "processes"), default=t.envs,
                     help=f"parallel environments, one process each (default {t.envs})")
-    tr.add_argument("--episode-steps", type=_positive(int, "steps"), default=DEFAULTS.sim.episode_steps,
+    tr.add_argument("--episode-steps", type=argtypes.positive(int, "steps"), default=DEFAULTS.sim.episode_steps,
                     help=f"steps of {DEFAULTS.sim.step_s:g} s per episode (default {DEFAULTS.sim.episode_steps} = "
                     f"{episode_s:g} s, the paper's)")
-    tr.add_argument("--checkpoint-every", type=_positive(int, "episodes"), default=t.checkpoint_every_episodes,
+    tr.add_argument("--checkpoint-every", type=argtypes.positive(int, "episodes"), default=t.checkpoint_every_episodes,
                     help=f"save a checkpoint every K episodes (default {t.checkpoint_every_episodes})")
     tr.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>_...)")
     tr.add_argument("--resume", type=Path, default=None, metavar="RUN",
@@ -186,9 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
         "(RUN/eval_d<density>/ at another density) and, with --record, one trajectory CSV of all vehicles per episode.",
     )
     ev.add_argument("run", type=Path, metavar="RUN", help="run folder made by 'lanefree train'")
-    ev.add_argument("--episodes", type=_positive(int, "episodes"), default=EVAL.episodes,
+    ev.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVAL.episodes,
                     help=f"episodes (default {EVAL.episodes})")
-    ev.add_argument("--density", type=_density, default=None, help="veh/km (default: the training density)")
+    ev.add_argument("--density", type=argtypes.density, default=None, help="veh/km (default: the training density)")
     ev.add_argument("--seed", type=int, default=None,
                     help=f"base seed; episode k uses seed+{EVAL.seed_offset}+k (default: the training seed)")
     ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
@@ -208,19 +166,21 @@ def build_parser() -> argparse.ArgumentParser:
         "overlapping vehicles red. Prints the largest deviation between SUMO and the recording.",
     )
     rp.add_argument("run", type=Path, metavar="RUN", help="run folder (or its eval folder) with a recording")
-    rp.add_argument("--episode", type=_positive(int, "episodes"), default=1, help="recorded episode number (default 1)")
-    rp.add_argument("--delay", type=_nonnegative, default=REPLAY.delay_s,
+    rp.add_argument("--episode", type=argtypes.positive(int, "episodes"), default=1,
+                    help="recorded episode number (default 1)")
+    rp.add_argument("--delay", type=argtypes.nonnegative(float, "s"), default=REPLAY.delay_s,
                     help=f"wall-clock delay per step in s (default {REPLAY.delay_s:g})")
     rp.add_argument("--screenshot", type=Path, default=None, help="save a PNG of the view at --screenshot-step")
-    rp.add_argument("--screenshot-step", type=_positive(int, "steps"), default=None,
+    rp.add_argument("--screenshot-step", type=argtypes.positive(int, "steps"), default=None,
                     help="step of the screenshot (default: the last)")
     rp.add_argument("--frames", type=Path, default=None, help="folder for one PNG per --every steps")
-    rp.add_argument("--every", type=_positive(int, "steps"), default=1, help="frame interval in steps (default 1)")
+    rp.add_argument("--every", type=argtypes.positive(int, "steps"), default=1,
+                    help="frame interval in steps (default 1)")
     rp.add_argument("--gif", type=Path, default=None, help="write an animated GIF of the frames")
     size = "x".join(map(str, REPLAY.size_px))
-    rp.add_argument("--size", type=_size, default=REPLAY.size_px,
+    rp.add_argument("--size", type=argtypes.size, default=REPLAY.size_px,
                     help=f"view size WIDTHxHEIGHT in pixels (default {size})")
-    rp.add_argument("--zoom", type=_positive(float, "%"), default=REPLAY.zoom_percent,
+    rp.add_argument("--zoom", type=argtypes.positive(float, "%"), default=REPLAY.zoom_percent,
                     help=f"view zoom in %% (default {REPLAY.zoom_percent:g})")
     rp.add_argument("--no-gui", action="store_true", help="replay without a window (with --fcd: export only)")
     rp.add_argument("--fcd", type=Path, default=None, help="also write SUMO FCD XML (with posLat) of the replay")
@@ -232,7 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
         "type, speed, pos, lane, posLat) into --out, by replaying it headless in SUMO.",
     )
     ex.add_argument("run", type=Path, metavar="RUN", help="run folder (or its eval folder) with a recording")
-    ex.add_argument("--episode", type=_positive(int, "episodes"), default=1, help="recorded episode (default 1)")
+    ex.add_argument("--episode", type=argtypes.positive(int, "episodes"), default=1,
+                    help="recorded episode (default 1)")
     ex.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval/export)")
     ex.add_argument("--overwrite", action="store_true", help="replace existing export files")
 
@@ -242,14 +203,16 @@ def build_parser() -> argparse.ArgumentParser:
         description="Group run folders by (algorithm, reward preset, density), average the seeds, and write "
         "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
         "and a table of last-50-episode means ± std with the paper's numbers (SPEC §10) as summary.csv and "
-        "summary.md. Unusable runs are named and skipped.",
+        "summary.md. Unusable runs are named and skipped. Given a sweep folder (one with sweep.yaml), writes the "
+        "sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over seeds, as 'lanefree sweep'.",
     )
-    rep.add_argument("runs", type=Path, nargs="+", metavar="RUN", help="run folders made by 'lanefree train'")
+    rep.add_argument("runs", type=Path, nargs="+", metavar="RUN",
+                     help="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep'")
     rep.add_argument("--out", type=Path, default=Path("runs/report"), help="output folder (default runs/report)")
-    rep.add_argument("--last", type=_positive(int, "episodes"), default=REPORT.last_episodes,
+    rep.add_argument("--last", type=argtypes.positive(int, "episodes"), default=REPORT.last_episodes,
                      help=f"episodes at the end of each run averaged in the table (default {REPORT.last_episodes}, "
                      "as the paper)")
-    rep.add_argument("--smooth", type=_positive(int, "episodes"), default=REPORT.smooth_episodes,
+    rep.add_argument("--smooth", type=argtypes.positive(int, "episodes"), default=REPORT.smooth_episodes,
                      help="trailing moving-average window of the curves in episodes "
                      f"(default {REPORT.smooth_episodes})")
 
@@ -260,9 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="build a ring network with netconvert",
         description="Write plain node/edge files of a one-lane ring and build the SUMO network with netconvert.",
     )
-    net.add_argument("--length", type=_positive(float, "m"), default=DEFAULTS.road.length_m,
+    net.add_argument("--length", type=argtypes.positive(float, "m"), default=DEFAULTS.road.length_m,
                      help=f"centre-line length in m (default {DEFAULTS.road.length_m:g})")
-    net.add_argument("--width", type=_positive(float, "m"), default=DEFAULTS.road.width_m,
+    net.add_argument("--width", type=argtypes.positive(float, "m"), default=DEFAULTS.road.width_m,
                      help=f"road (lane) width in m (default {DEFAULTS.road.width_m:g})")
     net.add_argument("--out-dir", type=Path, default=None, help="folder for the files (default sumo_nets/)")
     return parser
@@ -387,7 +350,11 @@ def _export(args: argparse.Namespace) -> int:
 
 def _report(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.report import report
+    from lanefree_sumo.experiments.sweep.manifest import MANIFEST
 
+    sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
+    if sweeps:
+        return _report_sweep(args, sweeps)
     result = report(args.runs, args.out, last=args.last, smooth=args.smooth)
     for path, reason in result.skipped:
         print(f"skipped {path}: {reason}", file=sys.stderr)
@@ -395,6 +362,24 @@ def _report(args: argparse.Namespace) -> int:
         print(f"note: {note}", file=sys.stderr)
     print(f"{len(result.table)} group(s) -> {args.out}")
     print((args.out / "summary.md").read_text())
+    return 0
+
+
+def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
+    """``lanefree report SWEEP_DIR``: the sweep's summary with bootstrap CIs, written into it."""
+    from lanefree_sumo.experiments.sweep.summary import summarize
+
+    if len(args.runs) > 1:
+        raise UsageError(f"{sweeps[0]} is a sweep folder: report it alone (lanefree report {sweeps[0]})")
+    if "--out" in args.given:
+        raise UsageError(f"a sweep's summary is written into the sweep folder {sweeps[0]}; drop --out")
+    result = summarize(sweeps[0], last=args.last, smooth=args.smooth)
+    for name, reason in result.incomplete:
+        print(f"not in the summary: {name} ({reason})", file=sys.stderr)
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"{len(result.table)} setting(s) -> {sweeps[0]}")
+    print((sweeps[0] / "summary.md").read_text())
     return 0
 
 

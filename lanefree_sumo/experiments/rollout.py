@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from lanefree_sumo import argtypes
 from lanefree_sumo.config import BACKENDS, EvaluationConfig, LaneFreeConfig, merge_config
 
 POLICIES = ("random", "idle")
@@ -37,8 +38,6 @@ ROW = ("episode", "seed", "collisions", "background_collisions", "shield_interve
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """The ``rollout`` sub-command's parser."""
-    from lanefree_sumo.cli import _density, _positive
-
     p = subparsers.add_parser(
         "rollout",
         help="drive LaneFree-v0 with a built-in policy (random, idle) or a trained run, optionally shielded",
@@ -52,9 +51,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     who.add_argument("--run", type=Path, default=None, metavar="RUN",
                      help="a run folder made by 'lanefree train': its model, deterministic, with its config")
     density = DEFAULTS.scenario.density_veh_per_km
-    p.add_argument("--density", type=_density, default=None,
+    p.add_argument("--density", type=argtypes.density, default=None,
                    help=f"background density in veh/km (default {density:g}, or RUN's)")
-    p.add_argument("--episodes", type=_positive(int, "episodes"), default=EVALUATION.episodes,
+    p.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVALUATION.episodes,
                    help=f"episodes of {DEFAULTS.sim.episode_steps} steps (default {EVALUATION.episodes})")
     p.add_argument("--seed", type=int, default=None,
                    help=f"episode k uses traffic seed SEED+k-1 (default {DEFAULTS.seed}; with --run, RUN's seed+"

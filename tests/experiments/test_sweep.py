@@ -255,6 +255,23 @@ def test_summary_and_status_from_run_folders(tmp_path):
     assert "episodes: 330/360" in status and "driver: not running" in status
 
 
+def test_lanefree_report_of_a_sweep_folder_writes_its_summary(tmp_path):
+    grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 2, "episodes": 60}, "one", "one.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    for cell, collisions in zip(grid.cells(), [0.8, 1.6]):
+        fake_run(SweepDir(tmp_path).run(cell), grid, cell, 60, collisions=collisions)
+    done = lanefree("report", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    table = list(csv.DictReader(open(tmp_path / "summary.csv")))
+    assert [(r["reward_preset"], r["n_runs"]) for r in table] == [("collision", "2")]
+    assert float(table[0]["collisions_mean"]) == pytest.approx(1.2)
+    assert "1.200 [0.800, 1.600]" in done.stdout and not (tmp_path / "runs" / "report").exists()
+    for extra in (["--out", str(tmp_path / "elsewhere")], [str(SweepDir(tmp_path).run(grid.cells()[0]))]):
+        refused = lanefree("report", str(tmp_path), *extra)
+        assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+        assert "sweep folder" in refused.stderr
+
+
 # -- real sweeps on Ray (slow) --------------------------------------------------------------------
 
 def run_logs_nodes(out: Path) -> set[str]:

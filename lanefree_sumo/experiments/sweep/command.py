@@ -15,6 +15,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from lanefree_sumo import argtypes
 from lanefree_sumo.errors import LaneFreeError, UsageError
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
@@ -46,29 +47,6 @@ EXIT_OK, EXIT_INCOMPLETE, EXIT_INTERRUPTED = 0, 1, 130
 DEFAULT_RETRIES = 3
 
 
-def _count(unit: str):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number of {unit}, got {text!r}") from None
-        if value < 1:
-            raise argparse.ArgumentTypeError(f"expected at least 1 {unit}, got {text!r}")
-        return value
-
-    return parse
-
-
-def _retries(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {text!r}")
-    return value
-
-
 def default_workers() -> int:
     try:
         return len(os.sched_getaffinity(0))
@@ -98,18 +76,18 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     help="print the state of the sweep in DIR (also while it runs elsewhere) and exit")
     sw.add_argument("--summary", type=Path, default=None, metavar="DIR",
                     help="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit")
-    sw.add_argument("--seeds", type=_count("seeds"), default=None, metavar="N",
+    sw.add_argument("--seeds", type=argtypes.positive(int, "seeds"), default=None, metavar="N",
                     help="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported)")
-    sw.add_argument("--episodes", type=_count("episodes"), default=None, metavar="N",
+    sw.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=None, metavar="N",
                     help="training episodes per run instead of the grid's (paper: 625)")
-    sw.add_argument("--episode-steps", type=_count("steps"), default=None, metavar="N",
+    sw.add_argument("--episode-steps", type=argtypes.positive(int, "steps"), default=None, metavar="N",
                     help="steps per episode instead of 800 (0.25 s each; for quick tests)")
-    sw.add_argument("--workers", type=_count("workers"), default=None, metavar="N",
+    sw.add_argument("--workers", type=argtypes.positive(int, "workers"), default=None, metavar="N",
                     help=f"runs at a time on the embedded local Ray (default: the cores, {default_workers()} here)")
     sw.add_argument("--address", default=None, metavar="HOST:PORT",
                     help="join the Ray cluster at HOST:PORT instead of starting a local one (default: $RAY_ADDRESS "
                     "if set)")
-    sw.add_argument("--retries", type=_retries, default=DEFAULT_RETRIES, metavar="N",
+    sw.add_argument("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, metavar="N",
                     help=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
     return sw

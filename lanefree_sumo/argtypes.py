@@ -1,0 +1,71 @@
+"""argparse value types shared by every ``lanefree`` sub-command: each parses one option's text
+and turns a bad value into one line naming the expected unit (argparse prints it and exits 2)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+from typing import Any
+
+from lanefree_sumo.config import validate_density
+from lanefree_sumo.errors import ConfigError
+
+
+def density(text: str) -> float:
+    """A background density (veh/km) within the config's allowed range."""
+    try:
+        return validate_density(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _of(kind: type, unit: str) -> str:
+    """'of episodes' for counts, 'in m/s' for measures."""
+    return f"of {unit}" if kind is int else f"in {unit}"
+
+
+def _number(kind: type, unit: str, text: str) -> Any:
+    try:
+        value = kind(text)
+    except ValueError:
+        what = f"a whole number of {unit}" if kind is int else f"a number in {unit}"
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not (isinstance(value, int) or math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a finite number in {unit}, got {text!r}")
+    return value
+
+
+def positive(kind: type, unit: str) -> Callable[[str], Any]:
+    """A number of type ``kind`` (int or float) > 0, in ``unit``."""
+
+    def parse(text: str) -> Any:
+        value = _number(kind, unit, text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"expected a positive number {_of(kind, unit)}, got {text!r}")
+        return value
+
+    return parse
+
+
+def nonnegative(kind: type, unit: str) -> Callable[[str], Any]:
+    """A number of type ``kind`` (int or float) ≥ 0, in ``unit``."""
+
+    def parse(text: str) -> Any:
+        value = _number(kind, unit, text)
+        if value < 0:
+            raise argparse.ArgumentTypeError(f"expected a non-negative number {_of(kind, unit)}, got {text!r}")
+        return value
+
+    return parse
+
+
+def size(text: str) -> tuple[int, int]:
+    """A window size ``WIDTHxHEIGHT`` in pixels, each at least 16."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels, e.g. 1024x768, got {text!r}") from None
+    if w < 16 or h < 16:
+        raise argparse.ArgumentTypeError(f"size must be at least 16x16 pixels, got {text!r}")
+    return w, h
