@@ -190,6 +190,24 @@ def test_run_states_and_adoption_of_existing_run_folders(tmp_path):
         plan(tmp_path, grid)
 
 
+def test_resume_with_more_seeds_adds_runs_and_keeps_the_rest(tmp_path):
+    grid = parse_grid({**{k: v for k, v in TINY.items() if k != "n_seeds"}, "seeds": [0, 2]}, "tiny", "tiny.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    for cell in grid.cells():
+        fake_run(SweepDir(tmp_path).run(cell), grid, cell, 2)
+    more = grid.with_more_seeds(4, "DIR")
+    assert more.seeds == (0, 2, 1, 3) and more.settings == grid.settings and more.overrides == grid.overrides
+    states = plan(tmp_path, more, extend=True)
+    assert sorted(i.state for i in states.values()) == [COMPLETE] * 4 + [PENDING] * 4
+    with pytest.raises(UsageError, match="only adds seeds"):
+        grid.with_more_seeds(1, "DIR")
+    with pytest.raises(UsageError, match="another grid"):
+        plan(tmp_path, more)  # without --resume, another seed list is another grid
+    for extra, named in ((["--seeds", "1"], "only adds seeds"), (["--episodes", "3"], "--episodes goes with GRID")):
+        refused = lanefree("sweep", "--resume", str(tmp_path), *extra)
+        assert refused.returncode == 2 and named in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+
+
 def test_a_run_trained_by_another_process_is_left_alone(tmp_path):
     grid = parse_grid(TINY, "tiny", "tiny.yaml")
     cell = grid.cells()[0]
@@ -305,6 +323,14 @@ def test_tiny_grid_on_the_embedded_ray_then_a_rerun_trains_nothing(tmp_path):
     assert "4 complete" in again.stdout and "nothing to train" in again.stdout
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()} == before
     assert len(read_manifest(out).sessions) == 2
+    # more seeds for the same sweep: only the new seed's runs train, the summary has 3 runs per setting
+    more = lanefree("sweep", "--resume", str(out), "--seeds", "3", "--workers", "2", timeout=600)
+    assert more.returncode == 0, more.stderr
+    assert "4 complete, 0 to resume, 2 to start" in more.stdout and "6/6 runs complete" in more.stdout
+    assert {p: p.stat().st_mtime_ns for p in before} == before
+    assert_complete(out, 2, 6)
+    assert read_manifest(out).grid.seeds == (0, 1, 2)
+    assert [r["n_runs"] for r in csv.DictReader(open(out / "summary.csv"))] == ["3", "3"]
 
 
 @pytest.mark.slow

@@ -77,7 +77,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     sw.add_argument("--summary", type=Path, default=None, metavar="DIR",
                     help="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit")
     sw.add_argument("--seeds", type=argtypes.positive(int, "seeds"), default=None, metavar="N",
-                    help="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported)")
+                    help="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported); "
+                    "with --resume DIR, add seeds to DIR's sweep until it has N per setting (its runs are kept)")
     sw.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=None, metavar="N",
                     help="training episodes per run instead of the grid's (paper: 625)")
     sw.add_argument("--episode-steps", type=argtypes.positive(int, "steps"), default=None, metavar="N",
@@ -106,8 +107,9 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
     ray_opts = [o for o in ("--workers", "--address", "--retries", "--no-progress") if o in given]
     if modes:
         mode = modes[0]
-        if args.out is not None or budget:
-            bad = "--out" if args.out is not None else budget[0]
+        extra = [o for o in budget if not (mode == "resume" and o == "--seeds")]
+        if args.out is not None or extra:
+            bad = "--out" if args.out is not None else extra[0]
             raise UsageError(f"lanefree sweep: {bad} goes with GRID, not with --{mode} (the grid is in DIR/sweep.yaml)")
         if mode != "resume" and ray_opts:
             raise UsageError(f"lanefree sweep: {ray_opts[0]} does not go with --{mode}")
@@ -135,22 +137,26 @@ def run(args: argparse.Namespace) -> int:
         print(result.files[-1].read_text())
         return EXIT_OK
     command = shlex.join(["lanefree", *sys.argv[1:]])
+    extend = False
     if mode == "resume":
         grid = read_manifest(folder).grid
+        if args.seeds is not None:
+            grid, extend = grid.with_more_seeds(args.seeds, str(folder)), True
     else:
         grid = load_grid(args.grid).with_budget(args.seeds, args.episodes, args.episode_steps)
         folder = folder if folder is not None else Path("runs") / f"sweep_{grid.name}"
     address = args.address or os.environ.get("RAY_ADDRESS") or None
-    return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress)
+    return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress, extend)
 
 
-def plan(folder: Path, grid: Grid) -> dict[str, RunInfo]:
+def plan(folder: Path, grid: Grid, extend: bool = False) -> dict[str, RunInfo]:
     """State of every run before starting; RunError/UsageError (nothing written) when a run folder
-    cannot be adopted: not a run folder, another config, more episodes than the grid's."""
+    cannot be adopted: not a run folder, another config, more episodes than the grid's. ``extend``:
+    ``grid`` is the saved one with more seeds (``--resume DIR --seeds N``)."""
     from lanefree_sumo.experiments.sweep.worker import check_adoptable
 
     sweep = SweepDir(folder)
-    if sweep.manifest.exists():
+    if sweep.manifest.exists() and not extend:
         check_same_grid(folder, read_manifest(folder).grid, grid)
     elif folder.exists() and not folder.is_dir():
         raise UsageError(f"--out {folder} is a file; choose a folder")
@@ -174,19 +180,20 @@ def _ray_description(workers: int | None, address: str | None) -> str:
 
 
 def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | None, address: str | None,
-           retries: int, progress: bool) -> int:
+           retries: int, progress: bool, extend: bool = False) -> int:
     from lanefree_sumo.experiments.rundir import check_writable
     from lanefree_sumo.experiments.sweep.runner import check_address, run_sweep
     from lanefree_sumo.experiments.sweep.summary import summarize
 
     workers = (workers or default_workers()) if address is None else None
-    states = plan(folder, grid)  # every check before the first write
+    states = plan(folder, grid, extend)  # every check before the first write
     if address is not None:
         check_address(address)
     check_writable(folder, folder=True)
     sweep = SweepDir(folder)
     with driver_lock(folder, command):
         manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)
+        manifest.grid = grid  # the same, or with the seeds --seeds added
         manifest.sessions.append({"started": datetime.now().isoformat(timespec="seconds"), "command": command,
                                   "host": socket.gethostname(), "ray": _ray_description(workers, address)})
         write_manifest(folder, manifest)

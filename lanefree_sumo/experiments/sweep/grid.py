@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_density
-from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.errors import ConfigError, UsageError
 from lanefree_sumo.experiments.paper import PAPER_ROWS
 
 PAPER_EPISODES = 625
@@ -159,6 +159,20 @@ class Grid:
         grid = Grid(self.name, self.settings, tuple(range(seeds)) if seeds is not None else self.seeds,
                     episodes if episodes is not None else self.episodes, overrides)
         return validate_grid(grid, "command line")
+
+    def with_more_seeds(self, count: int, where: str) -> Grid:
+        """The grid with new seeds (the smallest unused ones) added until it has ``count``;
+        UsageError if it already has more."""
+        if count < len(self.seeds):
+            raise UsageError(f"{where} has {len(self.seeds)} seeds per setting; --seeds with --resume only adds "
+                             f"seeds (give N ≥ {len(self.seeds)})")
+        seeds = list(self.seeds)
+        candidate = 0
+        while len(seeds) < count:
+            if candidate not in seeds:
+                seeds.append(candidate)
+            candidate += 1
+        return validate_grid(Grid(self.name, self.settings, tuple(seeds), self.episodes, self.overrides), where)
 
 
 # -- built-in grids -------------------------------------------------------------------------------
