@@ -34,6 +34,7 @@ from lanefree_sumo.config.schema import (
 from lanefree_sumo.config.validation import (
     ADDED_LATER,
     check_value,
+    config_differences,
     config_to_dict,
     merge_config,
     missing_keys,
@@ -47,6 +48,6 @@ __all__ = [
     "ActionKind", "ActorCriticConfig", "Backend", "ConfigError", "DQNConfig", "DriverConfig", "EpisodeConfig",
     "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
     "RewardConfig", "RoadConfig", "ScenarioConfig", "ShieldConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
-    "VehicleClassConfig", "check_value", "config_to_dict", "merge_config", "missing_keys", "validate_config",
-    "validate_density",
+    "VehicleClassConfig", "check_value", "config_differences", "config_to_dict", "merge_config", "missing_keys",
+    "validate_config", "validate_density",
 ]

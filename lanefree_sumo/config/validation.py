@@ -164,6 +164,22 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     return conv(dataclasses.asdict(cfg))
 
 
+def config_differences(cfg: Any, base: Any, ignore: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Dotted keys (``reward.k_r_s_per_m``) where ``cfg`` differs from ``base``, with ``cfg``'s
+    value, except keys in or under ``ignore``; in the order of the schema."""
+
+    def flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            out.update(flat(v, key + ".") if isinstance(v, dict) else {key: v})
+        return out
+
+    mine, theirs = flat(config_to_dict(cfg)), flat(config_to_dict(base))
+    under = tuple(f"{k}." for k in ignore)
+    return {k: v for k, v in mine.items() if theirs.get(k) != v and k not in ignore and not k.startswith(under)}
+
+
 def validate_density(density: object) -> float:
     """Check a density is a finite positive number (veh/km)."""
     try:

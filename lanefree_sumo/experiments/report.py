@@ -13,8 +13,13 @@ writes into ``out``::
 Definitions (SPEC §8, §10):
 
 * **Grouping.** The group key is read from each run's ``config.yaml``: ``train.algo``,
-  ``reward.preset``, ``scenario.density_veh_per_km`` (veh/km); the run's seed is ``seed``.
-  (The ``seed`` column of ``episodes.csv`` is the per-episode environment seed, not the run seed.)
+  ``reward.preset``, ``scenario.density_veh_per_km`` (veh/km) and the *variant*: every other
+  setting where the run differs from the defaults (``shield.enabled=True``,
+  ``scenario.agent_max_speed_mps=40.0``, …; empty for a default run), so a shielded run or a
+  changed parameter never averages with default runs. Keys that do not change what is learned
+  (:data:`NOT_VARIANT`: seed, checkpoint interval, torch threads, learner path, gui) are not
+  part of it; the planned number of episodes is. The run's seed is ``seed``. (The ``seed``
+  column of ``episodes.csv`` is the per-episode environment seed, not the run seed.)
 * **Table cells.** For each run, the mean of a metric over its last ``last`` episodes (by episode
   number; all episodes if the run has fewer — the ``episodes_min`` column and a note say so). The
   cell is the mean of these per-run values over the group's runs, ± their *sample* standard
@@ -51,6 +56,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lanefree_sumo.config import LaneFreeConfig, config_differences
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments.paper import GroupKey, paper_reference
 from lanefree_sumo.experiments.rundir import EPISODES, read_config
@@ -77,6 +83,17 @@ CURVE_METRICS: tuple[tuple[str, str, str], ...] = (
     ("speed_dev_mps", "curves_speed_dev.png", "speed deviation mean |vx − v_d| (m/s)"),
 )
 """Learning-curve figures: one per metric, all groups as lines."""
+
+NOT_VARIANT: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
+                                 "scenario.with_agent", "train.checkpoint_every_episodes", "train.torch_threads",
+                                 "train.fast_learner", "gui")
+"""Config keys that are part of the group key already, the same in every training run (the agent),
+or do not change what a run learns (the fast learner computes the same update as SB3's). A run's
+planned ``train.episodes`` is part of the variant: last-50 means of 150- and 625-episode runs do
+not average."""
+
+RunKey = tuple[str, str, float, str]
+"""(algorithm, reward preset, density veh/km, variant): the group of a run."""
 
 # -- results -------------------------------------------------------------------------------------
 
@@ -106,10 +123,12 @@ class RunData:
     seed: int
     episodes: pd.DataFrame
     """Index ``episode`` (ascending, unique), float columns ``REQUIRED_COLUMNS[1:]``."""
+    variant: str = ""
+    """How the run's config differs from the defaults beyond the group key (``""`` for none)."""
 
     @property
-    def key(self) -> GroupKey:
-        return (self.algorithm, self.preset, self.density)
+    def key(self) -> RunKey:
+        return (self.algorithm, self.preset, self.density, self.variant)
 
 
 class _UnusableRunError(Exception):
@@ -122,8 +141,14 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
-def read_run_config(run: Path) -> tuple[str, str, float, int]:
-    """(algorithm, reward preset, density veh/km, seed) from ``run/config.yaml``.
+def variant_of(cfg: LaneFreeConfig) -> str:
+    """``key=value, …`` of the settings where ``cfg`` differs from the defaults (beyond
+    :data:`NOT_VARIANT`); ``""`` for a default run."""
+    return ", ".join(f"{k}={v}" for k, v in config_differences(cfg, LaneFreeConfig(), NOT_VARIANT).items())
+
+
+def read_run_config(run: Path) -> tuple[str, str, float, int, str]:
+    """(algorithm, reward preset, density veh/km, seed, variant) from ``run/config.yaml``.
 
     Raises ``_UnusableRunError`` (internal) with the reason when the file is missing or malformed.
     """
@@ -131,7 +156,8 @@ def read_run_config(run: Path) -> tuple[str, str, float, int]:
         cfg = read_config(run)
     except RunError as exc:
         raise _UnusableRunError(str(exc)) from None
-    return cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed
+    return (cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed,
+            variant_of(cfg))
 
 
 def read_episodes(path: Path) -> pd.DataFrame:
@@ -192,30 +218,31 @@ def read_run(run: Path) -> RunData:
     """Read one run folder; raises ``_UnusableRunError`` (internal) with the reason to skip it."""
     if not run.is_dir():
         raise _UnusableRunError("not a folder" if run.exists() else "folder does not exist")
-    algo, preset, density, seed = read_run_config(run)
-    return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES))
+    algo, preset, density, seed, variant = read_run_config(run)
+    return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES), variant)
 
 
 # -- tables --------------------------------------------------------------------------------------
 
-def _sort_key(key: GroupKey) -> tuple[int, str, str, float]:
-    algo, preset, density = key
-    return (ALGORITHM_NAMES.index(algo) if algo in ALGORITHM_NAMES else len(ALGORITHM_NAMES), algo, preset, density)
+def _sort_key(key: RunKey) -> tuple[int, str, str, float, str]:
+    algo, preset, density, variant = key
+    return (ALGORITHM_NAMES.index(algo) if algo in ALGORITHM_NAMES else len(ALGORITHM_NAMES), algo, preset, density,
+            variant)
 
 
-def group_runs(runs: Sequence[RunData]) -> dict[GroupKey, list[RunData]]:
-    """Runs by (algorithm, preset, density), groups in a stable order (algorithm as in the registry),
-    runs within a group by seed."""
-    groups: dict[GroupKey, list[RunData]] = {}
+def group_runs(runs: Sequence[RunData]) -> dict[RunKey, list[RunData]]:
+    """Runs by (algorithm, preset, density, variant), groups in a stable order (algorithm as in the
+    registry, the default variant first), runs within a group by seed."""
+    groups: dict[RunKey, list[RunData]] = {}
     for run in runs:
         groups.setdefault(run.key, []).append(run)
     return {k: sorted(groups[k], key=lambda r: (r.seed, str(r.path))) for k in sorted(groups, key=_sort_key)}
 
 
-def summary_table(groups: dict[GroupKey, list[RunData]], last: int = 50) -> pd.DataFrame:
+def summary_table(groups: dict[RunKey, list[RunData]], last: int = 50) -> pd.DataFrame:
     """One row per group with columns::
 
-        algorithm, reward_preset, density_veh_per_km, n_seeds, seeds, episodes_min,
+        algorithm, reward_preset, density_veh_per_km, variant, n_seeds, seeds, episodes_min,
         <m>_mean, <m>_std  for m in collisions, speed_dev_mps, return, overtakes,
         collisions_paper, speed_dev_mps_paper, paper_source
 
@@ -225,10 +252,10 @@ def summary_table(groups: dict[GroupKey, list[RunData]], last: int = 50) -> pd.D
     value. Units: collisions and overtakes per episode, speed deviation m/s.
     """
     records = []
-    for (algo, preset, density), runs in groups.items():
+    for (algo, preset, density, variant), runs in groups.items():
         per_run = pd.DataFrame([r.episodes.tail(last).mean() for r in runs])
         rec: dict[str, Any] = {
-            "algorithm": algo, "reward_preset": preset, "density_veh_per_km": density,
+            "algorithm": algo, "reward_preset": preset, "density_veh_per_km": density, "variant": variant,
             "n_seeds": len(runs), "seeds": ";".join(str(r.seed) for r in runs),
             "episodes_min": min(len(r.episodes) for r in runs),
         }
@@ -253,7 +280,7 @@ def _cell(mean: float, std: float, fmt: str, paper: float | None) -> str:
 def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Path, str]] = (),
                      notes: Sequence[str] = ()) -> str:
     """The summary table as Markdown, with a short explanation, skipped runs and notes."""
-    headers = ["algorithm", "reward preset", "density (veh/km)", "seeds"] + [h for _, h, _ in TABLE_METRICS]
+    headers = ["algorithm", "reward preset", "density (veh/km)", "variant", "seeds"] + [h for _, h, _ in TABLE_METRICS]
     lines = [
         "# lanefree_sumo training report",
         "",
@@ -265,7 +292,7 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
     ]
     for _, row in table.iterrows():
         cells = [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density_veh_per_km']:g}",
-                 str(int(row["n_seeds"]))]
+                 str(row["variant"]) or "default", str(int(row["n_seeds"]))]
         for col, _, fmt in TABLE_METRICS:
             paper = row.get(f"{col}_paper")
             cells.append(_cell(row[f"{col}_mean"], row[f"{col}_std"], fmt,
@@ -280,10 +307,11 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
 
 # -- curves --------------------------------------------------------------------------------------
 
-def group_label(key: GroupKey) -> str:
-    """Legend label ``algo / preset / d70``."""
-    algo, preset, density = key
-    return f"{algo} / {preset} / d{density:g}"
+def group_label(key: GroupKey | RunKey) -> str:
+    """Legend label ``algo / preset / d70`` (``… / variant`` for a non-default one)."""
+    algo, preset, density = key[:3]
+    variant = key[3] if len(key) > 3 else ""
+    return f"{algo} / {preset} / d{density:g}" + (f" / {variant}" if variant else "")
 
 
 def smoothed_curve(runs: Sequence[RunData], column: str, smooth: int) -> pd.DataFrame:
@@ -295,7 +323,7 @@ def smoothed_curve(runs: Sequence[RunData], column: str, smooth: int) -> pd.Data
                          "n": aligned.count(axis=1)})
 
 
-def plot_curves(groups: dict[GroupKey, list[RunData]], column: str, ylabel: str, path: Path,
+def plot_curves(groups: dict[Any, list[RunData]], column: str, ylabel: str, path: Path,
                 smooth: int) -> None:
     """One PNG: every group as a line (mean over runs) with a ± std band; paper value dashed."""
     try:
@@ -323,7 +351,7 @@ def plot_curves(groups: dict[GroupKey, list[RunData]], column: str, ylabel: str,
         if band.any():
             ax.fill_between(x, mean - np.where(band, std, 0), mean + np.where(band, std, 0),
                             where=band, color=colour, alpha=0.2, lw=0)
-        ref = paper_reference(*key)
+        ref = paper_reference(*key[:3])
         if ref is not None and column in ("collisions", "speed_dev_mps"):
             ax.axhline(getattr(ref, column), color=colour, ls="--", lw=1.0)
             any_paper = True

@@ -196,7 +196,7 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
             incomplete.append((cell.name, f"unusable: {' '.join(str(exc).split())}"))
     if grid.episodes < last:
         notes.append(f"runs have {grid.episodes} episodes (< {last}); each run's mean uses all of them")
-    groups = group_runs(runs)
+    groups = {key[:3]: members for key, members in group_runs(runs).items()}  # one variant: the grid's overrides
     table = _rows(grid, groups, last)
     try:
         curves, plot_notes = _plot(grid, groups, sweep.curves, smooth)
