@@ -6,15 +6,16 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+BENCH_STAMP := $(VENV)/.installed-bench
 
 # Options are passed only when set, so every default is the one in lanefree_sumo/config.py
-# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 ...
+# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 SHIELD=1 ...
 RUN     ?=
 RUNS    ?= runs/*/
 opt = $(if $($(1)),$(2) $($(1)))
 TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENSITY,--density) \
 	$(call opt,EPISODES,--episodes) $(call opt,SEED,--seed) $(call opt,ENVS,--envs) $(call opt,OBS,--obs) \
-	$(call opt,ENCODER,--encoder)
+	$(call opt,ENCODER,--encoder) $(if $(SHIELD),--shield)
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
@@ -30,6 +31,11 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 venv: $(STAMP)
+
+# `make bench` only: the HighwayEnv peer of the training-speed section (the `bench` extra).
+$(BENCH_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q -e ".[bench]"
+	touch $(BENCH_STAMP)
 
 # Xvfb and the system libraries SUMO's wheels need (scripts/system-deps.sh): installed with apt-get
 # when missing. Every target that runs SUMO (libsumo, sumo, sumo-gui, netconvert) depends on it.
@@ -59,7 +65,7 @@ replay: system-deps $(STAMP)
 	$(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
 
 report: $(STAMP)
-	$(BIN)/lanefree report $(RUNS) --out runs/report
+	$(BIN)/lanefree report $(RUNS) $(call opt,OUT,--out)
 
 simulate: system-deps $(STAMP)
 	$(BIN)/lanefree simulate $(SIM_OPTS) --out runs/sim-$(STAMP_NOW)
@@ -67,7 +73,7 @@ simulate: system-deps $(STAMP)
 nets: system-deps $(STAMP)
 	$(BIN)/lanefree net $(call opt,LENGTH,--length) $(call opt,WIDTH,--width)
 
-bench: system-deps $(STAMP)
+bench: system-deps $(STAMP) $(BENCH_STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.bench
 
 # make sweep GRID=table7 [OUT=runs/sweep_table7] [SEEDS=3] [EPISODES=625] [WORKERS=2] [ADDRESS=host:6379]
