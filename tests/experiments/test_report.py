@@ -12,8 +12,9 @@ import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments.curves import smoothed_curve
 from lanefree_sumo.experiments.paper import PAPER_REFERENCE
-from lanefree_sumo.experiments.report import RunData, report, smoothed_curve
+from lanefree_sumo.experiments.report import RunData, report
 from lanefree_sumo.experiments.rundir import write_config
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 

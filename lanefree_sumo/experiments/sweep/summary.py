@@ -11,7 +11,7 @@ Definitions (SPEC §8, §10):
   very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
 * **Paper values**: SPEC §10 where the paper has the setting.
 * **Curves**: one PNG per table of the paper and metric (``curves/table7_collisions.png``; settings
-  in no table in ``curves/other_*.png``) drawn by :func:`report.plot_curves` (mean ± std over runs).
+  in no table in ``curves/other_*.png``) drawn by :func:`curves.plot_curves` (mean ± std over runs).
 
 Columns of ``summary.csv``: algorithm, reward_preset, density (veh/km), episodes (budget per run),
 n_runs (complete), collisions_mean, collisions_ci95_low, collisions_ci95_high (agent collisions per
@@ -33,8 +33,9 @@ import pandas as pd
 
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.report import CURVE_METRICS, RunData, group_runs, plot_curves, read_run
+from lanefree_sumo.experiments.report import RunData, group_runs, read_run
 from lanefree_sumo.experiments.sweep.grid import Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
 from lanefree_sumo.experiments.sweep.state import COMPLETE, inspect_run

@@ -1,0 +1,88 @@
+"""Learning curves of grouped runs (``lanefree report`` and the sweep summary): one PNG per
+metric, each group a line (mean over its runs of a trailing moving average) with a ± std band and
+the paper's value dashed."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+
+from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments.paper import GroupKey, paper_reference
+
+if TYPE_CHECKING:
+    from lanefree_sumo.experiments.report import RunData, RunKey
+
+CURVE_METRICS: tuple[tuple[str, str, str], ...] = (
+    # (column, file name, y-axis label with unit)
+    ("return", "curves_return.png", "episode return (sum of step rewards, dimensionless)"),
+    ("collisions", "curves_collisions.png", "agent collisions per episode (count)"),
+    ("speed_dev_mps", "curves_speed_dev.png", "speed deviation mean |vx − v_d| (m/s)"),
+)
+"""Learning-curve figures: one per metric, all groups as lines."""
+
+
+def group_label(key: GroupKey | RunKey) -> str:
+    """Legend label ``algo / preset / d70`` (``… / variant`` for a non-default one)."""
+    algo, preset, density = key[:3]
+    variant = key[3] if len(key) > 3 else ""
+    return f"{algo} / {preset} / d{density:g}" + (f" / {variant}" if variant else "")
+
+
+def smoothed_curve(runs: Sequence[RunData], column: str, smooth: int) -> pd.DataFrame:
+    """Columns ``mean``, ``std``, ``n`` per episode: each run's trailing ``smooth``-episode moving
+    average, then mean and sample std (ddof=1) over the runs that reached that episode."""
+    series = [r.episodes[column].rolling(window=smooth, min_periods=1).mean() for r in runs]
+    aligned = pd.concat(series, axis=1)
+    return pd.DataFrame({"mean": aligned.mean(axis=1), "std": aligned.std(axis=1, ddof=1),
+                         "n": aligned.count(axis=1)})
+
+
+def plot_curves(groups: dict[Any, list[RunData]], column: str, ylabel: str, path: Path,
+                smooth: int) -> None:
+    """One PNG: every group as a line (mean over runs) with a ± std band; paper value dashed."""
+    try:
+        from matplotlib import colormaps
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+        from matplotlib.lines import Line2D
+    except ImportError as exc:  # matplotlib is an optional dependency
+        raise ReportError(f"matplotlib is needed for the curves ({exc}); pip install matplotlib") from None
+    fig = Figure(figsize=(9.0, 5.5), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    if len(groups) <= 10:
+        colours: list[Any] = [f"C{i}" for i in range(len(groups))]
+    else:  # more groups than the default cycle: spread over tab20 (repeats beyond 20)
+        colours = [colormaps["tab20"](i % 20) for i in range(len(groups))]
+    any_paper = False
+    for colour, (key, runs) in zip(colours, groups.items()):
+        curve = smoothed_curve(runs, column, smooth)
+        x = curve.index.to_numpy(dtype=float)
+        mean = curve["mean"].to_numpy(dtype=float)
+        std = curve["std"].to_numpy(dtype=float)
+        ax.plot(x, mean, color=colour, lw=1.6, label=f"{group_label(key)} (n={len(runs)})")
+        band = np.isfinite(std)
+        if band.any():
+            ax.fill_between(x, mean - np.where(band, std, 0), mean + np.where(band, std, 0),
+                            where=band, color=colour, alpha=0.2, lw=0)
+        ref = paper_reference(*key[:3])
+        if ref is not None and column in ("collisions", "speed_dev_mps"):
+            ax.axhline(getattr(ref, column), color=colour, ls="--", lw=1.0)
+            any_paper = True
+    handles, labels = ax.get_legend_handles_labels()
+    if any_paper:
+        handles.append(Line2D([], [], color="grey", ls="--"))
+        labels.append("paper value (SPEC §10)")
+    ax.set_xlabel("training episode")
+    ax.set_ylabel(ylabel)
+    ax.set_title(f"trailing {smooth}-episode moving average; line = mean, band = ± std over seeds", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8, frameon=False)
+    fig.savefig(path, format="png", bbox_inches="tight")
+
+
