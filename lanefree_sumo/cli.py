@@ -215,6 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--smooth", type=argtypes.positive(int, "episodes"), default=REPORT.smooth_episodes,
                      help="trailing moving-average window of the curves in episodes "
                      f"(default {REPORT.smooth_episodes})")
+    rep.add_argument("--eval", nargs="?", const="eval", default=None, metavar="NAME",
+                     help="tabulate each run's evaluation RUN/NAME/episodes.csv (default NAME eval; e.g. "
+                     "eval_d120, eval_shield) instead of its training episodes, at the evaluated density")
 
     sweep_command.add_parser(sub)
 
@@ -355,7 +358,7 @@ def _report(args: argparse.Namespace) -> int:
     sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
     if sweeps:
         return _report_sweep(args, sweeps)
-    result = report(args.runs, args.out, last=args.last, smooth=args.smooth)
+    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=args.eval or "")
     for path, reason in result.skipped:
         print(f"skipped {path}: {reason}", file=sys.stderr)
     for note in result.notes:
@@ -371,8 +374,10 @@ def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
 
     if len(args.runs) > 1:
         raise UsageError(f"{sweeps[0]} is a sweep folder: report it alone (lanefree report {sweeps[0]})")
-    if "--out" in args.given:
-        raise UsageError(f"a sweep's summary is written into the sweep folder {sweeps[0]}; drop --out")
+    if "--out" in args.given or args.eval:
+        bad = "--out" if "--out" in args.given else "--eval"
+        raise UsageError(f"a sweep's summary is written into the sweep folder {sweeps[0]} from its training runs; "
+                         f"drop {bad}")
     result = summarize(sweeps[0], last=args.last, smooth=args.smooth)
     for name, reason in result.incomplete:
         print(f"not in the summary: {name} ({reason})", file=sys.stderr)

@@ -207,12 +207,29 @@ def read_episodes(path: Path) -> pd.DataFrame:
     return frame.set_index("episode").sort_index()
 
 
-def read_run(run: Path) -> RunData:
-    """Read one run folder; raises ``_UnusableRunError`` (internal) with the reason to skip it."""
+def _evaluated_density(path: Path, trained: float) -> float:
+    """The density (veh/km) an evaluation ran at: its CSV's ``density`` column when that holds one
+    value (``lanefree evaluate --density``), else the training density."""
+    try:
+        values = pd.read_csv(path, usecols=["density"])["density"].unique()
+    except (OSError, ValueError, KeyError):
+        return trained
+    return round(float(values[0]), 6) if len(values) == 1 and math.isfinite(values[0]) else trained
+
+
+def read_run(run: Path, source: str = "") -> RunData:
+    """Read one run folder — its training ``episodes.csv``, or with ``source`` the one of its
+    evaluation folder ``run/<source>/`` (e.g. ``eval``, ``eval_d120_shield``); raises
+    ``_UnusableRunError`` (internal) with the reason to skip it."""
     if not run.is_dir():
         raise _UnusableRunError("not a folder" if run.exists() else "folder does not exist")
     algo, preset, density, seed, variant = read_run_config(run)
-    return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES), variant)
+    if not source:
+        return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES), variant)
+    path = run / source / EPISODES
+    if not path.is_file():
+        raise _UnusableRunError(f"no {source}/{EPISODES} (run 'lanefree evaluate' first)")
+    return RunData(run, algo, preset, _evaluated_density(path, density), seed, read_episodes(path), variant)
 
 
 # -- tables --------------------------------------------------------------------------------------
@@ -271,14 +288,17 @@ def _cell(mean: float, std: float, fmt: str, paper: float | None) -> str:
 
 
 def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Path, str]] = (),
-                     notes: Sequence[str] = ()) -> str:
+                     notes: Sequence[str] = (), source: str = "") -> str:
     """The summary table as Markdown, with a short explanation, skipped runs and notes."""
     headers = ["algorithm", "reward preset", "density (veh/km)", "variant", "seeds"] + [h for _, h, _ in TABLE_METRICS]
     lines = [
         "# lanefree_sumo training report",
         "",
-        f"Means over the last {last} episodes of each run, then mean ± sample std (ddof=1) over runs "
-        "(seeds); paper values from SPEC §10 in parentheses.",
+        (f"Means over the last {last} episodes of each run, then mean ± sample std (ddof=1) over runs "
+         "(seeds); paper values from SPEC §10 in parentheses." if not source else
+         f"**Evaluation** (`RUN/{source}/episodes.csv`, the deterministic policy; density = the evaluated one): "
+         f"means over the last {last} evaluation episodes of each run, then mean ± sample std (ddof=1) over "
+         "runs; paper values (training, last 50 episodes) in parentheses."),
         "",
         "| " + " | ".join(headers) + " |",
         "|" + "|".join("---" for _ in headers) + "|",
@@ -309,7 +329,7 @@ def _check_writable(out: Path) -> None:
         raise ReportError(f"cannot write the report to {out}: {_one_line(exc.strerror or exc)}") from None
 
 
-def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) -> ReportResult:
+def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, source: str = "") -> ReportResult:
     """Learning curves and the last-``last``-episode summary table of training runs.
 
     ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
@@ -317,6 +337,8 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) ->
     ``summary.csv``, ``summary.md`` (created if missing; existing files are overwritten).
     ``last``: episodes per run averaged for the table (paper: 50).
     ``smooth``: width in episodes of the trailing moving average of the curves.
+    ``source``: ``""`` for the training episodes, else an evaluation folder name inside each run
+    (``eval``, ``eval_d120``, ``eval_shield``, …): its episodes instead, at the evaluated density.
 
     Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, or
     when ``out`` cannot be written.
@@ -338,7 +360,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) ->
             continue
         seen.add(resolved)
         try:
-            usable.append(read_run(run))
+            usable.append(read_run(run, source))
         except _UnusableRunError as exc:
             skipped.append((run, _one_line(str(exc))))
     if not usable:
@@ -369,7 +391,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20) ->
         table.to_csv(csv_path, index=False)
         files.append(csv_path)
         md_path = out / "summary.md"
-        md_path.write_text(summary_markdown(table, last, skipped, notes), encoding="utf-8")
+        md_path.write_text(summary_markdown(table, last, skipped, notes, source), encoding="utf-8")
         files.append(md_path)
     except OSError as exc:
         raise ReportError(f"cannot write the report to {out}: {_one_line(exc)}") from None

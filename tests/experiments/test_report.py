@@ -111,6 +111,22 @@ def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path
     assert "| shield.enabled=True | 1 |" in md
 
 
+def test_eval_source_tabulates_each_runs_evaluation_at_its_density(tmp_path: Path) -> None:
+    runs = [make_run(tmp_path / "runs", f"s{seed}", seed=seed, collisions=[3.0] * 80) for seed in (0, 1)]
+    for run, value in zip(runs, (0.2, 0.4)):  # evaluated at 120 veh/km: 50 episodes each
+        made = make_run(tmp_path / "made", run.name, density=120.0, collisions=[value] * 50, episodes=50)
+        (run / "eval_d120").mkdir()
+        (made / "episodes.csv").rename(run / "eval_d120" / "episodes.csv")
+    result = report(runs, tmp_path / "out", source="eval_d120")
+    assert result.skipped == []
+    only = result.table.iloc[0]
+    assert (only.density_veh_per_km, only.n_seeds) == (120.0, 2)
+    assert only.collisions_mean == pytest.approx(0.3) and only.collisions_paper == 0.591  # Table 7 at 120
+    assert "**Evaluation** (`RUN/eval_d120/episodes.csv`" in (tmp_path / "out" / "summary.md").read_text()
+    with pytest.raises(ReportError, match="no eval/episodes.csv"):
+        report(runs, tmp_path / "out2", source="eval")
+
+
 def test_last_50_means_averaged_over_seeds_exactly(two_seed_runs: list[Path], tmp_path: Path) -> None:
     table = report(two_seed_runs, tmp_path / "out").table
     ddpg = row(table, "ddpg")
