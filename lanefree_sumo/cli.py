@@ -200,7 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser(
         "report",
         help="learning curves and paper-style tables from run folders",
-        description="Group run folders by (algorithm, reward preset, density), average the seeds, and write "
+        description="Group run folders by (algorithm, reward preset, density, variant: every other setting in "
+        "which a run's config differs from the defaults, e.g. shield.enabled=True), average the seeds, and write "
         "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
         "and a table of last-50-episode means ± std with the paper's numbers (SPEC §10) as summary.csv and "
         "summary.md. Unusable runs are named and skipped. Given a sweep folder (one with sweep.yaml), writes the "
