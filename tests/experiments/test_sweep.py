@@ -135,7 +135,9 @@ def test_cli_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
                  ["sweep", "table5", "--out", str(out), "--address", "nonsense"],
                  ["sweep", "table5", "--out", str(out), "--workers", "2", "--address", "127.0.0.1:6379"],
                  ["sweep", "table5", "--out", str(out), "--address", f"127.0.0.1:{free_port()}"],
-                 ["sweep", "--status", str(out)], ["sweep", "--resume", str(out), "--episodes", "3"]):
+                 ["sweep", "--status", str(out)], ["sweep", "--resume", str(out), "--episodes", "3"],
+                 ["sweep", "table5", "--out", str(out), "--workers", "0"],
+                 ["sweep", "table5", "--out", str(out), "--retries", "-1"]):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("lanefree: error: ") and err.count("\n") == 1, (argv, err)
