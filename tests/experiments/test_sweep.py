@@ -278,8 +278,8 @@ def test_summary_and_status_from_run_folders(tmp_path):
 def test_lanefree_report_of_a_sweep_folder_writes_its_summary(tmp_path):
     grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 2, "episodes": 60}, "one", "one.yaml")
     write_manifest(tmp_path, Manifest(grid))
-    for cell, collisions in zip(grid.cells(), [0.8, 1.6]):
-        fake_run(SweepDir(tmp_path).run(cell), grid, cell, 60, collisions=collisions)
+    for cell, collisions, model in zip(grid.cells(), [0.8, 1.6], [True, False]):  # a copy without its model counts
+        fake_run(SweepDir(tmp_path).run(cell), grid, cell, 60, collisions=collisions, model=model)
     done = lanefree("report", str(tmp_path))
     assert done.returncode == 0, done.stderr
     table = list(csv.DictReader(open(tmp_path / "summary.csv")))

@@ -4,7 +4,9 @@ Definitions (SPEC §8, §10):
 
 * **Per run**: the mean of a metric over its last ``last`` episodes (50, the paper's; all of them
   when a run has fewer), as :mod:`lanefree_sumo.experiments.report` computes it. Only *complete*
-  runs count (every episode of the budget and ``model.zip``); the others are listed.
+  runs count (every episode of the budget and ``model.zip``; a copy of the results without the
+  models, e.g. committed to git, counts when its ``episodes.csv`` holds exactly every episode of the
+  budget); the others are listed.
 * **Per setting**: the mean of the per-run values, with a 95 % percentile-bootstrap confidence
   interval over runs (:func:`bootstrap_ci`: 10 000 resamples of the runs with replacement, fixed
   random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
@@ -36,9 +38,10 @@ from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.report import RunData, group_runs, read_run
+from lanefree_sumo.experiments.rundir import RunDir
 from lanefree_sumo.experiments.sweep.grid import Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
-from lanefree_sumo.experiments.sweep.state import COMPLETE, inspect_run
+from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
 
 BOOTSTRAP_RESAMPLES = 10_000
 CI_LEVEL = 0.95
@@ -188,7 +191,7 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
     for cell in grid.cells():
         path = sweep.run(cell)
         info = inspect_run(path, grid.episodes)
-        if info.state != COMPLETE:
+        if info.state != COMPLETE and episode_numbers(RunDir(path).episodes) != list(range(1, grid.episodes + 1)):
             incomplete.append((cell.name, f"{info.state}, {info.episodes}/{grid.episodes} episodes"))
             continue
         try:
