@@ -275,6 +275,19 @@ def test_summary_and_status_from_run_folders(tmp_path):
     assert "episodes: 330/360" in status and "driver: not running" in status
 
 
+def test_a_setting_in_several_tables_is_drawn_once(tmp_path):
+    grid = parse_grid({"reward_presets": ["fields_zones_overtake_collision"], "n_seeds": 1, "episodes": 60},
+                      "row", "row.yaml")  # DDPG / fzoc / 70 is a row of Tables 6, 7 and 8
+    write_manifest(tmp_path, Manifest(grid))
+    fake_run(SweepDir(tmp_path).run(grid.cells()[0]), grid, grid.cells()[0], 60)
+    result = summarize(tmp_path)
+    assert sorted(p.name for p in (tmp_path / "curves").iterdir()) == \
+        ["table6_collisions.png", "table6_return.png", "table6_speed_dev.png"]
+    assert len(result.files) == 5
+    md = (tmp_path / "summary.md").read_text()
+    assert "- Table 6, Table 7, Table 8: [return](curves/table6_return.png)" in md
+
+
 def test_lanefree_report_of_a_sweep_folder_writes_its_summary(tmp_path):
     grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 2, "episodes": 60}, "one", "one.yaml")
     write_manifest(tmp_path, Manifest(grid))

@@ -142,9 +142,12 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
                      f"{_cell(row, 'speed_dev_mps', 'paper_speed_dev_mps')} |")
     if curves:
         lines += ["", "## Learning curves", ""]
+        titles: dict[tuple[Path, ...], list[str]] = {}  # tables drawn by the same files share a line
         for group, paths in curves.items():
-            links = ", ".join(f"[{p.stem.split('_', 1)[1]}]({p.relative_to(out)})" for p in paths)
-            lines.append(f"- {group}: {links}")
+            titles.setdefault(tuple(paths), []).append(group)
+        for shared, groups in titles.items():
+            links = ", ".join(f"[{p.stem.split('_', 1)[1]}]({p.relative_to(out)})" for p in shared)
+            lines.append(f"- {', '.join(groups)}: {links}")
     if incomplete:
         lines += ["", f"## Runs not (yet) in the table ({len(incomplete)})", ""]
         lines += [f"- `runs/{name}`: {state}" for name, state in incomplete]
@@ -161,9 +164,13 @@ def _plot(grid: Grid, groups: dict[Any, list[RunData]], folder: Path, smooth: in
         for table in setting.tables or ("other",):
             by_table.setdefault(f"Table {table}" if table != "other" else "other", []).append(setting)
     curves: dict[str, list[Path]] = {}
+    drawn: dict[tuple[Any, ...], list[Path]] = {}  # the same settings in several tables: drawn once
     for title, settings in by_table.items():
         subset = {_key(s): groups[_key(s)] for s in settings if groups.get(_key(s))}
         if not subset:
+            continue
+        if tuple(subset) in drawn:
+            curves[title] = drawn[tuple(subset)]
             continue
         stem = title.lower().replace(" ", "")
         folder.mkdir(parents=True, exist_ok=True)
@@ -174,6 +181,7 @@ def _plot(grid: Grid, groups: dict[Any, list[RunData]], folder: Path, smooth: in
             except ReportError as exc:
                 return curves, [f"learning curves skipped: {exc}"]
             curves.setdefault(title, []).append(path)
+        drawn[tuple(subset)] = curves[title]
     return curves, []
 
 
@@ -209,5 +217,5 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
                                                         notes + plot_notes, last))
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
-    files = [p for paths in curves.values() for p in paths] + [sweep.summary_csv, sweep.summary_md]
+    files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [sweep.summary_csv, sweep.summary_md]
     return SweepSummary(table, files, incomplete, notes + plot_notes)
