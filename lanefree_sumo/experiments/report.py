@@ -85,6 +85,9 @@ or do not change what a run learns (the fast learner computes the same update as
 planned ``train.episodes`` is part of the variant: last-50 means of 150- and 625-episode runs do
 not average."""
 
+_DEFAULT_CONFIG = LaneFreeConfig()
+"""What a run's variant is measured against (built once, not per run)."""
+
 RunKey = tuple[str, str, float, str]
 """(algorithm, reward preset, density veh/km, variant): the group of a run."""
 
@@ -137,7 +140,7 @@ def _one_line(text: object) -> str:
 def variant_of(cfg: LaneFreeConfig) -> str:
     """``key=value, …`` of the settings where ``cfg`` differs from the defaults (beyond
     :data:`NOT_VARIANT`); ``""`` for a default run."""
-    return ", ".join(f"{k}={v}" for k, v in config_differences(cfg, LaneFreeConfig(), NOT_VARIANT).items())
+    return ", ".join(f"{k}={v}" for k, v in config_differences(cfg, _DEFAULT_CONFIG, NOT_VARIANT).items())
 
 
 def read_run_config(run: Path) -> tuple[str, str, float, int, str]:
