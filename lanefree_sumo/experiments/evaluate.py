@@ -32,7 +32,7 @@ from lanefree_sumo.experiments.rundir import (
     vehicles_path,
     write_config,
 )
-from lanefree_sumo.experiments.signals import sigterm_as_interrupt
+from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
 
@@ -80,7 +80,7 @@ def evaluate(
     model_path = folder.find_model()
     model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
-    with fresh_output(out, overwrite, "evaluate") as tmp, sigterm_as_interrupt():
+    with fresh_output(out, overwrite, "evaluate") as tmp, stop_requested() as stop:
         write_config(tmp, cfg)
         if record:
             (tmp / TRAJECTORIES).mkdir()
@@ -90,7 +90,7 @@ def evaluate(
                 "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
                 + (",shielded)" if cfg.shield.enabled else ")"),
             }, indent=2) + "\n")
-        done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress)
+        done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress, stop)
     return EvaluationResult(out, done, done < episodes)
 
 
@@ -104,8 +104,9 @@ def load_model(folder: RunDir, cfg: LaneFreeConfig) -> Any:
 
 
 def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, episodes: int, record: bool,
-                  progress: bool) -> int:
-    """Episodes 1..``episodes`` into ``out``; returns how many completed (fewer after Ctrl-C)."""
+                  progress: bool, stop: StopRequest) -> int:
+    """Episodes 1..``episodes`` into ``out``; returns how many completed (fewer once ``stop`` is
+    requested: the episode in progress is dropped with its recording)."""
     from tqdm import tqdm
 
     from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles
@@ -116,23 +117,24 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     done = 0
     try:
         for k in tqdm(range(1, episodes + 1), desc="evaluate", unit="ep", disable=not progress):
+            if stop.requested:
+                break
             obs, _ = env.reset(seed=base_seed + k)
             writer = (TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True, shield=cfg.shield.enabled)
                       if record else None)
-            try:
+            if writer:
+                writer.write(0, env.sim.current()[0], None)
+                write_vehicles(vehicles_path(out, k), env.sim.current()[0])
+            info: dict[str, Any] = {}
+            finished = False
+            while not finished and not stop.requested:
+                action, _ = model.predict(obs, deterministic=True)
+                obs, _, terminated, truncated, info = env.step(action)
                 if writer:
-                    writer.write(0, env.sim.current()[0], None)
-                    write_vehicles(vehicles_path(out, k), env.sim.current()[0])
-                info: dict[str, Any] = {}
-                finished = False
-                while not finished:
-                    action, _ = model.predict(obs, deterministic=True)
-                    obs, _, terminated, truncated, info = env.step(action)
-                    if writer:
-                        writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result,
-                                     shielded=info["shield_intervened"])
-                    finished = terminated or truncated
-            except KeyboardInterrupt:
+                    writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result,
+                                 shielded=info["shield_intervened"])
+                finished = terminated or truncated
+            if not finished:  # stopped mid-episode: no partial recording may look complete
                 if writer:
                     writer.close()
                 trajectory_path(out, k).unlink(missing_ok=True)

@@ -24,3 +24,31 @@ def sigterm_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+class StopRequest:
+    """Set by Ctrl-C or SIGTERM inside :func:`stop_requested`; the work checks it between steps."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+
+@contextlib.contextmanager
+def stop_requested() -> Iterator[StopRequest]:
+    """Within the block Ctrl-C and SIGTERM only set ``.requested`` (no exception at an arbitrary
+    line), so a loop stops at a step boundary it chooses and its files stay consistent."""
+    stop = StopRequest()
+
+    def request(_signum: int, _frame: Any) -> None:
+        stop.requested = True
+
+    try:
+        previous = {s: signal.signal(s, request) for s in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:  # not the main thread: leave signals alone
+        yield stop
+        return
+    try:
+        yield stop
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
