@@ -132,8 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--resume", type=Path, default=None, metavar="RUN",
                     help="continue RUN from its newest checkpoint with the options in RUN/config.yaml; with "
                     "--episodes N, extend RUN (finished or not) to N episodes; other options are refused")
-    tr.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
-                    help=f"simulation backend (default {DEFAULTS.backend}; numpy = the same physics without SUMO)")
+    tr.add_argument("--backend", choices=BACKENDS, default=t.backend,
+                    help=f"simulation backend (default {t.backend}: the same episodes as libsumo bit for bit, "
+                    "without SUMO; libsumo/traci train inside SUMO)")
     tr.add_argument("--shield", action="store_true",
                     help="learn with the safety shield on every action (run folder ..._shield)")
 
@@ -282,13 +283,12 @@ def _train(args: argparse.Namespace) -> int:
     else:
         cfg = merge_config(LaneFreeConfig(), {
             "seed": args.seed,
-            "backend": args.backend,
             "scenario": {"density_veh_per_km": args.density},
             "reward": {"preset": args.reward},
             "observation": {"kind": args.obs, "encoder": args.encoder},
             "shield": {"enabled": args.shield},
             "sim": {"episode_steps": args.episode_steps},
-            "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs,
+            "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs, "backend": args.backend,
                       "checkpoint_every_episodes": args.checkpoint_every},
         })
         run, done = train(cfg, run=args.out)

@@ -33,6 +33,7 @@ from lanefree_sumo.config.schema import (
 )
 from lanefree_sumo.config.validation import (
     ADDED_LATER,
+    SAME_RESULTS,
     check_value,
     config_differences,
     config_to_dict,
@@ -44,7 +45,7 @@ from lanefree_sumo.config.validation import (
 from lanefree_sumo.errors import ConfigError
 
 __all__ = [
-    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "AccelerationBounds", "ActionConfig",
+    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "SAME_RESULTS", "OBSERVATION_KINDS", "AccelerationBounds", "ActionConfig",
     "ActionKind", "ActorCriticConfig", "Backend", "ConfigError", "DQNConfig", "DriverConfig", "EpisodeConfig",
     "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
     "RewardConfig", "RoadConfig", "ScenarioConfig", "ShieldConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",

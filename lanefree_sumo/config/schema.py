@@ -335,6 +335,11 @@ class TrainConfig:
     """DDPG: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` (hand-written
     backprop, multi-tensor Adam and target updates): the same parameters bit for bit, ~1.7× faster per
     update. False runs SB3's own ``train``. Other algorithms ignore it."""
+    backend: Backend = "numpy"
+    """Simulation backend of training runs, copied to the run's ``backend``: ``numpy`` (default) gives the
+    same episodes as ``libsumo`` bit for bit without SUMO (``tests/sim/test_backends.py``,
+    ``tests/experiments/test_train_backends.py``), ~2.6× faster; ``libsumo``/``traci`` train inside SUMO.
+    Evaluation, rollout and replay of the run can use any backend."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
 

@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from lanefree_sumo.config import LaneFreeConfig, config_differences
+from lanefree_sumo.config import SAME_RESULTS, LaneFreeConfig, config_differences
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments.curves import CURVE_METRICS, group_label, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
@@ -78,12 +78,10 @@ TABLE_METRICS: tuple[tuple[str, str, str], ...] = (
 """Metrics of the summary table, in column order."""
 
 NOT_VARIANT: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
-                                 "scenario.with_agent", "train.checkpoint_every_episodes", "train.torch_threads",
-                                 "train.fast_learner", "gui")
+                                 "scenario.with_agent", *SAME_RESULTS)
 """Config keys that are part of the group key already, the same in every training run (the agent),
-or do not change what a run learns (the fast learner computes the same update as SB3's). A run's
-planned ``train.episodes`` is part of the variant: last-50 means of 150- and 625-episode runs do
-not average."""
+or do not change what a run learns (:data:`~lanefree_sumo.config.SAME_RESULTS`). A run's planned
+``train.episodes`` is part of the variant: last-50 means of 150- and 625-episode runs do not average."""
 
 _DEFAULT_CONFIG = LaneFreeConfig()
 """What a run's variant is measured against (built once, not per run)."""

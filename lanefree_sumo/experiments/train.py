@@ -5,8 +5,10 @@ The run folder layout is defined in :mod:`lanefree_sumo.experiments.rundir`.
 
 ``resume`` continues from the newest checkpoint: model and replay buffer are restored,
 ``episodes.csv`` is cut back to the checkpoint's episode count, and episode numbers continue.
-The environments' random streams and the exploration noise state are not checkpointed: a
-resumed run is a valid continuation, not a bit-identical replay of an uninterrupted one.
+Episode k's traffic seed depends only on the run's seed and k (:func:`~lanefree_sumo.rl.models.episode_seed`),
+so a resumed run sees the traffic an uninterrupted one sees; the exploration noise state and the
+torch/numpy random streams are not checkpointed: a resumed run is a valid continuation, not a
+bit-identical replay of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -290,7 +292,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     torch.set_num_threads(cfg.train.torch_threads)
     algo = cfg.train.algo
     spec = get_algorithm(algo)
-    env = make_vec_env(cfg, cfg.seed + done, cfg.train.envs)
+    env = make_vec_env(cfg, done)
     stop = _Stop()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     log: EpisodeLog | None = None

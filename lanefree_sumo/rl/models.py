@@ -12,6 +12,7 @@ import signal
 from collections.abc import Callable
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
@@ -20,11 +21,13 @@ from lanefree_sumo.rl.algorithms import get_algorithm
 
 
 def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
-    """Fix the parts of the config the algorithm decides: action kind from the algorithm."""
+    """Fix the parts of the config training decides: the action kind from the algorithm, the backend
+    from ``train.backend``."""
     kind = get_algorithm(base.train.algo).actions
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
-    return merge_config(base, {"action": {"kind": kind}, "scenario": {"with_agent": True}})
+    return merge_config(base, {"action": {"kind": kind}, "scenario": {"with_agent": True},
+                              "backend": base.train.backend})
 
 
 def total_timesteps(cfg: LaneFreeConfig) -> int:
@@ -33,7 +36,30 @@ def total_timesteps(cfg: LaneFreeConfig) -> int:
     return (cfg.train.episodes + cfg.train.envs) * cfg.sim.episode_steps
 
 
-def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env: bool) -> Callable[[], Any]:
+def episode_seed(run_seed: int, rank: int, episode: int) -> int:
+    """The traffic seed (0 … 2³¹ − 1) of the ``episode``-th episode (1, 2, …) of environment ``rank`` of
+    a run seeded ``run_seed``: a function of these three numbers only, so a resumed run sees the same
+    traffic as one that was never interrupted."""
+    return int(np.random.SeedSequence([run_seed, rank, episode]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+class EpisodeSeeds(gym.Wrapper):
+    """Gives the episodes of a training environment the traffic seeds :func:`episode_seed` (``run_seed``,
+    ``rank``, k) for k = ``first_episode``, ``first_episode`` + 1, …; a seed passed to ``reset`` (SB3
+    passes the model's seed) is ignored: the schedule decides."""
+
+    def __init__(self, env: gym.Env, run_seed: int, rank: int, first_episode: int) -> None:
+        super().__init__(env)
+        self.run_seed, self.rank, self.next_episode = run_seed, rank, first_episode
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> Any:
+        chosen = episode_seed(self.run_seed, self.rank, self.next_episode)
+        self.next_episode += 1
+        return self.env.reset(seed=chosen, options=options)
+
+
+def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, first_episode: int,
+                 subprocess_env: bool) -> Callable[[], Any]:
     def make() -> Any:
         from stable_baselines3.common.monitor import Monitor
 
@@ -44,21 +70,25 @@ def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, subprocess_env:
             # then closing the workers); a worker dying first would lose the checkpoint.
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
-        env = Monitor(LaneFreeEnv(cfg_dict))
-        env.reset(seed=seed + 1000 * rank)
-        return env
+        return Monitor(EpisodeSeeds(LaneFreeEnv(cfg_dict), seed, rank, first_episode))
 
     return make
 
 
-def make_vec_env(cfg: LaneFreeConfig, seed: int, n_envs: int) -> Any:
-    """``n_envs`` environments: in this process for 1, else one process each."""
+def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
+    """``cfg.train.envs`` environments (in this process for 1, else one process each) whose episodes
+    continue a run of seed ``cfg.seed`` after ``episodes_done`` episodes: environment r's k-th episode has
+    the traffic seed :func:`episode_seed` (seed, r, k). With one environment episode k of the run is
+    episode k of the environment, so a resumed run sees exactly the traffic of an uninterrupted one; with
+    several, which environment finishes which episode depends on timing, and a resume restarts each
+    environment at episode ``episodes_done // envs + 1``."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
+    n_envs = cfg.train.envs
     cfg_dict = config_to_dict(cfg)
-    factories = [_env_factory(cfg_dict, rank, seed, n_envs > 1) for rank in range(n_envs)]
+    first = episodes_done // n_envs + 1
+    factories = [_env_factory(cfg_dict, rank, cfg.seed, first, n_envs > 1) for rank in range(n_envs)]
     vec: VecEnv = DummyVecEnv(factories) if n_envs == 1 else SubprocVecEnv(factories, start_method="spawn")
-    vec.seed(seed)
     return vec
 
 

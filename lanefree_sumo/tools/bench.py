@@ -115,7 +115,7 @@ def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600
                 return False
             return True
 
-    env = make_vec_env(cfg, seed, 1)
+    env = make_vec_env(merge_config(cfg, {"seed": seed}))
     try:
         model = build_model(cfg, env, seed, None)
         clock = Clock()
@@ -262,7 +262,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     sb3 = merge_config(cfg, {"train": {"fast_learner": False}})
 
     def lanefree() -> Any:
-        return make_vec_env(cfg, seed, 1)
+        return make_vec_env(merge_config(cfg, {"seed": seed}))
 
     cases: dict[tuple[str, str], Callable[[], float]] = {
         ("lanefree", "env"): functools.partial(_env_rate, lanefree, steps, seed),

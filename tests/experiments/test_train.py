@@ -17,6 +17,7 @@ from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, get_algorithm
+from lanefree_sumo.rl.models import episode_seed
 
 from conftest import TINY_TRAINING, lanefree_popen
 
@@ -61,6 +62,19 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
         assert type(model).__name__ == "DoubleDQN"
 
 
+def test_training_on_numpy_and_libsumo_gives_the_same_episodes(tmp_path):
+    """The default training backend (numpy) changes no number: whole DDPG training episodes, learning
+    included, give the same episodes.csv rows (all but the wall time) as in SUMO."""
+    tables = {}
+    for backend in ("numpy", "libsumo"):
+        cfg = merge_config(tiny_config("ddpg", scenario={"density_veh_per_km": 120}), {"train": {"backend": backend}})
+        run, _ = train(cfg, run=tmp_path / backend, progress=False)
+        assert yaml.safe_load((run / "config.yaml").read_text())["backend"] == backend
+        tables[backend] = [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]
+    assert len(tables["numpy"]) == 2
+    assert tables["numpy"] == tables["libsumo"]
+
+
 def test_set_observation_trains_with_the_encoder(tmp_path):
     run, done = train(tiny_config("dueling", observation={"kind": "set"}), run=tmp_path / "set", progress=False)
     assert done == 2 and (run / "model.zip").is_file()
@@ -92,6 +106,8 @@ def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
     assert episodes == [1, 2, 3, 4, 5, 6]
     timesteps = [int(r["timesteps"]) for r in rows(csv_path)]
     assert timesteps == sorted(timesteps)
+    # the traffic continues: episode k's seed depends on the run's seed and k only, as if never interrupted
+    assert [int(r["seed"]) for r in rows(csv_path)] == [episode_seed(0, 0, k) for k in range(1, 7)]
     assert (run / "model.zip").is_file()
     assert len((run / "command.txt").read_text().splitlines()) == 2
 

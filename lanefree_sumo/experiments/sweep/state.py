@@ -1,7 +1,9 @@
 """What a sweep's run folders hold, read from the folders themselves (they are the truth).
 
 A run is **complete** when its ``model.zip`` exists and ``episodes.csv`` holds exactly episodes
-1 … N of the grid's budget N (each once); **partial** when it has a usable checkpoint to resume
+1 … N of the grid's budget N (each once), or when a folder without model and checkpoints holds those
+episodes and the ``last_session.json`` of a finished session (committed results: git keeps no models);
+**partial** when it has a usable checkpoint to resume
 from (or is a finished shorter run to extend); **stale** when its folder has no checkpoint yet
 (a worker died before the first one: it restarts from scratch); **pending** without a folder;
 **damaged** when ``model.zip`` exists but the CSV does not hold exactly its episodes (never
@@ -93,6 +95,8 @@ def inspect_run(folder: Path, target: int) -> RunInfo:
     try:
         ckpt = run.newest_checkpoint()
     except RunError:
+        if numbers == list(range(1, target + 1)) and run.last_session.is_file():
+            return RunInfo(COMPLETE, rows, "complete; its model is not here (results copied without models)")
         return RunInfo(STALE, rows, "no checkpoint yet; restarts from scratch")
     return RunInfo(PARTIAL, rows, f"resumable from episode {ckpt.episodes}")
 
