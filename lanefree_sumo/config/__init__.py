@@ -45,7 +45,8 @@ from lanefree_sumo.config.validation import (
 from lanefree_sumo.errors import ConfigError
 
 __all__ = [
-    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "SAME_RESULTS", "OBSERVATION_KINDS", "AccelerationBounds", "ActionConfig",
+    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "SAME_RESULTS", "AccelerationBounds",
+    "ActionConfig",
     "ActionKind", "ActorCriticConfig", "Backend", "ConfigError", "DQNConfig", "DriverConfig", "EpisodeConfig",
     "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
     "RewardConfig", "RoadConfig", "ScenarioConfig", "ShieldConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
