@@ -137,6 +137,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "without SUMO; libsumo/traci train inside SUMO)")
     tr.add_argument("--shield", action="store_true",
                     help="learn with the safety shield on every action (run folder ..._shield)")
+    tr.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=t.overlap,
+                    help="DDPG: step the environment on a second core while the learner updates; the acting policy "
+                    f"then lags the learner by one update (default {'on' if t.overlap else 'off'}: SB3's order, "
+                    "bit for bit)")
 
     ev = sub.add_parser(
         "evaluate",
@@ -289,6 +293,7 @@ def _train(args: argparse.Namespace) -> int:
             "shield": {"enabled": args.shield},
             "sim": {"episode_steps": args.episode_steps},
             "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs, "backend": args.backend,
+                      "overlap": args.overlap,
                       "checkpoint_every_episodes": args.checkpoint_every},
         })
         run, done = train(cfg, run=args.out)

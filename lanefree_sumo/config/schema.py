@@ -335,6 +335,15 @@ class TrainConfig:
     """DDPG: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` (hand-written
     backprop, multi-tensor Adam and target updates): the same parameters bit for bit, ~1.7× faster per
     update. False runs SB3's own ``train``. Other algorithms ignore it."""
+    lean_loop: bool = True
+    """DDPG with the fast learner: collect experience with :meth:`FastDDPG.collect_rollouts
+    <lanefree_sumo.rl.algorithms.fast_ddpg.FastDDPG.collect_rollouts>`, SB3's loop bit for bit without its
+    per-step overhead (mode switches, ``predict``). False runs SB3's own loop. Other algorithms ignore it."""
+    overlap: bool = False
+    """DDPG with the lean loop and one environment: step the environment in its own process (a second
+    core) while this one updates, so a step costs the longer of the two instead of their sum. The action
+    of step t is then chosen before update t − 1, by a policy one update behind the learner (deterministic,
+    not bit-identical to SB3's order). Off (the default): SB3's order, bit for bit."""
     backend: Backend = "numpy"
     """Simulation backend of training runs, copied to the run's ``backend``: ``numpy`` (default) gives the
     same episodes as ``libsumo`` bit for bit without SUMO (``tests/sim/test_backends.py``,

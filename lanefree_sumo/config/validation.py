@@ -45,13 +45,13 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
 
 
 ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner", "reward.broad_stretch",
-                               "train.backend")
+                               "train.backend", "train.lean_loop", "train.overlap")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 
 
 SAME_RESULTS: tuple[str, ...] = ("train.checkpoint_every_episodes", "train.torch_threads", "train.fast_learner",
-                                  "train.loop", "gui", "backend", "train.backend")
+                                  "train.lean_loop", "gui", "backend", "train.backend")
 """Config keys that do not change what a training run computes: the fast learner and the lean loop
 compute SB3's DDPG bit for bit, the backends give the same episodes (each proven by a test). Runs
 differing only here are runs of one setting (report groups, sweep adoption)."""

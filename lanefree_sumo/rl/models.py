@@ -76,7 +76,8 @@ def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, first_episode: 
 
 
 def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
-    """``cfg.train.envs`` environments (in this process for 1, else one process each) whose episodes
+    """``cfg.train.envs`` environments (in this process for 1 — in its own with ``train.overlap`` — else one
+    process each) whose episodes
     continue a run of seed ``cfg.seed`` after ``episodes_done`` episodes: environment r's k-th episode has
     the traffic seed :func:`episode_seed` (seed, r, k). With one environment episode k of the run is
     episode k of the environment, so a resumed run sees exactly the traffic of an uninterrupted one; with
@@ -85,10 +86,11 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
     n_envs = cfg.train.envs
+    own_process = n_envs > 1 or (cfg.train.overlap and get_algorithm(cfg.train.algo).fast_learner)
     cfg_dict = config_to_dict(cfg)
     first = episodes_done // n_envs + 1
-    factories = [_env_factory(cfg_dict, rank, cfg.seed, first, n_envs > 1) for rank in range(n_envs)]
-    vec: VecEnv = DummyVecEnv(factories) if n_envs == 1 else SubprocVecEnv(factories, start_method="spawn")
+    factories = [_env_factory(cfg_dict, rank, cfg.seed, first, own_process) for rank in range(n_envs)]
+    vec: VecEnv = SubprocVecEnv(factories, start_method="spawn") if own_process else DummyVecEnv(factories)
     return vec
 
 
@@ -127,7 +129,8 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
         if spec.fast_learner:
-            kwargs["fast_learner"] = cfg.train.fast_learner
+            kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
+                          overlap=cfg.train.overlap)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
         return cls(policy, env, **kwargs)
 

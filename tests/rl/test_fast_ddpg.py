@@ -18,7 +18,7 @@ from stable_baselines3 import DDPG
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.rl.algorithms import get_algorithm
@@ -121,6 +121,7 @@ def test_fast_update_equals_sb3_bit_for_bit(as_dict: bool) -> None:
     assert th.equal(ref_rng, fast_rng) and np.array_equal(ref_np, fast_np)
     assert ref_log == fast_log and fast_log["train/n_updates"] == STEPS
     assert fast._fast_plan is not None and fast._fast_plan.mlp is not as_dict  # the path named in the id ran
+    assert bool(fast._fast_plan.flat) is not as_dict  # the MLP path updates flat buffers
 
 
 def test_several_gradient_steps_per_call_and_the_switch() -> None:
@@ -147,12 +148,24 @@ def test_learn_equals_sb3_with_callbacks_and_tensorboard(tmp_path: Any) -> None:
 
     reference = _model(DDPG, seed=3, tensorboard_log=str(tmp_path / "sb3"))
     fast = _model(FastDDPG, seed=3, tensorboard_log=str(tmp_path / "fast"))
-    for model in (reference, fast):
+    sb3_loop = _model(FastDDPG, seed=3, lean_loop=False)
+    switches = {id(m): 0 for m in (reference, fast, sb3_loop)}
+    for model in (reference, fast, sb3_loop):
+        def count(mode: bool, model: DDPG = model, original: Any = model.policy.set_training_mode) -> None:
+            switches[id(model)] += 1
+            original(mode)
+
+        model.policy.set_training_mode = count  # type: ignore[method-assign]
         np.random.seed(3)
-        model.learn(total_timesteps=260, callback=Count(), log_interval=1)
+        callback = Count()
+        model.learn(total_timesteps=260, callback=callback, log_interval=1)
+        assert callback.calls == 260
     _assert_same(reference, fast)
-    assert fast._n_updates == reference._n_updates == 160
+    _assert_same(reference, sb3_loop)
+    assert fast._n_updates == reference._n_updates == sb3_loop._n_updates == 160
     assert list((tmp_path / "fast").rglob("events.out.tfevents.*"))
+    # the lean loop ran: no mode switches per step (SB3's loop makes ~3 per step)
+    assert switches[id(fast)] == 0 and switches[id(reference)] > 2 * 260 and switches[id(sb3_loop)] > 2 * 260
 
 
 def test_save_load_round_trip_both_ways_and_resume(tmp_path: Any) -> None:
@@ -189,3 +202,56 @@ def test_registry_and_build_model_pick_the_fast_learner() -> None:
         model = build_model(cfg, env, 0, None)
         assert type(model) is FastDDPG and model.fast_learner is fast
     assert LaneFreeConfig().train.fast_learner is True
+    for lean in (True, False):
+        cfg = merge_config(LaneFreeConfig(), {"train": {"algo": "ddpg", "lean_loop": lean}})
+        assert build_model(cfg, env, 0, None).lean_loop is lean
+
+
+def _action_lags(model: FastDDPG) -> list[int]:
+    """For each env step of ``model.learn``: how many updates the learner had made when the action was chosen."""
+    lags: list[int] = []
+    choose = model._lean_action
+
+    def spy(*args: Any) -> Any:
+        lags.append(model._n_updates)
+        return choose(*args)
+
+    model._lean_action = spy  # type: ignore[method-assign]
+    return lags
+
+
+def test_overlap_acts_one_update_behind_and_does_not_depend_on_the_process_layout() -> None:
+    """The overlapped loop: the action of step t is chosen after t − 2 − learning_starts updates (SB3's
+    order: t − 1 − learning_starts), every step after learning starts still gets its update, and the
+    numbers are the same whether the env steps in this process or in its own (SubprocVecEnv)."""
+    steps, starts = 260, 100
+    sequential = _model(FastDDPG, seed=3)
+    in_process = _model(FastDDPG, seed=3, overlap=True)
+    own_process = _model(FastDDPG, seed=3, overlap=True)
+    own_process.set_env(SubprocVecEnv([ToyEnv], start_method="spawn"))
+    own_process.env.seed(3)  # type: ignore[union-attr]  # as the model seeded its own env
+    lags = {}
+    try:
+        for name, model in (("sequential", sequential), ("in_process", in_process), ("own_process", own_process)):
+            lags[name] = _action_lags(model)
+            np.random.seed(3)
+            model.learn(total_timesteps=steps)
+            assert model._n_updates == steps - starts and model.num_timesteps == steps
+    finally:
+        own_process.env.close()  # type: ignore[union-attr]
+    assert lags["sequential"] == [max(0, t - 1 - starts) for t in range(1, steps + 1)]
+    assert lags["in_process"] == [max(0, t - 2 - starts) for t in range(1, steps + 1)]
+    assert lags["own_process"] == lags["in_process"]
+    _assert_same(in_process, own_process)
+    assert not all(th.equal(a, b) for a, b in zip(_tensors(sequential), _tensors(in_process)))  # it is another order
+
+
+def test_overlap_stops_with_the_callback_like_sb3() -> None:
+    class StopAt(BaseCallback):
+        def _on_step(self) -> bool:
+            return self.num_timesteps < 150
+
+    for overlap in (False, True):
+        model = _model(FastDDPG, seed=1, overlap=overlap)
+        model.learn(total_timesteps=260, callback=StopAt())
+        assert model.num_timesteps == 150 and model._n_updates == 150 - 1 - 100

@@ -38,8 +38,12 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 from torch.nn import functional as F
 
@@ -49,6 +53,11 @@ _MEAN = 1
 
 Layer = tuple[th.Tensor, th.Tensor, th.Tensor]
 """A linear layer: weight W, the view Wᵀ (kept: in-place updates of W show through it), bias."""
+
+
+def _mean(values: list[float]) -> float:
+    """``np.mean`` (SB3's loss logging), without its overhead for the usual single value."""
+    return values[0] if len(values) == 1 else float(np.mean(values))
 
 
 # -- the MLP, written out ------------------------------------------------------------------------------
@@ -131,23 +140,50 @@ def _plain_adam(optimizer: th.optim.Optimizer, params: Sequence[th.Tensor]) -> b
     )
 
 
+def flatten_parameters(params: Sequence[th.Tensor]) -> th.Tensor:
+    """Move ``params`` into one contiguous buffer, in order, and return it: each parameter's ``.data``
+    becomes a view of it (the values are unchanged), so elementwise updates can run once over the buffer
+    instead of once per tensor — the same kernels on the same elements, the same bits."""
+    flat = th.cat([p.detach().reshape(-1) for p in params])
+    at = 0
+    for p in params:
+        p.data = flat[at:at + p.numel()].view_as(p)
+        at += p.numel()
+    return flat
+
+
+def _flat_state(state: dict[Any, Any], params: Sequence[th.Tensor], key: str) -> th.Tensor:
+    """Like :func:`flatten_parameters` for the optimiser's ``state[p][key]`` tensors (replaced by views)."""
+    flat = th.cat([state[p][key].reshape(-1) for p in params])
+    at = 0
+    for p in params:
+        state[p][key] = flat[at:at + p.numel()].view_as(p)
+        at += p.numel()
+    return flat
+
+
 class LeanAdam:
     """``optimizer.step()`` for gradients given as a list, in ``params`` order.
 
     For a plain Adam (:func:`_plain_adam`) this is the arithmetic of torch 2.13's multi-tensor Adam
     (``torch.optim.adam._multi_tensor_adam`` without the options) on the optimiser's own state tensors,
-    fetched once; otherwise, and for the very first step (which creates the state), the gradients go to
+    fetched once; with ``flat`` (the buffer :func:`flatten_parameters` made of ``params``) the state is
+    moved into buffers of the same layout too and each of Adam's elementwise operations runs once over
+    the buffers. Otherwise, and for the very first step (which creates the state), the gradients go to
     ``.grad`` and the optimiser steps itself. Call under ``torch.no_grad()``."""
 
-    def __init__(self, optimizer: th.optim.Optimizer, params: Sequence[th.Tensor]) -> None:
+    def __init__(self, optimizer: th.optim.Optimizer, params: Sequence[th.Tensor],
+                 flat: th.Tensor | None = None) -> None:
         self.optimizer = optimizer
         self.params = list(params)
+        self.flat = flat
         self.plain = _plain_adam(optimizer, self.params)
         self._state: Any = None
         self._one = th.tensor(1.0)
         self.exp_avgs: list[th.Tensor] = []
         self.exp_avg_sqs: list[th.Tensor] = []
         self.steps: list[th.Tensor] = []
+        self.flat_exp_avg = self.flat_exp_avg_sq = th.empty(0)
 
     def _fetch(self) -> bool:
         """Point at the optimiser's state tensors (again after a ``load_state_dict``); False before its
@@ -158,6 +194,9 @@ class LeanAdam:
         if not all(p in state for p in self.params):
             return False
         self.plain = _plain_adam(self.optimizer, self.params)  # a loaded state brings its own options
+        if self.flat is not None and self.plain:
+            self.flat_exp_avg = _flat_state(state, self.params, "exp_avg")
+            self.flat_exp_avg_sq = _flat_state(state, self.params, "exp_avg_sq")
         per_param = [state[p] for p in self.params]
         self.exp_avgs = [s["exp_avg"] for s in per_param]
         self.exp_avg_sqs = [s["exp_avg_sq"] for s in per_param]
@@ -177,16 +216,24 @@ class LeanAdam:
         group = self.optimizer.param_groups[0]
         lr, (beta1, beta2), eps = group["lr"], group["betas"], group["eps"]
         th._foreach_add_(self.steps, self._one, alpha=1.0)
+        counts = [s.item() for s in self.steps]
+        if self.flat is not None and len(set(counts)) == 1:
+            n = counts[0]
+            grad = th.cat([g.reshape(-1) for g in given])
+            self.flat_exp_avg.lerp_(grad, 1 - beta1)
+            self.flat_exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            denom = self.flat_exp_avg_sq.sqrt().div_((1 - beta2**n) ** 0.5).add_(eps)
+            self.flat.addcdiv_(self.flat_exp_avg, denom, value=(lr / (1 - beta1**n)) * -1)
+            return
         th._foreach_lerp_(self.exp_avgs, given, 1 - beta1)
         th._foreach_mul_(self.exp_avg_sqs, beta2)
         th._foreach_addcmul_(self.exp_avg_sqs, given, given, 1 - beta2)
-        counts = [s.item() for s in self.steps]
         step_size = [(lr / (1 - beta1**n)) * -1 for n in counts]
         bias_correction2_sqrt = [(1 - beta2**n) ** 0.5 for n in counts]
-        denom = th._foreach_sqrt(self.exp_avg_sqs)
-        th._foreach_div_(denom, bias_correction2_sqrt)
-        th._foreach_add_(denom, eps)
-        th._foreach_addcdiv_(self.params, self.exp_avgs, denom, step_size)
+        denom_list = th._foreach_sqrt(self.exp_avg_sqs)
+        th._foreach_div_(denom_list, bias_correction2_sqrt)
+        th._foreach_add_(denom_list, eps)
+        th._foreach_addcdiv_(self.params, self.exp_avgs, denom_list, step_size)
 
 
 # -- the update -----------------------------------------------------------------------------------------
@@ -209,10 +256,12 @@ class _Plan:
         self.supported = (
             model.policy_delay == 1 and len(model.critic.q_networks) == 1 and model.device.type == "cpu"
         )
+        self.flat: list[th.Tensor] = []
+        """Flat parameter buffers of actor, critic and their targets (MLP case; :func:`flatten_parameters`)."""
         self.mlp = self.supported and self._mlp(model)
         if self.mlp:
-            self.actor_adam = LeanAdam(self.actor_opt, [t for layer in self.actor for t in (layer[0], layer[2])])
-            self.critic_adam = LeanAdam(self.critic_opt, [t for layer in self.critic for t in (layer[0], layer[2])])
+            self.actor_adam = LeanAdam(self.actor_opt, self.actor_params, self.flat[0])
+            self.critic_adam = LeanAdam(self.critic_opt, self.critic_params, self.flat[1])
         else:
             self.actor_adam = LeanAdam(self.actor_opt, self.actor_params)
             self.critic_adam = LeanAdam(self.critic_opt, self.critic_params)
@@ -236,11 +285,19 @@ class _Plan:
                 mlp_layers(model.actor_target.mu, True), mlp_layers(model.critic_target.q_networks[0], False))
         if any(n is None for n in nets):
             return False
-        self.actor, self.critic, self.actor_target, self.critic_target = (n or [] for n in nets)
-        owned = [t for layer in self.actor for t in (layer[0], layer[2])]
-        critic_owned = [t for layer in self.critic for t in (layer[0], layer[2])]
-        return ({id(p) for p in owned} == {id(p) for p in self.actor_params}
-                and {id(p) for p in critic_owned} == {id(p) for p in self.critic_params})
+        owned = [[t for layer in net or [] for t in (layer[0], layer[2])] for net in nets]
+        if not all([id(p) for p in mine] == [id(p) for p in theirs] for mine, theirs in zip(
+                owned, (self.actor_params, self.critic_params, self.actor_targets, self.critic_targets))):
+            return False
+        # one buffer per network (parameters in module order, so a net and its target line up), then the
+        # layers again: their transposed views must see the moved weights
+        self.flat = [flatten_parameters(params) for params in
+                     (self.actor_params, self.critic_params, self.actor_targets, self.critic_targets)]
+        self.actor, self.critic, self.actor_target, self.critic_target = (
+            cast(list[Layer], mlp_layers(net, squash)) for net, squash in (
+                (model.actor.mu, True), (model.critic.q_networks[0], False),
+                (model.actor_target.mu, True), (model.critic_target.q_networks[0], False)))
+        return True
 
     def valid(self, model: FastDDPG) -> bool:
         return (self.policy is model.policy and self.replay_buffer is model.replay_buffer
@@ -256,10 +313,15 @@ class _Plan:
 
     def soft_update(self, tau: float) -> None:
         """SB3's ``polyak_update`` of the critic, then the actor: θ' · (1 − τ), then + τ · θ."""
-        th._foreach_mul_(self.critic_targets, 1 - tau)
-        th._foreach_add_(self.critic_targets, self.critic_params, alpha=tau)
-        th._foreach_mul_(self.actor_targets, 1 - tau)
-        th._foreach_add_(self.actor_targets, self.actor_params, alpha=tau)
+        if self.flat:
+            actor, critic, actor_target, critic_target = self.flat
+            critic_target.mul_(1 - tau).add_(critic, alpha=tau)
+            actor_target.mul_(1 - tau).add_(actor, alpha=tau)
+        else:
+            th._foreach_mul_(self.critic_targets, 1 - tau)
+            th._foreach_add_(self.critic_targets, self.critic_params, alpha=tau)
+            th._foreach_mul_(self.actor_targets, 1 - tau)
+            th._foreach_add_(self.actor_targets, self.actor_params, alpha=tau)
         for stats, targets in self.batch_norm:
             if stats:
                 polyak_update(stats, targets, 1.0)
@@ -269,25 +331,146 @@ class FastDDPG(DDPG):
     """SB3's DDPG with the same update computed with less overhead (module docstring).
 
     :param fast_learner: False runs SB3's own ``train`` (the reference the fast one equals).
+    :param lean_loop: collect with :meth:`collect_rollouts`' lean loop (SB3's, bit for bit, without the
+        per-step mode switches and ``predict``'s generic path); False runs SB3's own.
+    :param overlap: step the environment while updating (with a ``SubprocVecEnv`` of one env, on another
+        core): the acting policy lags the learner by one update (:meth:`learn`); not bit-identical to SB3.
     All other parameters are :class:`stable_baselines3.DDPG`'s."""
 
     _fast_plan: _Plan | None = None
 
-    def __init__(self, *args: Any, fast_learner: bool = True, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, fast_learner: bool = True, lean_loop: bool = True, overlap: bool = False,
+                 **kwargs: Any) -> None:
         self.fast_learner = fast_learner
+        self.lean_loop = lean_loop
+        self.overlap = overlap
         super().__init__(*args, **kwargs)
 
-    def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_fast_plan"]
+    def _plan(self) -> _Plan | None:
+        """The fast update's plan (rebuilt when the model's parts were replaced); None without the fast learner."""
+        if not self.fast_learner:
+            return None
+        plan = self._fast_plan
+        if plan is None or not plan.valid(self):
+            plan = self._fast_plan = _Plan(self)
+        return plan
+
+    def _lean(self, plan: _Plan | None) -> bool:
+        """The lean collection loop applies: plain MLPs (no module whose train/eval mode changes a number),
+        a Box action space, no gSDE."""
+        return (getattr(self, "lean_loop", True) and plan is not None and plan.mlp
+                and isinstance(self.action_space, spaces.Box) and not self.use_sde)
+
+    def _lean_action(self, plan: _Plan, learning_starts: int, action_noise: ActionNoise | None,
+                     n_envs: int) -> tuple[np.ndarray, np.ndarray]:
+        """SB3's ``_sample_action`` (same draws, same arithmetic) with the actor run through :func:`forward`
+        (the kernels ``nn.Linear`` calls) instead of ``predict``: (actions for the env, actions for the buffer)."""
+        policy, space = self.policy, self.action_space
+        assert isinstance(space, spaces.Box)
+        if self.num_timesteps < learning_starts:
+            unscaled = np.array([space.sample() for _ in range(n_envs)])
+        else:
+            obs = th.as_tensor(self._last_obs).reshape((-1, *self.observation_space.shape))  # type: ignore[misc]
+            with th.no_grad():
+                raw = forward(plan.actor, obs, True)[-1]
+            unscaled = policy.unscale_action(raw.numpy().reshape((-1, *space.shape)))
+        scaled = policy.scale_action(unscaled)
+        if action_noise is not None:
+            scaled = np.clip(scaled + action_noise(), -1, 1)
+        return policy.unscale_action(scaled), scaled
+
+    def _after_step(self, replay_buffer: ReplayBuffer, buffer_actions: np.ndarray, new_obs: Any, rewards: np.ndarray,
+                    dones: np.ndarray, infos: list[dict[str, Any]], action_noise: ActionNoise | None,
+                    log_interval: int | None) -> int:
+        """What SB3's ``collect_rollouts`` does after ``callback.on_step``: episode info, the transition into
+        the buffer, progress, ``_on_step``, noise resets and logs at episode ends. Returns episodes ended."""
+        self._update_info_buffer(infos, dones)
+        self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)
+        self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+        self._on_step()
+        ended = 0
+        for idx, done in enumerate(dones):
+            if done:
+                ended += 1
+                self._episode_num += 1
+                if action_noise is not None:
+                    action_noise.reset(**({"indices": [idx]} if len(dones) > 1 else {}))
+                if log_interval is not None and self._episode_num % log_interval == 0:
+                    self.dump_logs()
+        return ended
+
+    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, train_freq: TrainFreq,
+                         replay_buffer: ReplayBuffer, action_noise: ActionNoise | None = None,
+                         learning_starts: int = 0, log_interval: int | None = None) -> RolloutReturn:
+        """SB3's ``collect_rollouts`` with the same arithmetic, draws and calls to the env, the callback, the
+        replay buffer and the logger, minus what cannot change a number for plain MLPs: the three
+        ``set_training_mode`` walks over every module per step (here, ``predict`` and ``train``) and
+        ``predict``'s generic path (:meth:`_lean_action`)."""
+        plan = self._plan()
+        if not self._lean(plan) or train_freq.unit != TrainFrequencyUnit.STEP:
+            return super().collect_rollouts(env, callback, train_freq, replay_buffer, action_noise,
+                                            learning_starts, log_interval)
+        assert plan is not None
+        collected, episodes, n_envs = 0, 0, env.num_envs
+        callback.on_rollout_start()
+        while collected < train_freq.frequency:
+            actions, buffer_actions = self._lean_action(plan, learning_starts, action_noise, n_envs)
+            new_obs, rewards, dones, infos = env.step(actions)
+            self.num_timesteps += n_envs
+            collected += 1
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return RolloutReturn(collected * n_envs, episodes, continue_training=False)
+            episodes += self._after_step(replay_buffer, buffer_actions, new_obs, rewards, dones, infos,
+                                         action_noise, log_interval)
+        callback.on_rollout_end()
+        return RolloutReturn(collected * n_envs, episodes, continue_training=True)
+
+    def learn(self, total_timesteps: int, callback: MaybeCallback = None, log_interval: int = 4,
+              tb_log_name: str = "run", reset_num_timesteps: bool = True, progress_bar: bool = False) -> FastDDPG:
+        """SB3's ``learn``; with ``overlap`` (and the lean loop, one step per update) the environment steps
+        in its own process while this one updates: the action of step t is chosen before update t − 1 runs,
+        so the policy that acts lags the learner by exactly one update (deterministic: the same run twice
+        gives the same numbers). Without ``overlap``: SB3's order, bit for bit."""
+        plan = self._plan()
+        if not (self.overlap and self._lean(plan) and self.train_freq == TrainFreq(1, TrainFrequencyUnit.STEP)
+                and self.gradient_steps == 1 and self.env is not None and self.env.num_envs == 1):
+            return cast(FastDDPG, super().learn(total_timesteps, callback, log_interval, tb_log_name,
+                                                reset_num_timesteps, progress_bar))
+        assert plan is not None and isinstance(self.replay_buffer, ReplayBuffer)
+        total_timesteps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name,
+                                                      progress_bar)
+        callback.on_training_start(locals(), globals())
+        env, replay_buffer, action_noise = self.env, self.replay_buffer, self.action_noise
+        update_due = False
+        while self.num_timesteps < total_timesteps:
+            callback.on_rollout_start()
+            actions, buffer_actions = self._lean_action(plan, self.learning_starts, action_noise, 1)
+            env.step_async(actions)
+            if update_due:  # update t − 1 while the env computes step t
+                self.train(batch_size=self.batch_size, gradient_steps=1)
+            new_obs, rewards, dones, infos = env.step_wait()
+            self.num_timesteps += 1
+            callback.update_locals(locals())
+            if not callback.on_step():
+                break
+            self._after_step(replay_buffer, buffer_actions, new_obs, rewards, dones, infos, action_noise,
+                             log_interval)
+            callback.on_rollout_end()
+            update_due = self.num_timesteps > self.learning_starts
+        else:
+            if update_due:
+                self.train(batch_size=self.batch_size, gradient_steps=1)
+        callback.on_training_end()
+        return self
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
-        plan = self._fast_plan
-        if self.fast_learner and (plan is None or not plan.valid(self)):
-            plan = self._fast_plan = _Plan(self)
-        if plan is None or not self.fast_learner or not plan.supported:
+        plan = self._plan()
+        if plan is None or not plan.supported:
             super().train(gradient_steps, batch_size)
             return
-        self.policy.set_training_mode(True)
+        if not self._lean(plan):
+            self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         step = self._mlp_step if plan.mlp else self._autograd_step
         actor_losses, critic_losses = [], []
@@ -298,8 +481,8 @@ class FastDDPG(DDPG):
             actor_losses.append(actor_loss)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         if len(actor_losses) > 0:
-            self.logger.record("train/actor_loss", np.mean(actor_losses))
-        self.logger.record("train/critic_loss", np.mean(critic_losses))
+            self.logger.record("train/actor_loss", _mean(actor_losses))
+        self.logger.record("train/critic_loss", _mean(critic_losses))
 
     def _target_actions(self, plan: _Plan, actions: th.Tensor, next_actions: th.Tensor) -> th.Tensor:
         """μ'(s') plus SB3's clipped target noise (drawn as SB3 draws it), clipped to [−1, 1]."""
