@@ -40,8 +40,8 @@ from stable_baselines3 import DDPG
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.torch_layers import FlattenExtractor
+from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
@@ -435,8 +435,8 @@ class FastDDPG(DDPG):
         plan = self._plan()
         if not (self.overlap and self._lean(plan) and self.train_freq == TrainFreq(1, TrainFrequencyUnit.STEP)
                 and self.gradient_steps == 1 and self.env is not None and self.env.num_envs == 1):
-            return cast(FastDDPG, super().learn(total_timesteps, callback, log_interval, tb_log_name,
-                                                reset_num_timesteps, progress_bar))
+            return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps,
+                                 progress_bar)
         assert plan is not None and isinstance(self.replay_buffer, ReplayBuffer)
         total_timesteps, callback = self._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name,
                                                       progress_bar)
