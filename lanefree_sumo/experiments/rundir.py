@@ -22,6 +22,7 @@ with the safety shield) holds::
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import shutil
@@ -44,6 +45,8 @@ MODEL = "model.zip"
 LAST_SESSION = "last_session.json"
 TENSORBOARD = "tb"
 CHECKPOINTS = "checkpoints"
+LOCK = ".lock"
+"""Held (flock) by the process training the run: one writer at a time."""
 REPLAY_BUFFER = "replay_buffer.pkl"
 CHECKPOINT_STATE = "state.json"
 EVAL = "eval"
@@ -201,6 +204,31 @@ class RunDir:
     @property
     def checkpoints(self) -> Path:
         return self.path / CHECKPOINTS
+
+    @property
+    def lock_file(self) -> Path:
+        return self.path / LOCK
+
+    @contextlib.contextmanager
+    def writer_lock(self) -> Iterator[None]:
+        """Hold the run's writer lock (``flock`` on ``.lock``, released by the kernel when the process
+        ends, however it ends); RunError naming the holder's process id when another process holds it."""
+        fh = open(self.lock_file, "a+")
+        try:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                fh.seek(0)
+                holder = fh.read().strip() or "?"
+                raise RunError(f"{self.path} is being written by process {holder} (a training of this run); "
+                               "wait for it to finish or stop it first") from None
+            fh.seek(0)
+            fh.truncate()
+            fh.write(f"{os.getpid()}\n")
+            fh.flush()
+            yield
+        finally:
+            fh.close()
 
     def checkpoint(self, episodes: int) -> Path:
         """Folder of the checkpoint taken after ``episodes`` episodes."""

@@ -13,6 +13,7 @@ bit-identical replay of an uninterrupted one.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import itertools
 import json
@@ -255,31 +256,40 @@ def train(
     """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
     checkpoint and return early.  ``resume`` with ``episodes`` extends a run (finished or not)
     to that many episodes; a finished run is never resumed without it.  A new run that fails
-    before its first episode leaves no folder behind."""
-    created = False
-    if resume:
-        if run is None:
-            raise RunError("resuming needs the run folder")
-        folder = RunDir(run)
-        cfg = folder.load_config()
-        ckpt, target = _resume_point(folder, cfg, episodes)
-        timesteps = ckpt.timesteps
-    else:
-        cfg = training_config(cfg)
-        spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
-        run = new_run_folder(cfg, run)
-        created = True
-        folder = RunDir(run)
-        write_config(run, cfg)
-        folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
-        timesteps, target = 0, cfg.train.episodes
-    try:
-        return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress,
-                              command or shlex.join(["lanefree", *sys.argv[1:]]))
-    except BaseException:
-        if created and not folder.checkpoints.is_dir():  # nothing learned: a retry starts clean
-            shutil.rmtree(run, ignore_errors=True)
-        raise
+    before its first episode leaves no folder behind.  The process holds the run's writer lock
+    (:meth:`RunDir.writer_lock`) throughout: a second training of the same folder is refused."""
+    with contextlib.ExitStack() as stack:
+        created = False
+        if resume:
+            if run is None:
+                raise RunError("resuming needs the run folder")
+            folder = RunDir(run)
+            stack.enter_context(folder.writer_lock())  # one writer: a second resume is refused here
+            cfg = folder.load_config()
+            ckpt, target = _resume_point(folder, cfg, episodes)
+            timesteps = ckpt.timesteps
+        else:
+            cfg = training_config(cfg)
+            spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
+            run = new_run_folder(cfg, run)
+            created = True
+            folder = RunDir(run)
+            try:
+                stack.enter_context(folder.writer_lock())
+            except BaseException:
+                shutil.rmtree(run, ignore_errors=True)
+                raise
+            write_config(run, cfg)
+            folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
+            timesteps, target = 0, cfg.train.episodes
+        try:
+            return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress,
+                                  command or shlex.join(["lanefree", *sys.argv[1:]]))
+        except BaseException:
+            if created and not folder.checkpoints.is_dir():  # nothing learned: a retry starts clean
+                shutil.rmtree(run, ignore_errors=True)
+            raise
+    raise AssertionError("unreachable")
 
 
 def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None, timesteps: int, target: int,

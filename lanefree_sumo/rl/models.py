@@ -94,14 +94,16 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
     return vec
 
 
-def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
-    """A new model for ``cfg.train.algo`` with the paper's hyperparameters (SPEC §9)."""
+def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
+    """A new model for ``cfg.train.algo`` with the paper's hyperparameters (SPEC §9); ``cls`` another class
+    taking SB3's constructor arguments (e.g. SB3's own ``DDPG``, for comparisons)."""
     import torch
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
     algo = cfg.train.algo
     spec = get_algorithm(algo)
-    cls = spec.cls
+    own_class = cls is None
+    cls = spec.cls if cls is None else cls
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
     if set_obs:
@@ -128,7 +130,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
             kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
-        if spec.fast_learner:
+        if spec.fast_learner and own_class:
             kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
                           overlap=cfg.train.overlap)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}

@@ -171,9 +171,10 @@ def _env_rate(make_env: Callable[[], Any], steps: int, seed: int) -> float:
         env.close()
 
 
-def _ddpg_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int) -> float:
-    """Env steps per second of a DDPG run (build_model: the paper's settings, ``cfg.train.fast_learner``)
-    over ``steps`` steps after ``SPEED_STARTS`` random ones: env step, exploration, one update per step."""
+def _ddpg_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int, cls: Any = None) -> float:
+    """Env steps per second of a DDPG run (build_model: the paper's settings and ``cfg.train``'s paths; ``cls``
+    another class, e.g. SB3's ``DDPG``) over ``steps`` steps after ``SPEED_STARTS`` random ones: env step,
+    exploration, one update per step."""
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -191,7 +192,7 @@ def _ddpg_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, step
 
     env = make_env()
     try:
-        build_model(cfg, env, seed, None).learn(total_timesteps=SPEED_STARTS + steps + 1, callback=Clock())
+        build_model(cfg, env, seed, None, cls).learn(total_timesteps=SPEED_STARTS + steps + 1, callback=Clock())
     finally:
         env.close()
     return steps / (stamps[SPEED_STARTS + steps] - stamps[SPEED_STARTS])
@@ -250,25 +251,42 @@ def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[
     return {name: statistics.median(v) for name, v in samples.items()}
 
 
+TRAINING_CASES: dict[str, tuple[str, dict[str, Any]]] = {
+    "plain SB3 DDPG, libsumo": ("sb3", {"backend": "libsumo", "fast_learner": False, "lean_loop": False}),
+    "fast update, SB3 loop, libsumo (before)": ("fast", {"backend": "libsumo", "lean_loop": False}),
+    "fast update, lean loop, numpy (`lanefree train`)": ("fast", {}),
+    "… `--overlap` (env on the second core)": ("fast", {"overlap": True}),
+}
+"""The DDPG training paths compared (label: (class — SB3's ``DDPG`` or the registry's, ``train`` overrides))."""
+
+
 def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats: int = REPEATS) -> str:
-    """Markdown: env steps/s of DDPG on LaneFree-v0 at 90 veh/km with SB3's update and the fast one, of the
-    peer highway-v0 with as many vehicles and a 0.25 s step, and of both envs alone — every case measured
-    ``repeats`` times interleaved in this run (medians) — plus the update alone and its floor."""
+    """Markdown: env steps/s of DDPG on LaneFree-v0 at 90 veh/km along the training paths of
+    :data:`TRAINING_CASES` (plain SB3 DDPG — what a user would write — first), of the peer highway-v0 with
+    as many vehicles and a 0.25 s step, and of the envs alone — every case measured ``repeats`` times
+    interleaved in this run (medians) — plus the update alone and its floor."""
+    from stable_baselines3 import DDPG
+
     from lanefree_sumo.rl.models import make_vec_env, training_config
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
-        "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": "ddpg"}}))
+        "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": "ddpg"}}))
     n = cfg.background_vehicles
-    sb3 = merge_config(cfg, {"train": {"fast_learner": False}})
+    sb3 = merge_config(cfg, {"train": {"fast_learner": False, "lean_loop": False}})
 
-    def lanefree() -> Any:
-        return make_vec_env(merge_config(cfg, {"seed": seed}))
+    def lanefree(backend: str) -> Any:
+        return make_vec_env(merge_config(cfg, {"backend": backend}))
 
     cases: dict[tuple[str, str], Callable[[], float]] = {
-        ("lanefree", "env"): functools.partial(_env_rate, lanefree, steps, seed),
-        ("lanefree", "sb3"): functools.partial(_ddpg_rate, sb3, lanefree, seed, steps),
-        ("lanefree", "fast"): functools.partial(_ddpg_rate, cfg, lanefree, seed, steps),
+        ("lanefree", "env libsumo"): functools.partial(_env_rate, functools.partial(lanefree, "libsumo"), steps, seed),
+        ("lanefree", "env numpy"): functools.partial(_env_rate, functools.partial(lanefree, "numpy"), steps, seed),
     }
+    for label, (kind, train) in TRAINING_CASES.items():
+        case_cfg = merge_config(cfg, {"train": train})
+        case_cfg = merge_config(case_cfg, {"backend": case_cfg.train.backend})
+        cls = DDPG if kind == "sb3" else None
+        cases[("lanefree", label)] = functools.partial(
+            _ddpg_rate, case_cfg, functools.partial(make_vec_env, case_cfg), seed, steps, cls)
     try:
         import highway_env  # noqa: F401
         peers: tuple[int, ...] = (4, 16)
@@ -277,7 +295,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     for hz in peers:
         highway = functools.partial(_highway_env, n, hz, seed)
         cases[(f"highway{hz}", "env")] = functools.partial(_env_rate, highway, peer_steps, seed)
-        cases[(f"highway{hz}", "sb3")] = functools.partial(_ddpg_rate, sb3, highway, seed, peer_steps)
+        cases[(f"highway{hz}", "sb3")] = functools.partial(_ddpg_rate, sb3, highway, seed, peer_steps, DDPG)
         cases[(f"highway{hz}", "fast")] = functools.partial(_ddpg_rate, cfg, highway, seed, peer_steps)
     samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
     for _ in range(repeats):  # A, B, C, …, A, B, C, …: machine noise hits every case alike
@@ -287,30 +305,34 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     rate = {case: statistics.median(v) for case, v in samples.items()}
     total = 625 * cfg.sim.episode_steps
 
-    def hours(r: float) -> str:
-        return f"{total / r / 60:.0f} min" if total / r < 3 * 3600 else f"{total / r / 3600:.1f} h"
+    def minutes(r: float) -> str:
+        return f"{total / r / 60:.0f} min"
 
-    names = {"lanefree": f"LaneFree-v0, libsumo, {PEER_DENSITY:g} veh/km",
-             "highway4": "highway-v0, 4 Hz physics (1 step)", "highway16": "highway-v0, 16 Hz physics (4 steps)"}
+    plain = rate[("lanefree", next(iter(TRAINING_CASES)))]
     lines = [
         f"Training speed (DDPG, paper settings: actor and critic 256-128, batch 64, one update per env step, "
-        f"{cfg.train.torch_threads} torch thread; one env, 0.25 s per env step; {SPEED_STARTS} random steps, then "
-        f"{steps} (highway-v0: {peer_steps}) timed; median of {repeats} interleaved repeats; load average "
-        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end), env steps/s:",
+        f"{cfg.train.torch_threads} torch thread; LaneFree-v0 at {PEER_DENSITY:g} veh/km ({n} + agent), one env, "
+        f"0.25 s per env step; {SPEED_STARTS} random steps, then {steps} (highway-v0: {peer_steps}) timed; median "
+        f"of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the "
+        "end), env steps/s:",
         "",
-        f"| env | vehicles | env alone | DDPG, SB3 update | DDPG, fast update | fast / SB3 "
-        f"| {total:,} steps (625 episodes), SB3 → fast |\n|---|---|---|---|---|---|---|",
+        f"| LaneFree-v0 | env steps/s | × plain SB3 | {total:,} steps (625 episodes) at this rate |\n|---|---|---|---|",
+        f"| env alone, libsumo | {rate[('lanefree', 'env libsumo')]:.1f} | | |",
+        f"| env alone, numpy | {rate[('lanefree', 'env numpy')]:.1f} | | |",
     ]
-    for env in ("lanefree", *(f"highway{hz}" for hz in peers)):
-        e, s, f = rate[(env, "env")], rate[(env, "sb3")], rate[(env, "fast")]
-        lines.append(f"| {names[env]} | {n} + agent | {e:.1f} | {s:.1f} | {f:.1f} | {f / s:.2f}× "
-                     f"| {hours(s)} → {hours(f)} |")
+    for label in TRAINING_CASES:
+        r = rate[("lanefree", label)]
+        lines.append(f"| DDPG: {label} | {r:.1f} | {r / plain:.2f}× | {minutes(r)} |")
     if peers:
-        lines += ["", "| LaneFree-v0 / highway-v0 | env alone | DDPG, SB3 update | DDPG, fast update |"
-                  "\n|---|---|---|---|"]
-        lines += [f"| {names[f'highway{hz}']} | " + " | ".join(
-            f"{rate[('lanefree', k)] / rate[(f'highway{hz}', k)]:.1f}×" for k in ("env", "sb3", "fast")) + " |"
-            for hz in peers]
+        names = {4: "highway-v0, 4 Hz physics (1 step)", 16: "highway-v0, 16 Hz physics (4 steps)"}
+        lines += ["", "The peer, highway-v0 with as many vehicles (env steps/s; LaneFree-v0 / highway-v0 in brackets, "
+                  "against LaneFree-v0's libsumo env and its before/plain rows):", "",
+                  "| env | env alone | DDPG, plain SB3 | DDPG, fast update |\n|---|---|---|---|"]
+        before = rate[("lanefree", list(TRAINING_CASES)[1])]
+        for hz in peers:
+            e, s, f = (rate[(f"highway{hz}", k)] for k in ("env", "sb3", "fast"))
+            lines.append(f"| {names[hz]} | {e:.1f} ({rate[('lanefree', 'env libsumo')] / e:.1f}×) "
+                         f"| {s:.1f} ({plain / s:.1f}×) | {f:.1f} ({before / f:.1f}×) |")
     else:
         lines += ["", "(highway-env is not installed: `pip install -e '.[bench]'` adds the highway-v0 peer.)"]
     costs = update_costs(seed, repeats=repeats)
@@ -368,7 +390,8 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
     ] + [f"| {kind} | {work:.3f} | {core:.3f} | {work / core:.1%} |" for kind, work, core in env_overhead(steps, seed)]
     lines += [
         "",
-        "Training throughput at 90 veh/km (libsumo, one env, learning updates every step, SPEC §9 settings):",
+        "Training throughput at 90 veh/km (`lanefree train`'s defaults: numpy backend, one env, learning updates every "
+        "step, SPEC §9 settings):",
         "",
         "| algorithm | env steps/s incl. learning | projected 625-episode run |\n|---|---|---|",
     ]

@@ -5,6 +5,7 @@ One test per data-loss case found by probing the verbs; each failed on the code 
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import time
@@ -16,7 +17,7 @@ import yaml
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import LaneFreeError, RunError
 from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, read_config, write_config
+from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, RunDir, read_config, write_config
 from lanefree_sumo.experiments.train import new_run_folder, train
 
 from conftest import TINY_TRAINING, lanefree, lanefree_popen
@@ -59,6 +60,22 @@ def test_resume_of_a_finished_run_changes_nothing_and_extending_is_explicit(tmp_
     assert done == 3 and read_config(run).train.episodes == 3
     episodes = [line.split(",")[0] for line in (run / "episodes.csv").read_text().splitlines()[1:]]
     assert episodes == ["1", "2", "3"]
+
+
+def test_a_run_has_one_writer_at_a_time(tmp_path, finished_run):
+    """While a process trains a run (holds its writer lock), a second training of it is one line naming that
+    process, and changes nothing; the lock is free again when the holder ends."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    before = snapshot(run)
+    with RunDir(run).writer_lock():
+        res = lanefree("train", "--resume", str(run), "--episodes", "3")
+        assert res.returncode != 0 and res.stderr.count("\n") == 1, res.stderr
+        assert f"being written by process {os.getpid()}" in res.stderr and "Traceback" not in res.stderr
+    assert {k: v for k, v in snapshot(run).items() if k != ".lock"} == {
+        k: v for k, v in before.items() if k != ".lock"}
+    _, done = train(LaneFreeConfig(), run=run, resume=True, progress=False, episodes=3)
+    assert done == 3
 
 
 # -- 2. --overwrite never removes what is not its own output ---------------------------------------

@@ -31,6 +31,7 @@ import pytest
 import yaml
 
 from lanefree_sumo.cli import main
+from lanefree_sumo.config import merge_config
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
 from lanefree_sumo.experiments.rundir import write_config
 from lanefree_sumo.experiments.sweep.command import plan, status_text
@@ -189,6 +190,29 @@ def test_run_states_and_adoption_of_existing_run_folders(tmp_path):
     (sweep.run(d)).mkdir(parents=True)
     (sweep.run(d) / "notes.txt").write_text("mine")
     with pytest.raises(RunError, match="not a run folder"):
+        plan(tmp_path, grid)
+
+
+def test_committed_runs_without_models_are_complete_and_any_backend_is_adopted(tmp_path):
+    """git keeps no models: a finished run's small files (all episodes, last_session.json) are a complete run,
+    never retrained or deleted; a run trained on libsumo (or with SB3's loop) is a run of the same setting."""
+    grid = parse_grid({**TINY, "episodes": 3}, "tiny", "tiny.yaml")
+    sweep = SweepDir(tmp_path)
+    a, b, c, _ = grid.cells()
+    fake_run(sweep.run(a), grid, a, 3, model=False)
+    (sweep.run(a) / "last_session.json").write_text("{}")
+    fake_run(sweep.run(b), grid, b, 2, model=False)                      # cut short: no checkpoint, not complete
+    (sweep.run(b) / "last_session.json").write_text("{}")
+    libsumo = merge_config(grid.config(c), {"backend": "libsumo", "train": {"backend": "libsumo", "lean_loop": False}})
+    fake_run(sweep.run(c), grid, c, 3)
+    write_config(sweep.run(c), libsumo)
+    states = plan(tmp_path, grid)
+    assert [states[x.name].state for x in (a, b, c)] == [COMPLETE, STALE, COMPLETE]
+    assert "without models" in states[a.name].detail
+    # but a setting that changes what is learned is still another config
+    overlap = merge_config(grid.config(c), {"train": {"overlap": True}})
+    write_config(sweep.run(c), overlap)
+    with pytest.raises(RunError, match=r"train\.overlap = True in the folder vs False in the grid"):
         plan(tmp_path, grid)
 
 

@@ -32,6 +32,8 @@ LOGS = "logs"
 STATE = ".sweep"
 SUMMARY_CSV = "summary.csv"
 SUMMARY_MD = "summary.md"
+CLAIMS_CSV = "claims.csv"
+CLAIMS_MD = "claims.md"
 CURVES = "curves"
 FORMAT = 1
 """Version of the manifest layout."""
@@ -87,6 +89,14 @@ class SweepDir:
     @property
     def summary_md(self) -> Path:
         return self.path / SUMMARY_MD
+
+    @property
+    def claims_csv(self) -> Path:
+        return self.path / CLAIMS_CSV
+
+    @property
+    def claims_md(self) -> Path:
+        return self.path / CLAIMS_MD
 
     @property
     def curves(self) -> Path:

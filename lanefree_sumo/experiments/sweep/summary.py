@@ -12,6 +12,8 @@ Definitions (SPEC §8, §10):
   random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
   very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
 * **Paper values**: SPEC §10 where the paper has the setting.
+* **Claims**: ``claims.csv``/``claims.md``, the paper's claims checked on the complete runs
+  (:mod:`lanefree_sumo.experiments.claims`).
 * **Curves**: one PNG per table of the paper and metric (``curves/table7_collisions.png``; settings
   in no table in ``curves/other_*.png``) drawn by :func:`curves.plot_curves` (mean ± std over runs).
 
@@ -35,6 +37,7 @@ import pandas as pd
 
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments.claims import check_claims, claims_markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.report import RunData, group_runs, read_run
@@ -215,7 +218,11 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
         table.to_csv(sweep.summary_csv, index=False)
         write_atomic(sweep.summary_md, summary_markdown(grid, table, curves, folder, incomplete,
                                                         notes + plot_notes, last))
+        claims = check_claims(groups, last)
+        claims.to_csv(sweep.claims_csv, index=False)
+        write_atomic(sweep.claims_md, claims_markdown(claims))
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
-    files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [sweep.summary_csv, sweep.summary_md]
+    files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [
+        sweep.summary_csv, sweep.summary_md, sweep.claims_csv, sweep.claims_md]
     return SweepSummary(table, files, incomplete, notes + plot_notes)

@@ -1,0 +1,165 @@
+"""The claims the first paper draws from its Tables 5–8, checked one by one on a set of runs.
+
+Each claim compares settings (algorithm, reward preset, density in veh/km) by a per-run statistic —
+the mean of a metric over a run's last ``last`` episodes (or over an episode window) — and decides
+with a **difference of means between two groups of runs** and its 95 % percentile-bootstrap
+confidence interval (each group resampled with replacement, 10 000 times, fixed seed):
+
+* *reproduced*: the CI excludes 0 on the side the paper's numbers are on;
+* *opposite*: the CI excludes 0 on the other side;
+* *inconclusive*: the CI contains 0 (for a claim of *no* difference, this is the reproduced case);
+* *no data*: a group has fewer than 2 complete runs.
+
+The paper's own difference (Karalakou et al. 2023, SPEC §10) is printed beside ours.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from lanefree_sumo.experiments.paper import paper_reference
+from lanefree_sumo.experiments.report import RunData
+
+FZOC, FOC = "fields_zones_overtake_collision", "fields_overtake_collision"
+Key = tuple[str, str, float]
+"""(algorithm, reward preset, density veh/km)."""
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """One test of a claim: mean(metric | ``a``) − mean(metric | ``b``), expected ``expect`` (+1: a > b,
+    −1: a < b, 0: no difference)."""
+
+    claim: str
+    a: Key
+    b: Key
+    metric: str = "collisions"
+    expect: int = 1
+    window: tuple[int, int] | None = None
+    """Episodes (first, last) averaged per run instead of the last ``last``; the paper value is then
+    not in its tables (None)."""
+
+
+def _k(preset: str, density: float = 70.0, algo: str = "ddpg") -> Key:
+    return (algo, preset, float(density))
+
+
+COMPARISONS: tuple[Comparison, ...] = (
+    Comparison("Fields cut collisions (Table 5): collision − fields_collision > 0", _k("collision"),
+               _k("fields_collision")),
+    Comparison("Fields cut collisions (Table 5): overtake_collision − fields_overtake_collision > 0",
+               _k("overtake_collision"), _k(FOC)),
+    Comparison("The overtake term alone does not help (Table 5): collision − overtake_collision ≈ 0",
+               _k("collision"), _k("overtake_collision"), expect=0),
+    Comparison("The overtake term helps combined with fields (Table 5): fields_collision − "
+               "fields_overtake_collision > 0", _k("fields_collision"), _k(FOC)),
+    Comparison("Zones cut collisions, marginally at 70 veh/km (Table 6): FOC − FZOC > 0", _k(FOC), _k(FZOC)),
+    Comparison("Zones cut collisions clearly at 90 veh/km (Table 7): FOC − FZOC > 0", _k(FOC, 90), _k(FZOC, 90)),
+    Comparison("Zones cut collisions clearly at 120 veh/km (Table 7): FOC − FZOC > 0", _k(FOC, 120),
+               _k(FZOC, 120)),
+    Comparison("Collisions grow with density (Table 7, FZOC): 120 − 70 > 0", _k(FZOC, 120), _k(FZOC)),
+    Comparison("Speed deviation grows with density (Table 7, FZOC): 120 − 70 > 0", _k(FZOC, 120), _k(FZOC),
+               metric="speed_dev_mps"),
+    Comparison("Collisions grow with density (Table 7, FOC): 120 − 70 > 0", _k(FOC, 120), _k(FOC)),
+    Comparison("Speed deviation grows with density (Table 7, FOC): 120 − 70 > 0", _k(FOC, 120), _k(FOC),
+               metric="speed_dev_mps"),
+    *(Comparison(f"DDPG has fewer collisions than {algo.upper()} (Table 8): {algo} − ddpg > 0",
+                 _k(FZOC, algo=algo), _k(FZOC)) for algo in ("dqn", "ddqn", "dueling", "per")),
+    *(Comparison(f"{algo.upper()} has a smaller speed deviation than DDPG (Table 8): ddpg − {algo} > 0",
+                 _k(FZOC), _k(FZOC, algo=algo), metric="speed_dev_mps") for algo in ("dqn", "ddqn", "dueling", "per")),
+    Comparison("PER is temporarily worse, episodes 50–150 (Table 8's text): per − ddqn > 0", _k(FZOC, algo="per"),
+               _k(FZOC, algo="ddqn"), window=(50, 150)),
+)
+"""Every claim checked, in the paper's order."""
+
+COLUMNS = ("claim", "metric", "a", "b", "n_a", "n_b", "paper_difference", "difference", "ci95_low", "ci95_high",
+           "verdict")
+
+
+def per_run(runs: Sequence[RunData], metric: str, last: int, window: tuple[int, int] | None) -> list[float]:
+    """The statistic of each run: mean of ``metric`` over its last ``last`` episodes or over ``window``."""
+    values = []
+    for run in runs:
+        column = run.episodes[metric]
+        part = column.loc[window[0]:window[1]] if window else column.iloc[-last:]
+        values.append(float(part.mean()))
+    return values
+
+
+def difference_ci(a: Sequence[float], b: Sequence[float], resamples: int = 10_000, seed: int = 0,
+                  level: float = 0.95) -> tuple[float, float, float]:
+    """(mean(a) − mean(b), CI low, CI high): percentile bootstrap, each group resampled on its own;
+    NaNs when a group has fewer than 2 values."""
+    x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if x.size < 2 or y.size < 2:
+        return (float(x.mean() - y.mean()) if x.size and y.size else math.nan), math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    diffs = (x[rng.integers(0, x.size, (resamples, x.size))].mean(axis=1)
+             - y[rng.integers(0, y.size, (resamples, y.size))].mean(axis=1))
+    low, high = np.quantile(diffs, [(1 - level) / 2, 1 - (1 - level) / 2])
+    return float(x.mean() - y.mean()), float(low), float(high)
+
+
+def verdict(expect: int, low: float, high: float) -> str:
+    """Reading of a difference's CI against the expected sign (module docstring)."""
+    if math.isnan(low):
+        return "no data"
+    side = 1 if low > 0 else (-1 if high < 0 else 0)
+    if expect == 0:
+        return "reproduced (no difference)" if side == 0 else "not reproduced (a difference)"
+    return "reproduced" if side == expect else ("inconclusive" if side == 0 else "opposite")
+
+
+def _label(key: Key) -> str:
+    algo, preset, density = key
+    return f"{algo}/{preset}/{density:g}"
+
+
+def _paper_difference(c: Comparison) -> float:
+    if c.window is not None:
+        return math.nan
+    ra, rb = paper_reference(*c.a), paper_reference(*c.b)
+    if ra is None or rb is None:
+        return math.nan
+    field = "collisions" if c.metric == "collisions" else "speed_dev_mps"
+    return float(getattr(ra, field) - getattr(rb, field))
+
+
+def check_claims(groups: Mapping[Key, Sequence[RunData]], last: int = 50) -> pd.DataFrame:
+    """One row per :data:`COMPARISONS` entry (columns :data:`COLUMNS`) from runs grouped by setting."""
+    rows = []
+    for c in COMPARISONS:
+        a = per_run(groups.get(c.a, ()), c.metric, last, c.window)
+        b = per_run(groups.get(c.b, ()), c.metric, last, c.window)
+        diff, low, high = difference_ci(a, b)
+        rows.append({"claim": c.claim, "metric": c.metric + (f" (episodes {c.window[0]}–{c.window[1]})" if c.window
+                                                             else f" (last {last})"),
+                     "a": _label(c.a), "b": _label(c.b),
+                     "n_a": len(a), "n_b": len(b), "paper_difference": _paper_difference(c), "difference": diff,
+                     "ci95_low": low, "ci95_high": high, "verdict": verdict(c.expect, low, high)})
+    return pd.DataFrame(rows, columns=list(COLUMNS))
+
+
+def claims_markdown(table: pd.DataFrame) -> str:
+    """The claims table as Markdown, with how to read it."""
+
+    def num(x: float) -> str:
+        return "–" if math.isnan(x) else f"{x:+.3f}"
+
+    lines = ["# The paper's claims, checked", "",
+             "Difference of per-run means (group a − group b) with a 95 % percentile-bootstrap CI over runs "
+             "(`lanefree_sumo/experiments/claims.py`); collisions per episode, speed deviation in m/s. "
+             "Verdicts: *reproduced* when the CI excludes 0 on the paper's side, *opposite* on the other, "
+             "*inconclusive* when it contains 0, *no data* below 2 complete runs per group. With 3 runs per "
+             "group the percentile bootstrap is narrow: read n beside it.", "",
+             "| claim | metric | n (a, b) | paper | ours [95 % CI] | verdict |", "|---|---|---|---|---|---|"]
+    for r in table.itertuples():
+        ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
+        lines.append(f"| {r.claim} | {r.metric} | {r.n_a}, {r.n_b} | {num(r.paper_difference)} | "
+                     f"{num(r.difference)}{ci} | {r.verdict} |")
+    return "\n".join(lines) + "\n"

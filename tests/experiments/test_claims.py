@@ -1,0 +1,52 @@
+"""The claims check: per-run statistics, the bootstrap difference and the verdicts (pure logic)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from lanefree_sumo.experiments.claims import COMPARISONS, check_claims, claims_markdown, difference_ci, verdict
+from lanefree_sumo.experiments.report import RunData
+
+
+def run(algo: str, preset: str, density: float, seed: int, collisions: list[float], speed_dev: float = 1.0) -> RunData:
+    episodes = pd.DataFrame({"collisions": collisions, "speed_dev_mps": [speed_dev] * len(collisions)},
+                            index=pd.Index(range(1, len(collisions) + 1), name="episode"))
+    return RunData(Path(f"{preset}_{seed}"), algo, preset, density, seed, episodes)
+
+
+def test_difference_ci_and_verdicts():
+    diff, low, high = difference_ci([3.0, 3.2, 2.9], [1.0, 1.1, 0.9])
+    assert np.isclose(diff, 2.0333, atol=1e-3) and 0 < low < diff < high
+    assert verdict(1, low, high) == "reproduced" and verdict(-1, low, high) == "opposite"
+    assert verdict(1, -0.5, 0.4) == "inconclusive" and verdict(0, -0.5, 0.4) == "reproduced (no difference)"
+    assert verdict(0, low, high) == "not reproduced (a difference)"
+    assert np.isnan(difference_ci([1.0], [2.0, 3.0])[1]) and verdict(1, float("nan"), float("nan")) == "no data"
+
+
+def test_claims_from_runs_last_episodes_and_windows():
+    last = 10
+    groups = {
+        ("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [9.0] * 20 + [3.0 + 0.1 * s] * 10)
+                                      for s in range(3)],
+        ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [1.0 + 0.1 * s] * 30)
+                                             for s in range(3)],
+        # PER worse than DDQN only in episodes 50–150, equal at the end
+        ("per", "fields_zones_overtake_collision", 70.0): [
+            run("per", "fields_zones_overtake_collision", 70.0, s, [1.0] * 49 + [5.0 + s] * 101 + [1.0] * 50)
+            for s in range(3)],
+        ("ddqn", "fields_zones_overtake_collision", 70.0): [
+            run("ddqn", "fields_zones_overtake_collision", 70.0, s, [1.0 + 0.01 * s] * 200) for s in range(3)],
+    }
+    table = check_claims(groups, last=last)
+    assert len(table) == len(COMPARISONS)
+    fields = table.iloc[0]
+    assert fields["verdict"] == "reproduced" and np.isclose(fields["difference"], 2.0)  # the last 10 episodes only
+    assert np.isclose(fields["paper_difference"], 2.256 - 0.726)
+    per = table[table["claim"].str.contains("temporarily")].iloc[0]
+    assert per["verdict"] == "reproduced" and per["difference"] > 4 and np.isnan(per["paper_difference"])
+    assert (table[table["claim"].str.contains("density")]["verdict"] == "no data").all()
+    text = claims_markdown(table)
+    assert text.count("\n| ") == len(COMPARISONS) + 1 and "reproduced" in text
