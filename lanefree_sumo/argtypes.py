@@ -69,3 +69,19 @@ def size(text: str) -> tuple[int, int]:
     if w < 16 or h < 16:
         raise argparse.ArgumentTypeError(f"size must be at least 16x16 pixels, got {text!r}")
     return w, h
+
+
+def setting(text: str) -> tuple[str, Any]:
+    """``section.key=value`` of ``--set``: (dotted key, value parsed as YAML, e.g. ``0.5``, ``true``,
+    ``[64, 64]``, ``absolute``). The key is checked against the config when the config is built."""
+    import yaml
+
+    key, sep, value = text.partition("=")
+    key = key.strip()
+    if not sep or not key or any(not part.isidentifier() for part in key.split(".")):
+        raise argparse.ArgumentTypeError(f"'{text}' is not KEY=VALUE with a dotted config key, e.g. "
+                                         "reward.broad_stretch=absolute")
+    try:
+        return key, yaml.safe_load(value)
+    except yaml.YAMLError:
+        raise argparse.ArgumentTypeError(f"the value of '{text}' is not a YAML scalar or list") from None

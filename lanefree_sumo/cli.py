@@ -15,7 +15,7 @@ import json
 import shlex
 import shutil
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,9 @@ from lanefree_sumo.config import (
     ReplayConfig,
     ReportConfig,
     merge_config,
+    nested_overrides,
+    read_config_file,
+    validate_config,
 )
 from lanefree_sumo.errors import LaneFreeError, UsageError
 from lanefree_sumo.experiments import rollout
@@ -55,6 +58,31 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
+def _config_options(parser: argparse.ArgumentParser) -> None:
+    """``--config FILE`` and ``--set KEY=VALUE``: any config value from the command line."""
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help="YAML file of config overrides, nested as in a run's config.yaml (see 'lanefree config'); "
+                        "options given on the command line override it")
+    parser.add_argument("--set", type=argtypes.setting, action="append", default=[], metavar="KEY=VALUE",
+                        dest="settings", help="set one config value, e.g. --set reward.broad_stretch=absolute "
+                        "(repeatable; applied last; 'lanefree config' lists every key with its unit)")
+
+
+def _build_config(args: argparse.Namespace, options: Sequence[tuple[str, tuple[str, ...], Any]],
+                  extra: Mapping[str, Any] | None = None) -> LaneFreeConfig:
+    """The config of a verb: the defaults, then ``--config FILE``, then the verb's ``options`` ((dotted key,
+    option names, value): all of them without a file, only those given on the command line with one), then
+    ``extra`` (overrides the verb derives), then every ``--set``; validated whole."""
+    cfg = LaneFreeConfig()
+    if args.config is not None:
+        cfg = merge_config(cfg, read_config_file(args.config))
+    chosen = [(key, value) for key, names, value in options if args.config is None or args.given & set(names)]
+    cfg = merge_config(cfg, nested_overrides(chosen))
+    if extra:
+        cfg = merge_config(cfg, extra)
+    return validate_config(merge_config(cfg, nested_overrides(args.settings)))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,6 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--width", type=argtypes.positive(float, "m"), default=None,
                      help=f"road width in m (default {DEFAULTS.road.width_m:g})")
     sim.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout's last line")
+    _config_options(sim)
     sim.add_argument("--no-trajectory", action="store_true", help="skip the per-step trajectory CSV")
 
     tr = sub.add_parser(
@@ -135,6 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--backend", choices=BACKENDS, default=t.backend,
                     help=f"simulation backend (default {t.backend}: the same episodes as libsumo bit for bit, "
                     "without SUMO; libsumo/traci train inside SUMO)")
+    _config_options(tr)
     tr.add_argument("--shield", action="store_true",
                     help="learn with the safety shield on every action (run folder ..._shield)")
     tr.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=t.overlap,
@@ -227,6 +257,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     sweep_command.add_parser(sub)
 
+    conf = sub.add_parser(
+        "config",
+        help="print the resolved config as YAML, each key with its unit and meaning",
+        description="Print the configuration that 'lanefree train' / 'simulate' would start from (the defaults, "
+        "then --config FILE, then every --set) as YAML, with each key's unit, allowed values and meaning as a "
+        "comment. Save it, edit it, and pass it back with --config FILE.",
+    )
+    _config_options(conf)
+
     net = sub.add_parser(
         "net",
         help="build a ring network with netconvert",
@@ -241,25 +280,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    overrides: dict[str, Any] = {
-        "seed": args.seed,
-        "backend": "traci" if args.gui else args.backend,
-        "gui": args.gui,
-        "scenario": {"density_veh_per_km": args.density, "driver": {"nudging": args.nudging}},
-    }
-    road: dict[str, float] = {}
-    if args.length is not None:
-        road["length_m"] = args.length
-    if args.width is not None:
-        road["width_m"] = args.width
-    if road:
-        overrides["road"] = road
-    if args.net is not None:
-        overrides["net_file"] = str(args.net)
-    cfg = merge_config(LaneFreeConfig(), overrides)
+    options: list[tuple[str, tuple[str, ...], Any]] = [
+        ("seed", ("--seed",), args.seed),
+        ("backend", ("--backend",), args.backend),
+        ("scenario.density_veh_per_km", ("--density",), args.density),
+        ("scenario.driver.nudging", ("--nudging",), args.nudging),
+    ]
+    options += [(key, (option,), value) for key, option, value in (
+        ("road.length_m", "--length", args.length), ("road.width_m", "--width", args.width),
+        ("net_file", "--net", None if args.net is None else str(args.net))) if value is not None]
+    cfg = _build_config(args, options, {"gui": True, "backend": "traci"} if args.gui else None)
     from lanefree_sumo.experiments.simulate import simulate
 
-    out = args.out or Path("runs") / f"sim-d{args.density:g}-s{args.seed}"
+    out = args.out or Path("runs") / f"sim-d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"
     summary = simulate(cfg, args.seconds, out, _command(), overwrite=args.overwrite,
                        write_trajectory=not args.no_trajectory, progress=not args.json)
     if args.json:
@@ -285,17 +318,21 @@ def _train(args: argparse.Namespace) -> int:
         run, done = train(LaneFreeConfig(), run=args.resume, resume=True,
                           episodes=args.episodes if "--episodes" in args.given else None)
     else:
-        cfg = merge_config(LaneFreeConfig(), {
-            "seed": args.seed,
-            "scenario": {"density_veh_per_km": args.density},
-            "reward": {"preset": args.reward},
-            "observation": {"kind": args.obs, "encoder": args.encoder},
-            "shield": {"enabled": args.shield},
-            "sim": {"episode_steps": args.episode_steps},
-            "train": {"algo": args.algo, "episodes": args.episodes, "envs": args.envs, "backend": args.backend,
-                      "overlap": args.overlap,
-                      "checkpoint_every_episodes": args.checkpoint_every},
-        })
+        cfg = _build_config(args, [
+            ("seed", ("--seed",), args.seed),
+            ("scenario.density_veh_per_km", ("--density",), args.density),
+            ("reward.preset", ("--reward",), args.reward),
+            ("observation.kind", ("--obs",), args.obs),
+            ("observation.encoder", ("--encoder",), args.encoder),
+            ("shield.enabled", ("--shield",), args.shield),
+            ("sim.episode_steps", ("--episode-steps",), args.episode_steps),
+            ("train.algo", ("--algo",), args.algo),
+            ("train.episodes", ("--episodes",), args.episodes),
+            ("train.envs", ("--envs",), args.envs),
+            ("train.backend", ("--backend",), args.backend),
+            ("train.overlap", ("--overlap", "--no-overlap"), args.overlap),
+            ("train.checkpoint_every_episodes", ("--checkpoint-every",), args.checkpoint_every),
+        ])
         run, done = train(cfg, run=args.out)
     target = _episodes_target(run)
     if done < target:
@@ -342,17 +379,19 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _export(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.replay import replay
-    from lanefree_sumo.experiments.rundir import check_writable, find_eval_dir, trajectory_path
+    from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, check_new_file, find_eval_dir, new_file, trajectory_path
 
     source = trajectory_path(find_eval_dir(args.run), args.episode)
     out = args.out or find_eval_dir(args.run) / "export"
     csv_out = out / f"episode_{args.episode:04d}.csv"
     fcd_out = out / f"episode_{args.episode:04d}.fcd.xml"
-    if (csv_out.exists() or fcd_out.exists()) and not args.overwrite:
-        raise UsageError(f"{csv_out.parent} already holds episode {args.episode}; pass --overwrite to replace it")
-    check_writable(out, folder=True)
-    result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out)
-    shutil.copyfile(source, csv_out)
+    for target in (csv_out, fcd_out):  # before any work: never a run's file, never a folder not export's own
+        check_new_file(target, args.overwrite, "export", marker_folder=True)
+    if not (out / OUTPUT_MARKER).exists() and not any(out.iterdir()):
+        (out / OUTPUT_MARKER).write_text("export\n")
+    result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out, overwrite=args.overwrite)
+    with new_file(csv_out) as tmp:
+        shutil.copyfile(source, tmp)
     print(f"exported {result.steps} steps -> {csv_out} and {fcd_out}")
     return 0
 
@@ -394,6 +433,13 @@ def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
     return 0
 
 
+def _config(args: argparse.Namespace) -> int:
+    from lanefree_sumo.config.describe import describe_config
+
+    print(describe_config(_build_config(args, [])), end="")
+    return 0
+
+
 def _net(args: argparse.Namespace) -> int:
     from lanefree_sumo.sim.backends.sumo import build_ring_net
     from lanefree_sumo.sim.network import NETS_DIR
@@ -417,7 +463,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "sweep":
             return sweep_command.run(args)
         handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "rollout": rollout.run,
-                   "replay": _replay, "export": _export, "report": _report, "net": _net}[args.command]
+                   "replay": _replay, "export": _export, "report": _report, "net": _net,
+                   "config": _config}[args.command]
         return handler(args)
     except LaneFreeError as exc:  # the user's to fix: one line, no traceback
         print(f"lanefree: error: {' '.join(str(exc).split())}", file=sys.stderr)

@@ -129,3 +129,42 @@ def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert proc.returncode == 130 and summary["interrupted"] and 0 < summary["steps"] < 20000
     assert not list(tmp_path.glob(".sim.*"))  # no temporary folder left
+
+
+def test_any_config_value_from_the_command_line(tmp_path):
+    """--set KEY=VALUE and --config FILE reach the run's config.yaml (file < options given < --set); a bad
+    key or value is one line naming it; 'lanefree config' prints the resolved config with meanings."""
+    import yaml
+
+    run = tmp_path / "run"
+    res = lanefree("train", "--episodes", "1", "--episode-steps", "40", "--out", str(run),
+                   "--set", "reward.broad_stretch=absolute", "--set", "train.actor_critic.learning_starts_steps=20")
+    assert res.returncode == 0, res.stderr
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved["reward"]["broad_stretch"] == "absolute"
+    assert saved["train"]["actor_critic"]["learning_starts_steps"] == 20
+    assert "--set reward.broad_stretch=absolute" in (run / "command.txt").read_text()
+
+    for setting, needle in (("reward.nope=1", "unknown config key 'reward.nope'"),
+                            ("reward.broad_stretch=sideways", "reward.broad_stretch"),
+                            ("seed=-3", "seed"), ("reward", "not KEY=VALUE")):
+        res = lanefree("train", "--episodes", "1", "--out", str(tmp_path / "bad"), "--set", setting)
+        assert res.returncode == 2 and needle in res.stderr and res.stderr.count("\n") == 1, (setting, res.stderr)
+        assert not (tmp_path / "bad").exists()
+
+    file = tmp_path / "mine.yaml"
+    file.write_text(yaml.safe_dump({"seed": 7, "scenario": {"density_veh_per_km": 90}, "reward": {"epsilon_r": 0.2}}))
+    res = lanefree("config", "--config", str(file), "--set", "seed=8")
+    assert res.returncode == 0, res.stderr
+    printed = yaml.safe_load(res.stdout)  # the comments are YAML comments: it loads back
+    assert printed["seed"] == 8 and printed["scenario"]["density_veh_per_km"] == 90
+    assert printed["reward"]["epsilon_r"] == 0.2
+    assert "length_m: 500.0  # Centre-line length" in res.stdout and "(m); 50 … 10000" in res.stdout
+    res = lanefree("simulate", "--config", str(file), "--density", "70", "--seconds", "1", "--backend", "numpy",
+                   "--out", str(tmp_path / "sim"))
+    assert res.returncode == 0, res.stderr
+    sim = yaml.safe_load((tmp_path / "sim" / "config.yaml").read_text())
+    assert sim["seed"] == 7 and sim["scenario"]["density_veh_per_km"] == 70  # the option given beats the file
+    file.write_text("- a list")
+    res = lanefree("config", "--config", str(file))
+    assert res.returncode == 2 and "must hold a mapping" in res.stderr

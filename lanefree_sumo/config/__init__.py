@@ -39,6 +39,8 @@ from lanefree_sumo.config.validation import (
     config_to_dict,
     merge_config,
     missing_keys,
+    nested_overrides,
+    read_config_file,
     validate_config,
     validate_density,
 )
@@ -51,5 +53,6 @@ __all__ = [
     "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
     "RewardConfig", "RoadConfig", "ScenarioConfig", "ShieldConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
     "VehicleClassConfig", "check_value", "config_differences", "config_to_dict", "merge_config", "missing_keys",
+    "nested_overrides", "read_config_file",
     "validate_config", "validate_density",
 ]

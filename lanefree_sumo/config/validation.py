@@ -2,7 +2,9 @@
 
 :func:`merge_config` merges a plain mapping recursively (unknown keys are errors naming the valid
 ones); :func:`check_value` checks one value against its field's type and ``range`` metadata;
-:func:`validate_config` checks a whole config; :func:`missing_keys` finds what a saved config lacks.
+:func:`validate_config` checks a whole config; :func:`missing_keys` finds what a saved config lacks;
+:func:`nested_overrides` and :func:`read_config_file` turn ``--set KEY=VALUE`` and ``--config FILE`` into
+overrides.
 """
 
 from __future__ import annotations
@@ -10,8 +12,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import fields, is_dataclass
+from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
 
 from lanefree_sumo.errors import ConfigError
@@ -197,3 +200,35 @@ def validate_density(density: object) -> float:
     if not math.isfinite(value) or value <= 0:
         raise ConfigError(f"density must be a positive finite number in veh/km, got {density!r}")
     return value
+
+
+def nested_overrides(settings: Sequence[tuple[str, Any]]) -> dict[str, Any]:
+    """``[("reward.k_r", 0.5), …]`` → ``{"reward": {"k_r": 0.5}}`` (later settings win)."""
+    out: dict[str, Any] = {}
+    for key, value in settings:
+        *sections, leaf = key.split(".")
+        node = out
+        for section in sections:
+            child = node.setdefault(section, {})
+            if not isinstance(child, dict):
+                raise ConfigError(f"config key '{key}' goes below '{section}', which is set to a value")
+            node = child
+        node[leaf] = value
+    return out
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``)."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read the config file {path}: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path} is not valid YAML ({' '.join(str(exc).split())[:200]})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{path} must hold a mapping of config sections, not a {type(data).__name__}")
+    return dict(data)

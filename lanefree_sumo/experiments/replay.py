@@ -27,8 +27,10 @@ from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.rundir import (
     CONFIG,
     TRAJECTORIES,
+    check_new_file,
     check_writable,
     find_eval_dir,
+    new_file,
     read_config,
     trajectory_path,
     vehicles_path,
@@ -193,14 +195,29 @@ def replay(
     fcd: Path | None = None,
     size: tuple[int, int] = REPLAY.size_px,
     zoom: float = REPLAY.zoom_percent,
+    overwrite: bool = False,
 ) -> ReplayResult:
     """Replay a recorded episode; see the module docstring.  ``screenshot_step`` defaults to the
-    last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them."""
+    last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them. Output
+    files are checked before any work (:func:`check_new_file`: never a run's own file, an existing one
+    only with ``overwrite``); the FCD file is written beside and moved into place when complete."""
+    for target in (screenshot, gif, fcd):
+        if target is not None:
+            check_new_file(target, overwrite, "replay")
+    if frames is not None:
+        check_writable(frames, folder=True)
+    if fcd is None:
+        return _replay(run, episode, gui, delay_s, screenshot, screenshot_step, frames, every, gif, None, size, zoom)
+    with new_file(fcd) as fcd_tmp:
+        return _replay(run, episode, gui, delay_s, screenshot, screenshot_step, frames, every, gif, fcd_tmp, size,
+                       zoom)
+
+
+def _replay(run: Path, episode: int, gui: bool, delay_s: float, screenshot: Path | None, screenshot_step: int | None,
+            frames: Path | None, every: int, gif: Path | None, fcd: Path | None, size: tuple[int, int],
+            zoom: float) -> ReplayResult:
     from lanefree_sumo.sim.backends.sumo import SumoBackend
 
-    for target, is_folder in ((screenshot, False), (gif, False), (fcd, False), (frames, True)):
-        if target is not None:
-            check_writable(target, folder=is_folder)
     rec = load_recording(run, episode)
     cfg = merge_config(rec.cfg, {"gui": gui, "backend": "traci" if gui else "libsumo"})
     if (screenshot or frames or gif) and not gui:

@@ -94,6 +94,60 @@ def check_writable(path: Path, folder: bool = False) -> None:
         raise RunError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
+RUN_OWNED: tuple[str, ...] = (CONFIG, COMMAND, VERSIONS, EPISODES, MODEL, LAST_SESSION, LOCK, CHECKPOINTS, TENSORBOARD)
+"""Top-level names in a run folder that only training writes."""
+
+
+def _owned_by_a_run(path: Path) -> Path | None:
+    """The run folder that owns ``path`` (its config, episodes, model, checkpoints, or anything in an
+    evaluation folder but its ``export/``), or None."""
+    resolved = path.resolve()
+    for folder in resolved.parents:
+        if (folder / CONFIG).is_file() and ((folder / EPISODES).exists() or (folder / CHECKPOINTS).exists()):
+            parts = resolved.relative_to(folder).parts
+            if parts[0] in RUN_OWNED or (parts[0].startswith(EVAL) and (len(parts) < 3 or parts[1] != "export")):
+                return folder
+            return None
+    return None
+
+
+def check_new_file(path: Path, overwrite: bool, verb: str, marker_folder: bool = False) -> None:
+    """Refuse, before any work, an output file ``path`` of ``lanefree VERB`` that a run folder owns (whatever
+    ``overwrite`` says), a path that exists and is not a file, or an existing file without ``overwrite`` —
+    with ``marker_folder``, also one whose folder was not made by the same verb (its marker file)."""
+    run = _owned_by_a_run(path)
+    if run is not None:
+        raise RunError(f"refusing to write {path}: it belongs to the run folder {run}; choose another path")
+    if path.exists() or path.is_symlink():
+        if not path.is_file():
+            raise RunError(f"refusing to write {path}: it exists and is not a file")
+        if not overwrite:
+            raise RunError(f"{path} exists; choose another path" + (" or pass --overwrite" if verb == "export" else ""))
+        marker = path.parent / OUTPUT_MARKER
+        if marker_folder and (not marker.is_file() or marker.read_text(errors="replace").strip() != verb):
+            raise RunError(f"refusing to replace {path}: its folder is not the output of an earlier "
+                           f"'lanefree {verb}' (no marker file); remove it yourself or choose another --out")
+    check_writable(path)
+
+
+@contextlib.contextmanager
+def new_file(path: Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` to write one output file into; it replaces ``path`` when the
+    block ends without an exception and is removed otherwise, so ``path`` is never half-written. Check it
+    first with :func:`check_new_file`."""
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.new-", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp.chmod(0o666 & ~umask)  # mkstemp makes it private; an output file is an ordinary one
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 @contextlib.contextmanager
 def fresh_output(out: Path, overwrite: bool, verb: str) -> Iterator[Path]:
     """Write a verb's output safely: yields a new folder beside ``out``; when the block ends

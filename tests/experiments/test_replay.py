@@ -88,6 +88,35 @@ def test_export_writes_csv_and_fcd_with_lateral_positions(recorded, tmp_path):
     assert max(abs(last[vid] - y) for vid, y in zip(rec.ids, rec.y[-1])) < 0.01
 
 
+def test_replay_and_export_never_write_over_a_runs_files_or_a_users(recorded, tmp_path):
+    """One safe-file mechanism (rundir.check_new_file/new_file): a run's own files are refused whatever
+    --overwrite says, an existing file without it, and export --overwrite only replaces its own output."""
+    owned = [recorded / "episodes.csv", recorded / "model.zip", recorded / "eval" / "trajectories" / "episode_0001.csv",
+             recorded / "config.yaml"]
+    before = {p: p.read_bytes() for p in owned}
+    for target in owned:
+        res = lanefree("replay", str(recorded), "--no-gui", "--fcd", str(target))
+        assert res.returncode != 0 and "belongs to the run folder" in res.stderr and res.stderr.count("\n") == 1
+    assert {p: p.read_bytes() for p in owned} == before
+    mine = tmp_path / "notes.xml"
+    mine.write_text("mine")
+    res = lanefree("replay", str(recorded), "--no-gui", "--fcd", str(mine))
+    assert res.returncode != 0 and "exists" in res.stderr and mine.read_text() == "mine"
+    fcd = tmp_path / "new" / "replay.fcd.xml"
+    assert lanefree("replay", str(recorded), "--no-gui", "--fcd", str(fcd)).returncode == 0
+    assert fcd.stat().st_size > 1000 and not list(fcd.parent.glob(".*new-*"))  # complete, no temporary left
+    users = tmp_path / "users"
+    users.mkdir()
+    (users / "episode_0001.csv").write_text("mine")
+    res = lanefree("export", str(recorded), "--out", str(users), "--overwrite")
+    assert res.returncode != 0 and "not the output of an earlier 'lanefree export'" in res.stderr
+    assert (users / "episode_0001.csv").read_text() == "mine"
+    out = tmp_path / "export"
+    assert lanefree("export", str(recorded), "--out", str(out)).returncode == 0
+    assert lanefree("export", str(recorded), "--out", str(out)).returncode != 0  # exists, no --overwrite
+    assert lanefree("export", str(recorded), "--out", str(out), "--overwrite").returncode == 0
+
+
 def _damaged_copy(recorded: Path, tmp_path: Path, damage) -> Path:
     """A copy of the recorded run whose episode-1 recording is changed by ``damage(text) -> text``."""
     copy = tmp_path / "copy"
