@@ -1,5 +1,5 @@
 # lanefree_sumo — everything runs inside .venv, bootstrapped on first use.
-# Main jobs:  make test  ·  make train DENSITY=90  ·  make simulate DENSITY=90  ·  make bench
+# Main jobs:  make test  ·  make train DENSITY=90  ·  make simulate DENSITY=90  ·  make bench  ·  make docs
 # Checks:     make lint  ·  make test-fast (no SUMO, < 30 s)
 
 PYTHON ?= python3
@@ -7,19 +7,20 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
+DOCS_STAMP := $(VENV)/.installed-docs
 
 # Options are passed only when set, so every default is the one in lanefree_sumo/config.py
-# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 SHIELD=1 ...
+# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 SHIELD=1 OVERLAP=1 ...
 RUN     ?=
 RUNS    ?= runs/*/
 opt = $(if $($(1)),$(2) $($(1)))
 TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENSITY,--density) \
 	$(call opt,EPISODES,--episodes) $(call opt,SEED,--seed) $(call opt,ENVS,--envs) $(call opt,OBS,--obs) \
-	$(call opt,ENCODER,--encoder) $(if $(SHIELD),--shield)
+	$(call opt,ENCODER,--encoder) $(if $(SHIELD),--shield) $(if $(OVERLAP),--overlap)
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv system-deps test test-fast lint train sweep evaluate replay report simulate nets bench traffic clean-venv
+.PHONY: venv system-deps test test-fast lint docs train sweep evaluate replay report simulate nets bench traffic clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -72,6 +73,16 @@ simulate: system-deps $(STAMP)
 
 nets: system-deps $(STAMP)
 	$(BIN)/lanefree net $(call opt,LENGTH,--length) $(call opt,WIDTH,--width)
+
+# `make docs`: the Sphinx site (docs/) into build/docs/, warnings as errors.
+$(DOCS_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q -e ".[docs]"
+	touch $(DOCS_STAMP)
+
+docs: $(STAMP) $(DOCS_STAMP)
+	rm -rf build/docs
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs build/docs
+	@echo "docs -> build/docs/index.html"
 
 bench: system-deps $(STAMP) $(BENCH_STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.bench
