@@ -20,6 +20,7 @@ html_title = "lanefree_sumo"
 myst_enable_extensions = ["colon_fence"]
 myst_heading_anchors = 3
 autodoc_member_order = "bysource"
+autodoc_inherit_docstrings = False  # gymnasium's and SB3's own docstrings are theirs to format
 autodoc_typehints = "description"
 autodoc_default_options = {"members": True, "show-inheritance": False}
 # the optional heavy imports stay optional for readers of the API: autodoc imports the modules

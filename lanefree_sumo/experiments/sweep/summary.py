@@ -20,7 +20,8 @@ Definitions (SPEC §8, §10):
 Columns of ``summary.csv``: algorithm, reward_preset, density (veh/km), episodes (budget per run),
 n_runs (complete), collisions_mean, collisions_ci95_low, collisions_ci95_high (agent collisions per
 episode), speed_dev_mps_mean, speed_dev_mps_ci95_low, speed_dev_mps_ci95_high (m/s),
-paper_collisions, paper_speed_dev_mps, then runs_planned, seeds, episode_steps, last_episodes,
+paper_collisions, paper_speed_dev_mps, collisions_ratio, speed_dev_mps_ratio (ours / the paper's), then
+runs_planned, seeds, episode_steps, last_episodes,
 reduced_budget, paper_source.
 """
 
@@ -53,7 +54,7 @@ COLUMNS = (
     "algorithm", "reward_preset", "density", "episodes", "n_runs",
     "collisions_mean", "collisions_ci95_low", "collisions_ci95_high",
     "speed_dev_mps_mean", "speed_dev_mps_ci95_low", "speed_dev_mps_ci95_high",
-    "paper_collisions", "paper_speed_dev_mps",
+    "paper_collisions", "paper_speed_dev_mps", "collisions_ratio", "speed_dev_mps_ratio",
     "runs_planned", "seeds", "episode_steps", "last_episodes", "reduced_budget", "paper_source",
 )
 
@@ -99,6 +100,8 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
         ref = paper_reference(*_key(setting))
         rec["paper_collisions"] = ref.collisions if ref else math.nan
         rec["paper_speed_dev_mps"] = ref.speed_dev_mps if ref else math.nan
+        rec["collisions_ratio"] = rec["collisions_mean"] / ref.collisions if ref else math.nan
+        rec["speed_dev_mps_ratio"] = rec["speed_dev_mps_mean"] / ref.speed_dev_mps if ref else math.nan
         rec.update(runs_planned=len(grid.seeds), seeds=";".join(str(r.seed) for r in runs),
                    episode_steps=grid.episode_steps, last_episodes=last, reduced_budget=bool(budget["reduced"]),
                    paper_source=ref.source if ref else "")
@@ -116,7 +119,8 @@ def _cell(row: pd.Series, metric: str, paper_col: str) -> str:
     else:
         text = f"{mean:.3f} [{low:.3f}, {high:.3f}]"
     if not pd.isna(paper):
-        text += f" (paper {paper:g})"
+        ratio = row[f"{metric}_ratio"]
+        text += f" (paper {paper:g}" + ("" if pd.isna(ratio) else f", {ratio:.1f}×") + ")"
     return text
 
 

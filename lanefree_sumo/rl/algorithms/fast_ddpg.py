@@ -335,6 +335,7 @@ class FastDDPG(DDPG):
         per-step mode switches and ``predict``'s generic path); False runs SB3's own.
     :param overlap: step the environment while updating (with a ``SubprocVecEnv`` of one env, on another
         core): the acting policy lags the learner by one update (:meth:`learn`); not bit-identical to SB3.
+
     All other parameters are :class:`stable_baselines3.DDPG`'s."""
 
     _fast_plan: _Plan | None = None
