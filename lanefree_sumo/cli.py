@@ -389,7 +389,8 @@ def _export(args: argparse.Namespace) -> int:
         check_new_file(target, args.overwrite, "export", marker_folder=True)
     if not (out / OUTPUT_MARKER).exists() and not any(out.iterdir()):
         (out / OUTPUT_MARKER).write_text("export\n")
-    result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out, overwrite=args.overwrite)
+    result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out, overwrite=args.overwrite,
+                    verb="export")
     with new_file(csv_out) as tmp:
         shutil.copyfile(source, tmp)
     print(f"exported {result.steps} steps -> {csv_out} and {fcd_out}")

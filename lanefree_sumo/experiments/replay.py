@@ -196,14 +196,16 @@ def replay(
     size: tuple[int, int] = REPLAY.size_px,
     zoom: float = REPLAY.zoom_percent,
     overwrite: bool = False,
+    verb: str = "replay",
 ) -> ReplayResult:
     """Replay a recorded episode; see the module docstring.  ``screenshot_step`` defaults to the
     last step; ``frames`` gets ``frame_NNNN.png`` every ``every`` steps; ``gif`` assembles them. Output
     files are checked before any work (:func:`check_new_file`: never a run's own file, an existing one
-    only with ``overwrite``); the FCD file is written beside and moved into place when complete."""
+    only with ``overwrite``; ``verb`` the command whose output folders are its own); the FCD file is
+    written beside and moved into place when complete."""
     for target in (screenshot, gif, fcd):
         if target is not None:
-            check_new_file(target, overwrite, "replay")
+            check_new_file(target, overwrite, verb)
     if frames is not None:
         check_writable(frames, folder=True)
     if fcd is None:

@@ -98,16 +98,20 @@ RUN_OWNED: tuple[str, ...] = (CONFIG, COMMAND, VERSIONS, EPISODES, MODEL, LAST_S
 """Top-level names in a run folder that only training writes."""
 
 
-def _owned_by_a_run(path: Path) -> Path | None:
-    """The run folder that owns ``path`` (its config, episodes, model, checkpoints, or anything in an
-    evaluation folder but its ``export/``), or None."""
+def _owner(path: Path, verb: str) -> Path | None:
+    """The folder whose file ``path`` is, for ``lanefree VERB``: a run folder (its config, episodes, model,
+    checkpoints, TensorBoard logs, or anything in its evaluation folders but their ``export/``) or another
+    verb's output folder (marker file; its ``export/`` excepted); None for anything else."""
     resolved = path.resolve()
     for folder in resolved.parents:
-        if (folder / CONFIG).is_file() and ((folder / EPISODES).exists() or (folder / CHECKPOINTS).exists()):
-            parts = resolved.relative_to(folder).parts
+        parts = resolved.relative_to(folder).parts
+        marker = folder / OUTPUT_MARKER
+        if marker.is_file():
+            if marker.read_text(errors="replace").strip() != verb and parts[0] != "export":
+                return folder
+        elif (folder / CONFIG).is_file() and ((folder / EPISODES).exists() or (folder / CHECKPOINTS).exists()):
             if parts[0] in RUN_OWNED or (parts[0].startswith(EVAL) and (len(parts) < 3 or parts[1] != "export")):
                 return folder
-            return None
     return None
 
 
@@ -115,9 +119,9 @@ def check_new_file(path: Path, overwrite: bool, verb: str, marker_folder: bool =
     """Refuse, before any work, an output file ``path`` of ``lanefree VERB`` that a run folder owns (whatever
     ``overwrite`` says), a path that exists and is not a file, or an existing file without ``overwrite`` —
     with ``marker_folder``, also one whose folder was not made by the same verb (its marker file)."""
-    run = _owned_by_a_run(path)
-    if run is not None:
-        raise RunError(f"refusing to write {path}: it belongs to the run folder {run}; choose another path")
+    owner = _owner(path, verb)
+    if owner is not None:
+        raise RunError(f"refusing to write {path}: it belongs to the run folder or output {owner}; choose another path")
     if path.exists() or path.is_symlink():
         if not path.is_file():
             raise RunError(f"refusing to write {path}: it exists and is not a file")

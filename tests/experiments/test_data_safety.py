@@ -163,8 +163,9 @@ def test_a_start_that_fails_leaves_no_run_folder(tmp_path):
     bad = tmp_path / "bad.net.xml"
     bad.write_text("<net>")
     run = tmp_path / "run"
+    in_sumo = merge_config(tiny(net_file=str(bad)), {"train": {"backend": "libsumo"}})
     with pytest.raises(LaneFreeError):  # SUMO cannot read the network: fails before the first episode
-        train(tiny(net_file=str(bad)), run=run, progress=False)
+        train(in_sumo, run=run, progress=False)
     assert not run.exists()
     res = lanefree("train", "--density", "5000", "--episodes", "1", "--out", str(run))
     assert res.returncode == 2 and "veh/km" in res.stderr and not run.exists()

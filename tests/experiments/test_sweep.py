@@ -290,7 +290,7 @@ def test_summary_and_status_from_run_folders(tmp_path):
     on_disk = list(csv.DictReader(open(tmp_path / "summary.csv")))
     assert len(on_disk) == 2 and on_disk[0]["collisions_ci95_low"]
     md = (tmp_path / "summary.md").read_text()
-    assert "**Reduced budget**" in md and "0.500 [0.400, 0.600] (paper 0.726)" in md
+    assert "**Reduced budget**" in md and "0.500 [0.400, 0.600] (paper 0.726, 0.7×)" in md
     assert f"runs/{cells[-1].name}" in md and "2/3" in md
     assert {p.name for p in (tmp_path / "curves").iterdir()} == {"table5_collisions.png", "table5_return.png",
                                                                  "table5_speed_dev.png"}
@@ -307,7 +307,7 @@ def test_a_setting_in_several_tables_is_drawn_once(tmp_path):
     result = summarize(tmp_path)
     assert sorted(p.name for p in (tmp_path / "curves").iterdir()) == \
         ["table6_collisions.png", "table6_return.png", "table6_speed_dev.png"]
-    assert len(result.files) == 5
+    assert [p.name for p in result.files[3:]] == ["summary.csv", "summary.md", "claims.csv", "claims.md"]
     md = (tmp_path / "summary.md").read_text()
     assert "- Table 6, Table 7, Table 8: [return](curves/table6_return.png)" in md
 

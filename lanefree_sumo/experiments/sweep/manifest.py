@@ -134,11 +134,21 @@ def read_manifest(folder: Path) -> Manifest:
     return Manifest(grid, str(data.get("created", "")), sessions)
 
 
+SELF = "<sweep folder>"
+"""How a manifest names the folder it is in."""
+
+
 def write_manifest(folder: Path, manifest: Manifest) -> None:
-    """Write ``sweep.yaml`` atomically (a reader never sees half a file)."""
+    """Write ``sweep.yaml`` atomically (a reader never sees half a file). The sweep folder's own path in
+    the recorded commands is written ``<sweep folder>``: the manifest is committed and moved between
+    machines, and the folder may sit elsewhere there."""
     path = SweepDir(folder).manifest
+    here = str(folder.resolve())
+    data = manifest.to_dict()
+    data["sessions"] = [{**s, "command": str(s.get("command", "")).replace(here, SELF)} if isinstance(s, dict) else s
+                        for s in data["sessions"]]
     text = ("# lanefree sweep manifest: the grid of this sweep folder. Resume with 'lanefree sweep --resume "
-            f"{folder}'.\n" + yaml.safe_dump(manifest.to_dict(), sort_keys=False))
+            f"{SELF}'.\n" + yaml.safe_dump(data, sort_keys=False))
     write_atomic(path, text)
 
 
