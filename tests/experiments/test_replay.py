@@ -96,7 +96,7 @@ def test_replay_and_export_never_write_over_a_runs_files_or_a_users(recorded, tm
     before = {p: p.read_bytes() for p in owned}
     for target in owned:
         res = lanefree("replay", str(recorded), "--no-gui", "--fcd", str(target))
-        assert res.returncode != 0 and "belongs to the run folder or output" in res.stderr and res.stderr.count("\n") == 1
+        assert res.returncode != 0 and "belongs to the run folder" in res.stderr and res.stderr.count("\n") == 1
     assert {p: p.read_bytes() for p in owned} == before
     mine = tmp_path / "notes.xml"
     mine.write_text("mine")
