@@ -32,7 +32,7 @@ from lanefree_sumo.config import (
     read_config_file,
     validate_config,
 )
-from lanefree_sumo.errors import LaneFreeError, UsageError
+from lanefree_sumo.errors import LaneFreeError, OperatingSystemError, UsageError, os_error_message
 from lanefree_sumo.experiments import rollout
 from lanefree_sumo.experiments.sweep import command as sweep_command
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
@@ -359,6 +359,10 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
                       out=args.out, overwrite=args.overwrite, shield=args.shield)
+    if result.kept_earlier:
+        print(f"lanefree: interrupted; the earlier evaluation in {result.out} is kept (the new one was not complete)",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
     if result.interrupted:
         print(f"lanefree: interrupted; kept {result.episodes} complete episode(s) in {result.out}", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -473,6 +477,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("lanefree: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except MemoryError:
+        print("lanefree: error: out of memory; use fewer processes (--envs, --workers) or a smaller buffer",
+              file=sys.stderr)
+        return OperatingSystemError.exit_code
+    except OSError as exc:  # the operating system's limit, not a bug: one line, named
+        print(f"lanefree: error: {' '.join(os_error_message(exc).split())}", file=sys.stderr)
+        return OperatingSystemError.exit_code
     except Exception as exc:  # a bug in lanefree_sumo, not a user mistake
         print(f"lanefree: internal error {type(exc).__name__}: {exc} (a bug; please report it with the command "
               "line)", file=sys.stderr)

@@ -47,6 +47,13 @@ class EvaluationResult:
     episodes: int
     """Complete episodes written."""
     interrupted: bool
+    kept_earlier: bool = False
+    """Interrupted while replacing an earlier evaluation (``overwrite``): the earlier one is kept whole and
+    the new, incomplete one discarded."""
+
+
+class _IncompleteError(Exception):
+    """Leaves :func:`fresh_output`'s block so that the new output is discarded and the earlier one kept."""
 
 
 def evaluate(
@@ -63,8 +70,10 @@ def evaluate(
     """Run the deterministic policy for ``episodes`` episodes into the eval folder.
 
     The output is written beside ``out`` and replaces it only at the end (an old evaluation is
-    never lost to a failed one). Ctrl-C or SIGTERM keep the complete episodes and drop the one in
-    progress, so no partial recording looks complete. ``shield`` True/False switches the safety
+    never lost to a failed or interrupted one). Ctrl-C or SIGTERM keep the complete episodes and
+    drop the one in progress, so no partial recording looks complete; when they interrupt the
+    replacement of an earlier evaluation (``overwrite``), the earlier one is kept whole instead.
+    ``shield`` True/False switches the safety
     shield on/off for the evaluation only (None: as the run's config)."""
     folder = RunDir(run)
     cfg = folder.load_config()
@@ -80,6 +89,18 @@ def evaluate(
     model_path = folder.find_model()
     model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
+    replacing = out.exists()
+    try:
+        return _evaluate_into(out, overwrite, cfg, model, model_path, base_seed, episodes, record, progress, replacing)
+    except _IncompleteError:
+        return EvaluationResult(out, 0, True, kept_earlier=True)
+
+
+def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, model_path: Path, base_seed: int,
+                   episodes: int, record: bool, progress: bool, replacing: bool) -> EvaluationResult:
+    """The episodes into a new output folder swapped in at the end; an interrupted replacement of an
+    earlier output raises :class:`_IncompleteError` (the new folder is dropped, the earlier one stays)."""
+    d = cfg.scenario.density_veh_per_km
     with fresh_output(out, overwrite, "evaluate") as tmp, stop_requested() as stop:
         write_config(tmp, cfg)
         if record:
@@ -91,6 +112,8 @@ def evaluate(
                 + (",shielded)" if cfg.shield.enabled else ")"),
             }, indent=2) + "\n")
         done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress, stop)
+        if done < episodes and replacing:
+            raise _IncompleteError
     return EvaluationResult(out, done, done < episodes)
 
 

@@ -60,7 +60,7 @@ from lanefree_sumo.config import SAME_RESULTS, LaneFreeConfig, config_difference
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments.curves import CURVE_METRICS, group_label, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.rundir import EPISODES, read_config
+from lanefree_sumo.experiments.rundir import EPISODES, fresh_output, read_config
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
 # -- constants -----------------------------------------------------------------------------------
@@ -335,7 +335,9 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, so
 
     ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
     ``out``: folder for ``curves_return.png``, ``curves_collisions.png``, ``curves_speed_dev.png``,
-    ``summary.csv``, ``summary.md`` (created if missing; existing files are overwritten).
+    ``summary.csv``, ``summary.md``: a new folder, or the folder of an earlier report (its
+    ``.lanefree-output`` marker), replaced whole when the new report is complete; any other existing
+    folder is refused (a user's notes, a sweep folder, a run folder).
     ``last``: episodes per run averaged for the table (paper: 50).
     ``smooth``: width in episodes of the trailing moving average of the curves.
     ``source``: ``""`` for the training episodes, else an evaluation folder name inside each run
@@ -381,19 +383,18 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, so
             notes.append(f"group {group_label(key)} has runs with the same seed ({seeds}); each counts separately")
 
     table = summary_table(groups, last)
-    _check_writable(out)
-    files: list[Path] = []
+    _check_writable(out.parent)
+    names = [name for _, name, _ in CURVE_METRICS] + ["summary.csv", "summary.md"]
     try:
-        for column, name, ylabel in CURVE_METRICS:
-            path = out / name
-            plot_curves(groups, column, ylabel, path, smooth)
-            files.append(path)
-        csv_path = out / "summary.csv"
-        table.to_csv(csv_path, index=False)
-        files.append(csv_path)
-        md_path = out / "summary.md"
-        md_path.write_text(summary_markdown(table, last, skipped, notes, source), encoding="utf-8")
-        files.append(md_path)
+        # the safe-output mechanism of every verb: a new folder, or an earlier report (marker) replaced whole
+        # once the new one is complete; never a folder of anything else
+        with fresh_output(out, overwrite=True, verb="report") as tmp:
+            for column, name, ylabel in CURVE_METRICS:
+                plot_curves(groups, column, ylabel, tmp / name, smooth)
+            table.to_csv(tmp / "summary.csv", index=False)
+            (tmp / "summary.md").write_text(summary_markdown(table, last, skipped, notes, source), encoding="utf-8")
+    except RunError as exc:
+        raise ReportError(str(exc)) from None
     except OSError as exc:
         raise ReportError(f"cannot write the report to {out}: {_one_line(exc)}") from None
-    return ReportResult(table=table, files=files, skipped=skipped, notes=notes)
+    return ReportResult(table=table, files=[out / name for name in names], skipped=skipped, notes=notes)

@@ -8,6 +8,7 @@ simulation per process); ``build_model`` a new model of the registry's class for
 
 from __future__ import annotations
 
+import os
 import signal
 from collections.abc import Callable
 from typing import Any
@@ -19,6 +20,9 @@ from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms import get_algorithm
 
+MAX_ENVS_PER_CORE = 4
+"""Parallel environments (one process each) allowed per core: more only thrash and exhaust memory."""
+
 
 def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     """Fix the parts of the config training decides: the action kind from the algorithm, the backend
@@ -26,6 +30,10 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     kind = get_algorithm(base.train.algo).actions
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
+    most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
+    if base.train.envs > most:
+        raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
+                          f"{os.cpu_count()} cores: use at most {most}")
     return merge_config(base, {"action": {"kind": kind}, "scenario": {"with_agent": True},
                               "backend": base.train.backend})
 

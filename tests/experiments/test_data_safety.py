@@ -190,7 +190,7 @@ def test_out_of_range_values_get_one_line(tmp_path, args, needle):
 def test_evaluation_stopped_mid_episode_keeps_only_complete_episodes(finished_run, tmp_path):
     out = tmp_path / "eval"
     proc = lanefree_popen("evaluate", str(finished_run), "--episodes", "500", "--record", "--out", str(out))
-    time.sleep(8)
+    wait_for_new_episode(tmp_path, ".eval.new-*", proc)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "kept" in err, err
@@ -200,3 +200,41 @@ def test_evaluation_stopped_mid_episode_keeps_only_complete_episodes(finished_ru
     vehicles = len((out / "trajectories" / "episode_0001.vehicles.csv").read_text().splitlines()) - 1
     for path in recordings:  # every kept recording is whole: 100 steps + the initial state
         assert len(path.read_text().splitlines()) - 1 == 101 * vehicles
+
+
+def wait_for_new_episode(folder: Path, pattern: str, proc, episodes: int = 1) -> None:
+    """Wait (for a state, not a time) until the output being written in ``folder/pattern`` holds ``episodes``
+    complete episodes; fail if the process ends first."""
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        for csv_path in folder.glob(f"{pattern}/episodes.csv"):
+            if len(csv_path.read_text().splitlines()) > episodes:
+                return
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.1)
+    raise AssertionError("no episode was written within 300 s")
+
+
+def test_an_interrupted_overwrite_keeps_the_earlier_evaluation(finished_run, tmp_path):
+    out = tmp_path / "eval"
+    evaluate(finished_run, episodes=2, out=out, progress=False)
+    before = snapshot(out)
+    proc = lanefree_popen("evaluate", str(finished_run), "--episodes", "500", "--out", str(out), "--overwrite")
+    wait_for_new_episode(tmp_path, ".eval.new-*", proc)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "the earlier evaluation" in err and "is kept" in err, err
+    assert snapshot(out) == before
+    assert not list(tmp_path.glob(".eval.*"))  # the incomplete replacement is gone
+
+
+def test_operating_system_limits_and_impossible_requests_are_one_line(tmp_path):
+    """An OSError (here a name longer than the file system allows) is the environment's limit, not a bug:
+    one line naming it and what to do, exit 1; a process count no machine has is refused before spawning."""
+    long_name = tmp_path / ("x" * 300)
+    res = lanefree("simulate", "--seconds", "1", "--backend", "numpy", "--out", str(long_name))
+    assert res.returncode == 1 and res.stderr.count("\n") == 1, res.stderr
+    assert "File name too long" in res.stderr and "shorter name" in res.stderr and "internal error" not in res.stderr
+    res = lanefree("train", "--envs", "1000", "--episodes", "1", "--out", str(tmp_path / "many"))
+    assert res.returncode == 2 and "use at most" in res.stderr and res.stderr.count("\n") == 1
+    assert not (tmp_path / "many").exists()

@@ -255,6 +255,23 @@ def test_unwritable_output_raises_report_error(two_seed_runs: list[Path], tmp_pa
     assert "\n" not in str(info.value) and "cannot write" in str(info.value)
 
 
+def test_report_replaces_only_its_own_earlier_output(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    """--out into a folder the report did not make (a user's notes) is refused and the folder untouched; an
+    earlier report is replaced whole."""
+    users = tmp_path / "notes"
+    users.mkdir()
+    (users / "summary.md").write_text("my notes")
+    with pytest.raises(ReportError, match="not the output of an earlier 'lanefree report'"):
+        report(two_seed_runs, users)
+    assert (users / "summary.md").read_text() == "my notes" and len(list(users.iterdir())) == 1
+    out = tmp_path / "rep"
+    first = report(two_seed_runs, out)
+    assert all(p.is_file() for p in first.files)
+    (out / "stale.png").write_text("from an older report")
+    again = report(two_seed_runs, out)
+    assert [p.name for p in again.files] == [p.name for p in first.files] and not (out / "stale.png").exists()
+
+
 def test_written_files_are_valid(two_seed_runs: list[Path], tmp_path: Path) -> None:
     import matplotlib.image
 
