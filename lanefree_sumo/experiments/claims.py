@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.report import RunData
+from lanefree_sumo.experiments.rundata import RunData
 
 FZOC, FOC = "fields_zones_overtake_collision", "fields_overtake_collision"
 Key = tuple[str, str, float]

@@ -6,16 +6,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments.paper import GroupKey, paper_reference
-
-if TYPE_CHECKING:
-    from lanefree_sumo.experiments.report import RunData, RunKey
+from lanefree_sumo.experiments.rundata import RunData, RunKey
 
 CURVE_METRICS: tuple[tuple[str, str, str], ...] = (
     # (column, file name, y-axis label with unit)

@@ -60,6 +60,7 @@ from lanefree_sumo.config import SAME_RESULTS, LaneFreeConfig, config_difference
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments.curves import CURVE_METRICS, group_label, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
+from lanefree_sumo.experiments.rundata import RunData, RunKey
 from lanefree_sumo.experiments.rundir import EPISODES, fresh_output, read_config
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
@@ -86,8 +87,6 @@ or do not change what a run learns (:data:`~lanefree_sumo.config.SAME_RESULTS`).
 _DEFAULT_CONFIG = LaneFreeConfig()
 """What a run's variant is measured against (built once, not per run)."""
 
-RunKey = tuple[str, str, float, str]
-"""(algorithm, reward preset, density veh/km, variant): the group of a run."""
 
 # -- results -------------------------------------------------------------------------------------
 
@@ -103,26 +102,6 @@ class ReportResult:
     """Run folders left out, each with the reason."""
     notes: list[str] = field(default_factory=list)
     """Things worth knowing that did not stop a run being used (short runs, repeated seeds)."""
-
-
-@dataclass
-class RunData:
-    """One usable run: its group key, seed and per-episode metrics."""
-
-    path: Path
-    algorithm: str
-    preset: str
-    density: float
-    """Background density (veh/km)."""
-    seed: int
-    episodes: pd.DataFrame
-    """Index ``episode`` (ascending, unique), float columns ``REQUIRED_COLUMNS[1:]``."""
-    variant: str = ""
-    """How the run's config differs from the defaults beyond the group key (``""`` for none)."""
-
-    @property
-    def key(self) -> RunKey:
-        return (self.algorithm, self.preset, self.density, self.variant)
 
 
 class _UnusableRunError(Exception):
