@@ -70,10 +70,14 @@ def _agent_class() -> VehicleClassConfig:
 class AccelerationBounds:
     """Acceleration limits (m/s²)."""
 
-    ax_min: float = -4.5
-    ax_max: float = 2.0
-    ay_min: float = -1.8
-    ay_max: float = 1.8
+    ax_min: float = field(default=-4.5, metadata={"range": (-100.0, 0.0)})
+    """Strongest braking (m/s², ≤ 0)."""
+    ax_max: float = field(default=2.0, metadata={"range": (0.0, 100.0)})
+    """Strongest acceleration (m/s², ≥ 0)."""
+    ay_min: float = field(default=-1.8, metadata={"range": (-100.0, 0.0)})
+    """Strongest lateral acceleration to the right (m/s², ≤ 0)."""
+    ay_max: float = field(default=1.8, metadata={"range": (0.0, 100.0)})
+    """Strongest lateral acceleration to the left (m/s², ≥ 0)."""
 
 
 @dataclass
@@ -222,15 +226,17 @@ class ObservationConfig:
     encoder: Literal["small", "paper"] = "small"
     """Set encoder configuration (``kind = set`` only): ``small`` (the project's default, d1 = d2 = 8)
     or ``paper`` (Liu et al. Table 1 / Alg. 1); see ``lanefree_sumo.rl.encoder.PRESETS``."""
-    n_neighbours: int = 5
-    range_m: float = 80.0
-    max_rows: int = 32
+    n_neighbours: int = field(default=5, metadata={"range": (1, 1000)})
+    """Nearest vehicles in the vector observation (the paper's 5)."""
+    range_m: float = field(default=80.0, metadata={"range": (1.0, 10_000.0)})
+    """Observation range: vehicles with |dx| ≤ this are seen (m)."""
+    max_rows: int = field(default=32, metadata={"range": (1, 10_000)})
     """Rows of the set observation (padding above the vehicles in range)."""
     scale: bool = True
     """Scale features to O(1); False returns raw SI values."""
-    speed_scale_mps: float = 25.0
+    speed_scale_mps: float = field(default=25.0, metadata={"range": (0.01, 1000.0)})
     """Longitudinal speeds (vx, v_d, vx_j) are divided by this when scaling (m/s)."""
-    lateral_speed_scale_mps: float = 2.0
+    lateral_speed_scale_mps: float = field(default=2.0, metadata={"range": (0.01, 1000.0)})
     """Lateral speeds (vy, vy_j) are divided by this when scaling (m/s)."""
 
 
@@ -240,9 +246,9 @@ class ActionConfig:
 
     kind: ActionKind = "continuous"
     """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
-    discrete_ax_mps2: float = 2.0
+    discrete_ax_mps2: float = field(default=2.0, metadata={"range": (0.0, 100.0)})
     """|ax| of the discrete accelerate/brake actions (m/s²)."""
-    discrete_ay_mps2: float = 1.0
+    discrete_ay_mps2: float = field(default=1.0, metadata={"range": (0.0, 100.0)})
     """|ay| of the discrete left/right actions (m/s²)."""
 
 

@@ -36,6 +36,9 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
                 f"unknown config key '{where}'; valid keys here: {', '.join(sorted(valid))}"
             )
         current = getattr(base, key)
+        if is_dataclass(current) and not isinstance(value, Mapping) and not is_dataclass(value):
+            raise ConfigError(f"config '{where}' is a section: give a mapping of its keys "
+                              f"({', '.join(f.name for f in fields(current))}), not {value!r}")
         if is_dataclass(current) and isinstance(value, Mapping):
             changes[key] = merge_config(current, value, where)
         elif is_dataclass(current) and is_dataclass(value):

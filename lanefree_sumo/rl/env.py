@@ -119,6 +119,9 @@ class LaneFreeEnv(gym.Env):
                 "a diverged policy must not drive the car"
             )
         if self.cfg.action.kind == "discrete":
+            if values.size != 1 or values[0] != int(values[0]) or not 0 <= values[0] < len(DISCRETE_ACTIONS):
+                raise ValueError(f"a discrete action is one whole number 0 … {len(DISCRETE_ACTIONS) - 1}, "
+                                 f"got {action!r}")
             sign_x, sign_y = DISCRETE_ACTIONS[int(values[0])]
             return sign_x * self.cfg.action.discrete_ax_mps2, sign_y * self.cfg.action.discrete_ay_mps2
         if values.size != 2:

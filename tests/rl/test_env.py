@@ -190,3 +190,26 @@ def test_agent_speed_is_capped(make):
         env.step(np.array([1.0, 0.0]))
         top = max(top, float(env.sim.state.vx[env._agent]))
     assert top == pytest.approx(25.0)
+
+
+@pytest.mark.parametrize("config,named", [
+    ({"reward": 3}, "'reward' is a section"),
+    ({"observation": {"range_m": -5}}, "observation.range_m"),
+    ({"observation": {"n_neighbours": -1}}, "observation.n_neighbours"),
+    ({"observation": {"max_rows": 0}}, "observation.max_rows"),
+    ({"observation": {"speed_scale_mps": 0}}, "observation.speed_scale_mps"),
+    ({"scenario": {"agent_bounds": {"ax_max": -1}}}, "scenario.agent_bounds.ax_max"),
+])
+def test_the_python_api_validates_the_config_by_key(config, named):
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        gym.make("LaneFree-v0", config={**config, "backend": "numpy"})
+
+
+def test_a_discrete_action_must_be_a_whole_number_in_range():
+    env = gym.make("LaneFree-v0", config={"backend": "numpy", "action": {"kind": "discrete"}})
+    env.reset(seed=0)
+    for bad in (9, -1, 2.5):
+        with pytest.raises(ValueError, match="one whole number 0 … 8"):
+            env.step(bad)
+    env.step(np.int64(3))  # numpy integers are fine
+    env.close()
