@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         result = summarize(folder)
         print(f"{len(result.table)} setting(s), {len(result.incomplete)} run(s) not complete -> "
               f"{folder / 'summary.md'}")
-        print(result.files[-1].read_text())
+        print(SweepDir(folder).summary_md.read_text())
         return EXIT_OK
     command = shlex.join(["lanefree", *sys.argv[1:]])
     extend = False
@@ -215,14 +215,14 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
             interrupted = run_sweep(sweep, grid, todo, workers, address, retries, command, progress).interrupted
         else:
             print("  nothing to train", flush=True)
-        summary = summarize(folder)
+        summarize(folder)
     opened = open_files()
     final = {n: overlay(sweep, n, inspect_run(sweep.run(n), grid.episodes), opened) for n in cells}
     complete = sum(1 for i in final.values() if i.state == COMPLETE)
     for name, info in final.items():
         if info.state in (FAILED, DAMAGED, BUSY):
             print(f"  {info.state}: runs/{name}: {info.detail}", file=sys.stderr)
-    print(f"sweep {grid.name}: {complete}/{len(cells)} runs complete -> {summary.files[-1]}")
+    print(f"sweep {grid.name}: {complete}/{len(cells)} runs complete -> {sweep.summary_md}")
     if interrupted:
         print(f"lanefree: interrupted; checkpoints saved. Continue with: lanefree sweep --resume {folder}",
               file=sys.stderr)
