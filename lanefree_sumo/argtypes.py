@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from lanefree_sumo.config import validate_density
@@ -85,3 +86,13 @@ def setting(text: str) -> tuple[str, Any]:
         return key, yaml.safe_load(value)
     except yaml.YAMLError:
         raise argparse.ArgumentTypeError(f"the value of '{text}' is not a YAML scalar or list") from None
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """``--config FILE`` and ``--set KEY=VALUE``: any config value from the command line."""
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help="YAML file of config overrides, nested as in a run's config.yaml (see 'lanefree config'); "
+                        "options given on the command line override it")
+    parser.add_argument("--set", type=setting, action="append", default=[], metavar="KEY=VALUE",
+                        dest="settings", help="set one config value, e.g. --set reward.broad_stretch=absolute "
+                        "(repeatable; applied last; 'lanefree config' lists every key with its unit)")

@@ -60,16 +60,6 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
 
 
-def _config_options(parser: argparse.ArgumentParser) -> None:
-    """``--config FILE`` and ``--set KEY=VALUE``: any config value from the command line."""
-    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
-                        help="YAML file of config overrides, nested as in a run's config.yaml (see 'lanefree config'); "
-                        "options given on the command line override it")
-    parser.add_argument("--set", type=argtypes.setting, action="append", default=[], metavar="KEY=VALUE",
-                        dest="settings", help="set one config value, e.g. --set reward.broad_stretch=absolute "
-                        "(repeatable; applied last; 'lanefree config' lists every key with its unit)")
-
-
 def _build_config(args: argparse.Namespace, options: Sequence[tuple[str, tuple[str, ...], Any]],
                   extra: Mapping[str, Any] | None = None) -> LaneFreeConfig:
     """The config of a verb: the defaults, then ``--config FILE``, then the verb's ``options`` ((dotted key,
@@ -120,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--width", type=argtypes.positive(float, "m"), default=None,
                      help=f"road width in m (default {DEFAULTS.road.width_m:g})")
     sim.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout's last line")
-    _config_options(sim)
+    argtypes.add_config_options(sim)
     sim.add_argument("--no-trajectory", action="store_true", help="skip the per-step trajectory CSV")
 
     tr = sub.add_parser(
@@ -164,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--backend", choices=BACKENDS, default=t.backend,
                     help=f"simulation backend (default {t.backend}: the same episodes as libsumo bit for bit, "
                     "without SUMO; libsumo/traci train inside SUMO)")
-    _config_options(tr)
+    argtypes.add_config_options(tr)
     tr.add_argument("--shield", action="store_true",
                     help="learn with the safety shield on every action (run folder ..._shield)")
     tr.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=t.overlap,
@@ -264,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
         "then --config FILE, then every --set) as YAML, with each key's unit, allowed values and meaning as a "
         "comment. Save it, edit it, and pass it back with --config FILE.",
     )
-    _config_options(conf)
+    argtypes.add_config_options(conf)
 
     net = sub.add_parser(
         "net",

@@ -168,3 +168,12 @@ def test_any_config_value_from_the_command_line(tmp_path):
     file.write_text("- a list")
     res = lanefree("config", "--config", str(file))
     assert res.returncode == 2 and "must hold a mapping" in res.stderr
+
+
+def test_rollout_takes_set_too():
+    res = lanefree("rollout", "--episodes", "1", "--backend", "numpy", "--set", "sim.episode_steps=30",
+                   "--set", "scenario.density_veh_per_km=90", "--json")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout.splitlines()[-1])["density"] == 90
+    res = lanefree("rollout", "--set", "shield.nope=1")
+    assert res.returncode == 2 and "shield.nope" in res.stderr

@@ -26,7 +26,15 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo import argtypes
-from lanefree_sumo.config import BACKENDS, EvaluationConfig, LaneFreeConfig, merge_config
+from lanefree_sumo.config import (
+    BACKENDS,
+    EvaluationConfig,
+    LaneFreeConfig,
+    merge_config,
+    nested_overrides,
+    read_config_file,
+    validate_config,
+)
 
 POLICIES = ("random", "idle")
 EVALUATION = EvaluationConfig()
@@ -63,6 +71,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
                    help=f"simulation backend (default {DEFAULTS.backend})")
     p.add_argument("--json", action="store_true", help="print ONE JSON summary object on stdout's last line")
+    argtypes.add_config_options(p)
     return p
 
 
@@ -97,19 +106,26 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
-    """The config (and the model with --run) of a rollout."""
+    """The config (and the model with --run) of a rollout: the defaults or RUN's config, then ``--config FILE``,
+    then the options, then every ``--set``."""
     overrides: dict[str, Any] = {"backend": args.backend}
     if args.density is not None:
         overrides["scenario"] = {"density_veh_per_km": args.density}
     if args.shield is not None:
         overrides["shield"] = {"enabled": args.shield}
-    if args.run is None:
-        return merge_config(LaneFreeConfig(), overrides), None
-    from lanefree_sumo.experiments.evaluate import load_model
-    from lanefree_sumo.experiments.rundir import RunDir
+    folder = None
+    if args.run is not None:
+        from lanefree_sumo.experiments.rundir import RunDir
 
-    folder = RunDir(args.run)
-    cfg = merge_config(folder.load_config(), overrides)
+        folder = RunDir(args.run)
+    base = LaneFreeConfig() if folder is None else folder.load_config()
+    if args.config is not None:
+        base = merge_config(base, read_config_file(args.config))
+    cfg = validate_config(merge_config(merge_config(base, overrides), nested_overrides(args.settings)))
+    if folder is None:
+        return cfg, None
+    from lanefree_sumo.experiments.evaluate import load_model
+
     return cfg, load_model(folder, cfg)
 
 

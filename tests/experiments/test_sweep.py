@@ -548,3 +548,16 @@ def test_tiny_grid_on_a_two_node_ray_cluster(tmp_path, ray_cluster):
     assert_complete(out, 1, 4)
     assert len(run_logs_nodes(out)) == 2  # both nodes trained runs
     assert read_manifest(out).sessions[0]["ray"] == f"Ray cluster at {address}"
+
+
+def test_set_adds_to_the_grids_overrides_and_cannot_set_what_the_grid_sets(tmp_path):
+    grid = parse_grid(TINY, "tiny", "tiny.yaml").with_budget(settings={"reward": {"broad_stretch": "absolute"},
+                                                                      "train": {"checkpoint_every_episodes": 2}})
+    cfg = grid.config(grid.cells()[0])
+    assert cfg.reward.broad_stretch == "absolute" and cfg.train.checkpoint_every_episodes == 2
+    assert cfg.sim.episode_steps == 40  # the grid's own overrides stay
+    with pytest.raises(ConfigError, match="train.episodes"):
+        parse_grid(TINY, "tiny", "tiny.yaml").with_budget(settings={"train": {"episodes": 3}})
+    res = lanefree("sweep", str(write_grid(tmp_path / "g.yaml", TINY)), "--out", str(tmp_path / "s"),
+                   "--set", "reward.nope=1")
+    assert res.returncode == 2 and "reward.nope" in res.stderr and not (tmp_path / "s").exists()

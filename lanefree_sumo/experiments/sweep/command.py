@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from lanefree_sumo import argtypes
+from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import LaneFreeError, UsageError
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
@@ -91,6 +92,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     sw.add_argument("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, metavar="N",
                     help=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
+    sw.add_argument("--set", type=argtypes.setting, action="append", default=[], metavar="KEY=VALUE",
+                    dest="settings", help="a config value for every run of GRID, added to its overrides, e.g. "
+                    "--set reward.broad_stretch=absolute (repeatable; not the keys the grid sets per run)")
     return sw
 
 
@@ -103,7 +107,7 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
     if not modes and args.grid is None:
         raise UsageError("lanefree sweep: give a GRID (" + ", ".join(BUILTIN_GRIDS) + " or a YAML file), "
                          "--resume DIR, --status DIR or --summary DIR (see 'lanefree sweep --help')")
-    budget = [o for o in ("--seeds", "--episodes", "--episode-steps") if o in given]
+    budget = [o for o in ("--seeds", "--episodes", "--episode-steps", "--set") if o in given]
     ray_opts = [o for o in ("--workers", "--address", "--retries", "--no-progress") if o in given]
     if modes:
         mode = modes[0]
@@ -143,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
         if args.seeds is not None:
             grid, extend = grid.with_more_seeds(args.seeds, str(folder)), True
     else:
-        grid = load_grid(args.grid).with_budget(args.seeds, args.episodes, args.episode_steps)
+        grid = load_grid(args.grid).with_budget(args.seeds, args.episodes, args.episode_steps,
+                                                nested_overrides(args.settings))
         folder = folder if folder is not None else Path("runs") / f"sweep_{grid.name}"
     address = args.address or os.environ.get("RAY_ADDRESS") or None
     return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress, extend)

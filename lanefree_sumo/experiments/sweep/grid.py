@@ -151,9 +151,10 @@ class Grid:
         return validate_grid(grid, source)
 
     def with_budget(self, seeds: int | None = None, episodes: int | None = None,
-                    episode_steps: int | None = None) -> Grid:
-        """The grid with ``--seeds N`` (seeds 0 … N−1), ``--episodes N``, ``--episode-steps N``."""
-        overrides = {k: dict(v) if isinstance(v, Mapping) else v for k, v in self.overrides.items()}
+                    episode_steps: int | None = None, settings: Mapping[str, Any] | None = None) -> Grid:
+        """The grid with ``--seeds N`` (seeds 0 … N−1), ``--episodes N``, ``--episode-steps N`` and the
+        ``--set`` ``settings`` (nested overrides) merged into its overrides."""
+        overrides = _merged(self.overrides, settings or {})
         if episode_steps is not None:
             overrides.setdefault("sim", {})["episode_steps"] = episode_steps
         grid = Grid(self.name, self.settings, tuple(range(seeds)) if seeds is not None else self.seeds,
@@ -173,6 +174,17 @@ class Grid:
                 seeds.append(candidate)
             candidate += 1
         return validate_grid(Grid(self.name, self.settings, tuple(seeds), self.episodes, self.overrides), where)
+
+
+def _merged(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``extra`` merged in recursively (copies; ``extra`` wins)."""
+    out = {k: _merged(v, {}) if isinstance(v, Mapping) else v for k, v in base.items()}
+    for key, value in extra.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = _merged(out[key], value)
+        else:
+            out[key] = _merged(value, {}) if isinstance(value, Mapping) else value
+    return out
 
 
 # -- built-in grids -------------------------------------------------------------------------------
