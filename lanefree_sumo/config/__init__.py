@@ -12,6 +12,7 @@ from lanefree_sumo.config.schema import (
     ActionConfig,
     ActionKind,
     ActorCriticConfig,
+    AlgorithmName,
     Backend,
     DQNConfig,
     DriverConfig,
@@ -23,6 +24,7 @@ from lanefree_sumo.config.schema import (
     ReplayConfig,
     ReportConfig,
     RewardConfig,
+    RewardPreset,
     RoadConfig,
     ScenarioConfig,
     ShieldConfig,
@@ -48,11 +50,10 @@ from lanefree_sumo.errors import ConfigError
 
 __all__ = [
     "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "SAME_RESULTS", "AccelerationBounds",
-    "ActionConfig",
-    "ActionKind", "ActorCriticConfig", "Backend", "ConfigError", "DQNConfig", "DriverConfig", "EpisodeConfig",
-    "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind", "ReplayConfig", "ReportConfig",
-    "RewardConfig", "RoadConfig", "ScenarioConfig", "ShieldConfig", "SimulationConfig", "SpawnConfig", "TrainConfig",
-    "VehicleClassConfig", "check_value", "config_differences", "config_to_dict", "merge_config", "missing_keys",
-    "nested_overrides", "read_config_file",
-    "validate_config", "validate_density",
+    "ActionConfig", "ActionKind", "ActorCriticConfig", "AlgorithmName", "Backend", "ConfigError", "DQNConfig",
+    "DriverConfig", "EpisodeConfig", "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind",
+    "ReplayConfig", "ReportConfig", "RewardConfig", "RewardPreset", "RoadConfig", "ScenarioConfig", "ShieldConfig",
+    "SimulationConfig", "SpawnConfig", "TrainConfig", "VehicleClassConfig", "check_value", "config_differences",
+    "config_to_dict", "merge_config", "missing_keys", "nested_overrides", "read_config_file", "validate_config",
+    "validate_density",
 ]

@@ -158,6 +158,13 @@ class SpawnConfig:
 Backend = Literal["libsumo", "traci", "numpy"]
 ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
+RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
+                       "zones_overtake_collision", "fields_zones_overtake_collision"]
+"""The reward presets of SPEC §7; their weights are :data:`lanefree_sumo.rl.rewards.PRESETS` (a test keeps the
+two in step)."""
+AlgorithmName = Literal["ddpg", "td3", "sac", "ppo", "dqn", "ddqn", "dueling", "per"]
+"""The algorithms; their classes are :data:`lanefree_sumo.rl.algorithms.ALGORITHMS` (a test keeps the two in
+step). The config owns every name it validates: the config room imports nothing from the RL room."""
 BACKENDS: tuple[str, ...] = get_args(Backend)
 OBSERVATION_KINDS: tuple[str, ...] = get_args(ObservationKind)
 ACTION_KINDS: tuple[str, ...] = get_args(ActionKind)
@@ -187,7 +194,7 @@ class ScenarioConfig:
 class RewardConfig:
     """Reward components (SPEC §7, paper Tables 3–4). Weights are set by the preset."""
 
-    preset: str = "fields_zones_overtake_collision"
+    preset: RewardPreset = "fields_zones_overtake_collision"
     """One of the presets of SPEC §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
     epsilon_r: float = 0.1
     """ε_r of the reciprocal reward (–)."""
@@ -329,7 +336,7 @@ class DQNConfig:
 class TrainConfig:
     """A training run (SPEC §9)."""
 
-    algo: str = "ddpg"
+    algo: AlgorithmName = "ddpg"
     """A name of the algorithm registry (:data:`lanefree_sumo.rl.algorithms.ALGORITHMS`)."""
     episodes: int = 625
     envs: int = 1

@@ -101,20 +101,6 @@ def _field_types(cls: Any) -> dict[str, Any]:
     return _FIELD_TYPES[cls]
 
 
-def _registered_names(where: str) -> tuple[str, ...] | None:
-    """Allowed values of the two fields whose names live in a registry of the RL layer."""
-    leaf = where.rsplit(".", 1)[-1]
-    if where.endswith("train.algo") or where == "algo":
-        from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
-
-        return ALGORITHM_NAMES
-    if where.endswith("reward.preset") or leaf == "preset":
-        from lanefree_sumo.rl.rewards import PRESETS
-
-        return tuple(PRESETS)
-    return None
-
-
 def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, float] | None = None) -> Any:
     """THE validation of one config value against its field's type (``Literal`` values, numbers
     within the field's ``range`` metadata, flags, names, tuples); returns the value, ints widened to
@@ -148,9 +134,6 @@ def _check_type(where: str, annotation: Any, value: Any) -> Any:
     if annotation is str:
         if not isinstance(value, str):
             raise ConfigError(f"config '{where}' must be text, got {value!r}")
-        names = _registered_names(where)
-        if names is not None and value not in names:
-            raise ConfigError(f"config '{where}' = {value!r} is unknown; valid: {', '.join(names)}")
         return value
     if origin is tuple:
         if not isinstance(value, tuple):

@@ -470,3 +470,14 @@ def test_spec_module_path_lanefree_sumo_rewards_is_the_rewards_module():
     from lanefree_sumo.rl import rewards as module
 
     assert spec_path is module and spec_path.ellipsoid(0.0, 0.0, 1.0, 1.0, 4, 4, 1, 0.5) == 0.5
+
+
+def test_the_configs_preset_and_algorithm_names_are_the_registries():
+    """The config validates names it owns (no import from the RL room); these keep them in step."""
+    from typing import get_args
+
+    from lanefree_sumo.config import AlgorithmName, RewardPreset
+    from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
+
+    assert get_args(RewardPreset) == tuple(PRESETS)
+    assert get_args(AlgorithmName) == ALGORITHM_NAMES
