@@ -32,7 +32,7 @@ from lanefree_sumo.config import (
     read_config_file,
     validate_config,
 )
-from lanefree_sumo.errors import LaneFreeError, OperatingSystemError, UsageError, os_error_message
+from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, OperatingSystemError, UsageError, os_error_message
 from lanefree_sumo.experiments import rollout
 from lanefree_sumo.experiments.sweep import command as sweep_command
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
@@ -40,7 +40,6 @@ from lanefree_sumo.rl.algorithms import help_text as algorithms_help
 from lanefree_sumo.rl.rewards import PRESETS
 
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
 EXIT_BUG = 3
 DEFAULTS = LaneFreeConfig()
 EVAL = EvaluationConfig()

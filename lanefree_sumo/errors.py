@@ -6,6 +6,9 @@ anything else reaching the top is a bug in lanefree_sumo and is reported as such
 
 from __future__ import annotations
 
+EXIT_INTERRUPTED = 130
+"""Exit code of every verb stopped by Ctrl-C or SIGTERM (128 + SIGINT, the shell's convention)."""
+
 
 class LaneFreeError(Exception):
     """A problem the user can act on; the message says what was wrong and what to do."""

@@ -177,3 +177,18 @@ def test_rollout_takes_set_too():
     assert json.loads(res.stdout.splitlines()[-1])["density"] == 90
     res = lanefree("rollout", "--set", "shield.nope=1")
     assert res.returncode == 2 and "shield.nope" in res.stderr
+
+
+def test_sigterm_stops_rollout_with_the_summary_of_complete_episodes():
+    proc = lanefree_popen("rollout", "--episodes", "100000", "--backend", "numpy", "--json")
+    assert proc.stdout is not None
+    header = proc.stdout.readline()  # the column header, then one row per finished episode: wait for a row
+    assert "episode" in header
+    first = proc.stdout.readline()
+    assert first.split()[0] == "1", first
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    summary = json.loads(out.splitlines()[-1])
+    assert summary["interrupted"] is True and summary["episodes"] >= 1
+    assert "complete episode" in err and "Traceback" not in err

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,8 @@ from lanefree_sumo.config import (
     read_config_file,
     validate_config,
 )
+from lanefree_sumo.errors import EXIT_INTERRUPTED
+from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 
 POLICIES = ("random", "idle")
 EVALUATION = EvaluationConfig()
@@ -94,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
 
     summary = rollout(cfg, policy, args.episodes, seed, model=model, on_episode=show)
     summary["run"] = str(args.run) if args.run is not None else None
+    if summary["interrupted"]:
+        print(f"lanefree: interrupted; the summary covers the {summary['episodes']} complete episode(s)",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
     else:
@@ -102,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
               f"{summary['background_collisions']} background collisions, "
               f"{summary['shield_interventions_per_episode']:.1f} interventions per episode, speed deviation "
               f"{summary['speed_dev_mps']:.2f} m/s, mean speed {summary['mean_speed_mps']:.2f} m/s")
-    return 0
+    return EXIT_INTERRUPTED if summary["interrupted"] else 0
 
 
 def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
@@ -140,27 +146,39 @@ def rollout(cfg: LaneFreeConfig, policy: str, episodes: int, seed: int, model: A
     zero = np.zeros(env.action_space.shape, dtype=np.float32) if env.action_space.shape else 0
     rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
+    interrupted = False
     try:
-        for k in range(1, episodes + 1):
-            obs, _ = env.reset(seed=seed + k - 1)
-            info: dict[str, Any] = {}
-            done = False
-            while not done:
-                if policy == "random":
-                    action = env.action_space.sample()
-                elif policy == "idle":
-                    action = zero
-                else:
-                    action, _ = model.predict(obs, deterministic=True)
-                obs, _, terminated, truncated, info = env.step(action)
-                done = terminated or truncated
-            row = {**info["episode_metrics"], "episode": k}
-            rows.append(row)
-            if on_episode is not None:
-                on_episode(row)
+        with stop_requested() as stop:
+            interrupted = _episodes(env, policy, episodes, seed, model, zero, rows, on_episode, stop)
     finally:
         env.close()
-    return _summary(rows, cfg, policy, seed, time.perf_counter() - t0)
+    return {**_summary(rows, cfg, policy, seed, time.perf_counter() - t0), "interrupted": interrupted}
+
+
+def _episodes(env: Any, policy: str, episodes: int, seed: int, model: Any, zero: Any, rows: list[dict[str, Any]],
+              on_episode: Any, stop: StopRequest) -> bool:
+    """Episodes 1 … ``episodes`` into ``rows``; True when Ctrl-C/SIGTERM stopped them (the episode in
+    progress is dropped: the summary holds complete episodes only)."""
+    for k in range(1, episodes + 1):
+        obs, _ = env.reset(seed=seed + k - 1)
+        info: dict[str, Any] = {}
+        done = False
+        while not done:
+            if stop.requested:
+                return True
+            if policy == "random":
+                action = env.action_space.sample()
+            elif policy == "idle":
+                action = zero
+            else:
+                action, _ = model.predict(obs, deterministic=True)
+            obs, _, terminated, truncated, info = env.step(action)
+            done = terminated or truncated
+        row = {**info["episode_metrics"], "episode": k}
+        rows.append(row)
+        if on_episode is not None:
+            on_episode(row)
+    return False
 
 
 def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed: int, wall: float) -> dict[str, Any]:

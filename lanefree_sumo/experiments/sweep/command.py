@@ -17,7 +17,7 @@ from typing import Any
 
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
-from lanefree_sumo.errors import LaneFreeError, UsageError
+from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -44,7 +44,7 @@ from lanefree_sumo.experiments.sweep.state import (
     writers_elsewhere,
 )
 
-EXIT_OK, EXIT_INCOMPLETE, EXIT_INTERRUPTED = 0, 1, 130
+EXIT_OK, EXIT_INCOMPLETE = 0, 1
 DEFAULT_RETRIES = 3
 
 
