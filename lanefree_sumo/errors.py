@@ -48,7 +48,7 @@ def os_error_message(exc: OSError) -> str:
     """One line for an operating-system error: what failed, on which path, and what to do."""
     import errno
 
-    what = exc.strerror or type(exc).__name__
+    what = exc.strerror or str(exc) or type(exc).__name__
     where = " ".join(str(p) for p in (exc.filename, exc.filename2) if p)
     advice = {
         errno.ENOSPC: "free some space or write elsewhere",

@@ -7,8 +7,10 @@ confidence interval (each group resampled with replacement, 10 000 times, fixed 
 
 * *reproduced*: the CI excludes 0 on the side the paper's numbers are on;
 * *opposite*: the CI excludes 0 on the other side;
-* *inconclusive*: the CI contains 0 (for a claim of *no* difference, this is the reproduced case);
-* *no data*: a group has fewer than 2 complete runs.
+* *inconclusive*: the CI contains 0 — for a claim of *no* difference this reads "no difference
+  detected", which with 3 runs per group is a lack of power, not evidence of equivalence;
+* *no data*: a group has fewer than :data:`MIN_RUNS` complete runs (a percentile bootstrap of 2 values
+  is meaningless), or a run does not cover the episode window.
 
 The paper's own difference (Karalakou et al. 2023, SPEC §10) is printed beside ours.
 """
@@ -77,6 +79,9 @@ COMPARISONS: tuple[Comparison, ...] = (
 )
 """Every claim checked, in the paper's order."""
 
+MIN_RUNS = 3
+"""Complete runs per group below which no verdict is given."""
+
 COLUMNS = ("claim", "metric", "a", "b", "n_a", "n_b", "paper_difference", "difference", "ci95_low", "ci95_high",
            "verdict")
 
@@ -86,6 +91,8 @@ def per_run(runs: Sequence[RunData], metric: str, last: int, window: tuple[int, 
     values = []
     for run in runs:
         column = run.episodes[metric]
+        if window and column.index.max() < window[1]:
+            continue  # does not cover the window: not a value of this statistic
         part = column.loc[window[0]:window[1]] if window else column.iloc[-last:]
         values.append(float(part.mean()))
     return values
@@ -94,9 +101,9 @@ def per_run(runs: Sequence[RunData], metric: str, last: int, window: tuple[int, 
 def difference_ci(a: Sequence[float], b: Sequence[float], resamples: int = 10_000, seed: int = 0,
                   level: float = 0.95) -> tuple[float, float, float]:
     """(mean(a) − mean(b), CI low, CI high): percentile bootstrap, each group resampled on its own;
-    NaNs when a group has fewer than 2 values."""
+    NaNs when a group has fewer than :data:`MIN_RUNS` values."""
     x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    if x.size < 2 or y.size < 2:
+    if x.size < MIN_RUNS or y.size < MIN_RUNS:
         return (float(x.mean() - y.mean()) if x.size and y.size else math.nan), math.nan, math.nan
     rng = np.random.default_rng(seed)
     diffs = (x[rng.integers(0, x.size, (resamples, x.size))].mean(axis=1)
@@ -111,7 +118,7 @@ def verdict(expect: int, low: float, high: float) -> str:
         return "no data"
     side = 1 if low > 0 else (-1 if high < 0 else 0)
     if expect == 0:
-        return "reproduced (no difference)" if side == 0 else "not reproduced (a difference)"
+        return "no difference detected (low power)" if side == 0 else "not reproduced (a difference)"
     return "reproduced" if side == expect else ("inconclusive" if side == 0 else "opposite")
 
 
@@ -155,8 +162,9 @@ def claims_markdown(table: pd.DataFrame) -> str:
              "Difference of per-run means (group a − group b) with a 95 % percentile-bootstrap CI over runs "
              "(`lanefree_sumo/experiments/claims.py`); collisions per episode, speed deviation in m/s. "
              "Verdicts: *reproduced* when the CI excludes 0 on the paper's side, *opposite* on the other, "
-             "*inconclusive* when it contains 0, *no data* below 2 complete runs per group. With 3 runs per "
-             "group the percentile bootstrap is narrow: read n beside it.", "",
+             "*inconclusive* when it contains 0 (for a claim of no difference: *no difference detected*, which with 3 "
+             "runs per group is low power, not equivalence), *no data* below 3 complete runs per group. With 3 runs "
+             "per group the percentile bootstrap is narrow: read n beside it.", "",
              "| claim | metric | n (a, b) | paper | ours [95 % CI] | verdict |", "|---|---|---|---|---|---|"]
     for r in table.itertuples():
         ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"

@@ -89,7 +89,7 @@ def evaluate(
     model_path = folder.find_model()
     model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
-    replacing = out.exists()
+    replacing = out.is_dir() and any(out.iterdir())
     try:
         return _evaluate_into(out, overwrite, cfg, model, model_path, base_seed, episodes, record, progress, replacing)
     except _IncompleteError:

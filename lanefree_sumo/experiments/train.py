@@ -5,8 +5,9 @@ The run folder layout is defined in :mod:`lanefree_sumo.experiments.rundir`.
 
 ``resume`` continues from the newest checkpoint: model and replay buffer are restored,
 ``episodes.csv`` is cut back to the checkpoint's episode count, and episode numbers continue.
-Episode k's traffic seed depends only on the run's seed and k (:func:`~lanefree_sumo.rl.models.episode_seed`),
-so a resumed run sees the traffic an uninterrupted one sees; the exploration noise state and the
+Episode k's traffic seed depends only on the run's seed and k (:func:`~lanefree_sumo.rl.models.episode_seed`;
+with several environments, on the environment too), so a resumed one-environment run sees the traffic an
+uninterrupted one sees; the exploration noise state and the
 torch/numpy random streams are not checkpointed: a resumed run is a valid continuation, not a
 bit-identical replay of an uninterrupted one.
 """
@@ -264,8 +265,8 @@ def train(
             if run is None:
                 raise RunError("resuming needs the run folder")
             folder = RunDir(run)
+            cfg = folder.load_config()  # a run folder at all, before anything (even the lock file) is written
             stack.enter_context(folder.writer_lock())  # one writer: a second resume is refused here
-            cfg = folder.load_config()
             ckpt, target = _resume_point(folder, cfg, episodes)
             timesteps = ckpt.timesteps
         else:
@@ -274,11 +275,7 @@ def train(
             run = new_run_folder(cfg, run)
             created = True
             folder = RunDir(run)
-            try:
-                stack.enter_context(folder.writer_lock())
-            except BaseException:
-                shutil.rmtree(run, ignore_errors=True)
-                raise
+            stack.enter_context(folder.writer_lock())  # another start of the same --out: refused, nothing removed
             write_config(run, cfg)
             folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
             timesteps, target = 0, cfg.train.episodes

@@ -30,6 +30,11 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     kind = get_algorithm(base.train.algo).actions
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
+    t = base.train
+    if t.overlap and not (get_algorithm(t.algo).fast_learner and t.fast_learner and t.lean_loop and t.envs == 1
+                          and base.observation.kind == "vector"):
+        raise ConfigError("--overlap needs DDPG with the fast learner and the lean loop, one environment and the "
+                          "vector observation (it would silently run SB3's order otherwise)")
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
     if base.train.envs > most:
         raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "

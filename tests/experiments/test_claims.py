@@ -21,9 +21,10 @@ def test_difference_ci_and_verdicts():
     diff, low, high = difference_ci([3.0, 3.2, 2.9], [1.0, 1.1, 0.9])
     assert np.isclose(diff, 2.0333, atol=1e-3) and 0 < low < diff < high
     assert verdict(1, low, high) == "reproduced" and verdict(-1, low, high) == "opposite"
-    assert verdict(1, -0.5, 0.4) == "inconclusive" and verdict(0, -0.5, 0.4) == "reproduced (no difference)"
+    assert verdict(1, -0.5, 0.4) == "inconclusive" and verdict(0, -0.5, 0.4) == "no difference detected (low power)"
     assert verdict(0, low, high) == "not reproduced (a difference)"
-    assert np.isnan(difference_ci([1.0], [2.0, 3.0])[1]) and verdict(1, float("nan"), float("nan")) == "no data"
+    assert np.isnan(difference_ci([1.0, 2.0], [2.0, 3.0, 4.0])[1])  # below MIN_RUNS
+    assert verdict(1, float("nan"), float("nan")) == "no data"
 
 
 def test_claims_from_runs_last_episodes_and_windows():
@@ -48,5 +49,11 @@ def test_claims_from_runs_last_episodes_and_windows():
     per = table[table["claim"].str.contains("temporarily")].iloc[0]
     assert per["verdict"] == "reproduced" and per["difference"] > 4 and np.isnan(per["paper_difference"])
     assert (table[table["claim"].str.contains("density")]["verdict"] == "no data").all()
+    # a run that ends before the window's last episode gives no value for it
+    short = {**groups, ("ddqn", "fields_zones_overtake_collision", 70.0): [
+        run("ddqn", "fields_zones_overtake_collision", 70.0, s, [1.0] * 120) for s in range(3)]}
+    per_short = check_claims(short, last=last)
+    row = per_short[per_short["claim"].str.contains("temporarily")].iloc[0]
+    assert row["n_b"] == 0 and row["verdict"] == "no data"
     text = claims_markdown(table)
     assert text.count("\n| ") == len(COMPARISONS) + 1 and "reproduced" in text

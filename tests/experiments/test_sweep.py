@@ -200,9 +200,9 @@ def test_committed_runs_without_models_are_complete_and_any_backend_is_adopted(t
     sweep = SweepDir(tmp_path)
     a, b, c, _ = grid.cells()
     fake_run(sweep.run(a), grid, a, 3, model=False)
-    (sweep.run(a) / "last_session.json").write_text("{}")
+    (sweep.run(a) / "last_session.json").write_text('{"episodes_done": 3}')
     fake_run(sweep.run(b), grid, b, 2, model=False)                      # cut short: no checkpoint, not complete
-    (sweep.run(b) / "last_session.json").write_text("{}")
+    (sweep.run(b) / "last_session.json").write_text('{"episodes_done": 2}')
     libsumo = merge_config(grid.config(c), {"backend": "libsumo", "train": {"backend": "libsumo", "lean_loop": False}})
     fake_run(sweep.run(c), grid, c, 3)
     write_config(sweep.run(c), libsumo)

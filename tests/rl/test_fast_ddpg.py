@@ -175,7 +175,14 @@ def test_save_load_round_trip_both_ways_and_resume(tmp_path: Any) -> None:
     _steps(fast, 10)
     fast.save(tmp_path / "fast.zip")
     fast.save_replay_buffer(tmp_path / "buffer.pkl")
+    import zipfile
+    with zipfile.ZipFile(tmp_path / "fast.zip") as archive:  # the plan (policy, optimisers, buffer) is never saved
+        assert "_fast_plan" not in archive.read("data").decode()
     DDPG.save(_filled(DDPG), tmp_path / "sb3.zip")
+    trained = _filled(DDPG)
+    _steps(trained, 10)
+    trained.save(tmp_path / "sb3_trained.zip")  # the same parameters and Adam state: about the same size
+    assert (tmp_path / "fast.zip").stat().st_size < 1.1 * (tmp_path / "sb3_trained.zip").stat().st_size
 
     again = FastDDPG.load(tmp_path / "fast.zip", device="cpu")
     as_sb3 = DDPG.load(tmp_path / "fast.zip", device="cpu")

@@ -43,3 +43,17 @@ def test_a_resumed_schedule_continues_the_uninterrupted_one():
     for _ in range(3):
         env.reset()
     assert whole.seen == first.seen + resumed.seen == [episode_seed(3, 0, k) for k in range(1, 7)]
+
+
+def test_overlap_is_refused_where_it_would_silently_run_sb3s_order():
+    import pytest
+
+    from lanefree_sumo.config import ConfigError, LaneFreeConfig, merge_config
+    from lanefree_sumo.rl.models import training_config
+
+    for extra in ({"train": {"algo": "td3"}}, {"train": {"lean_loop": False}}, {"train": {"envs": 2}},
+                  {"observation": {"kind": "set"}}):
+        cfg = merge_config(merge_config(LaneFreeConfig(), {"train": {"overlap": True}}), extra)
+        with pytest.raises(ConfigError, match="--overlap needs"):
+            training_config(cfg)
+    assert training_config(merge_config(LaneFreeConfig(), {"train": {"overlap": True}})).train.overlap

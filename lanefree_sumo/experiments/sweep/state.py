@@ -95,10 +95,18 @@ def inspect_run(folder: Path, target: int) -> RunInfo:
     try:
         ckpt = run.newest_checkpoint()
     except RunError:
-        if numbers == list(range(1, target + 1)) and run.last_session.is_file():
+        if numbers == list(range(1, target + 1)) and not run.checkpoints.exists() and _finished(run, target):
             return RunInfo(COMPLETE, rows, "complete; its model is not here (results copied without models)")
         return RunInfo(STALE, rows, "no checkpoint yet; restarts from scratch")
     return RunInfo(PARTIAL, rows, f"resumable from episode {ckpt.episodes}")
+
+
+def _finished(run: RunDir, target: int) -> bool:
+    """The run's last session says it ended with ``target`` episodes done."""
+    try:
+        return int(json.loads(run.last_session.read_text()).get("episodes_done", -1)) == target
+    except (OSError, ValueError, TypeError, AttributeError):
+        return False
 
 
 def heartbeat_age(sweep: SweepDir, name: str) -> float | None:

@@ -347,6 +347,10 @@ class FastDDPG(DDPG):
         self.overlap = overlap
         super().__init__(*args, **kwargs)
 
+    def _excluded_save_params(self) -> list[str]:
+        """Never pickled into ``model.zip``: the plan holds the policy, the optimisers and the replay buffer."""
+        return [*super()._excluded_save_params(), "_fast_plan"]
+
     def _plan(self) -> _Plan | None:
         """The fast update's plan (rebuilt when the model's parts were replaced); None without the fast learner."""
         if not self.fast_learner:
@@ -446,6 +450,7 @@ class FastDDPG(DDPG):
         update_due = False
         while self.num_timesteps < total_timesteps:
             callback.on_rollout_start()
+            plan = self._plan() or plan  # rebuilt if a callback replaced the buffer or the policy
             actions, buffer_actions = self._lean_action(plan, self.learning_starts, action_noise, 1)
             env.step_async(actions)
             if update_due:  # update t − 1 while the env computes step t
