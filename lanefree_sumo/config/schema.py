@@ -235,7 +235,7 @@ class ObservationConfig:
     or ``paper`` (Liu et al. Table 1 / Alg. 1); see ``lanefree_sumo.rl.encoder.PRESETS``."""
     n_neighbours: int = field(default=5, metadata={"range": (1, 1000)})
     """Nearest vehicles in the vector observation (the paper's 5)."""
-    range_m: float = field(default=80.0, metadata={"range": (1.0, 10_000.0)})
+    range_m: float = field(default=80.0, metadata={"range": (0.1, 10_000.0)})
     """Observation range: vehicles with |dx| ≤ this are seen (m)."""
     max_rows: int = field(default=32, metadata={"range": (1, 10_000)})
     """Rows of the set observation (padding above the vehicles in range)."""
