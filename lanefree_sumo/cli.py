@@ -33,7 +33,7 @@ from lanefree_sumo.config import (
     validate_config,
 )
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, OperatingSystemError, UsageError, os_error_message
-from lanefree_sumo.experiments import rollout
+from lanefree_sumo.experiments import mixed_autonomy, rollout
 from lanefree_sumo.experiments.sweep import command as sweep_command
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 from lanefree_sumo.rl.algorithms import help_text as algorithms_help
@@ -141,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
                     f"layer) (default {DEFAULTS.observation.encoder})")
     tr.add_argument("--envs", type=argtypes.positive(int, "processes"), default=t.envs,
                     help=f"parallel environments, one process each (default {t.envs})")
+    tr.add_argument("--agents", type=argtypes.positive(int, "vehicles"), default=DEFAULTS.scenario.agents,
+                    help="learning vehicles on the ring, on top of the background traffic, all driven and trained "
+                    "by one shared policy; episodes.csv gets a row per agent and episode "
+                    f"(default {DEFAULTS.scenario.agents}: LaneFree-v0)")
     tr.add_argument("--episode-steps", type=argtypes.positive(int, "steps"), default=DEFAULTS.sim.episode_steps,
                     help=f"steps of {DEFAULTS.sim.step_s:g} s per episode (default {DEFAULTS.sim.episode_steps} = "
                     f"{episode_s:g} s, the paper's)")
@@ -245,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "eval_d120, eval_shield) instead of its training episodes, at the evaluated density")
 
     sweep_command.add_parser(sub)
+    mixed_autonomy.add_parser(sub)
 
     conf = sub.add_parser(
         "config",
@@ -318,6 +323,7 @@ def _train(args: argparse.Namespace) -> int:
             ("train.algo", ("--algo",), args.algo),
             ("train.episodes", ("--episodes",), args.episodes),
             ("train.envs", ("--envs",), args.envs),
+            ("scenario.agents", ("--agents",), args.agents),
             ("train.backend", ("--backend",), args.backend),
             ("train.overlap", ("--overlap", "--no-overlap"), args.overlap),
             ("train.checkpoint_every_episodes", ("--checkpoint-every",), args.checkpoint_every),
@@ -458,7 +464,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return sweep_command.run(args)
         handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "rollout": rollout.run,
                    "replay": _replay, "export": _export, "report": _report, "net": _net,
-                   "config": _config}[args.command]
+                   "config": _config, "mixed-autonomy": mixed_autonomy.run}[args.command]
         return handler(args)
     except LaneFreeError as exc:  # the user's to fix: one line, no traceback
         print(f"lanefree: error: {' '.join(str(exc).split())}", file=sys.stderr)

@@ -181,7 +181,11 @@ class ScenarioConfig:
     """sumo-gui colour of background vehicles desiring more than the middle desired speed."""
     agent: VehicleClassConfig = field(default_factory=_agent_class)
     with_agent: bool = False
-    """Whether one externally controlled agent vehicle is on the road."""
+    """Whether externally controlled agent vehicles are on the road."""
+    agents: int = field(default=1, metadata={"range": (1, 64)})
+    """How many agent vehicles when ``with_agent``: LaneFree-v0 drives one, the multi-agent environment
+    (:mod:`lanefree_sumo.rl.multi_agent`, ``lanefree train --agents K``) any number; they come on top of
+    the background vehicles of ``density_veh_per_km``."""
     agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
     agent_max_speed_mps: float = 30.0
     """The agent's top speed (m/s); SPEC §2 bounds only its accelerations, but without a top

@@ -5,11 +5,11 @@ trained; ``eval_shield/`` or ``eval_noshield/``, after the density, when the saf
 switched on or off against the run's config), one row per episode with the SPEC §8 columns, and
 with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
 vehicle at every step including the initial state, in the format of
-:mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column; the agent's id is
-``agent`` — and ``episode_NNNN.vehicles.csv`` with each vehicle's length,
-width and desired speed.  ``recording.json`` beside them names the network and the config
-so that a replay can rebuild the scene.  A shielded recording has a ``shielded`` column (1 in the
-agent's row on the steps the shield changed its action).
+:mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column; the agents' ids are
+``agent`` (``agent1``, … in a run of several agents, with one ``episodes.csv`` row per agent) — and
+``episode_NNNN.vehicles.csv`` with each vehicle's length, width and desired speed.  ``recording.json``
+beside them names the network and the config so that a replay can rebuild the scene.  A shielded
+recording has a ``shielded`` column (1 in an agent's row on the steps the shield changed its action).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from lanefree_sumo.experiments.rundir import (
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
+from lanefree_sumo.sim.spawn import agent_id
 
 EVALUATION = EvaluationConfig()
 
@@ -108,7 +109,8 @@ def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, 
             (tmp / RECORDING).write_text(json.dumps({
                 "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
                 "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
-                "agent_id": "agent", "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
+                "agent_ids": [agent_id(i) for i in range(cfg.scenario.agents)],
+                "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
                 + (",shielded)" if cfg.shield.enabled else ")"),
             }, indent=2) + "\n")
         done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress, stop)
@@ -132,31 +134,31 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     requested: the episode in progress is dropped with its recording)."""
     from tqdm import tqdm
 
+    from lanefree_sumo.experiments.train import episode_columns
     from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles
-    from lanefree_sumo.rl.env import LaneFreeEnv
+    from lanefree_sumo.rl.multi_agent import PolicyDriver
 
-    log = EpisodeLog(out / EPISODES)
-    env = LaneFreeEnv(cfg)
+    log = EpisodeLog(out / EPISODES, episode_columns(cfg))
+    driver = PolicyDriver(cfg)
+    sim = driver.sim
     done = 0
     try:
         for k in tqdm(range(1, episodes + 1), desc="evaluate", unit="ep", disable=not progress):
             if stop.requested:
                 break
-            obs, _ = env.reset(seed=base_seed + k)
+            obs = driver.reset(base_seed + k)
             writer = (TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True, shield=cfg.shield.enabled)
                       if record else None)
             if writer:
-                writer.write(0, env.sim.current()[0], None)
-                write_vehicles(vehicles_path(out, k), env.sim.current()[0])
-            info: dict[str, Any] = {}
+                writer.write(0, sim.current()[0], None)
+                write_vehicles(vehicles_path(out, k), sim.current()[0])
+            rows: list[dict[str, Any]] = []
             finished = False
             while not finished and not stop.requested:
                 action, _ = model.predict(obs, deterministic=True)
-                obs, _, terminated, truncated, info = env.step(action)
+                obs, finished, shielded, rows = driver.step(action)
                 if writer:
-                    writer.write(env.sim.steps, env.sim.current()[0], env.sim.last_result,
-                                 shielded=info["shield_intervened"])
-                finished = terminated or truncated
+                    writer.write(sim.steps, sim.current()[0], sim.last_result, shielded=shielded)
             if not finished:  # stopped mid-episode: no partial recording may look complete
                 if writer:
                     writer.close()
@@ -165,10 +167,10 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
                 break
             if writer:
                 writer.close()
-            log.append({**info["episode_metrics"], "episode": k, "algorithm": cfg.train.algo,
-                        "timesteps": int(model.num_timesteps)})
+            for row in rows:
+                log.append({**row, "episode": k, "algorithm": cfg.train.algo, "timesteps": int(model.num_timesteps)})
             done = k
     finally:
         log.close()
-        env.close()
+        driver.close()
     return done

@@ -36,7 +36,7 @@ from lanefree_sumo.experiments.rundir import (
     vehicles_path,
 )
 from lanefree_sumo.sim.dynamics import StepCommand
-from lanefree_sumo.sim.spawn import AGENT_ID
+from lanefree_sumo.sim.spawn import AGENT_ID, is_agent_id
 from lanefree_sumo.sim.state import VehicleState, wrap
 
 REPLAY = ReplayConfig()
@@ -74,7 +74,7 @@ class Recording:
         return VehicleState(
             list(self.ids), self.x[k].copy(), self.y[k].copy(), self.vx[k].copy(), self.vy[k].copy(),
             self.length.copy(), self.width.copy(), self.v_desired.copy(),
-            np.array([vid != AGENT_ID for vid in self.ids]),
+            np.array([not is_agent_id(vid) for vid in self.ids]),
         )
 
 
@@ -162,8 +162,8 @@ def _sumo_args(tmp: Path, gui: bool, size: tuple[int, int], delay_s: float, fcd:
 
 
 def _paint(backend: Any, rec: Recording, cfg: LaneFreeConfig, zoom: float) -> list[tuple[int, int, int, int]]:
-    """Colour every vehicle (agent, background by desired speed), track the agent; return the colours."""
-    colours = [_rgba(cfg.scenario.agent.color_rgb) if vid == AGENT_ID else desired_speed_colour(v, cfg)
+    """Colour every vehicle (agents, background by desired speed), track the (first) agent; return the colours."""
+    colours = [_rgba(cfg.scenario.agent.color_rgb) if is_agent_id(vid) else desired_speed_colour(v, cfg)
                for vid, v in zip(rec.ids, rec.v_desired)]
     for vid, colour in zip(rec.ids, colours):
         backend.set_color(vid, colour)

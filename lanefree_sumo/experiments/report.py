@@ -134,11 +134,12 @@ def read_run_config(run: Path) -> tuple[str, str, float, int, str]:
 
 
 def read_episodes(path: Path) -> pd.DataFrame:
-    """The required metrics of an ``episodes.csv``, indexed by episode (ascending).
+    """The required metrics of an ``episodes.csv``, indexed by episode (ascending); a run of several agents
+    (an ``agent`` column, one row per agent and episode) gives each episode the mean over its agents.
 
     Strict: every non-blank row must have as many fields as the header (a last line cut in the
     middle fails here), required values must be finite numbers, episode numbers integral and
-    unique. Raises ``_UnusableRunError`` (internal) with the reason, naming the line.
+    unique (per agent). Raises ``_UnusableRunError`` (internal) with the reason, naming the line.
     """
     if not path.is_file():
         raise _UnusableRunError("no episodes.csv")
@@ -153,6 +154,8 @@ def read_episodes(path: Path) -> pd.DataFrame:
             if missing:
                 raise _UnusableRunError(f"episodes.csv lacks column(s) {', '.join(missing)}")
             index = {c: header.index(c) for c in REQUIRED_COLUMNS}
+            agent_at = header.index("agent") if "agent" in header else None
+            agents: list[str] = []
             rows: list[list[float]] = []
             for fields in reader:
                 if not fields or all(not f.strip() for f in fields):
@@ -173,17 +176,28 @@ def read_episodes(path: Path) -> pd.DataFrame:
                         raise _UnusableRunError(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
                     row.append(value)
                 rows.append(row)
+                if agent_at is not None:
+                    agents.append(fields[agent_at].strip())
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise _UnusableRunError(f"episodes.csv unreadable ({_one_line(exc)})") from None
+    return _episode_frame(rows, agents)
+
+
+def _episode_frame(rows: list[list[float]], agents: list[str]) -> pd.DataFrame:
+    """:func:`read_episodes`' frame of the rows read (``agents``: each row's agent, or empty)."""
     if not rows:
         raise _UnusableRunError("episodes.csv has no episodes")
     frame = pd.DataFrame(rows, columns=list(REQUIRED_COLUMNS))
     if not np.all(frame["episode"] == np.round(frame["episode"])):
         raise _UnusableRunError("episodes.csv has a non-integer episode number")
     frame["episode"] = frame["episode"].astype(int)
-    repeated = frame["episode"][frame["episode"].duplicated()]
+    keys = frame[["episode"]].assign(agent=agents) if agents else frame[["episode"]]
+    repeated = frame["episode"][keys.duplicated()]
     if len(repeated):
-        raise _UnusableRunError(f"episodes.csv has episode {int(repeated.iloc[0])} more than once")
+        who = " for one agent" if agents else ""
+        raise _UnusableRunError(f"episodes.csv has episode {int(repeated.iloc[0])} more than once{who}")
+    if agents:
+        return frame.groupby("episode").mean().sort_index()
     return frame.set_index("episode").sort_index()
 
 

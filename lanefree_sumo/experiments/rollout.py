@@ -8,10 +8,10 @@ density defaults to RUN's). Episode k (1-based) uses traffic seed ``seed + k −
 defaults to the config's for a built-in policy and to RUN's seed + the evaluation offset + 1
 (the seed of ``lanefree evaluate``'s first episode) for a run.
 
-With ``--json`` stdout's last line is ONE JSON object: ``episodes``, ``collisions`` (agent
-collision events summed over episodes), ``collisions_per_episode``, ``collision_steps``,
+With ``--json`` stdout's last line is ONE JSON object: ``episodes``, ``agents``, ``collisions`` (agent
+collision events summed over episodes and agents), ``collisions_per_episode`` (per agent), ``collision_steps``,
 ``background_collisions``, ``shield_interventions``, ``shield_interventions_per_episode``,
-``shield_fallbacks_per_episode``, ``speed_dev_mps`` and ``mean_speed_mps`` (means over episodes),
+``shield_fallbacks_per_episode``, ``speed_dev_mps`` and ``mean_speed_mps`` (means over episodes and agents),
 ``boundary_contacts``, ``mean_return``, plus the settings (policy, density, seed, shield, backend).
 """
 
@@ -42,7 +42,7 @@ from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 POLICIES = ("random", "idle")
 EVALUATION = EvaluationConfig()
 DEFAULTS = LaneFreeConfig()
-ROW = ("episode", "seed", "collisions", "background_collisions", "shield_interventions", "shield_fallbacks",
+ROW = ("episode", "agent", "seed", "collisions", "background_collisions", "shield_interventions", "shield_fallbacks",
        "speed_dev_mps", "mean_speed_mps", "return")
 """Columns of the per-episode rows."""
 
@@ -69,6 +69,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None,
                    help=f"episode k uses traffic seed SEED+k-1 (default {DEFAULTS.seed}; with --run, RUN's seed+"
                    f"{EVALUATION.seed_offset}+1 as 'lanefree evaluate')")
+    p.add_argument("--agents", type=argtypes.positive(int, "vehicles"), default=None,
+                   help=f"vehicles driven by the policy, on top of the background traffic (default "
+                   f"{DEFAULTS.scenario.agents}, or RUN's); rows per agent and episode")
     p.add_argument("--shield", action=argparse.BooleanOptionalAction, default=None,
                    help="pass every action through the safety shield (default off; with --run, as RUN was trained)")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
@@ -119,6 +122,8 @@ def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
         overrides["scenario"] = {"density_veh_per_km": args.density}
     if args.shield is not None:
         overrides["shield"] = {"enabled": args.shield}
+    if args.agents is not None:
+        overrides.setdefault("scenario", {})["agents"] = args.agents
     folder = None
     if args.run is not None:
         from lanefree_sumo.experiments.rundir import RunDir
@@ -139,50 +144,51 @@ def rollout(cfg: LaneFreeConfig, policy: str, episodes: int, seed: int, model: A
             on_episode: Any = None) -> dict[str, Any]:
     """Run ``episodes`` episodes of ``policy`` (``random``, ``idle`` or ``run`` with ``model``);
     call ``on_episode(row)`` after each; return the summary of the module docstring."""
-    from lanefree_sumo.rl.env import LaneFreeEnv
+    from lanefree_sumo.rl.multi_agent import PolicyDriver
 
-    env = LaneFreeEnv(cfg)
-    env.action_space.seed(seed)
-    zero = np.zeros(env.action_space.shape, dtype=np.float32) if env.action_space.shape else 0
+    driver = PolicyDriver(cfg)
+    driver.seed_actions(seed)
     rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     interrupted = False
     try:
         with stop_requested() as stop:
-            interrupted = _episodes(env, policy, episodes, seed, model, zero, rows, on_episode, stop)
+            interrupted = _episodes(driver, policy, episodes, seed, model, rows, on_episode, stop)
     finally:
-        env.close()
+        driver.close()
     return {**_summary(rows, cfg, policy, seed, time.perf_counter() - t0), "interrupted": interrupted}
 
 
-def _episodes(env: Any, policy: str, episodes: int, seed: int, model: Any, zero: Any, rows: list[dict[str, Any]],
+def _episodes(driver: Any, policy: str, episodes: int, seed: int, model: Any, rows: list[dict[str, Any]],
               on_episode: Any, stop: StopRequest) -> bool:
-    """Episodes 1 … ``episodes`` into ``rows``; True when Ctrl-C/SIGTERM stopped them (the episode in
-    progress is dropped: the summary holds complete episodes only)."""
+    """Episodes 1 … ``episodes`` into ``rows`` (one per agent and episode); True when Ctrl-C/SIGTERM stopped
+    them (the episode in progress is dropped: the summary holds complete episodes only)."""
+    zero = driver.idle()
     for k in range(1, episodes + 1):
-        obs, _ = env.reset(seed=seed + k - 1)
-        info: dict[str, Any] = {}
+        obs = driver.reset(seed + k - 1)
+        ended: list[dict[str, Any]] = []
         done = False
         while not done:
             if stop.requested:
                 return True
             if policy == "random":
-                action = env.action_space.sample()
+                action = driver.sample()
             elif policy == "idle":
                 action = zero
             else:
                 action, _ = model.predict(obs, deterministic=True)
-            obs, _, terminated, truncated, info = env.step(action)
-            done = terminated or truncated
-        row = {**info["episode_metrics"], "episode": k}
-        rows.append(row)
-        if on_episode is not None:
-            on_episode(row)
+            obs, done, _, ended = driver.step(action)
+        for metrics in ended:
+            row = {"agent": "agent", **metrics, "episode": k}
+            rows.append(row)
+            if on_episode is not None:
+                on_episode(row)
     return False
 
 
 def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed: int, wall: float) -> dict[str, Any]:
     n = len(rows)
+    """Agent-episodes: with several agents each episode counts once per agent."""
 
     def total(key: str) -> int:
         return int(sum(r[key] for r in rows))
@@ -191,7 +197,8 @@ def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed:
         return float(np.mean([r[key] for r in rows])) if rows else float("nan")
 
     return {
-        "episodes": n,
+        "episodes": n // cfg.scenario.agents,
+        "agents": cfg.scenario.agents,
         "policy": policy,
         "density": cfg.scenario.density_veh_per_km,
         "seed": seed,

@@ -54,6 +54,8 @@ TRAJECTORIES = "trajectories"
 RECORDING = "recording.json"
 SIM_TRAJECTORY = "trajectory.csv"
 SIM_SUMMARY = "summary.json"
+MIXED_AUTONOMY = "mixed_autonomy"
+"""``lanefree mixed-autonomy RUN``'s default output folder inside RUN."""
 
 
 OUTPUT_MARKER = ".lanefree-output"

@@ -43,6 +43,13 @@ EPISODE_COLUMNS = (
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
     "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s", "shield_interventions",
 )
+MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
+"""Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
+
+
+def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
+    """The columns of a run's ``episodes.csv``."""
+    return EPISODE_COLUMNS + (MULTI_AGENT_COLUMNS if cfg.scenario.agents > 1 else ())
 
 
 # -- provenance ----------------------------------------------------------------------------------
@@ -79,13 +86,13 @@ def versions() -> dict[str, str]:
 # -- episode log and checkpoints ------------------------------------------------------------------
 
 class EpisodeLog:
-    """``episodes.csv``: one row per finished episode, appended and flushed at once."""
+    """``episodes.csv``: one row per finished episode (and agent), appended and flushed at once."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
         self.path = path
         new = not path.exists() or path.stat().st_size == 0
         self._fh = open(path, "a", newline="")
-        self._writer = csv.DictWriter(self._fh, fieldnames=EPISODE_COLUMNS, extrasaction="ignore")
+        self._writer = csv.DictWriter(self._fh, fieldnames=columns, extrasaction="ignore")
         if new:
             self._writer.writeheader()
             self._fh.flush()
@@ -98,7 +105,7 @@ class EpisodeLog:
         self._fh.close()
 
     @staticmethod
-    def truncate(path: Path, episodes: int) -> None:
+    def truncate(path: Path, episodes: int, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
         """Keep the header and the rows of episodes 1..``episodes`` (drops rows a crash left
         beyond the checkpoint, so a resumed run has no duplicates)."""
         if not path.exists():
@@ -107,7 +114,7 @@ class EpisodeLog:
             rows = list(csv.DictReader(fh))
         kept = [r for r in rows if r.get("episode", "").isdigit() and int(r["episode"]) <= episodes]
         with open(path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=EPISODE_COLUMNS, extrasaction="ignore")
+            writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(kept)
 
@@ -150,10 +157,12 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
 
     target = cfg.train.episodes
     algo = cfg.train.algo
+    shared = cfg.scenario.agents > 1
 
     class EpisodeCallback(BaseCallback):
-        """Writes a CSV row per finished episode, logs to TensorBoard, checkpoints every K
-        episodes, and stops at the target episode count or on a signal."""
+        """Writes a CSV row per finished episode (per agent with several: TensorBoard gets their means),
+        logs to TensorBoard, checkpoints every K episodes, and stops at the target episode count or on a
+        signal."""
 
         def __init__(self) -> None:
             super().__init__()
@@ -162,20 +171,23 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
                             dynamic_ncols=True)
 
         def _on_step(self) -> bool:
-            for info in self.locals["infos"]:
-                metrics = info.get("episode_metrics")
-                if metrics is None or self.episodes >= target:
-                    continue
+            ended = [info["episode_metrics"] for info in self.locals["infos"] if "episode_metrics" in info]
+            # several agents: their rows of one simulation episode arrive together and form one episode
+            for group in ([ended] if shared and ended else [[metrics] for metrics in ended]):
+                if self.episodes >= target:
+                    break
                 self.episodes += 1
-                row = {**metrics, "episode": self.episodes, "algorithm": algo, "timesteps": self.num_timesteps}
-                log.append(row)
+                for metrics in group:
+                    log.append({**metrics, "episode": self.episodes, "algorithm": algo,
+                                "timesteps": self.num_timesteps})
                 for key in ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps",
                             "shield_interventions"):
-                    self.logger.record(f"episode/{key}", float(metrics[key]))
+                    self.logger.record(f"episode/{key}", float(np.mean([m[key] for m in group])))
                 self.logger.dump(self.num_timesteps)
                 self.bar.update(1)
-                self.bar.set_postfix(collisions=metrics["collisions"], speed_dev=f"{metrics['speed_dev_mps']:.2f}",
-                                     ret=f"{metrics['return']:.1f}")
+                self.bar.set_postfix(collisions=sum(m["collisions"] for m in group),
+                                     speed_dev=f"{np.mean([m['speed_dev_mps'] for m in group]):.2f}",
+                                     ret=f"{np.mean([m['return'] for m in group]):.1f}")
                 if self.episodes % cfg.train.checkpoint_every_episodes == 0 and self.episodes < target:
                     save_checkpoint(self.model, run, self.episodes, algo)
             return not stop.requested and self.episodes < target
@@ -188,7 +200,8 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
 
 def run_name(cfg: LaneFreeConfig) -> str:
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}_d{cfg.scenario.density_veh_per_km:g}"
+    agents = f"_k{cfg.scenario.agents}" if cfg.scenario.agents > 1 else ""
+    return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}_d{cfg.scenario.density_veh_per_km:g}{agents}"
             f"_s{cfg.seed}{'_shield' if cfg.shield.enabled else ''}")
 
 
@@ -306,14 +319,14 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     try:
         if ckpt is not None:
             model = _load_checkpoint(spec, ckpt, env)  # validated before anything changes
-            EpisodeLog.truncate(folder.episodes, done)
+            EpisodeLog.truncate(folder.episodes, done, episode_columns(cfg))
             if target != cfg.train.episodes:
                 cfg = merge_config(cfg, {"train": {"episodes": target}})
                 write_config(folder.path, cfg)
         else:
             model = build_model(cfg, env, cfg.seed, str(folder.tensorboard))
         append_command(folder.path, command)
-        log = EpisodeLog(folder.episodes)
+        log = EpisodeLog(folder.episodes, episode_columns(cfg))
         callback = _make_callback(folder, cfg, log, done, stop, progress)
         remaining = total_timesteps(cfg) - timesteps
         t0 = time.perf_counter()

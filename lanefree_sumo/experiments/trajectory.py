@@ -4,8 +4,8 @@ Columns: ``t`` (s, end of the step; 0 = the initial state), ``id`` (SUMO vehicle
 is ``agent``), ``x`` (m along the ring's centre line, [0, L)), ``y`` (m from the right road
 edge), ``vx``, ``vy`` (m/s), ``ax``, ``ay`` (m/s², realised during the step ending at t), and
 with ``overlap=True`` a column ``overlap`` (1 when the vehicle's body overlaps another's at t),
-with ``shield=True`` a column ``shielded`` (1 in the agent's row when the safety shield changed
-the agent's action in the step ending at t).
+with ``shield=True`` a column ``shielded`` (1 in an agent's row when the safety shield changed
+that agent's action in the step ending at t).
 Values are rounded to 1 µm, 1 µm/s; the file is flushed every simulated second.
 """
 
@@ -44,9 +44,11 @@ class TrajectoryWriter:
         self._step_s = step_s
         self._rows = 0
 
-    def write(self, step: int, state: VehicleState, result: StepResult | None, shielded: bool = False) -> None:
+    def write(self, step: int, state: VehicleState, result: StepResult | None,
+              shielded: bool | np.ndarray = False) -> None:
         """Rows for the state after ``step`` steps (``result`` None for the initial state);
-        ``shielded``: the shield changed the agent's action in this step."""
+        ``shielded``: the shield changed the agents' action in this step (one flag for every agent, or
+        one per row of the state)."""
         n = state.n
         zeros = np.zeros(n)
         ax = zeros if result is None else result.ax

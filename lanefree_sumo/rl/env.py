@@ -29,10 +29,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_config
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_config
 from lanefree_sumo.rl.rewards import compute_reward, detect_overtakes, get_preset
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
-from lanefree_sumo.sim.simulation import Simulation
+from lanefree_sumo.sim.simulation import Simulation, StepResult
 
 EGO_FEATURES = 4  # y, vx, vy, v_d
 NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
@@ -55,6 +55,209 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
     return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
 
 
+class LearningVehicle:
+    """One learning vehicle's view of the simulation: its observation, its reward terms, its shield and
+    its episode books (SPEC §5–§8). :class:`LaneFreeEnv` drives one, the multi-agent environment
+    (:mod:`lanefree_sumo.rl.multi_agent`) one per agent, with the same arithmetic."""
+
+    def __init__(self, cfg: LaneFreeConfig, sim: Simulation, scales: tuple[np.ndarray, np.ndarray]) -> None:
+        self.cfg = cfg
+        self.sim = sim
+        self.weights = get_preset(cfg.reward.preset)
+        self.scales = scales
+        self.index = -1
+        """This vehicle's row in the simulation state (−1 before the first episode)."""
+        self.prev_dx = np.zeros(0)
+        self.books: dict[str, float] = {}
+        self.shield_params: ShieldParams | None = None
+
+    def start(self, index: int) -> Any:
+        """Begin an episode as row ``index`` of the freshly reset simulation; returns the first observation."""
+        self.index = index
+        self.books = {
+            "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
+            "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
+            "shield_interventions": 0, "shield_fallbacks": 0,
+            **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
+        }
+        obs, _, _ = self.observe()
+        self.prev_dx = self.sim.current()[1][0][self.index].copy()
+        return obs
+
+    def shield(self, ax: float, ay: float) -> ShieldDecision | None:
+        """The shield's decision on the policy's (ax, ay) (m/s²), None when the shield is off."""
+        if not self.cfg.shield.enabled:
+            return None
+        if self.shield_params is None:
+            self.shield_params = ShieldParams.from_config(self.cfg)
+        return shield_action(self.index, self.sim.current()[0], ax, ay, self.shield_params)
+
+    def score(self, result: StepResult, ax: float, ay: float, decision: ShieldDecision | None,
+              agents: np.ndarray) -> tuple[Any, float, bool, dict[str, Any]]:
+        """After a simulation step: (observation, reward, collided, info) of this vehicle, its books updated.
+        ``agents``: the rows of every agent vehicle (collisions with them are also counted apart)."""
+        (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self.index, self.cfg
+        obs, idx, observed = self.observe()
+        dx_row = dx_all[a]
+
+        new_pairs = result.new_collisions
+        mine = (new_pairs == a).any(axis=1) if len(new_pairs) else np.zeros(0, dtype=bool)
+        agent_events = int(np.count_nonzero(mine))
+        others_agents = np.isin(new_pairs, agents)
+        with_agents = int(np.count_nonzero(mine & others_agents.all(axis=1))) if len(new_pairs) else 0
+        background_only = int(np.count_nonzero(~others_agents.any(axis=1))) if len(new_pairs) else 0
+        collided = bool(result.overlap[a].any())
+        passes = detect_overtakes(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
+        self.prev_dx = dx_row.copy()
+
+        terms = compute_reward(
+            dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
+            state.width[idx], float(state.y[a]), float(state.vx[a]), float(state.vy[a]),
+            float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), cfg.road.width_m,
+            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
+            config=cfg.reward,
+        )
+
+        b = self.books
+        vx_a = float(state.vx[a])
+        contact = bool(result.boundary_contact[a])
+        intervened = decision is not None and decision.intervened
+        reward = terms.reward - (cfg.shield.intervention_penalty if intervened else 0.0)
+        b["return"] += reward
+        b["collisions"] += agent_events
+        b["collision_steps"] += collided
+        b["background_collisions"] += background_only
+        b["agent_collisions"] += with_agents
+        b["speed_dev_sum"] += abs(vx_a - float(state.v_desired[a]))
+        b["speed_sum"] += vx_a
+        b["overtakes"] += passes
+        b["boundary_contacts"] += contact
+        b["sum_c_x"] += terms.c_x
+        b["sum_c_y"] += terms.c_y
+        b["sum_c_f"] += terms.c_f
+        b["sum_reward"] += reward
+        b["shield_interventions"] += intervened
+        b["shield_fallbacks"] += decision is not None and not decision.certified
+        info: dict[str, Any] = {
+            **terms.as_dict(),
+            "overtakes": passes,
+            "collision_events": agent_events,
+            "boundary_contact": contact,
+            "ax": ax,
+            "ay": ay,
+            "reward": reward,
+            "shield_intervened": intervened,
+            "shield_correction": decision.correction if decision is not None else 0.0,
+        }
+        return obs, float(reward), collided, info
+
+    def observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
+        """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
+        (state, (dx_all, dy_all)), a, o = self.sim.current(), self.index, self.cfg.observation
+        dx = dx_all[a]
+        dy = dy_all[a]
+        in_range = np.abs(dx) <= o.range_m
+        in_range[a] = False
+        idx = np.flatnonzero(in_range)
+        order = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")]
+        ego = np.array([state.y[a], state.vx[a], state.vy[a], state.v_desired[a]]) / self.scales[0]
+        observed = order[: o.n_neighbours]
+        if o.kind == "vector":
+            rows = np.empty((o.n_neighbours, NEIGHBOUR_FEATURES))
+            rows[:] = (o.range_m, 0.0, state.vx[a], state.vy[a])  # placeholders: far ahead, same speed
+            k = len(observed)
+            rows[:k, 0] = dx[observed]
+            rows[:k, 1] = dy[observed]
+            rows[:k, 2] = state.vx[observed]
+            rows[:k, 3] = state.vy[observed]
+            obs: Any = np.concatenate([ego, (rows / self.scales[1]).ravel()]).astype(np.float32)
+        else:
+            shown = order[: o.max_rows]
+            k = len(shown)
+            table = np.zeros((o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
+            table[:k, :NEIGHBOUR_FEATURES] = (
+                np.column_stack([dx[shown], dy[shown], state.vx[shown], state.vy[shown]]) / self.scales[1]
+            )
+            table[:k, NEIGHBOUR_FEATURES] = 1.0
+            obs = {"ego": ego.astype(np.float32), "others": table}
+        return obs, idx, observed
+
+    def metrics(self, episode: int, seed: int) -> dict[str, Any]:
+        """SPEC §8 metrics of the episode so far (one CSV row)."""
+        b, steps = self.books, max(self.sim.steps, 1)
+        return {
+            "episode": episode,
+            "steps": self.sim.steps,
+            "return": b["return"],
+            "collisions": b["collisions"],
+            "collision_steps": b["collision_steps"],
+            "background_collisions": b["background_collisions"],
+            "speed_dev_mps": b["speed_dev_sum"] / steps,
+            "mean_speed_mps": b["speed_sum"] / steps,
+            "overtakes": b["overtakes"],
+            "boundary_contacts": b["boundary_contacts"],
+            "shield_interventions": b["shield_interventions"],
+            "shield_fallbacks": b["shield_fallbacks"],
+            **{f"mean_{t}": b[f"sum_{t}"] / steps for t in METRIC_TERMS},
+            "density": self.cfg.scenario.density_veh_per_km,
+            "seed": seed,
+            "reward_preset": self.cfg.reward.preset,
+            "wall_s": time.perf_counter() - b["t0"],
+        }
+
+
+def feature_scales(cfg: LaneFreeConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(ego, neighbour) divisors of the observation's features (module docstring); ones without scaling."""
+    o = cfg.observation
+    if not o.scale:
+        return np.ones(EGO_FEATURES), np.ones(NEIGHBOUR_FEATURES)
+    w, v, vy = cfg.road.width_m, o.speed_scale_mps, o.lateral_speed_scale_mps
+    return np.array([w, v, vy, v]), np.array([o.range_m, w, v, vy])
+
+
+def observation_space(cfg: LaneFreeConfig) -> spaces.Space:
+    """A learning vehicle's observation space: a vector, or a dict of ego features and a padded table."""
+    obs_cfg = cfg.observation
+    n_feat = EGO_FEATURES + NEIGHBOUR_FEATURES * obs_cfg.n_neighbours
+    if obs_cfg.kind == "vector":
+        return spaces.Box(-np.inf, np.inf, (n_feat,), np.float32)
+    return spaces.Dict(
+        {
+            "ego": spaces.Box(-np.inf, np.inf, (EGO_FEATURES,), np.float32),
+            "others": spaces.Box(-np.inf, np.inf, (obs_cfg.max_rows, NEIGHBOUR_FEATURES + 1), np.float32),
+        }
+    )
+
+
+def action_space(cfg: LaneFreeConfig) -> spaces.Space:
+    """A learning vehicle's action space: (ax, ay) in [−1, 1]², or one of the 9 discrete actions."""
+    if cfg.action.kind == "continuous":
+        return spaces.Box(-1.0, 1.0, (2,), np.float32)
+    return spaces.Discrete(len(DISCRETE_ACTIONS))
+
+
+def action_to_acceleration(cfg: LaneFreeConfig, action: Any, where: str) -> tuple[float, float]:
+    """(ax, ay) in m/s² for an action (SPEC §6); continuous actions are clipped to [−1, 1].
+
+    A NaN or infinite action raises ``ValueError`` naming ``where`` (the step): a diverged policy must
+    not silently drive the car."""
+    values = np.asarray(action, dtype=float).ravel()
+    if not np.isfinite(values).all():
+        raise ValueError(f"action {action!r} at {where} is not finite; a diverged policy must not drive the car")
+    if cfg.action.kind == "discrete":
+        if values.size != 1 or values[0] != int(values[0]) or not 0 <= values[0] < len(DISCRETE_ACTIONS):
+            raise ValueError(f"a discrete action is one whole number 0 … {len(DISCRETE_ACTIONS) - 1}, "
+                             f"got {action!r}")
+        sign_x, sign_y = DISCRETE_ACTIONS[int(values[0])]
+        return sign_x * cfg.action.discrete_ax_mps2, sign_y * cfg.action.discrete_ay_mps2
+    if values.size != 2:
+        raise ValueError(f"a continuous action has 2 components (ax, ay in [-1, 1]), got {action!r}")
+    bounds = cfg.scenario.agent_bounds
+    a0 = min(1.0, max(-1.0, float(values[0])))
+    a1 = min(1.0, max(-1.0, float(values[1])))
+    return (a0 * bounds.ax_max if a0 >= 0.0 else -a0 * bounds.ax_min), a1 * bounds.ay_max
+
+
 class LaneFreeEnv(gym.Env):
     """Gymnasium environment of the paper's MDP on the SUMO ring road.
 
@@ -72,80 +275,34 @@ class LaneFreeEnv(gym.Env):
         if render_mode is not None:
             raise ValueError("LaneFree-v0 renders through sumo-gui: pass config={'gui': True} instead of render_mode")
         self.cfg = resolve_config(config)
-        self.weights = get_preset(self.cfg.reward.preset)
+        if self.cfg.scenario.agents != 1:
+            raise ConfigError(f"LaneFree-v0 drives one agent (scenario.agents = {self.cfg.scenario.agents}); "
+                              "use lanefree_sumo.rl.multi_agent.parallel_env for several")
         self.sim = Simulation(self.cfg)
-        obs_cfg = self.cfg.observation
-        n_feat = EGO_FEATURES + NEIGHBOUR_FEATURES * obs_cfg.n_neighbours
-        if obs_cfg.kind == "vector":
-            self.observation_space: spaces.Space = spaces.Box(-np.inf, np.inf, (n_feat,), np.float32)
-        else:
-            self.observation_space = spaces.Dict(
-                {
-                    "ego": spaces.Box(-np.inf, np.inf, (EGO_FEATURES,), np.float32),
-                    "others": spaces.Box(-np.inf, np.inf, (obs_cfg.max_rows, NEIGHBOUR_FEATURES + 1), np.float32),
-                }
-            )
-        if self.cfg.action.kind == "continuous":
-            self.action_space: spaces.Space = spaces.Box(-1.0, 1.0, (2,), np.float32)
-        else:
-            self.action_space = spaces.Discrete(len(DISCRETE_ACTIONS))
+        self.observation_space: spaces.Space = observation_space(self.cfg)
+        self.action_space: spaces.Space = action_space(self.cfg)
         self.episode = 0
         self.env_seconds = 0.0
         """Wall time of the env's own work in ``step`` (observation, reward, books) (s)."""
-        self._scales = self._feature_scales()
-        self._agent = -1
+        self.vehicle = LearningVehicle(self.cfg, self.sim, feature_scales(self.cfg))
         self._episode_seed = 0
-        self._prev_dx = np.zeros(0)
-        self._books: dict[str, float] = {}
-        self._shield_params: ShieldParams | None = None
 
-    # -- configuration helpers -----------------------------------------------------------------
-    def _feature_scales(self) -> tuple[np.ndarray, np.ndarray]:
-        o = self.cfg.observation
-        if not o.scale:
-            return np.ones(EGO_FEATURES), np.ones(NEIGHBOUR_FEATURES)
-        w, v, vy = self.cfg.road.width_m, o.speed_scale_mps, o.lateral_speed_scale_mps
-        return np.array([w, v, vy, v]), np.array([o.range_m, w, v, vy])
+    @property
+    def _agent(self) -> int:
+        """The agent's row in the simulation state (−1 before the first ``reset``)."""
+        return self.vehicle.index
 
     def action_to_acceleration(self, action: Any) -> tuple[float, float]:
-        """(ax, ay) in m/s² for an action (SPEC §6); continuous actions are clipped to [−1, 1].
-
-        A NaN or infinite action raises ``ValueError`` naming the step: a diverged policy must
-        not silently drive the car."""
-        values = np.asarray(action, dtype=float).ravel()
-        if not np.isfinite(values).all():
-            raise ValueError(
-                f"action {action!r} at step {self.sim.steps + 1} of episode {self.episode} is not finite; "
-                "a diverged policy must not drive the car"
-            )
-        if self.cfg.action.kind == "discrete":
-            if values.size != 1 or values[0] != int(values[0]) or not 0 <= values[0] < len(DISCRETE_ACTIONS):
-                raise ValueError(f"a discrete action is one whole number 0 … {len(DISCRETE_ACTIONS) - 1}, "
-                                 f"got {action!r}")
-            sign_x, sign_y = DISCRETE_ACTIONS[int(values[0])]
-            return sign_x * self.cfg.action.discrete_ax_mps2, sign_y * self.cfg.action.discrete_ay_mps2
-        if values.size != 2:
-            raise ValueError(f"a continuous action has 2 components (ax, ay in [-1, 1]), got {action!r}")
-        bounds = self.cfg.scenario.agent_bounds
-        a0 = min(1.0, max(-1.0, float(values[0])))
-        a1 = min(1.0, max(-1.0, float(values[1])))
-        return (a0 * bounds.ax_max if a0 >= 0.0 else -a0 * bounds.ax_min), a1 * bounds.ay_max
+        """(ax, ay) in m/s² for an action (:func:`action_to_acceleration`)."""
+        return action_to_acceleration(self.cfg, action, f"step {self.sim.steps + 1} of episode {self.episode}")
 
     # -- gymnasium API ---------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
         super().reset(seed=seed)
         self._episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31 - 1))
         state = self.sim.reset(self._episode_seed)
-        self._agent = state.n - 1
         self.episode += 1
-        self._books = {
-            "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
-            "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
-            "shield_interventions": 0, "shield_fallbacks": 0,
-            **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
-        }
-        obs, _, _ = self._observe()
-        self._prev_dx = self.sim.current()[1][0][self._agent].copy()
+        obs = self.vehicle.start(state.n - 1)
         return obs, {"episode_seed": self._episode_seed}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
@@ -153,133 +310,26 @@ class LaneFreeEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         t0 = time.perf_counter()
         ax, ay = self.action_to_acceleration(action)
-        decision = self._shield(ax, ay)
+        decision = self.vehicle.shield(ax, ay)
         if decision is not None:
             ax, ay = decision.ax, decision.ay
         self.env_seconds += time.perf_counter() - t0
         result = self.sim.step((ax, ay))
         t0 = time.perf_counter()
-        (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self._agent, self.cfg
-        obs, idx, observed = self._observe()
-        dx_row = dx_all[a]
-
-        new_pairs = result.new_collisions
-        agent_events = int(np.count_nonzero((new_pairs == a).any(axis=1))) if len(new_pairs) else 0
-        collided = bool(result.overlap[a].any())
-        passes = detect_overtakes(self._prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
-        self._prev_dx = dx_row.copy()
-
-        terms = compute_reward(
-            dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
-            state.width[idx], float(state.y[a]), float(state.vx[a]), float(state.vy[a]),
-            float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), cfg.road.width_m,
-            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
-            config=cfg.reward,
-        )
-
-        b = self._books
-        vx_a = float(state.vx[a])
-        contact = bool(result.boundary_contact[a])
-        intervened = decision is not None and decision.intervened
-        reward = terms.reward - (cfg.shield.intervention_penalty if intervened else 0.0)
-        b["return"] += reward
-        b["collisions"] += agent_events
-        b["collision_steps"] += collided
-        b["background_collisions"] += len(new_pairs) - agent_events
-        b["speed_dev_sum"] += abs(vx_a - float(state.v_desired[a]))
-        b["speed_sum"] += vx_a
-        b["overtakes"] += passes
-        b["boundary_contacts"] += contact
-        b["sum_c_x"] += terms.c_x
-        b["sum_c_y"] += terms.c_y
-        b["sum_c_f"] += terms.c_f
-        b["sum_reward"] += reward
-        b["shield_interventions"] += intervened
-        b["shield_fallbacks"] += decision is not None and not decision.certified
-
-        terminated = bool(cfg.episode.terminate_on_collision and collided)
-        truncated = self.sim.steps >= cfg.sim.episode_steps
-        info: dict[str, Any] = {
-            **terms.as_dict(),
-            "overtakes": passes,
-            "collision_events": agent_events,
-            "boundary_contact": contact,
-            "ax": ax,
-            "ay": ay,
-            "reward": reward,
-            "shield_intervened": intervened,
-            "shield_correction": decision.correction if decision is not None else 0.0,
-        }
+        obs, reward, collided, info = self.vehicle.score(result, ax, ay, decision, np.array([self._agent]))
+        terminated = bool(self.cfg.episode.terminate_on_collision and collided)
+        truncated = self.sim.steps >= self.cfg.sim.episode_steps
         if terminated or truncated:
             info["episode_metrics"] = self.episode_metrics()
         self.env_seconds += time.perf_counter() - t0
-        return obs, float(reward), terminated, truncated, info
+        return obs, reward, terminated, truncated, info
 
     def close(self) -> None:
         self.sim.close()
 
-    # -- internals -----------------------------------------------------------------------------
-    def _shield(self, ax: float, ay: float) -> ShieldDecision | None:
-        """The shield's decision on the policy's (ax, ay) (m/s²), None when the shield is off."""
-        if not self.cfg.shield.enabled:
-            return None
-        if self._shield_params is None:
-            self._shield_params = ShieldParams.from_config(self.cfg)
-        return shield_action(self._agent, self.sim.current()[0], ax, ay, self._shield_params)
-
-    def _observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
-        """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
-        (state, (dx_all, dy_all)), a, o = self.sim.current(), self._agent, self.cfg.observation
-        dx = dx_all[a]
-        dy = dy_all[a]
-        in_range = np.abs(dx) <= o.range_m
-        in_range[a] = False
-        idx = np.flatnonzero(in_range)
-        order = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")]
-        ego = np.array([state.y[a], state.vx[a], state.vy[a], state.v_desired[a]]) / self._scales[0]
-        observed = order[: o.n_neighbours]
-        if o.kind == "vector":
-            rows = np.empty((o.n_neighbours, NEIGHBOUR_FEATURES))
-            rows[:] = (o.range_m, 0.0, state.vx[a], state.vy[a])  # placeholders: far ahead, same speed
-            k = len(observed)
-            rows[:k, 0] = dx[observed]
-            rows[:k, 1] = dy[observed]
-            rows[:k, 2] = state.vx[observed]
-            rows[:k, 3] = state.vy[observed]
-            obs: Any = np.concatenate([ego, (rows / self._scales[1]).ravel()]).astype(np.float32)
-        else:
-            shown = order[: o.max_rows]
-            k = len(shown)
-            table = np.zeros((o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
-            table[:k, :NEIGHBOUR_FEATURES] = (
-                np.column_stack([dx[shown], dy[shown], state.vx[shown], state.vy[shown]]) / self._scales[1]
-            )
-            table[:k, NEIGHBOUR_FEATURES] = 1.0
-            obs = {"ego": ego.astype(np.float32), "others": table}
-        return obs, idx, observed
-
     def episode_metrics(self) -> dict[str, Any]:
         """SPEC §8 metrics of the episode so far (one CSV row)."""
-        b, steps = self._books, max(self.sim.steps, 1)
-        return {
-            "episode": self.episode,
-            "steps": self.sim.steps,
-            "return": b["return"],
-            "collisions": b["collisions"],
-            "collision_steps": b["collision_steps"],
-            "background_collisions": b["background_collisions"],
-            "speed_dev_mps": b["speed_dev_sum"] / steps,
-            "mean_speed_mps": b["speed_sum"] / steps,
-            "overtakes": b["overtakes"],
-            "boundary_contacts": b["boundary_contacts"],
-            "shield_interventions": b["shield_interventions"],
-            "shield_fallbacks": b["shield_fallbacks"],
-            **{f"mean_{t}": b[f"sum_{t}"] / steps for t in METRIC_TERMS},
-            "density": self.cfg.scenario.density_veh_per_km,
-            "seed": self._episode_seed,
-            "reward_preset": self.cfg.reward.preset,
-            "wall_s": time.perf_counter() - b["t0"],
-        }
+        return self.vehicle.metrics(self.episode, self._episode_seed)
 
     def config_dict(self) -> dict[str, Any]:
         """The full resolved configuration as a plain dict."""

@@ -35,6 +35,9 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
                           and base.observation.kind == "vector"):
         raise ConfigError("--overlap needs DDPG with the fast learner and the lean loop, one environment and the "
                           "vector observation (it would silently run SB3's order otherwise)")
+    if base.scenario.agents > 1 and (t.envs > 1 or t.overlap):
+        raise ConfigError(f"--agents {base.scenario.agents} trains one shared policy in one simulation: "
+                          "use --envs 1 and no --overlap with it")
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
     if base.train.envs > most:
         raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
@@ -44,9 +47,10 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
 
 
 def total_timesteps(cfg: LaneFreeConfig) -> int:
-    """Steps of a whole run: every episode, plus one round of the parallel envs as slack (the
-    callback stops learning at the episode count; this only has to be enough)."""
-    return (cfg.train.episodes + cfg.train.envs) * cfg.sim.episode_steps
+    """SB3 timesteps (transitions) of a whole run: every episode, plus one round of the parallel envs as
+    slack (the callback stops learning at the episode count; this only has to be enough); with several
+    agents each simulation step is one transition per agent."""
+    return (cfg.train.episodes + cfg.train.envs) * cfg.sim.episode_steps * cfg.scenario.agents
 
 
 def episode_seed(run_seed: int, rank: int, episode: int) -> int:
@@ -95,9 +99,16 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
     the traffic seed :func:`episode_seed` (seed, r, k). With one environment episode k of the run is
     episode k of the environment, so a resumed run sees exactly the traffic of an uninterrupted one; with
     several, which environment finishes which episode depends on timing, and a resume restarts each
-    environment at episode ``episodes_done // envs + 1``."""
+    environment at episode ``episodes_done // envs + 1``. With ``scenario.agents`` > 1: the agents of one
+    multi-agent simulation as the environments (:class:`~lanefree_sumo.rl.multi_agent.SharedPolicyVecEnv`),
+    episode k with the traffic seed (seed, 0, k) as a one-agent run's."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
+    if cfg.scenario.agents > 1:
+        from lanefree_sumo.rl.multi_agent import LaneFreeParallelEnv, SharedPolicyVecEnv
+
+        return SharedPolicyVecEnv(LaneFreeParallelEnv(cfg), seeds=lambda k: episode_seed(cfg.seed, 0, k),
+                                  first_episode=episodes_done + 1)
     n_envs = cfg.train.envs
     own_process = n_envs > 1 or (cfg.train.overlap and get_algorithm(cfg.train.algo).fast_learner)
     cfg_dict = config_to_dict(cfg)

@@ -69,7 +69,7 @@ def clip_acceleration(
 
 
 class Simulation:
-    """Background traffic (and optionally one externally controlled agent) on the ring.
+    """Background traffic (and optionally externally controlled agents) on the ring.
 
     The backend (and so SUMO) starts at the first ``reset``, not at construction, and
     ``close`` stops it; a later ``reset`` starts a new one."""
@@ -93,7 +93,11 @@ class Simulation:
     def reset(self, seed: int | None = None) -> VehicleState:
         """Spawn a new random traffic state (reproducible for a seed) and place it."""
         rng = np.random.default_rng(self.cfg.seed if seed is None else seed)
-        state = spawn(self.cfg, rng)
+        return self.place(spawn(self.cfg, rng))
+
+    def place(self, state: VehicleState) -> VehicleState:
+        """Start an episode from ``state`` as given (the vehicles at its positions and speeds); ``reset``
+        places a spawned state, tests and scenarios may place their own."""
         if self.backend is None:
             self.backend = make_backend(self.cfg)
         self.backend.reset(state)
@@ -110,9 +114,10 @@ class Simulation:
             raise RuntimeError("call reset() before reading the state")
         return self.state, self.offsets
 
-    def step(self, agent_accel: tuple[float, float] | None = None) -> StepResult:
-        """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent, clipped to its
-        bounds; required when the scenario has an agent."""
+    def step(self, agent_accel: tuple[float, float] | np.ndarray | None = None) -> StepResult:
+        """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent — with several agents
+        one row (ax, ay) per agent, in the order of their rows in the state — each clipped to its
+        bounds; required when the scenario has agents."""
         state = self.state
         if state is None or self.backend is None:
             raise RuntimeError("call reset() before step()")
@@ -122,13 +127,18 @@ class Simulation:
             cfg.sim.edge_clearance_m, self.offsets, self.force_details,
         )
         if not state.controlled.all():
+            agents = np.flatnonzero(~state.controlled)
             if agent_accel is None:
                 raise ValueError("this scenario has an agent: pass agent_accel=(ax, ay)")
-            agent = np.flatnonzero(~state.controlled)[0]
-            ax[agent], ay[agent] = clip_acceleration(
-                *agent_accel, cfg.scenario.agent_bounds, float(state.vx[agent]), cfg.scenario.agent_max_speed_mps,
-                cfg.sim.step_s,
-            )
+            commands = np.asarray(agent_accel, dtype=float).reshape(-1, 2)
+            if len(commands) != len(agents):
+                raise ValueError(f"this scenario has {len(agents)} agents: pass one (ax, ay) row each, "
+                                 f"got {len(commands)}")
+            for agent, (agent_ax, agent_ay) in zip(agents, commands):
+                ax[agent], ay[agent] = clip_acceleration(
+                    float(agent_ax), float(agent_ay), cfg.scenario.agent_bounds, float(state.vx[agent]),
+                    cfg.scenario.agent_max_speed_mps, cfg.sim.step_s,
+                )
         cmd = plan_step(
             state.x, state.y, state.vx, state.vy, state.width, ax, ay,
             cfg.sim.step_s, cfg.road.width_m, cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,

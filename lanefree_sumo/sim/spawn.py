@@ -15,6 +15,22 @@ from lanefree_sumo.config import ConfigError, LaneFreeConfig
 from lanefree_sumo.sim.state import VehicleState
 
 AGENT_ID = "agent"
+"""SUMO id of the (first) agent vehicle; further agents are ``agent1``, ``agent2``, …"""
+
+
+def agent_id(index: int) -> str:
+    """SUMO id of agent vehicle ``index`` (0, 1, …): ``agent``, ``agent1``, ``agent2``, …"""
+    return AGENT_ID if index == 0 else f"{AGENT_ID}{index}"
+
+
+def is_agent_id(vid: str) -> bool:
+    """Whether ``vid`` names an agent vehicle (:func:`agent_id`)."""
+    return vid == AGENT_ID or (vid.startswith(AGENT_ID) and vid[len(AGENT_ID):].isdigit())
+
+
+def agent_count(cfg: LaneFreeConfig) -> int:
+    """Agent vehicles on the road: ``scenario.agents`` with an agent, else 0."""
+    return cfg.scenario.agents if cfg.scenario.with_agent else 0
 
 
 def background_id(index: int) -> str:
@@ -36,18 +52,20 @@ def grid_shape(cfg: LaneFreeConfig) -> tuple[int, int]:
 def max_density(cfg: LaneFreeConfig) -> float:
     """Largest background density that can be placed (veh/km)."""
     rows, cols = grid_shape(cfg)
-    capacity = rows * cols - (1 if cfg.scenario.with_agent else 0)
+    capacity = rows * cols - agent_count(cfg)
     return capacity * 1000.0 / cfg.road.length_m
 
 
 def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
-    """Random non-overlapping initial state: background vehicles, then the agent if any.
+    """Random non-overlapping initial state: background vehicles, then the agents if any (the last
+    :func:`agent_count` rows; with one agent the draws are those of the one-agent scenario).
 
     Raises :class:`ConfigError` when the density does not fit on the road.
     """
     sc = cfg.scenario
     n_bg = cfg.background_vehicles
-    n = n_bg + (1 if sc.with_agent else 0)
+    k = agent_count(cfg)
+    n = n_bg + k
     rows, cols = grid_shape(cfg)
     if n_bg < 1:
         raise ConfigError(
@@ -56,7 +74,8 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
         )
     if n > rows * cols:
         raise ConfigError(
-            f"density {sc.density_veh_per_km:g} veh/km ({n_bg} vehicles) does not fit on a "
+            f"density {sc.density_veh_per_km:g} veh/km ({n_bg} vehicles{f' and {k} agents' if k > 1 else ''}) "
+            "does not fit on a "
             f"{cfg.road.length_m:g} m × {cfg.road.width_m:g} m ring; the maximum is "
             f"{max_density(cfg):.0f} veh/km"
         )
@@ -65,10 +84,10 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     length = np.full(n, sc.background.length_m)
     width = np.full(n, sc.background.width_m)
     v_desired = rng.uniform(sc.background.desired_speed_min_mps, sc.background.desired_speed_max_mps, n)
-    if sc.with_agent:
-        length[-1] = sc.agent.length_m
-        width[-1] = sc.agent.width_m
-        v_desired[-1] = sc.agent.desired_speed_min_mps
+    if k:
+        length[n_bg:] = sc.agent.length_m
+        width[n_bg:] = sc.agent.width_m
+        v_desired[n_bg:] = sc.agent.desired_speed_min_mps
     cell_len = cfg.road.length_m / cols
     cell_wid = cfg.road.width_m / rows
     # centre ranges inside a cell keep gap/2 to the cell borders
@@ -76,10 +95,9 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     slack_y = cell_wid - width - sc.spawn.gap_y_m
     x = col * cell_len + 0.5 * sc.spawn.gap_x_m + 0.5 * length + rng.uniform(0.0, 1.0, n) * slack_x
     y = row * cell_wid + 0.5 * sc.spawn.gap_y_m + 0.5 * width + rng.uniform(0.0, 1.0, n) * slack_y
-    ids = [background_id(i) for i in range(n_bg)] + ([AGENT_ID] if sc.with_agent else [])
+    ids = [background_id(i) for i in range(n_bg)] + [agent_id(i) for i in range(k)]
     controlled = np.ones(n, dtype=bool)
-    if sc.with_agent:
-        controlled[-1] = False
+    controlled[n_bg:] = False
     return VehicleState(
         ids=ids,
         x=np.mod(x, cfg.road.length_m),

@@ -41,7 +41,7 @@ from lanefree_sumo.sim.network import (
     write_additional,
     write_plain_ring,
 )
-from lanefree_sumo.sim.spawn import AGENT_ID
+from lanefree_sumo.sim.spawn import AGENT_ID, is_agent_id
 from lanefree_sumo.sim.state import VehicleState
 
 GUI_VIEW = "View #0"
@@ -246,7 +246,7 @@ class SumoBackend:
             for vid in v.getIDList():
                 v.remove(vid)
             for i, vid in enumerate(state.ids):
-                vtype = VTYPE_AGENT if vid == AGENT_ID else background_vtype(float(state.v_desired[i]), self.cfg)
+                vtype = VTYPE_AGENT if is_agent_id(vid) else background_vtype(float(state.v_desired[i]), self.cfg)
                 v.add(vid, ROUTE_ID, vtype, depart="now", departSpeed=f"{state.vx[i]:.6f}")
                 v.setSpeedMode(vid, 0)
                 v.setLaneChangeMode(vid, 0)
