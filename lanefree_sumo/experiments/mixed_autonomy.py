@@ -76,7 +76,7 @@ def _counts(text: str) -> tuple[int, ...]:
     return counts
 
 
-class _Interrupted(Exception):
+class _InterruptedError(Exception):
     """Leaves :func:`fresh_output`'s block: the new output is discarded, an earlier one kept."""
 
 
@@ -123,12 +123,12 @@ def measure(run_path: Path, counts: Sequence[int], vehicles: int | None, episode
                 for episode in range(1, episodes + 1):
                     row = _episode(setting_cfg, k, model, base_seed + episode, stop)
                     if row is None:
-                        raise _Interrupted
+                        raise _InterruptedError
                     rows.append({"agents": k, "episode": episode, "seed": base_seed + episode, "vehicles": n, **row})
                     print(f"k = {k:>3}, episode {episode}/{episodes}: {row['ring_collisions']} collisions, "
                           f"{row['mean_speed_mps']:.2f} m/s", file=sys.stderr, flush=True)
             _write(tmp, rows, counts)
-    except _Interrupted:
+    except _InterruptedError:
         return None
     return out
 
