@@ -46,6 +46,7 @@ from conftest import CLI_ENV, lanefree, lanefree_popen
 TINY = {"reward_presets": ["collision", "fields_collision"], "n_seeds": 2, "episodes": 2,
         "overrides": {"sim": {"episode_steps": 40}, "train": {"checkpoint_every_episodes": 1}}}
 """2 presets × 2 seeds × 2 episodes of 40 steps: the smallest grid that still has CIs."""
+TINY_SEEDS = {key: value for key, value in TINY.items() if key != "n_seeds"}
 
 
 def write_grid(path: Path, data: dict) -> Path:
@@ -113,7 +114,11 @@ def test_yaml_grid_and_budget_overrides(tmp_path):
     ({**TINY, "reward_presets": ["collisions"]}, "reward_presets: 'collisions'"),
     ({**TINY, "densities": [0]}, "densities"),
     ({**TINY, "densities": [1000]}, "d1000"),
-    ({**TINY, "seeds": [0, 0]}, "seeds"),
+    ({**TINY_SEEDS, "seeds": [0, 0]}, "seeds must be distinct whole numbers"),
+    ({**TINY_SEEDS, "seeds": [1, 1.0]}, "seeds must be distinct whole numbers"),
+    ({**TINY, "densities": [70, 70.0]}, "densities"),
+    ({**TINY, "densities": [70, 70.0000001]}, "the same run folder ddpg_collision_d70_s0"),
+    ({**TINY, "densities": [70.00001, 70.00002]}, "the same run folder"),
     ({**TINY, "seeds": [0, 1]}, "either 'seeds' or 'n_seeds'"),
     ({**TINY, "episodes": 0}, "episodes"),
     ({**TINY, "overrides": {"seed": 3}}, "overrides.seed"),

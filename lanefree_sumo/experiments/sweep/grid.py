@@ -310,6 +310,13 @@ def validate_grid(grid: Grid, source: str) -> Grid:
         base = merge_config(LaneFreeConfig(), grid.overrides)
     except ConfigError as exc:
         raise ConfigError(f"{where}: overrides: {exc}") from None
+    folders: dict[str, Setting] = {}
+    for setting in grid.settings:  # distinct values the run folder names (or the rounding) cannot tell apart
+        name = Cell(setting, grid.seeds[0]).name
+        if name in folders:
+            raise ConfigError(f"{where}: {folders[name].label} and {setting.label} would be the same run folder "
+                              f"{name}; give densities that differ within 6 significant digits")
+        folders[name] = setting
     checked = set()
     for setting in grid.settings:
         cell = Cell(setting, grid.seeds[0])
