@@ -34,6 +34,7 @@ from lanefree_sumo.config import (
 )
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, OperatingSystemError, UsageError, os_error_message
 from lanefree_sumo.experiments import mixed_autonomy, rollout
+from lanefree_sumo.experiments.signals import sigterm_as_interrupt
 from lanefree_sumo.experiments.sweep import command as sweep_command
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 from lanefree_sumo.rl.algorithms import help_text as algorithms_help
@@ -460,12 +461,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return EXIT_BAD_INPUT
-        if args.command == "sweep":
-            return sweep_command.run(args)
         handler = {"simulate": _simulate, "train": _train, "evaluate": _evaluate, "rollout": rollout.run,
                    "replay": _replay, "export": _export, "report": _report, "net": _net,
-                   "config": _config, "mixed-autonomy": mixed_autonomy.run}[args.command]
-        return handler(args)
+                   "config": _config, "mixed-autonomy": mixed_autonomy.run, "sweep": sweep_command.run}[args.command]
+        with sigterm_as_interrupt():  # `kill PID` stops every verb as Ctrl-C does
+            return handler(args)
     except LaneFreeError as exc:  # the user's to fix: one line, no traceback
         print(f"lanefree: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return exc.exit_code

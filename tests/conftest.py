@@ -35,6 +35,16 @@ def lanefree_popen(*args: str, **kwargs) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=CLI_ENV, **kwargs)
 
 
+def wait_for(condition, proc: subprocess.Popen, what: str = "the state", limit_s: float = 300) -> None:
+    """Wait for a state (``condition()`` true), not a time; fail at once if ``proc`` ends first, and after
+    ``limit_s`` only as a safety net against a hung process."""
+    deadline = time.monotonic() + limit_s
+    while not condition():
+        assert proc.poll() is None, (f"the process ended before {what}", proc.communicate())
+        assert time.monotonic() < deadline, f"no {what} within {limit_s:g} s"
+        time.sleep(0.05)
+
+
 TINY_TRAINING = {
     "sim": {"episode_steps": 100},
     "train": {

@@ -5,12 +5,11 @@ from __future__ import annotations
 import csv
 import json
 import signal
-import time
 from pathlib import Path
 
 import pytest
 
-from conftest import lanefree, lanefree_popen
+from conftest import lanefree, lanefree_popen, wait_for
 
 pytestmark = pytest.mark.sumo
 
@@ -123,7 +122,8 @@ def test_output_under_a_file_is_refused_before_simulating(tmp_path):
 def test_sigterm_stops_simulate_like_ctrl_c(tmp_path):
     out = tmp_path / "sim"
     proc = lanefree_popen("simulate", "--seconds", "5000", "--out", str(out))
-    time.sleep(4)
+    wait_for(lambda: any(p.stat().st_size > 0 for p in tmp_path.glob(".sim.new-*/trajectory.csv")), proc,
+             "a trajectory being written")
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     summary = json.loads((out / "summary.json").read_text())

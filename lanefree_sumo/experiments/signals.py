@@ -1,4 +1,7 @@
-"""SIGTERM handled like Ctrl-C by the verbs that stop cleanly (simulate, evaluate)."""
+"""SIGTERM handled like Ctrl-C: ``lanefree`` runs every verb inside :func:`sigterm_as_interrupt` (so ``kill PID``
+stops any verb as Ctrl-C does: its message, exit code 130, its ``--json`` summary); verbs that stop at a step
+boundary of their choosing (train, evaluate, rollout, mixed-autonomy) take both signals over with
+:func:`stop_requested` (train with its own handler) while they run."""
 
 from __future__ import annotations
 

@@ -21,7 +21,6 @@ from lanefree_sumo.experiments.rundir import (
     fresh_output,
     write_config,
 )
-from lanefree_sumo.experiments.signals import sigterm_as_interrupt
 from lanefree_sumo.experiments.trajectory import TrajectoryWriter
 from lanefree_sumo.sim.simulation import run_simulation
 from lanefree_sumo.sim.spawn import spawn
@@ -37,12 +36,13 @@ def simulate(
     progress: bool = False,
 ) -> dict[str, Any]:
     """Simulate ``seconds`` (s) of traffic into ``out``; return the summary (also in summary.json).
-    Ctrl-C (or SIGTERM) stops early and keeps what was simulated, marked ``interrupted``."""
+    Ctrl-C (and SIGTERM, which ``lanefree`` turns into Ctrl-C) stops early and keeps what was simulated,
+    marked ``interrupted``."""
     steps = int(round(seconds / cfg.sim.step_s))
     if steps < 1:
         raise ConfigError(f"--seconds {seconds:g} is shorter than one step of {cfg.sim.step_s:g} s")
     spawn(cfg, np.random.default_rng(cfg.seed))  # density check before anything is written
-    with fresh_output(out, overwrite, "simulate") as folder, sigterm_as_interrupt():
+    with fresh_output(out, overwrite, "simulate") as folder:
         append_command(folder, command)
         write_config(folder, cfg)
         writer = TrajectoryWriter(folder / SIM_TRAJECTORY, cfg.sim.step_s) if write_trajectory else None

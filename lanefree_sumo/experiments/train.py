@@ -270,7 +270,8 @@ def train(
     """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
     checkpoint and return early.  ``resume`` with ``episodes`` extends a run (finished or not)
     to that many episodes; a finished run is never resumed without it.  A new run that fails
-    before its first episode leaves no folder behind.  The process holds the run's writer lock
+    before its first episode (an error, Ctrl-C or SIGTERM) leaves no folder behind, so the same command can
+    simply be run again.  The process holds the run's writer lock
     (:meth:`RunDir.writer_lock`) throughout: a second training of the same folder is refused."""
     with contextlib.ExitStack() as stack:
         created = False
@@ -286,13 +287,14 @@ def train(
             cfg = training_config(cfg)
             spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
             run = new_run_folder(cfg, run)
-            created = True
             folder = RunDir(run)
             stack.enter_context(folder.writer_lock())  # another start of the same --out: refused, nothing removed
-            write_config(run, cfg)
-            folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
+            created = True  # ours from here: removed again if nothing is learned
             timesteps, target = 0, cfg.train.episodes
         try:
+            if created:
+                write_config(run, cfg)
+                folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
             return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress,
                                   command or shlex.join(["lanefree", *sys.argv[1:]]))
         except BaseException:
@@ -334,6 +336,8 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
                     tb_log_name="tb", progress_bar=False)
         done = callback.episodes
         wall = time.perf_counter() - t0
+        if stop.requested and done == 0 and not resume:
+            raise KeyboardInterrupt  # stopped before its first episode: train() removes the new run folder
         save_checkpoint(model, folder, done, algo)  # also at the end: a finished run can be extended
         if not stop.requested and done >= cfg.train.episodes:
             model.save(folder.model)

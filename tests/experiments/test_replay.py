@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import shutil
+import signal
+import subprocess
+import sys
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -17,7 +20,7 @@ from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
 from lanefree_sumo.experiments.train import train
 
-from conftest import lanefree
+from conftest import CLI_ENV, ROOT, lanefree, wait_for
 
 pytestmark = [pytest.mark.sumo, pytest.mark.gui, pytest.mark.slow]
 
@@ -150,3 +153,18 @@ def test_unwritable_screenshot_path_is_refused_before_the_replay(recorded, tmp_p
     blocker.write_text("x")
     res = lanefree("replay", str(recorded), "--screenshot", str(blocker / "view.png"))
     assert res.returncode == 2 and "cannot write" in res.stderr and res.stderr.count("\n") == 1
+
+
+def test_sigterm_stops_a_replay_like_ctrl_c_and_leaves_no_file(display, recorded, tmp_path):
+    """Every verb runs with SIGTERM turned into Ctrl-C: a replay in sumo-gui stopped mid-episode exits 130 with
+    one line, and its FCD output is neither left half-written nor as a temporary file."""
+    fcd = tmp_path / "out.fcd.xml"
+    proc = subprocess.Popen([sys.executable, "-m", "lanefree_sumo.cli", "replay", str(recorded), "--delay", "0.2",
+                             "--fcd", str(fcd)], cwd=ROOT, env={**CLI_ENV, "DISPLAY": display},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wait_for(lambda: any(p.stat().st_size > 0 for p in tmp_path.glob(".out.fcd.xml.new-*")), proc,
+             "FCD output being written")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []

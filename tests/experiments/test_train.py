@@ -19,7 +19,7 @@ from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, get_algorithm
 from lanefree_sumo.rl.models import episode_seed
 
-from conftest import TINY_TRAINING, lanefree_popen
+from conftest import TINY_TRAINING, lanefree_popen, wait_for
 
 pytestmark = [pytest.mark.sumo, pytest.mark.slow]
 
@@ -160,3 +160,21 @@ def test_parallel_environments_in_separate_processes(tmp_path):
     assert done == 4 and [int(r["episode"]) for r in table] == [1, 2, 3, 4]
     # two environments with different traffic seeds ran side by side
     assert len({r["seed"] for r in table}) == 4
+
+
+@pytest.mark.parametrize("state", ["config.yaml", "tb"])
+def test_a_new_run_stopped_before_its_first_episode_leaves_nothing_behind(tmp_path, state):
+    """SIGTERM (as Ctrl-C) while the run folder is being set up, or while the first (long) episode runs: exit
+    130, no folder left, and the same command then simply runs."""
+    run = tmp_path / "run"
+    command = ("train", "--episodes", "1", "--episode-steps", "20000", "--out", str(run), "--backend", "numpy")
+    proc = lanefree_popen(*command)
+    wait_for(lambda: (run / state).exists(), proc, f"{state} in the new run folder")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    assert not run.exists()
+    again = lanefree_popen(*command[:4], "40", *command[5:])  # the same command, a short episode
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err
+    assert len(rows(run / "episodes.csv")) == 1
