@@ -89,3 +89,20 @@ def test_evaluate_record_replay_rollout_and_mixed_autonomy(tmp_path):
     assert (run / "mixed_autonomy" / "mixed_autonomy.png").is_file()
     again = lanefree("mixed-autonomy", str(run), "--agents", "0", "--episodes", "1")
     assert again.returncode == 2 and "exists" in again.stderr
+    for args, needle in ((("--agents", "0,0"), "distinct"), (("--agents", "0,40"), "cannot replace 40 of 38"),
+                         (("--agents", "x"), "whole numbers")):
+        bad = lanefree("mixed-autonomy", str(run), *args, "--overwrite")
+        assert bad.returncode == 2 and needle in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (("--agents", "0"), "--agents"),
+    (("--agents", "3", "--envs", "2"), "use --envs 1 and no --overlap"),
+    (("--agents", "3", "--overlap"), "use --envs 1 and no --overlap"),
+    (("--agents", "65"), "scenario.agents"),
+    (("--agents", "60", "--density", "300"), "does not fit"),
+])
+def test_bad_agent_counts_are_one_line_and_write_nothing(tmp_path, args, needle):
+    res = lanefree("train", *args, "--out", str(tmp_path / "run"))
+    assert res.returncode == 2 and needle in res.stderr and res.stderr.count("\n") == 1, res.stderr
+    assert not (tmp_path / "run").exists()
