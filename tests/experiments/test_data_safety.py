@@ -238,3 +238,14 @@ def test_operating_system_limits_and_impossible_requests_are_one_line(tmp_path):
     res = lanefree("train", "--envs", "1000", "--episodes", "1", "--out", str(tmp_path / "many"))
     assert res.returncode == 2 and "use at most" in res.stderr and res.stderr.count("\n") == 1
     assert not (tmp_path / "many").exists()
+
+
+def test_every_committed_run_config_still_loads():
+    """Config keys added since (e.g. scenario.agents) take their defaults in older saved configs: every
+    config.yaml committed under results/ loads, so reports and resumes of earlier runs keep working."""
+    root = Path(__file__).resolve().parents[2] / "results"
+    configs = sorted(root.rglob("config.yaml"))
+    assert len(configs) >= 10
+    for path in configs:
+        cfg = read_config(path.parent)
+        assert cfg.scenario.agents >= 1 and cfg.train.episodes >= 1, path
