@@ -23,6 +23,7 @@ from lanefree_sumo import argtypes
 from lanefree_sumo.config import (
     BACKENDS,
     OBSERVATION_KINDS,
+    ROAD_KINDS,
     EvaluationConfig,
     LaneFreeConfig,
     ReplayConfig,
@@ -82,14 +83,24 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser(
         "simulate",
         help="run background traffic only and write trajectories and a summary",
-        description="Run the force-based background traffic on the ring road and write a per-step "
-        "trajectory CSV (t, id, x, y, vx, vy, ax, ay) plus summary.json, config.yaml and command.txt "
+        description="Run the force-based background traffic on the ring road (or the on-ramp) and write a "
+        "per-step trajectory CSV (t, id, x, y, vx, vy, ax, ay) plus summary.json, config.yaml and command.txt "
         "into --out.",
     )
     density = DEFAULTS.scenario.density_veh_per_km
     episode_s = DEFAULTS.sim.episode_steps * DEFAULTS.sim.step_s
+    onramp = DEFAULTS.road.onramp
+    sim.add_argument("--scenario", choices=ROAD_KINDS, default=DEFAULTS.road.kind,
+                     help="ring: the paper's 500 m ring; onramp: an open road with an on-ramp (numpy backend in this "
+                     f"version; road.onramp in 'lanefree config') (default {DEFAULTS.road.kind})")
+    sim.add_argument("--main-flow", type=argtypes.nonnegative(float, "veh/h"), default=None,
+                     help=f"on-ramp: demand at the main road's upstream end in veh/h (default "
+                     f"{onramp.main_flow_veh_per_h:g})")
+    sim.add_argument("--ramp-flow", type=argtypes.nonnegative(float, "veh/h"), default=None,
+                     help=f"on-ramp: demand at the ramp in veh/h (default {onramp.ramp_flow_veh_per_h:g})")
     sim.add_argument("--density", type=argtypes.density, default=density,
-                     help=f"background density in veh/km (default {density:g})")
+                     help=f"background density in veh/km (default {density:g}; on the on-ramp: of the main road "
+                     "at the start)")
     sim.add_argument("--seconds", type=argtypes.positive(float, "s"), default=episode_s,
                      help=f"simulated time in s (default {episode_s:g} = {DEFAULTS.sim.episode_steps} steps of "
                      f"{DEFAULTS.sim.step_s:g} s)")
@@ -275,15 +286,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    onramp_numpy = args.scenario == "onramp" and "--backend" not in args.given
     options: list[tuple[str, tuple[str, ...], Any]] = [
         ("seed", ("--seed",), args.seed),
-        ("backend", ("--backend",), args.backend),
+        ("road.kind", ("--scenario",), args.scenario),
+        ("backend", ("--backend",), "numpy" if onramp_numpy else args.backend),
         ("scenario.density_veh_per_km", ("--density",), args.density),
         ("scenario.driver.nudging", ("--nudging",), args.nudging),
     ]
     options += [(key, (option,), value) for key, option, value in (
         ("road.length_m", "--length", args.length), ("road.width_m", "--width", args.width),
-        ("net_file", "--net", None if args.net is None else str(args.net))) if value is not None]
+        ("net_file", "--net", None if args.net is None else str(args.net)),
+        ("road.onramp.main_flow_veh_per_h", "--main-flow", args.main_flow),
+        ("road.onramp.ramp_flow_veh_per_h", "--ramp-flow", args.ramp_flow)) if value is not None]
     cfg = _build_config(args, options, {"gui": True, "backend": "traci"} if args.gui else None)
     from lanefree_sumo.experiments.simulate import simulate
 
@@ -299,6 +314,12 @@ def _simulate(args: argparse.Namespace) -> int:
             f"(desired {summary['mean_desired_speed_mps']:.2f}), min margin {summary['min_lateral_margin_m']:.3f} m, "
             f"{summary['wall_s']:.1f} s -> {out}"
         )
+        if "onramp" in summary:
+            o = summary["onramp"]
+            print(f"on-ramp: {o['entered_main']} entered the main road, {o['entered_ramp']} the ramp, "
+                  f"{o['left']} left, "
+                  f"{o['on_road']} on the road at the end; {o['merged']} merged, {o['ramp_end_reached_unmerged']} "
+                  f"reached the ramp's end unmerged; outflow {o['outflow_veh_per_h']:.0f} veh/h")
     return 0 if not summary["interrupted"] else EXIT_INTERRUPTED
 
 

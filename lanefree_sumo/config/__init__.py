@@ -8,6 +8,7 @@ from lanefree_sumo.config.schema import (
     ACTION_KINDS,
     BACKENDS,
     OBSERVATION_KINDS,
+    ROAD_KINDS,
     AccelerationBounds,
     ActionConfig,
     ActionKind,
@@ -21,6 +22,7 @@ from lanefree_sumo.config.schema import (
     LaneFreeConfig,
     ObservationConfig,
     ObservationKind,
+    OnRampConfig,
     ReplayConfig,
     ReportConfig,
     RewardConfig,
@@ -49,9 +51,10 @@ from lanefree_sumo.config.validation import (
 from lanefree_sumo.errors import ConfigError
 
 __all__ = [
-    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "SAME_RESULTS", "AccelerationBounds",
-    "ActionConfig", "ActionKind", "ActorCriticConfig", "AlgorithmName", "Backend", "ConfigError", "DQNConfig",
-    "DriverConfig", "EpisodeConfig", "EvaluationConfig", "LaneFreeConfig", "ObservationConfig", "ObservationKind",
+    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "ROAD_KINDS", "SAME_RESULTS",
+    "AccelerationBounds", "ActionConfig", "ActionKind", "ActorCriticConfig", "AlgorithmName", "Backend", "ConfigError",
+    "DQNConfig", "DriverConfig", "EpisodeConfig", "EvaluationConfig", "LaneFreeConfig", "ObservationConfig",
+    "ObservationKind", "OnRampConfig",
     "ReplayConfig", "ReportConfig", "RewardConfig", "RewardPreset", "RoadConfig", "ScenarioConfig", "ShieldConfig",
     "SimulationConfig", "SpawnConfig", "TrainConfig", "VehicleClassConfig", "check_value", "config_differences",
     "config_to_dict", "merge_config", "missing_keys", "nested_overrides", "read_config_file", "validate_config",

@@ -10,17 +10,62 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, get_args
 
+RoadKind = Literal["ring", "onramp"]
+
+
+@dataclass
+class OnRampConfig:
+    """The open road with an on-ramp (``road.kind: onramp``; issue 21), laid out after TrafficFluid-Sim's
+    on/off-ramp example: a straight main road ``road.width_m`` wide, and beside its right edge an
+    acceleration lane whose last ``merge_m`` are the merge zone, where its usable width closes."""
+
+    upstream_m: float = field(default=1000.0, metadata={"range": (50.0, 20_000.0)})
+    """Main road before the ramp, where the entering traffic settles (m)."""
+    ramp_m: float = field(default=480.0, metadata={"range": (50.0, 5_000.0)})
+    """Length of the acceleration lane beside the main road (m)."""
+    merge_m: float = field(default=200.0, metadata={"range": (1.0, 5_000.0)})
+    """The ramp's last part, where its usable width closes linearly to 0 (m); at most ``ramp_m``."""
+    downstream_m: float = field(default=500.0, metadata={"range": (50.0, 20_000.0)})
+    """Main road after the ramp; vehicles leave the road at its end (m)."""
+    ramp_width_m: float = field(default=3.0, metadata={"range": (2.5, 20.0)})
+    """Width of the acceleration lane (m)."""
+    main_flow_veh_per_h: float = field(default=2400.0, metadata={"range": (0.0, 14_400.0)})
+    """Demand at the main road's upstream end (veh/h; arrivals at random, seeded)."""
+    ramp_flow_veh_per_h: float = field(default=300.0, metadata={"range": (0.0, 14_400.0)})
+    """Demand at the ramp's start (veh/h; arrivals at random, seeded)."""
+    main_entry_speed_mps: float = field(default=25.0, metadata={"range": (0.0, 60.0)})
+    """Speed of a vehicle entering the main road (m/s; its desired speed if that is lower)."""
+    ramp_entry_speed_mps: float = field(default=20.0, metadata={"range": (0.0, 60.0)})
+    """Speed of a vehicle entering the ramp (m/s; its desired speed if that is lower)."""
+    merge_lateral_speed_mps: float = field(default=0.5, metadata={"range": (0.0, 5.0)})
+    """The lateral speed an unmerged ramp vehicle's target-speed force aims at in the merge zone (m/s;
+    elsewhere, and for every other vehicle, 0 as in SPEC §3): the merge rule's intention to merge."""
+    entry_headway_s: float = field(default=1.0, metadata={"range": (0.0, 10.0)})
+    """An arrival enters only where every vehicle whose band it would overlap keeps at least
+    ``spawn.gap_x_m`` + this time × the entry speed of bumper gap; otherwise it waits (s)."""
+
 
 @dataclass
 class RoadConfig:
-    """The ring road hosted by SUMO: one lane as wide as the road."""
+    """The road hosted by SUMO: the ring (one lane as wide as the road) or the open road with an on-ramp."""
 
+    kind: RoadKind = "ring"
+    """``ring``: the paper's closed ring; ``onramp``: an open road with an on-ramp (``road.onramp``)."""
     length_m: float = field(default=500.0, metadata={"range": (50.0, 10_000.0)})
-    """Centre-line length of the closed loop (m)."""
+    """Centre-line length of the closed loop (m); the on-ramp's length comes from ``road.onramp``."""
     width_m: float = field(default=10.2, metadata={"range": (2.5, 100.0)})
-    """Road (= lane) width (m)."""
+    """Road (= lane) width (m): the ring's, and the on-ramp's main road."""
     speed_limit_mps: float = 50.0
     """SUMO lane speed limit (m/s); only needs to exceed every commanded speed."""
+    onramp: OnRampConfig = field(default_factory=OnRampConfig)
+
+    @property
+    def main_length_m(self) -> float:
+        """The ring's circumference, or the on-ramp's main road from its upstream to its downstream end (m)."""
+        if self.kind == "ring":
+            return self.length_m
+        o = self.onramp
+        return o.upstream_m + o.ramp_m + o.downstream_m
 
 
 @dataclass
@@ -156,6 +201,7 @@ class SpawnConfig:
 
 
 Backend = Literal["libsumo", "traci", "numpy"]
+ROAD_KINDS: tuple[str, ...] = get_args(RoadKind)
 ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
 RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
@@ -394,8 +440,8 @@ class LaneFreeConfig:
 
     @property
     def background_vehicles(self) -> int:
-        """round(density · L / 1000)."""
-        return int(round(self.scenario.density_veh_per_km * self.road.length_m / 1000.0))
+        """round(density · L / 1000): on the ring, and at the start on the on-ramp's main road."""
+        return int(round(self.scenario.density_veh_per_km * self.road.main_length_m / 1000.0))
 
 
 @dataclass(frozen=True)

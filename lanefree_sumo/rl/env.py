@@ -52,6 +52,9 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
         cfg = config
     else:
         cfg = merge_config(LaneFreeConfig(), config)
+    if cfg.road.kind != "ring":
+        raise ConfigError(f"learning vehicles drive on the ring only in this version (road.kind = {cfg.road.kind!r}); "
+                          "the on-ramp runs background traffic: lanefree simulate --scenario onramp")
     return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
 
 

@@ -38,6 +38,14 @@ class CollisionTracker:
     def reset(self, n_vehicles: int) -> None:
         self._previous = np.zeros((n_vehicles, n_vehicles), dtype=bool)
 
+    def keep(self, keep: np.ndarray) -> None:
+        """Forget the vehicles where ``keep`` is False (they left the road); the others keep their pairs."""
+        self._previous = self._previous[np.ix_(keep, keep)]
+
+    def add(self, count: int) -> None:
+        """Vehicles appended to the state: they overlap nobody yet."""
+        self._previous = np.pad(self._previous, ((0, count), (0, count)))
+
     def update(self, overlap: np.ndarray) -> np.ndarray:
         """Return an array of shape (k, 2) of the pairs (i < j) that started overlapping now."""
         started = np.triu(overlap & ~self._previous, k=1)

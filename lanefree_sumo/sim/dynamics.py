@@ -45,18 +45,24 @@ def plan_step(
     road_width: float,
     clearance: float,
     contact_tolerance: float = 0.0,
+    bounds: tuple[np.ndarray | float, np.ndarray | float] | None = None,
 ) -> StepCommand:
     """Integrate one ballistic step laterally and longitudinally (speeds), with the edge clip.
 
     Overshoots of the clip line up to ``contact_tolerance`` (m) are clipped without counting
     as a contact or zeroing vy (they are floating-point rounding of a driver that stops at the
-    line)."""
+    line). ``bounds`` = (lowest, highest) lateral position each body may reach (m; scalars or one per
+    vehicle); None: 0 and ``road_width``."""
     t = step_s
     vx_next = np.maximum(vx + ax * t, 0.0)
     ax_real = (vx_next - vx) / t
     y_target = y + vy * t + 0.5 * ay * t * t
-    lo = 0.5 * width + clearance
-    hi = road_width - 0.5 * width - clearance
+    if bounds is None:
+        lo = 0.5 * width + clearance
+        hi = road_width - 0.5 * width - clearance
+    else:
+        lo = bounds[0] + 0.5 * width + clearance
+        hi = bounds[1] - 0.5 * width - clearance
     y_next = np.clip(y_target, lo, hi)
     contact = np.abs(y_target - y_next) > contact_tolerance
     dy = y_next - y

@@ -85,6 +85,8 @@ def driver_accelerations(
     edge_clearance: float = 0.0,
     offsets: tuple[np.ndarray, np.ndarray] | None = None,
     details: dict[str, np.ndarray] | None = None,
+    bounds: tuple[np.ndarray | float, np.ndarray | float] | None = None,
+    lateral_target: np.ndarray | float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Accelerations (ax, ay) in m/s² for every vehicle from the forces of its neighbours.
 
@@ -93,6 +95,10 @@ def driver_accelerations(
     The road-edge bound (step 2) treats the edges as ``edge_clearance`` (m) inside the road, the
     line the dynamics clip at, so a driver that obeys it never touches the clip.
     ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed.
+    ``bounds`` = (lowest, highest) lateral position each vehicle's body may reach (m; scalars or one per
+    vehicle, :meth:`~lanefree_sumo.sim.road.Road.bounds`); None: the ring's 0 and ``road_width``.
+    ``lateral_target``: the lateral speed the target-speed force aims at (m/s; SPEC §3: 0; a merging ramp
+    vehicle's is positive, :mod:`~lanefree_sumo.sim.open_road`).
     ``details``, if given, receives per-vehicle diagnostics: ``sum_fx`` (Σ of the summed
     repulsions' f_x), ``leader_gap_m`` (bumper gap to the x-wall leader, NaN without one) and
     ``wall_binds`` (the x-wall lowered F_x).
@@ -138,7 +144,7 @@ def driver_accelerations(
         sum_fy = sum_fy + cfg.nudge_scale_y * np.where(nudges, fy, 0.0).sum(axis=1)
 
     fts_x = erfc(vx - vd) - 1.0
-    fts_y = erfc(vy) - 1.0
+    fts_y = erfc(vy - lateral_target) - 1.0
     ax = gain_x * sum_fx + fts_x
     ay = cfg.coef_fy * sum_fy + fts_y
 
@@ -159,8 +165,9 @@ def driver_accelerations(
     # 2. road edges
     ubar = cfg.edge_decel_mps2
     k = cfg.edge_speed_factor
-    room_left = np.maximum(0.0, road_width - edge_clearance - y - 0.5 * width)
-    room_right = np.maximum(0.0, y - edge_clearance - 0.5 * width)
+    lo, hi = (0.0, road_width) if bounds is None else bounds
+    room_left = np.maximum(0.0, hi - edge_clearance - y - 0.5 * width)
+    room_right = np.maximum(0.0, y - lo - edge_clearance - 0.5 * width)
     ay = np.minimum(ay, edge_bound(k * vy, room_left, t, ubar))
     ay = np.maximum(ay, -edge_bound(-k * vy, room_right, t, ubar))
 

@@ -20,10 +20,12 @@ import numpy as np
 from tqdm import tqdm
 
 from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, validate_config
-from lanefree_sumo.sim.backends.numpy import Backend, NumpyBackend
+from lanefree_sumo.sim.backends.numpy import Backend, NumpyBackend, OpenRoadNumpyBackend
 from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
-from lanefree_sumo.sim.dynamics import plan_step
+from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
+from lanefree_sumo.sim.open_road import OpenRoadTraffic, append_rows, keep_rows
+from lanefree_sumo.sim.road import Road, road_of
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
 
@@ -34,7 +36,10 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
     if cfg.backend == "numpy":
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
-        return NumpyBackend(cfg)
+        return NumpyBackend(cfg) if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
+    if cfg.road.kind != "ring":
+        raise ConfigError(f"the {cfg.road.kind} road runs on the numpy backend only in this version; "
+                          "use --backend numpy")
     from lanefree_sumo.sim.backends.sumo import SumoBackend
 
     return SumoBackend(cfg, kind=cfg.backend, gui=cfg.gui)
@@ -69,10 +74,13 @@ def clip_acceleration(
 
 
 class Simulation:
-    """Background traffic (and optionally externally controlled agents) on the ring.
+    """Background traffic (and optionally externally controlled agents) on the road (:mod:`.road`).
 
     The backend (and so SUMO) starts at the first ``reset``, not at construction, and
-    ``close`` stops it; a later ``reset`` starts a new one."""
+    ``close`` stops it; a later ``reset`` starts a new one. On an open road (the on-ramp) vehicles
+    enter and leave (:mod:`.open_road`): at the start of each step the vehicles past the end are
+    removed and the arrivals that fit are appended, so the state's rows change between steps (and
+    ``last_result`` refers to the rows of the state after the step it describes)."""
 
     def __init__(self, cfg: LaneFreeConfig, backend: Backend | None = None, diagnostics: bool = False) -> None:
         """``diagnostics``: keep the driver model's per-vehicle details of each step in
@@ -89,10 +97,19 @@ class Simulation:
         self.backend_seconds = 0.0
         """Wall time spent inside ``backend.step`` (s), for profiling."""
         self._tracker = CollisionTracker(0)
+        self.road: Road = road_of(cfg)
+        self._wrap = self.road.wrap_length
+        self.traffic = None if self.road.periodic else OpenRoadTraffic(cfg, self.road)
+        """Arrivals, removal and merging on an open road (None on the ring)."""
+        self.on_ramp = np.zeros(0, dtype=bool)
+        """True for the ramp vehicles not merged yet (one per row; all False on the ring)."""
 
     def reset(self, seed: int | None = None) -> VehicleState:
         """Spawn a new random traffic state (reproducible for a seed) and place it."""
-        rng = np.random.default_rng(self.cfg.seed if seed is None else seed)
+        seed = self.cfg.seed if seed is None else seed
+        rng = np.random.default_rng(seed)
+        if self.traffic is not None:
+            self.traffic.reset(seed)
         return self.place(spawn(self.cfg, rng))
 
     def place(self, state: VehicleState) -> VehicleState:
@@ -103,10 +120,32 @@ class Simulation:
         self.backend.reset(state)
         self.state = state
         self.steps = 0
+        self.on_ramp = np.zeros(state.n, dtype=bool)
         self._tracker.reset(state.n)
-        self.offsets = pairwise_offsets(state, self.cfg.road.length_m)
-        self._tracker.update(overlap_matrix(state, self.cfg.road.length_m, self.offsets))
+        self.offsets = pairwise_offsets(state, self._wrap)
+        self._tracker.update(overlap_matrix(state, self._wrap, self.offsets))
         return state
+
+    def _enter_and_leave(self) -> None:
+        """Open road: remove the vehicles past the end, append the arrivals that fit (state, backend, books)."""
+        state, backend, traffic = self.state, self.backend, self.traffic
+        assert state is not None and backend is not None and traffic is not None
+        leaving = traffic.leaving(state)
+        if leaving.any():
+            keep = ~leaving
+            traffic.counts.left += int(leaving.sum())
+            state = keep_rows(state, keep)
+            backend.remove(keep)  # type: ignore[attr-defined]
+            self.on_ramp = self.on_ramp[keep]
+            self._tracker.keep(keep)
+        rows, ramp = traffic.arrivals(state)
+        if rows.n:
+            state = append_rows(state, rows)
+            backend.add(rows)  # type: ignore[attr-defined]
+            self.on_ramp = np.concatenate([self.on_ramp, ramp])
+            self._tracker.add(rows.n)
+        self.state = state
+        self.offsets = pairwise_offsets(state, self._wrap)
 
     def current(self) -> tuple[VehicleState, tuple[np.ndarray, np.ndarray]]:
         """The current state and its (dx, dy) offset matrices (m); RuntimeError before ``reset``."""
@@ -118,14 +157,20 @@ class Simulation:
         """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent — with several agents
         one row (ax, ay) per agent, in the order of their rows in the state — each clipped to its
         bounds; required when the scenario has agents."""
-        state = self.state
-        if state is None or self.backend is None:
+        if self.state is None or self.backend is None:
             raise RuntimeError("call reset() before step()")
+        if self.traffic is not None:
+            self._enter_and_leave()
+        state = self.state
         cfg = self.cfg
+        bounds = self.road.bounds(state.x + 0.5 * state.length, self.on_ramp)  # at the front
         ax, ay = driver_accelerations(
-            state, cfg.scenario.driver, cfg.road.length_m, cfg.road.width_m, cfg.sim.step_s,
-            cfg.sim.edge_clearance_m, self.offsets, self.force_details,
+            state, cfg.scenario.driver, self._wrap, cfg.road.width_m, cfg.sim.step_s,
+            cfg.sim.edge_clearance_m, self.offsets, self.force_details, bounds=bounds,
+            lateral_target=0.0 if self.traffic is None else self.traffic.lateral_target(state, self.on_ramp),
         )
+        if self.traffic is not None:
+            ax = self.traffic.end_wall(state, self.on_ramp, ax)
         if not state.controlled.all():
             agents = np.flatnonzero(~state.controlled)
             if agent_accel is None:
@@ -139,17 +184,24 @@ class Simulation:
                     float(agent_ax), float(agent_ay), cfg.scenario.agent_bounds, float(state.vx[agent]),
                     cfg.scenario.agent_max_speed_mps, cfg.sim.step_s,
                 )
+        if self.traffic is not None:  # the dynamics clip at the boundaries where each front will be
+            front = state.x + 0.5 * state.length
+            travel = ballistic_distance(state.vx, np.maximum(state.vx + ax * cfg.sim.step_s, 0.0), cfg.sim.step_s)
+            bounds = self.road.bounds(front + travel, self.on_ramp)
         cmd = plan_step(
             state.x, state.y, state.vx, state.vy, state.width, ax, ay,
             cfg.sim.step_s, cfg.road.width_m, cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
+            bounds=bounds,
         )
         t0 = time.perf_counter()
         state.x, state.y, state.vx = self.backend.step(cmd)
         self.backend_seconds += time.perf_counter() - t0
         state.vy = cmd.vy_next
         self.steps += 1
-        self.offsets = pairwise_offsets(state, cfg.road.length_m)
-        overlap = overlap_matrix(state, cfg.road.length_m, self.offsets)
+        self.offsets = pairwise_offsets(state, self._wrap)
+        overlap = overlap_matrix(state, self._wrap, self.offsets)
+        if self.traffic is not None:
+            self.on_ramp = self.traffic.merge(state, self.on_ramp)
         new = self._tracker.update(overlap)
         self.last_result = StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
         return self.last_result
@@ -177,20 +229,27 @@ def run_simulation(
     t0 = time.perf_counter()
     state = sim.reset(cfg.seed)
     n = state.n
-    width = cfg.road.width_m
+
+    def smallest_margin(state: VehicleState) -> float:
+        """The smallest lateral distance of a body to its boundaries now (m)."""
+        if not state.n:
+            return float("inf")
+        lo, hi = sim.road.bounds(state.x + 0.5 * state.length, sim.on_ramp)
+        return float(np.min(np.minimum(state.y - 0.5 * state.width - lo, hi - state.y - 0.5 * state.width)))
+
     collisions = boundary_contacts = done = 0
     speed_sum = 0.0
-    min_margin = float(np.min(np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)))
+    min_margin = smallest_margin(state)
     interrupted = False
     try:
         for k in tqdm(range(steps), disable=not progress or not sys.stderr.isatty(), unit="step", desc="simulate"):
             result = sim.step()
+            state = sim.current()[0]
             done = k + 1
             collisions += len(result.new_collisions)
             boundary_contacts += int(result.boundary_contact.sum())
-            speed_sum += float(state.vx.mean())
-            margin = np.minimum(state.y - 0.5 * state.width, width - state.y - 0.5 * state.width)
-            min_margin = min(min_margin, float(margin.min()))
+            speed_sum += float(state.vx.mean()) if state.n else 0.0
+            min_margin = min(min_margin, smallest_margin(state))
             if on_step is not None:
                 on_step(done, state, result)
     except KeyboardInterrupt:
@@ -213,4 +272,20 @@ def run_simulation(
         "wall_s": wall,
         "steps_per_s": done / wall if wall > 0 else float("nan"),
         "interrupted": interrupted,
+        **({} if sim.traffic is None else {"onramp": _flow_summary(sim, state, done)}),
+    }
+
+
+def _flow_summary(sim: Simulation, state: VehicleState, steps: int) -> dict[str, Any]:
+    """The open road's books: what entered, left, merged and waits, in vehicles and veh/h."""
+    assert sim.traffic is not None
+    c = sim.traffic.counts
+    hours = steps * sim.cfg.sim.step_s / 3600.0
+    return {
+        "started_on_road": sim.cfg.background_vehicles,
+        "entered_main": c.entered_main, "entered_ramp": c.entered_ramp, "left": c.left, "on_road": state.n,
+        "merged": c.merged, "ramp_on_road_unmerged": int(sim.on_ramp.sum()),
+        "ramp_end_reached_unmerged": c.ramp_end_reached, "waiting_main": c.waiting[0], "waiting_ramp": c.waiting[1],
+        "inflow_veh_per_h": (c.entered_main + c.entered_ramp) / hours if hours else float("nan"),
+        "outflow_veh_per_h": c.left / hours if hours else float("nan"),
     }

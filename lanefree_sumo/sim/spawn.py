@@ -45,7 +45,7 @@ def grid_shape(cfg: LaneFreeConfig) -> tuple[int, int]:
     max_len = max(c.length_m for c in classes)
     max_wid = max(c.width_m for c in classes)
     rows = int(np.floor(cfg.road.width_m / (max_wid + sc.spawn.gap_y_m)))
-    cols = int(np.floor(cfg.road.length_m / (max_len + sc.spawn.gap_x_m)))
+    cols = int(np.floor(cfg.road.main_length_m / (max_len + sc.spawn.gap_x_m)))
     return rows, cols
 
 
@@ -53,13 +53,14 @@ def max_density(cfg: LaneFreeConfig) -> float:
     """Largest background density that can be placed (veh/km)."""
     rows, cols = grid_shape(cfg)
     capacity = rows * cols - agent_count(cfg)
-    return capacity * 1000.0 / cfg.road.length_m
+    return capacity * 1000.0 / cfg.road.main_length_m
 
 
 def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     """Random non-overlapping initial state: background vehicles, then the agents if any (the last
     :func:`agent_count` rows; with one agent the draws are those of the one-agent scenario).
 
+    On the on-ramp (``road.kind``) they start on the main road, which may also start empty.
     Raises :class:`ConfigError` when the density does not fit on the road.
     """
     sc = cfg.scenario
@@ -67,7 +68,7 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     k = agent_count(cfg)
     n = n_bg + k
     rows, cols = grid_shape(cfg)
-    if n_bg < 1:
+    if n_bg < 1 and cfg.road.kind == "ring":
         raise ConfigError(
             f"density {sc.density_veh_per_km:g} veh/km puts no vehicle on a "
             f"{cfg.road.length_m:g} m ring; use at least {1000.0 / cfg.road.length_m:g} veh/km"
@@ -76,7 +77,7 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
         raise ConfigError(
             f"density {sc.density_veh_per_km:g} veh/km ({n_bg} vehicles{f' and {k} agents' if k > 1 else ''}) "
             "does not fit on a "
-            f"{cfg.road.length_m:g} m × {cfg.road.width_m:g} m ring; the maximum is "
+            f"{cfg.road.main_length_m:g} m × {cfg.road.width_m:g} m {cfg.road.kind}; the maximum is "
             f"{max_density(cfg):.0f} veh/km"
         )
     cells = rng.choice(rows * cols, size=n, replace=False)
@@ -88,7 +89,7 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
         length[n_bg:] = sc.agent.length_m
         width[n_bg:] = sc.agent.width_m
         v_desired[n_bg:] = sc.agent.desired_speed_min_mps
-    cell_len = cfg.road.length_m / cols
+    cell_len = cfg.road.main_length_m / cols
     cell_wid = cfg.road.width_m / rows
     # centre ranges inside a cell keep gap/2 to the cell borders
     slack_x = cell_len - length - sc.spawn.gap_x_m
@@ -100,7 +101,7 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     controlled[n_bg:] = False
     return VehicleState(
         ids=ids,
-        x=np.mod(x, cfg.road.length_m),
+        x=np.mod(x, cfg.road.main_length_m),
         y=y,
         vx=np.full(n, sc.spawn.initial_speed_mps),
         vy=np.zeros(n),

@@ -61,3 +61,34 @@ class NumpyBackend:
 
     def close(self) -> None:
         pass
+
+
+class OpenRoadNumpyBackend:
+    """SUMO-free execution on an open road (the on-ramp), whose vehicles enter (:meth:`add`) and leave
+    (:meth:`remove`): positions advance by the ballistic distance, lateral moves are added."""
+
+    def __init__(self, cfg: LaneFreeConfig) -> None:
+        self._step = cfg.sim.step_s
+        self._x = self._y = self._vx = np.zeros(0)
+
+    def reset(self, state: VehicleState) -> None:
+        self._x, self._y, self._vx = state.x.copy(), state.y.copy(), state.vx.copy()
+
+    def add(self, rows: VehicleState) -> None:
+        """Vehicles entering the road (appended, in order)."""
+        self._x = np.concatenate([self._x, rows.x])
+        self._y = np.concatenate([self._y, rows.y])
+        self._vx = np.concatenate([self._vx, rows.vx])
+
+    def remove(self, keep: np.ndarray) -> None:
+        """Keep only the vehicles where ``keep`` is True (the others left the road)."""
+        self._x, self._y, self._vx = self._x[keep], self._y[keep], self._vx[keep]
+
+    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self._x = self._x + ballistic_distance(self._vx, cmd.vx_next, self._step)
+        self._y = self._y + cmd.dy
+        self._vx = cmd.vx_next.copy()
+        return self._x.copy(), self._y.copy(), self._vx.copy()
+
+    def close(self) -> None:
+        pass

@@ -1,0 +1,189 @@
+"""Traffic entering and leaving an open road (the on-ramp): seeded arrivals, safe insertion, removal at the
+end, the merge bookkeeping, and the project's merge rule (pure numpy on state arrays).
+
+* Arrivals: at the main road's upstream end and at the ramp's start, each step an arrival with probability
+  q·T/3600 (q in veh/h, T the step in s): a Bernoulli approximation of Poisson arrivals, seeded by the
+  episode. An arrival waits in its source's queue until it can enter.
+* Insertion (one vehicle per source and step, the queue's first): on the main road at x = 0 at the first
+  of ``LATERAL_SLOTS`` evenly spaced lateral positions (tried in a random order) where every vehicle whose
+  band it would overlap keeps a bumper gap of at least ``spawn.gap_x_m`` + ``entry_headway_s`` × the entry
+  speed ahead of it; on the ramp at its start, in the ramp's middle, under the same rule. Entry speed:
+  the source's entry speed, or the vehicle's desired speed if lower; desired speeds as the ring's
+  background vehicles'.
+* Removal: a vehicle whose centre passed the main road's downstream end leaves the road.
+* Merging: a ramp vehicle is *merged* once its whole body is on the main road (y − w/2 ≥ 0); from then on
+  it is a main-road vehicle (:meth:`~lanefree_sumo.sim.road.Road.bounds`).
+* The merge rule (the smallest one that keeps every ramp vehicle from reaching the ramp's end unmerged):
+  (1) in the merge zone an unmerged ramp vehicle's target-speed force aims at the lateral speed
+  ``merge_lateral_speed_mps`` towards the main road instead of 0 (the neighbours' forces still hold it
+  back where the main road is occupied); (2) the ramp's usable width closes in the merge zone (the
+  road's boundaries at each vehicle's front, which the force model's edge bound and the dynamics' clip
+  obey, push ramp vehicles onto the main road; at the ramp's end the boundary is the main road's edge);
+  (3) an unmerged ramp vehicle may accelerate at most so much that braking at the driver's ``ax_min``
+  still stops its front ``RAMP_END_MARGIN_M`` before the ramp's end (the force model's edge bound U,
+  applied longitudinally).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.sim.forces import edge_bound
+from lanefree_sumo.sim.road import Road
+from lanefree_sumo.sim.state import VehicleState
+
+LATERAL_SLOTS = 5
+"""Lateral entry positions across the main road."""
+RAMP_END_MARGIN_M = 0.0
+"""An unmerged ramp vehicle's front stops at least this far before the ramp's end (m): at the end the
+boundary (taken at the front) has closed, so the body is on the main road before the front gets there."""
+MAIN, RAMP = 0, 1
+
+
+@dataclass
+class FlowCounts:
+    """What entered, left and merged in an episode (vehicles)."""
+
+    entered_main: int = 0
+    entered_ramp: int = 0
+    left: int = 0
+    """Vehicles that passed the downstream end."""
+    merged: int = 0
+    """Ramp vehicles whose whole body reached the main road."""
+    ramp_end_reached: int = 0
+    """Ramp vehicles whose front reached the ramp's end unmerged (the merge rule should keep this 0)."""
+    waiting: list[int] = field(default_factory=lambda: [0, 0])
+    """Arrivals still queued at the main road and at the ramp (at the end of the episode)."""
+
+
+class OpenRoadTraffic:
+    """Arrivals, insertion, removal and merging of one episode on an open road (module docstring)."""
+
+    def __init__(self, cfg: LaneFreeConfig, road: Road) -> None:
+        self.cfg, self.road = cfg, road
+        o = cfg.road.onramp
+        self.probability = np.array([o.main_flow_veh_per_h, o.ramp_flow_veh_per_h]) * cfg.sim.step_s / 3600.0
+        self.entry_speed = (o.main_entry_speed_mps, o.ramp_entry_speed_mps)
+        self.rng = np.random.default_rng(0)
+        self.counts = FlowCounts()
+        self.queues: tuple[list[float], list[float]] = ([], [])
+        """Desired speeds (m/s) of the arrivals waiting at the main road and at the ramp."""
+        self._ramp_ended: set[str] = set()
+
+    def reset(self, seed: int) -> None:
+        """A new episode whose arrivals and entries are drawn from ``seed``."""
+        self.rng = np.random.default_rng([seed, 21])
+        self.counts = FlowCounts()
+        self.queues = ([], [])
+        self._ramp_ended = set()
+
+    def leaving(self, state: VehicleState) -> np.ndarray:
+        """True for the vehicles whose centre passed the downstream end."""
+        return state.x >= self.road.length_m
+
+    def merge(self, state: VehicleState, on_ramp: np.ndarray) -> np.ndarray:
+        """``on_ramp`` with the ramp vehicles whose body is now wholly on the main road merged (counted),
+        and the unmerged ones whose front reached the ramp's end counted once each."""
+        merged = on_ramp & (state.y - 0.5 * state.width >= 0.0)
+        self.counts.merged += int(merged.sum())
+        ended = on_ramp & ~merged & (state.x + 0.5 * state.length >= self.road.ramp_end_m)
+        for i in np.flatnonzero(ended):
+            if state.ids[i] not in self._ramp_ended:
+                self._ramp_ended.add(state.ids[i])
+                self.counts.ramp_end_reached += 1
+        return on_ramp & ~merged
+
+    def lateral_target(self, state: VehicleState, on_ramp: np.ndarray) -> np.ndarray | float:
+        """The lateral speed each vehicle's target-speed force aims at (m/s): ``merge_lateral_speed_mps`` for
+        unmerged ramp vehicles whose front is in the merge zone, else 0."""
+        merging = on_ramp & (state.x + 0.5 * state.length >= self.road.merge_start_m)
+        if not merging.any():
+            return 0.0
+        return np.where(merging, self.cfg.road.onramp.merge_lateral_speed_mps, 0.0)
+
+    def end_wall(self, state: VehicleState, on_ramp: np.ndarray, ax: np.ndarray) -> np.ndarray:
+        """``ax`` (m/s²) capped for unmerged ramp vehicles so that they can stop before the ramp's end."""
+        if not on_ramp.any():
+            return ax
+        room = np.maximum(0.0, self.road.ramp_end_m - RAMP_END_MARGIN_M - (state.x + 0.5 * state.length))
+        cap = edge_bound(state.vx, room, self.cfg.sim.step_s, self.cfg.scenario.driver.bounds.ax_min)
+        return np.where(on_ramp & state.controlled, np.minimum(ax, cap), ax)
+
+    def arrivals(self, state: VehicleState) -> tuple[VehicleState, np.ndarray]:
+        """This step's new vehicles (at most one per source: the first in its queue, where it fits) and
+        whether each is a ramp vehicle."""
+        bg = self.cfg.scenario.background
+        for source in (MAIN, RAMP):
+            if self.rng.random() < self.probability[source]:
+                self.queues[source].append(float(self.rng.uniform(bg.desired_speed_min_mps, bg.desired_speed_max_mps)))
+        new: list[tuple[str, float, float, float, float]] = []
+        taken = state
+        for source in (MAIN, RAMP):
+            if not self.queues[source]:
+                continue
+            vehicle = self._try_enter(taken, source, self.queues[source][0])
+            if vehicle is None:
+                continue
+            self.queues[source].pop(0)
+            if source == MAIN:
+                self.counts.entered_main += 1
+                vid = f"m{self.counts.entered_main}"
+            else:
+                self.counts.entered_ramp += 1
+                vid = f"r{self.counts.entered_ramp}"
+            new.append((vid, *vehicle))
+            taken = append_rows(taken, _rows(self.cfg, [new[-1]]))
+        self.counts.waiting = [len(queue) for queue in self.queues]
+        return _rows(self.cfg, new), np.array([vid.startswith("r") for vid, *_ in new], dtype=bool)
+
+    def _try_enter(self, state: VehicleState, source: int,
+                   v_desired: float) -> tuple[float, float, float, float] | None:
+        """(x, y, speed, desired speed) of a vehicle desiring ``v_desired`` (m/s) at the first place it fits
+        at ``source``, else None."""
+        bg = self.cfg.scenario.background
+        length, width = bg.length_m, bg.width_m
+        speed = min(self.entry_speed[source], v_desired)
+        gap = self.cfg.scenario.spawn.gap_x_m + self.cfg.road.onramp.entry_headway_s * speed
+        clear = self.cfg.sim.edge_clearance_m + 0.5 * self.cfg.scenario.spawn.gap_y_m
+        if source == MAIN:
+            x = 0.5 * length
+            low, high = 0.5 * width + clear, self.road.width_m - 0.5 * width - clear
+            slots = np.linspace(low, high, LATERAL_SLOTS)[self.rng.permutation(LATERAL_SLOTS)]
+        else:
+            x = self.road.ramp_start_m + 0.5 * length
+            slots = np.array([-0.5 * self.road.ramp_width_m])
+        for y in slots:
+            beside = np.abs(state.y - y) < 0.5 * (state.width + width) + 0.5 * self.cfg.scenario.spawn.gap_y_m
+            bumper = np.abs(state.x - x) - 0.5 * (state.length + length)
+            if not np.any(beside & (bumper < gap)):
+                return x, float(y), speed, v_desired
+        return None
+
+
+def _rows(cfg: LaneFreeConfig, vehicles: list[tuple[str, float, float, float, float]]) -> VehicleState:
+    """Background vehicles as state rows: (id, x, y, speed, desired speed) each."""
+    bg = cfg.scenario.background
+    n = len(vehicles)
+    return VehicleState(
+        ids=[v[0] for v in vehicles], x=np.array([v[1] for v in vehicles], dtype=float),
+        y=np.array([v[2] for v in vehicles], dtype=float), vx=np.array([v[3] for v in vehicles], dtype=float),
+        vy=np.zeros(n), length=np.full(n, bg.length_m), width=np.full(n, bg.width_m),
+        v_desired=np.array([v[4] for v in vehicles], dtype=float), controlled=np.ones(n, dtype=bool),
+    )
+
+
+def append_rows(state: VehicleState, rows: VehicleState) -> VehicleState:
+    """``state`` with ``rows`` appended at the end (new arrays)."""
+    return VehicleState(
+        state.ids + rows.ids, *(np.concatenate([getattr(state, k), getattr(rows, k)])
+                                for k in ("x", "y", "vx", "vy", "length", "width", "v_desired", "controlled")))
+
+
+def keep_rows(state: VehicleState, keep: np.ndarray) -> VehicleState:
+    """The rows of ``state`` where ``keep`` is True (new arrays)."""
+    return VehicleState(
+        [vid for vid, k in zip(state.ids, keep) if k],
+        *(getattr(state, k)[keep] for k in ("x", "y", "vx", "vy", "length", "width", "v_desired", "controlled")))

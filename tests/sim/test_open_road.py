@@ -1,0 +1,102 @@
+"""The on-ramp (an open road): its boundaries, vehicles entering and leaving, merging, and the ring untouched."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, merge_config
+from lanefree_sumo.sim.collisions import CollisionTracker
+from lanefree_sumo.sim.road import OPEN_ROAD_WRAP_M, road_of
+from lanefree_sumo.sim.simulation import Simulation, run_simulation
+from lanefree_sumo.sim.state import wrap
+
+from conftest import lanefree
+
+
+def onramp(**onramp_settings) -> LaneFreeConfig:
+    return merge_config(LaneFreeConfig(), {"backend": "numpy", "scenario": {"density_veh_per_km": 20},
+                                           "road": {"kind": "onramp", "onramp": onramp_settings}})
+
+
+def test_the_ramps_boundaries_close_in_the_merge_zone():
+    road = road_of(onramp())
+    assert (road.length_m, road.ramp_start_m, road.merge_start_m, road.ramp_end_m) == (1980.0, 1000.0, 1280.0, 1480.0)
+    x = np.array([500.0, 1100.0, 1280.0, 1380.0, 1480.0, 1600.0])
+    lo, hi = road.bounds(x, np.ones(6, dtype=bool))
+    assert np.allclose(lo, [-3.0, -3.0, -3.0, -1.5, 0.0, 0.0])
+    assert np.allclose(hi, [0.0, 0.0, 10.2, 10.2, 10.2, 10.2])  # confined to the ramp before the merge zone
+    lo, hi = road.bounds(x, np.zeros(6, dtype=bool))
+    assert np.all(lo == 0.0) and np.all(hi == 10.2)
+    ring = road_of(LaneFreeConfig())
+    assert ring.bounds(x, None) == (0.0, 10.2) and ring.wrap_length == 500.0
+    d = np.array([-1979.0, -0.1, 0.0, 3.3, 1979.0])  # an open road never wraps, bit for bit
+    assert np.array_equal(wrap(d, OPEN_ROAD_WRAP_M), d)
+    with pytest.raises(ConfigError, match="road.onramp.merge_m"):
+        road_of(onramp(merge_m=500.0))
+
+
+def test_the_collision_tracker_follows_rows_leaving_and_entering():
+    tracker = CollisionTracker(3)
+    both = np.array([[False, True, False], [True, False, False], [False, False, False]])
+    assert tracker.update(both).tolist() == [[0, 1]]
+    tracker.keep(np.array([False, True, True]))  # vehicle 0 left: the pair is forgotten
+    tracker.add(1)
+    overlap = np.zeros((3, 3), dtype=bool)
+    overlap[0, 2] = overlap[2, 0] = True
+    assert tracker.update(overlap).tolist() == [[0, 2]]
+    assert tracker.update(overlap).tolist() == []  # the same contact is one event
+
+
+def test_traffic_enters_merges_and_leaves_without_collisions():
+    """At a named demand (2400 veh/h on the main road, 300 veh/h on the ramp, 600 s): no collision, every
+    ramp vehicle merged before the ramp's end, vehicles in = vehicles out + on the road."""
+    cfg = onramp()
+    steps = int(600 / cfg.sim.step_s)
+    sim = Simulation(cfg)
+    seen_rows: set[int] = set()
+    summary = run_simulation(cfg, steps, on_step=lambda k, state, result: seen_rows.add(state.n), sim=sim)
+    o = summary["onramp"]
+    assert summary["background_collisions"] == 0
+    assert o["entered_ramp"] >= 30 and o["merged"] >= 30
+    assert o["ramp_end_reached_unmerged"] == 0
+    assert o["started_on_road"] + o["entered_main"] + o["entered_ramp"] == o["left"] + o["on_road"]
+    assert o["merged"] + o["ramp_on_road_unmerged"] == o["entered_ramp"]  # a ramp vehicle leaves only merged
+    assert o["left"] > 0 and len(seen_rows) > 10  # rows changed as vehicles came and went
+    assert summary["min_lateral_margin_m"] > -1e-6  # every body inside its boundaries at every step
+    assert 2000 < o["outflow_veh_per_h"] < 3200
+
+
+def test_a_seed_gives_the_same_open_road_episode():
+    cfg = onramp(main_flow_veh_per_h=3000.0, ramp_flow_veh_per_h=600.0)
+    runs = []
+    for _ in range(2):
+        sim = Simulation(cfg)
+        sim.reset(7)
+        for _ in range(400):
+            sim.step()
+        state = sim.current()[0]
+        runs.append((list(state.ids), state.x.copy(), state.y.copy()))
+        sim.close()
+    assert runs[0][0] == runs[1][0]
+    assert np.array_equal(runs[0][1], runs[1][1]) and np.array_equal(runs[0][2], runs[1][2])
+
+
+def test_simulate_scenario_onramp_on_the_command_line(tmp_path):
+    out = tmp_path / "onramp"
+    res = lanefree("simulate", "--scenario", "onramp", "--seconds", "60", "--main-flow", "2000", "--ramp-flow", "400",
+                   "--out", str(out), "--json")
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    assert summary["backend"] == "numpy" and summary["onramp"]["entered_main"] > 0
+    assert (out / "trajectory.csv").is_file()
+    for args, needle in ((("--backend", "libsumo"), "numpy backend only"),
+                         (("--set", "road.onramp.merge_m=600"), "road.onramp.merge_m"),
+                         (("--main-flow", "-5"), "--main-flow")):
+        bad = lanefree("simulate", "--scenario", "onramp", "--out", str(tmp_path / "bad"), *args)
+        assert bad.returncode == 2 and needle in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr
+        assert not (tmp_path / "bad").exists()
+    refused = lanefree("train", "--set", "road.kind=onramp", "--out", str(tmp_path / "run"))
+    assert refused.returncode == 2 and "ring only" in refused.stderr
