@@ -91,8 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     episode_s = DEFAULTS.sim.episode_steps * DEFAULTS.sim.step_s
     onramp = DEFAULTS.road.onramp
     sim.add_argument("--scenario", choices=ROAD_KINDS, default=DEFAULTS.road.kind,
-                     help="ring: the paper's 500 m ring; onramp: an open road with an on-ramp (numpy backend in this "
-                     f"version; road.onramp in 'lanefree config') (default {DEFAULTS.road.kind})")
+                     help="ring: the paper's 500 m ring; onramp: an open road with an on-ramp (its sizes and demands: "
+                     f"road.onramp in 'lanefree config') (default {DEFAULTS.road.kind})")
     sim.add_argument("--main-flow", type=argtypes.nonnegative(float, "veh/h"), default=None,
                      help=f"on-ramp: demand at the main road's upstream end in veh/h (default "
                      f"{onramp.main_flow_veh_per_h:g})")
@@ -286,11 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    onramp_numpy = args.scenario == "onramp" and "--backend" not in args.given
     options: list[tuple[str, tuple[str, ...], Any]] = [
         ("seed", ("--seed",), args.seed),
         ("road.kind", ("--scenario",), args.scenario),
-        ("backend", ("--backend",), "numpy" if onramp_numpy else args.backend),
+        ("backend", ("--backend",), args.backend),
         ("scenario.density_veh_per_km", ("--density",), args.density),
         ("scenario.driver.nudging", ("--nudging",), args.nudging),
     ]

@@ -59,14 +59,18 @@ def ring_name(length_m: float, width_m: float) -> str:
 
 
 def default_net_path(cfg: LaneFreeConfig) -> Path:
+    if cfg.road.kind == "onramp":
+        return NETS_DIR / f"{onramp_name(cfg)}.net.xml"
     return NETS_DIR / f"{ring_name(cfg.road.length_m, cfg.road.width_m)}.net.xml"
 
 
-def netconvert_args(nod: Path, edg: Path, net: Path) -> list[str]:
-    """netconvert options (after the binary) that build the ring from plain files."""
+def netconvert_args(nod: Path, edg: Path, net: Path, con: Path | None = None) -> list[str]:
+    """netconvert options (after the binary) that build the ring (or, with connections, the on-ramp) from
+    plain files."""
     return [
         "--node-files", str(nod),
         "--edge-files", str(edg),
+        *(["--connection-files", str(con)] if con is not None else []),
         "--output-file", str(net),
         "--no-internal-links", "true",
         "--no-turnarounds", "true",
@@ -127,18 +131,23 @@ def _vtype(vid: str, cls: VehicleClassConfig, max_speed: float) -> str:
 
 def write_additional(cfg: LaneFreeConfig, path: Path) -> Path:
     """Vehicle types (two background classes split at the middle desired speed, the agent) and
-    the looping route, as a SUMO additional file."""
+    the looping route (the on-ramp: the main road's and the ramp's routes), as a SUMO additional file."""
     sc = cfg.scenario
     speed = cfg.road.speed_limit_mps
     slow = sc.background
     fast = dataclasses.replace(sc.background, color_rgb=sc.background_fast_color_rgb)
     route = " ".join(edge_id(k) for k in range(EDGES))
+    if cfg.road.kind == "onramp":
+        routes = [f'    <route id="{ROUTE_MAIN}" edges="{" ".join(ONRAMP_EDGES)}"/>',
+                  f'    <route id="{ROUTE_RAMP}" edges="{" ".join(ONRAMP_EDGES[1:])}"/>']
+    else:
+        routes = [f'    <route id="{ROUTE_ID}" edges="{" ".join([route] * cfg.sim.route_loops)}"/>']
     lines = [
         "<additional>",
         _vtype(VTYPE_BG_SLOW, slow, speed),
         _vtype(VTYPE_BG_FAST, fast, speed),
         _vtype(VTYPE_AGENT, sc.agent, speed),
-        f'    <route id="{ROUTE_ID}" edges="{" ".join([route] * cfg.sim.route_loops)}"/>',
+        *routes,
         "</additional>\n",
     ]
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -151,3 +160,75 @@ def background_vtype(v_desired: float, cfg: LaneFreeConfig) -> str:
     bg = cfg.scenario.background
     middle = 0.5 * (bg.desired_speed_min_mps + bg.desired_speed_max_mps)
     return VTYPE_BG_FAST if v_desired >= middle else VTYPE_BG_SLOW
+
+
+# -- the on-ramp -------------------------------------------------------------------------------------------
+
+ONRAMP_EDGES = ("up", "merge", "down")
+"""The on-ramp's edges along the main road: before the ramp, beside it (lane 0 the ramp, lane 1 the main
+road), after it."""
+ROUTE_MAIN = "main"
+ROUTE_RAMP = "ramp"
+ONRAMP_TAIL_M = 200.0
+"""The last edge is this much longer than the road (m): the simulation removes a vehicle once its centre
+passes the road's end, before SUMO would let it arrive."""
+
+
+def onramp_name(cfg: LaneFreeConfig) -> str:
+    o = cfg.road.onramp
+    return f"onramp_U{o.upstream_m:g}_R{o.ramp_m:g}_D{o.downstream_m:g}_W{cfg.road.width_m:g}_w{o.ramp_width_m:g}"
+
+
+def onramp_edge_offsets(cfg: LaneFreeConfig) -> tuple[float, float, float]:
+    """x (m) where each of :data:`ONRAMP_EDGES` begins: x = offset + lane position."""
+    o = cfg.road.onramp
+    return 0.0, o.upstream_m, o.upstream_m + o.ramp_m
+
+
+def onramp_edge_lengths(cfg: LaneFreeConfig) -> tuple[float, float, float]:
+    """Lengths of :data:`ONRAMP_EDGES` in SUMO (m; the last one with :data:`ONRAMP_TAIL_M`)."""
+    o = cfg.road.onramp
+    return o.upstream_m, o.ramp_m, o.downstream_m + ONRAMP_TAIL_M
+
+
+def onramp_lane_centre(cfg: LaneFreeConfig, edge: int, lane: int) -> float:
+    """y (m, from the main road's right edge) of the centre of ``lane`` of edge number ``edge``: the main
+    road's lane at W/2, the ramp (lane 0 of ``merge``) at −w_r/2."""
+    if edge == 1 and lane == 0:
+        return -0.5 * cfg.road.onramp.ramp_width_m
+    return 0.5 * cfg.road.width_m
+
+
+def onramp_main_lane(edge: int) -> int:
+    """The main road's lane index on edge number ``edge`` (1 beside the ramp, else 0)."""
+    return 1 if edge == 1 else 0
+
+
+def write_plain_onramp(cfg: LaneFreeConfig, directory: Path) -> tuple[Path, Path, Path]:
+    """Write the node, edge and connection files of the on-ramp (straight, along SUMO's x axis; lanes are
+    laid right of each edge's line, so the main road's centre is at SUMO y = −W/2 on every edge); return
+    their paths."""
+    directory.mkdir(parents=True, exist_ok=True)
+    name = onramp_name(cfg)
+    w, wr, speed = cfg.road.width_m, cfg.road.onramp.ramp_width_m, cfg.road.speed_limit_mps
+    offsets, lengths = onramp_edge_offsets(cfg), onramp_edge_lengths(cfg)
+    ends = [*offsets, offsets[-1] + lengths[-1]]
+    nod, edg, con = (directory / f"{name}.{kind}.xml" for kind in ("nod", "edg", "con"))
+    nod.write_text("<nodes>\n" + "".join(f'    <node id="n{k}" x="{x:.6f}" y="0" type="priority"/>\n'
+                                         for k, x in enumerate(ends)) + "</nodes>\n")
+    up, merge, down = ONRAMP_EDGES
+    edg.write_text(
+        "<edges>\n"
+        f'    <edge id="{up}" from="n0" to="n1" numLanes="1" width="{w:g}" speed="{speed:g}"/>\n'
+        f'    <edge id="{merge}" from="n1" to="n2" numLanes="2" speed="{speed:g}">\n'
+        f'        <lane index="0" width="{wr:g}"/>\n'
+        f'        <lane index="1" width="{w:g}"/>\n'
+        "    </edge>\n"
+        f'    <edge id="{down}" from="n2" to="n3" numLanes="1" width="{w:g}" speed="{speed:g}"/>\n'
+        "</edges>\n")
+    con.write_text(
+        "<connections>\n"
+        f'    <connection from="{up}" to="{merge}" fromLane="0" toLane="1"/>\n'
+        f'    <connection from="{merge}" to="{down}" fromLane="1" toLane="0"/>\n'
+        "</connections>\n")
+    return nod, edg, con

@@ -37,12 +37,9 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
         return NumpyBackend(cfg) if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
-    if cfg.road.kind != "ring":
-        raise ConfigError(f"the {cfg.road.kind} road runs on the numpy backend only in this version; "
-                          "use --backend numpy")
-    from lanefree_sumo.sim.backends.sumo import SumoBackend
+    from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
 
-    return SumoBackend(cfg, kind=cfg.backend, gui=cfg.gui)
+    return (OnRampSumoBackend if cfg.road.kind == "onramp" else SumoBackend)(cfg, kind=cfg.backend, gui=cfg.gui)
 
 
 @dataclass
@@ -79,8 +76,8 @@ class Simulation:
     The backend (and so SUMO) starts at the first ``reset``, not at construction, and
     ``close`` stops it; a later ``reset`` starts a new one. On an open road (the on-ramp) vehicles
     enter and leave (:mod:`.open_road`): at the start of each step the vehicles past the end are
-    removed and the arrivals that fit are appended, so the state's rows change between steps (and
-    ``last_result`` refers to the rows of the state after the step it describes)."""
+    removed and the arrivals that fit are appended (and move in that step), so the state's rows change
+    between steps; ``last_result`` refers to the rows of the state after the step it describes."""
 
     def __init__(self, cfg: LaneFreeConfig, backend: Backend | None = None, diagnostics: bool = False) -> None:
         """``diagnostics``: keep the driver model's per-vehicle details of each step in
@@ -126,8 +123,9 @@ class Simulation:
         self._tracker.update(overlap_matrix(state, self._wrap, self.offsets))
         return state
 
-    def _enter_and_leave(self) -> None:
-        """Open road: remove the vehicles past the end, append the arrivals that fit (state, backend, books)."""
+    def _leave_and_enter(self) -> None:
+        """Open road, before a step: remove the vehicles past the end and append the arrivals that fit, in
+        the state, the backend and the books; the new vehicles take part in the step."""
         state, backend, traffic = self.state, self.backend, self.traffic
         assert state is not None and backend is not None and traffic is not None
         leaving = traffic.leaving(state)
@@ -144,8 +142,9 @@ class Simulation:
             backend.add(rows)  # type: ignore[attr-defined]
             self.on_ramp = np.concatenate([self.on_ramp, ramp])
             self._tracker.add(rows.n)
-        self.state = state
-        self.offsets = pairwise_offsets(state, self._wrap)
+        if state is not self.state:
+            self.state = state
+            self.offsets = pairwise_offsets(state, self._wrap)
 
     def current(self) -> tuple[VehicleState, tuple[np.ndarray, np.ndarray]]:
         """The current state and its (dx, dy) offset matrices (m); RuntimeError before ``reset``."""
@@ -160,7 +159,7 @@ class Simulation:
         if self.state is None or self.backend is None:
             raise RuntimeError("call reset() before step()")
         if self.traffic is not None:
-            self._enter_and_leave()
+            self._leave_and_enter()
         state = self.state
         cfg = self.cfg
         bounds = self.road.bounds(state.x + 0.5 * state.length, self.on_ramp)  # at the front

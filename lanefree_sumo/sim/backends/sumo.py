@@ -30,15 +30,21 @@ from lanefree_sumo.errors import SumoError
 from lanefree_sumo.sim.dynamics import StepCommand
 from lanefree_sumo.sim.network import (
     EDGES,
+    ONRAMP_EDGES,
     ROUTE_ID,
+    ROUTE_MAIN,
+    ROUTE_RAMP,
     VTYPE_AGENT,
     background_vtype,
     default_net_path,
     edge_id,
     edge_to_ring,
     netconvert_args,
+    onramp_edge_lengths,
+    onramp_edge_offsets,
     ring_to_edge,
     write_additional,
+    write_plain_onramp,
     write_plain_ring,
 )
 from lanefree_sumo.sim.spawn import AGENT_ID, is_agent_id
@@ -46,6 +52,7 @@ from lanefree_sumo.sim.state import VehicleState
 
 GUI_VIEW = "View #0"
 _SUBSCRIBED = (tc.VAR_ROAD_ID, tc.VAR_LANEPOSITION, tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED)
+_SUBSCRIBED_ONRAMP = (*_SUBSCRIBED, tc.VAR_LANE_INDEX)
 
 
 def sumo_binary(name: str) -> str:
@@ -78,6 +85,19 @@ def build_ring_net(cfg: LaneFreeConfig, directory: Path) -> Path:
     return net
 
 
+def build_onramp_net(cfg: LaneFreeConfig, directory: Path) -> Path:
+    """The on-ramp's plain files, netconvert, and its vTypes/routes file beside them; the ``.net.xml`` path."""
+    nod, edg, con = write_plain_onramp(cfg, directory)
+    net = nod.with_name(nod.name.replace(".nod.xml", ".net.xml"))
+    cmd = [sumo_binary("netconvert"), *netconvert_args(nod, edg, net, con), "--no-warnings", "true"]
+    result = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        msg = (result.stderr or result.stdout).strip().splitlines()
+        raise SumoError(f"netconvert failed: {msg[-1] if msg else 'no output'}")
+    write_additional(cfg, net.with_name(net.name.replace(".net.xml", ".add.xml")))
+    return net
+
+
 def resolve_net(cfg: LaneFreeConfig) -> Path:
     """The network file to load: ``cfg.net_file`` if set, else the committed default ring
     (built on first use for non-default road sizes)."""
@@ -88,8 +108,26 @@ def resolve_net(cfg: LaneFreeConfig) -> Path:
         return path
     path = default_net_path(cfg)
     if not path.is_file():
-        path = build_ring_net(cfg, path.parent)
+        path = (build_onramp_net if cfg.road.kind == "onramp" else build_ring_net)(cfg, path.parent)
     return path
+
+
+def check_onramp_net(path: Path, cfg: LaneFreeConfig) -> None:
+    """Fail with a clear message unless ``path`` is a readable on-ramp of the configured sizes."""
+    import sumolib
+
+    try:
+        net = sumolib.net.readNet(str(path))
+    except Exception as exc:  # sumolib raises bare SAX/XML errors
+        raise SumoError(f"network file {path} is not a readable SUMO network ({type(exc).__name__})") from None
+    found = {e.getID(): e for e in net.getEdges()}
+    if set(found) != set(ONRAMP_EDGES):
+        raise SumoError(f"network file {path} is not a lanefree on-ramp (edges {sorted(found)[:6]})")
+    lengths = [found[e].getLength() for e in ONRAMP_EDGES]
+    widths = [found["merge"].getLane(0).getWidth(), found["merge"].getLane(1).getWidth()]
+    expected = [*onramp_edge_lengths(cfg)], [cfg.road.onramp.ramp_width_m, cfg.road.width_m]
+    if any(abs(a - b) > 1e-3 for a, b in zip(lengths + widths, expected[0] + expected[1])):
+        raise SumoError(f"network file {path} does not match road.onramp (lengths {lengths}, widths {widths})")
 
 
 def check_ring_net(path: Path, cfg: LaneFreeConfig) -> None:
@@ -166,7 +204,7 @@ class SumoBackend:
         self.kind = kind
         self.gui = gui
         self.net = resolve_net(cfg)
-        check_ring_net(self.net, cfg)
+        (check_onramp_net if cfg.road.kind == "onramp" else check_ring_net)(self.net, cfg)
         self._label = label or f"lanefree-{os.getpid()}-{id(self)}"
         self._extra_args = list(extra_args)
         self._ids: list[str] = []
@@ -325,6 +363,131 @@ class SumoBackend:
     def idle_step(self) -> None:
         """One simulation step without commands (lets SUMO finish pending screenshots)."""
         self._conn.simulationStep()
+
+
+class OnRampSumoBackend(SumoBackend):
+    """:class:`SumoBackend` on the on-ramp: vehicles enter (:meth:`add`) and leave (:meth:`remove`); a
+    vehicle's y is its lane centre's (the main road's at W/2 on every edge, the ramp's at −w_r/2) plus
+    SUMO's lateral offset in that lane. Main-road vehicles follow the route ``up merge down``, ramp
+    vehicles ``merge down`` from lane 0 of ``merge``."""
+
+    def __init__(self, cfg: LaneFreeConfig, kind: str = "libsumo", gui: bool = False, label: str | None = None,
+                 extra_args: Sequence[str] = ()) -> None:
+        super().__init__(cfg, kind, gui, label, extra_args)
+        self._offsets = np.array(onramp_edge_offsets(cfg))
+        self._edge_offset = dict(zip(ONRAMP_EDGES, self._offsets.tolist()))
+        self._ramp_half = 0.5 * cfg.road.onramp.ramp_width_m
+        self._centre = np.zeros(0)
+        """y (m) of the centre of each vehicle's lane (as of the last read)."""
+
+    def _where(self, x: float, y: float) -> tuple[str, int, float, float]:
+        """(edge id, lane index, lane position, lateral offset) of a vehicle at (x, y) (m)."""
+        k = int(np.searchsorted(self._offsets, x, side="right")) - 1
+        lane = (0 if y < 0.0 else 1) if k == 1 else 0
+        centre = -self._ramp_half if (k, lane) == (1, 0) else self._half_width
+        return ONRAMP_EDGES[k], lane, x - float(self._offsets[k]), y - centre
+
+    def _vtype(self, vid: str, v_desired: float) -> str:
+        return VTYPE_AGENT if is_agent_id(vid) else background_vtype(v_desired, self.cfg)
+
+    def reset(self, state: VehicleState) -> None:
+        """Remove all vehicles and place ``state``'s (on the main road) at their exact positions and speeds."""
+        v = self._conn.vehicle
+        try:
+            for vid in v.getIDList():
+                v.remove(vid)
+            places = [self._where(float(x), float(y)) for x, y in zip(state.x, state.y)]
+            for i, (vid, (edge, lane, pos, _)) in enumerate(zip(state.ids, places)):
+                v.add(vid, ROUTE_MAIN, self._vtype(vid, float(state.v_desired[i])), depart="now",
+                      departSpeed=repr(float(state.vx[i])))
+                v.setSpeedMode(vid, 0)
+                v.setLaneChangeMode(vid, 0)
+                v.moveTo(vid, f"{edge}_{lane}", pos)
+            self._conn.simulationStep()  # inserts them
+            for i, (vid, (edge, lane, pos, lat)) in enumerate(zip(state.ids, places)):
+                v.moveTo(vid, f"{edge}_{lane}", pos)
+                v.setLateralLanePosition(vid, lat)
+                v.setPreviousSpeed(vid, float(state.vx[i]))
+                v.subscribe(vid, _SUBSCRIBED_ONRAMP)
+        except SumoError:
+            raise
+        except Exception as exc:
+            raise SumoError(f"SUMO refused to place the vehicles: {exc}") from None
+        self._ids = list(state.ids)
+        self._y = state.y.copy()
+        self._centre = np.array([self._half_width if p[1] == 1 or p[0] != "merge" else -self._ramp_half
+                                 for p in places])
+
+    def add(self, rows: VehicleState) -> None:
+        """Vehicles entering the road where ``rows`` place them (appended, in order): inserted at once
+        (``moveTo`` of a vehicle not yet on the road inserts it there, whatever SUMO's own insertion checks
+        would say), so they move in the next :meth:`step`."""
+        v = self._conn.vehicle
+        centres = []
+        try:
+            for i, vid in enumerate(rows.ids):
+                edge, lane, pos, lat = self._where(float(rows.x[i]), float(rows.y[i]))
+                speed = float(rows.vx[i])
+                v.add(vid, ROUTE_RAMP if edge == "merge" and lane == 0 else ROUTE_MAIN,
+                      self._vtype(vid, float(rows.v_desired[i])), depart="now", departSpeed=repr(speed))
+                v.setSpeedMode(vid, 0)
+                v.setLaneChangeMode(vid, 0)
+                v.moveTo(vid, f"{edge}_{lane}", pos)
+                v.setLateralLanePosition(vid, lat)
+                v.setPreviousSpeed(vid, speed)
+                v.subscribe(vid, _SUBSCRIBED_ONRAMP)
+                centres.append(-self._ramp_half if (edge, lane) == ("merge", 0) else self._half_width)
+        except SumoError:
+            raise
+        except Exception as exc:
+            raise SumoError(f"SUMO refused an entering vehicle: {exc}") from None
+        self._ids += list(rows.ids)
+        self._y = np.concatenate([self._y, rows.y])
+        self._centre = np.concatenate([self._centre, centres])
+
+    def remove(self, keep: np.ndarray) -> None:
+        """Take the vehicles where ``keep`` is False off the road."""
+        v = self._conn.vehicle
+        for vid, kept in zip(self._ids, keep.tolist()):
+            if not kept:
+                v.unsubscribe(vid)
+                v.remove(vid)
+        self._ids = [vid for vid, kept in zip(self._ids, keep.tolist()) if kept]
+        self._y, self._centre = self._y[keep], self._centre[keep]
+
+    def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y, vx) of every vehicle, in the order they entered (m, m, m/s)."""
+        res = self._conn.vehicle.getAllSubscriptionResults()
+        try:
+            rows = [res[vid] for vid in self._ids]
+        except KeyError as exc:
+            raise SumoError(f"vehicle {exc} left the SUMO simulation unexpectedly") from None
+        off = self._edge_offset
+        x = np.fromiter((off[r[tc.VAR_ROAD_ID]] + r[tc.VAR_LANEPOSITION] for r in rows), float, len(rows))
+        self._centre = np.fromiter((-self._ramp_half if (r[tc.VAR_ROAD_ID], r[tc.VAR_LANE_INDEX]) == ("merge", 0)
+                                    else self._half_width for r in rows), float, len(rows))
+        y = self._centre + np.fromiter((r[tc.VAR_LANEPOSITION_LAT] for r in rows), float, len(rows))
+        vx = np.fromiter((r[tc.VAR_SPEED] for r in rows), float, len(rows))
+        self._y = y
+        return x, y, vx
+
+    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Command every vehicle on the road, advance SUMO one step, read the new state back."""
+        v = self._conn.vehicle
+        tiny = np.abs(cmd.dy) < self._min_lateral_move
+        lat_target = (self._y + cmd.dy - self._centre).tolist()
+        for vid, speed, dy, small, target in zip(self._ids, cmd.vx_next.tolist(), cmd.dy.tolist(), tiny.tolist(),
+                                                 lat_target):
+            v.setSpeed(vid, speed)
+            if small:
+                if dy != 0.0:
+                    v.setLateralLanePosition(vid, target)
+            else:
+                v.changeSublane(vid, dy)
+        t0 = time.perf_counter()
+        self._conn.simulationStep()
+        self.sumo_step_seconds += time.perf_counter() - t0
+        return self.read()
 
 
 def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> float:
