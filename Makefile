@@ -20,7 +20,7 @@ TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENS
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv system-deps test test-fast lint docs train sweep evaluate replay report simulate nets bench traffic clean-venv
+.PHONY: venv system-deps test test-fast lint docs train sweep evaluate replay report simulate nets bench traffic onramp-flows clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -98,3 +98,7 @@ clean-venv:
 
 traffic: system-deps $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.traffic_check
+
+# The on-ramp's inflow-outflow curve (issue 21) into results/onramp/ (RAMP=veh/h, default 300).
+onramp-flows: $(STAMP)
+	$(BIN)/python -m lanefree_sumo.tools.onramp_flows $(if $(RAMP),--ramp-flow $(RAMP) --out results/onramp/ramp$(RAMP),)
