@@ -28,10 +28,9 @@ from lanefree_sumo.config import (
     LaneFreeConfig,
     ReplayConfig,
     ReportConfig,
+    layered_config,
     merge_config,
     nested_overrides,
-    read_config_file,
-    validate_config,
 )
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, OperatingSystemError, UsageError, os_error_message
 from lanefree_sumo.experiments import mixed_autonomy, rollout
@@ -66,14 +65,8 @@ def _build_config(args: argparse.Namespace, options: Sequence[tuple[str, tuple[s
     """The config of a verb: the defaults, then ``--config FILE``, then the verb's ``options`` ((dotted key,
     option names, value): all of them without a file, only those given on the command line with one), then
     ``extra`` (overrides the verb derives), then every ``--set``; validated whole."""
-    cfg = LaneFreeConfig()
-    if args.config is not None:
-        cfg = merge_config(cfg, read_config_file(args.config))
     chosen = [(key, value) for key, names, value in options if args.config is None or args.given & set(names)]
-    cfg = merge_config(cfg, nested_overrides(chosen))
-    if extra:
-        cfg = merge_config(cfg, extra)
-    return validate_config(merge_config(cfg, nested_overrides(args.settings)))
+    return layered_config(LaneFreeConfig(), args.config, [nested_overrides(chosen), extra or {}], args.settings)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -159,7 +159,7 @@ def test_any_config_value_from_the_command_line(tmp_path):
     printed = yaml.safe_load(res.stdout)  # the comments are YAML comments: it loads back
     assert printed["seed"] == 8 and printed["scenario"]["density_veh_per_km"] == 90
     assert printed["reward"]["epsilon_r"] == 0.2
-    assert "length_m: 500.0  # Centre-line length" in res.stdout and "(m); 50 … 10000" in res.stdout
+    assert "length_m: 500.0  # Centre-line length" in res.stdout and "road.onramp``; 50 … 10000" in res.stdout
     res = lanefree("simulate", "--config", str(file), "--density", "70", "--seconds", "1", "--backend", "numpy",
                    "--out", str(tmp_path / "sim"))
     assert res.returncode == 0, res.stderr

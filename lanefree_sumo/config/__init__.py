@@ -41,6 +41,7 @@ from lanefree_sumo.config.validation import (
     check_value,
     config_differences,
     config_to_dict,
+    layered_config,
     merge_config,
     missing_keys,
     nested_overrides,
@@ -57,6 +58,6 @@ __all__ = [
     "ObservationKind", "OnRampConfig",
     "ReplayConfig", "ReportConfig", "RewardConfig", "RewardPreset", "RoadConfig", "ScenarioConfig", "ShieldConfig",
     "SimulationConfig", "SpawnConfig", "TrainConfig", "VehicleClassConfig", "check_value", "config_differences",
-    "config_to_dict", "merge_config", "missing_keys", "nested_overrides", "read_config_file", "validate_config",
-    "validate_density",
+    "config_to_dict", "layered_config", "merge_config", "missing_keys", "nested_overrides", "read_config_file",
+    "validate_config", "validate_density",
 ]

@@ -15,9 +15,11 @@ RoadKind = Literal["ring", "onramp"]
 
 @dataclass
 class OnRampConfig:
-    """The open road with an on-ramp (``road.kind: onramp``; issue 21), laid out after TrafficFluid-Sim's
-    on/off-ramp example: a straight main road ``road.width_m`` wide, and beside its right edge an
-    acceleration lane whose last ``merge_m`` are the merge zone, where its usable width closes."""
+    """The open road with an on-ramp (``road.kind: onramp``).
+
+    Laid out after TrafficFluid-Sim's on/off-ramp example: a straight main road ``road.width_m`` wide,
+    and beside its right edge an acceleration lane whose last ``merge_m`` are the merge zone, where its
+    usable width closes."""
 
     upstream_m: float = field(default=1000.0, metadata={"range": (50.0, 20_000.0)})
     """Main road before the ramp, where the entering traffic settles (m)."""

@@ -221,3 +221,17 @@ def read_config_file(path: Path) -> dict[str, Any]:
     if not isinstance(data, Mapping):
         raise ConfigError(f"{path} must hold a mapping of config sections, not a {type(data).__name__}")
     return dict(data)
+
+
+def layered_config(base: Any, config_file: Path | None, options: Sequence[Mapping[str, Any]],
+                   settings: Sequence[tuple[str, Any]]) -> Any:
+    """The one order in which a verb builds its config: ``base`` (the defaults, or a run's config), then the
+    ``--config FILE`` overrides, then each mapping of ``options`` (the verb's options), then every ``--set``
+    KEY=VALUE; validated whole."""
+    cfg = base
+    if config_file is not None:
+        cfg = merge_config(cfg, read_config_file(config_file))
+    for overrides in options:
+        if overrides:
+            cfg = merge_config(cfg, overrides)
+    return validate_config(merge_config(cfg, nested_overrides(settings)))

@@ -26,6 +26,7 @@ import pandas as pd
 
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData
+from lanefree_sumo.experiments.statistics import bootstrap_difference_ci
 
 FZOC, FOC = "fields_zones_overtake_collision", "fields_overtake_collision"
 Key = tuple[str, str, float]
@@ -105,11 +106,8 @@ def difference_ci(a: Sequence[float], b: Sequence[float], resamples: int = 10_00
     x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     if x.size < MIN_RUNS or y.size < MIN_RUNS:
         return (float(x.mean() - y.mean()) if x.size and y.size else math.nan), math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    diffs = (x[rng.integers(0, x.size, (resamples, x.size))].mean(axis=1)
-             - y[rng.integers(0, y.size, (resamples, y.size))].mean(axis=1))
-    low, high = np.quantile(diffs, [(1 - level) / 2, 1 - (1 - level) / 2])
-    return float(x.mean() - y.mean()), float(low), float(high)
+    low, high = bootstrap_difference_ci(list(x), list(y), level, resamples, seed)
+    return float(x.mean() - y.mean()), low, high
 
 
 def verdict(expect: int, low: float, high: float) -> str:

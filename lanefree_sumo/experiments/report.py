@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import csv
 import math
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,7 +60,7 @@ from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments.curves import CURVE_METRICS, group_label, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData, RunKey
-from lanefree_sumo.experiments.rundir import EPISODES, fresh_output, read_config
+from lanefree_sumo.experiments.rundir import EPISODES, check_writable, fresh_output, read_config
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
 # -- constants -----------------------------------------------------------------------------------
@@ -314,13 +313,12 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
 
 # -- the report ----------------------------------------------------------------------------------
 
-def _check_writable(out: Path) -> None:
+def _check_writable(folder: Path) -> None:
+    """The run-folder module's writability check of ``folder``, as a ReportError (before any figure is drawn)."""
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".report-probe-"):
-            pass
-    except OSError as exc:
-        raise ReportError(f"cannot write the report to {out}: {_one_line(exc.strerror or exc)}") from None
+        check_writable(folder, folder=True)
+    except RunError as exc:
+        raise ReportError(str(exc)) from None
 
 
 def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, source: str = "") -> ReportResult:

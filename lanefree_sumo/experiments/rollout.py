@@ -27,15 +27,7 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo import argtypes
-from lanefree_sumo.config import (
-    BACKENDS,
-    EvaluationConfig,
-    LaneFreeConfig,
-    merge_config,
-    nested_overrides,
-    read_config_file,
-    validate_config,
-)
+from lanefree_sumo.config import BACKENDS, EvaluationConfig, LaneFreeConfig, layered_config
 from lanefree_sumo.errors import EXIT_INTERRUPTED
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 
@@ -130,9 +122,7 @@ def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
 
         folder = RunDir(args.run)
     base = LaneFreeConfig() if folder is None else folder.load_config()
-    if args.config is not None:
-        base = merge_config(base, read_config_file(args.config))
-    cfg = validate_config(merge_config(merge_config(base, overrides), nested_overrides(args.settings)))
+    cfg = layered_config(base, args.config, [overrides], args.settings)
     if folder is None:
         return cfg, None
     from lanefree_sumo.experiments.evaluate import load_model

@@ -35,7 +35,7 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
-from lanefree_sumo.rl.models import build_model, make_vec_env, total_timesteps, training_config
+from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import spawn
 
 EPISODE_COLUMNS = (
@@ -103,6 +103,19 @@ class EpisodeLog:
 
     def close(self) -> None:
         self._fh.close()
+
+    @staticmethod
+    def missing(path: Path, episodes: int, rows_per_episode: int = 1) -> list[int]:
+        """Episodes among 1..``episodes`` that ``path`` lacks or holds a wrong number of times (each has
+        ``rows_per_episode`` rows: one per agent)."""
+        counts: dict[int, int] = {}
+        if path.exists():
+            with open(path, newline="") as fh:
+                for row in csv.DictReader(fh):
+                    text = (row.get("episode") or "").strip()
+                    if text.isdigit():
+                        counts[int(text)] = counts.get(int(text), 0) + 1
+        return [k for k in range(1, episodes + 1) if counts.get(k, 0) != rows_per_episode]
 
     @staticmethod
     def truncate(path: Path, episodes: int, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
@@ -243,6 +256,16 @@ def _resume_point(folder: RunDir, cfg: LaneFreeConfig, episodes: int | None) -> 
     return ckpt, target
 
 
+def _check_episode_rows(folder: RunDir, done: int, agents: int) -> None:
+    """Refuse to continue a run whose ``episodes.csv`` lacks rows of the checkpoint's episodes (or holds one
+    twice): continuing would hide the gap in every report."""
+    missing = EpisodeLog.missing(folder.episodes, done, agents)
+    if missing:
+        span = f"{missing[0]}" if len(missing) == 1 else f"{missing[0]}–{missing[-1]} ({len(missing)} episodes)"
+        raise RunError(f"{folder.episodes} does not hold episode {span} of the {done} its newest checkpoint "
+                       "has learned (once each); restore the file, or start the run again")
+
+
 def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any) -> Any:
     """The model (and replay buffer) of a checkpoint; RunError naming it when unusable."""
     try:
@@ -321,6 +344,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     try:
         if ckpt is not None:
             model = _load_checkpoint(spec, ckpt, env)  # validated before anything changes
+            _check_episode_rows(folder, done, cfg.scenario.agents)
             EpisodeLog.truncate(folder.episodes, done, episode_columns(cfg))
             if target != cfg.train.episodes:
                 cfg = merge_config(cfg, {"train": {"episodes": target}})
@@ -330,7 +354,9 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
         append_command(folder.path, command)
         log = EpisodeLog(folder.episodes, episode_columns(cfg))
         callback = _make_callback(folder, cfg, log, done, stop, progress)
-        remaining = total_timesteps(cfg) - timesteps
+        # the budget from episodes, not from the checkpoint's timesteps: a checkpoint taken mid-episode
+        # counts steps of an episode the resumed run starts again
+        remaining = (target - done + cfg.train.envs) * cfg.sim.episode_steps * cfg.scenario.agents
         t0 = time.perf_counter()
         model.learn(total_timesteps=remaining, callback=callback, reset_num_timesteps=not resume,
                     tb_log_name="tb", progress_bar=False)

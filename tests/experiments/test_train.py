@@ -178,3 +178,24 @@ def test_a_new_run_stopped_before_its_first_episode_leaves_nothing_behind(tmp_pa
     _, err = again.communicate(timeout=300)
     assert again.returncode == 0, err
     assert len(rows(run / "episodes.csv")) == 1
+
+
+def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_log(tmp_path):
+    """The budget of a resumed run comes from its episodes: a checkpoint whose step count includes part of an
+    unfinished episode (as one taken at Ctrl-C does) still leads to every episode asked for. A log that lacks
+    an episode the checkpoint learned is refused, and left as it is."""
+    run, _ = train(tiny_config("ddpg"), run=tmp_path / "run", progress=False)
+    state = run / "checkpoints" / "ep_00002" / "state.json"
+    saved = json.loads(state.read_text())
+    saved["timesteps"] += 150  # one and a half episodes of 100 steps that were never logged
+    state.write_text(json.dumps(saved))
+    run, done = train(LaneFreeConfig(), run=run, resume=True, episodes=4, progress=False)
+    assert done == 4 and [r["episode"] for r in rows(run / "episodes.csv")] == ["1", "2", "3", "4"]
+
+    log = run / "episodes.csv"
+    kept = [line for line in log.read_text().splitlines(keepends=True) if not line.startswith("2,")]
+    log.write_text("".join(kept))
+    before = log.read_text()
+    with pytest.raises(RunError, match="does not hold episode 2 of the 4"):
+        train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
+    assert log.read_text() == before

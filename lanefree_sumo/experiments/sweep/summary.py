@@ -43,12 +43,11 @@ from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.report import RunData, group_runs, read_run
 from lanefree_sumo.experiments.rundir import RunDir
+from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
 from lanefree_sumo.experiments.sweep.grid import Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
 from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
 
-BOOTSTRAP_RESAMPLES = 10_000
-CI_LEVEL = 0.95
 METRICS = ("collisions", "speed_dev_mps")
 COLUMNS = (
     "algorithm", "reward_preset", "density", "episodes", "n_runs",
@@ -57,19 +56,6 @@ COLUMNS = (
     "paper_collisions", "paper_speed_dev_mps", "collisions_ratio", "speed_dev_mps_ratio",
     "runs_planned", "seeds", "episode_steps", "last_episodes", "reduced_budget", "paper_source",
 )
-
-
-def bootstrap_ci(values: Sequence[float], level: float = CI_LEVEL, resamples: int = BOOTSTRAP_RESAMPLES,
-                 seed: int = 0) -> tuple[float, float]:
-    """Percentile-bootstrap confidence interval of the mean of ``values`` (resampling the values
-    with replacement); (nan, nan) for fewer than 2 values."""
-    x = np.asarray(values, dtype=float)
-    if x.size < 2:
-        return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    means = x[rng.integers(0, x.size, size=(resamples, x.size))].mean(axis=1)
-    low, high = np.quantile(means, [(1 - level) / 2, 1 - (1 - level) / 2])
-    return float(low), float(high)
 
 
 @dataclass
