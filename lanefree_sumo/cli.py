@@ -146,6 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
                     f"layer) (default {DEFAULTS.observation.encoder})")
     tr.add_argument("--envs", type=argtypes.positive(int, "processes"), default=t.envs,
                     help=f"parallel environments, one process each (default {t.envs})")
+    tr.add_argument("--scenario", choices=ROAD_KINDS, default=DEFAULTS.road.kind,
+                    help="ring: the paper's ring; onramp: the open road with an on-ramp, the learning vehicle starting "
+                    "on the ramp (road.onramp.agent_start) with 4 more ego features (its boundaries, on the ramp, "
+                    f"room to the ramp's end) (default {DEFAULTS.road.kind})")
     tr.add_argument("--agents", type=argtypes.positive(int, "vehicles"), default=DEFAULTS.scenario.agents,
                     help="learning vehicles on the ring, on top of the background traffic, all driven and trained "
                     "by one shared policy; episodes.csv gets a row per agent and episode "
@@ -338,6 +342,7 @@ def _train(args: argparse.Namespace) -> int:
             ("train.episodes", ("--episodes",), args.episodes),
             ("train.envs", ("--envs",), args.envs),
             ("scenario.agents", ("--agents",), args.agents),
+            ("road.kind", ("--scenario",), args.scenario),
             ("train.backend", ("--backend",), args.backend),
             ("train.overlap", ("--overlap", "--no-overlap"), args.overlap),
             ("train.checkpoint_every_episodes", ("--checkpoint-every",), args.checkpoint_every),

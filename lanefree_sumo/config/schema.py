@@ -42,6 +42,11 @@ class OnRampConfig:
     merge_lateral_speed_mps: float = field(default=0.5, metadata={"range": (0.0, 5.0)})
     """The lateral speed an unmerged ramp vehicle's target-speed force aims at in the merge zone (m/s;
     elsewhere, and for every other vehicle, 0 as in SPEC §3): the merge rule's intention to merge."""
+    agent_start: Literal["ramp", "main"] = "ramp"
+    """Where a learning vehicle starts: at the ramp's start (the merge task) or on the main road at
+    ``agent_main_start_m`` (pass the merge area)."""
+    agent_main_start_m: float = field(default=700.0, metadata={"range": (5.0, 20_000.0)})
+    """x of a learning vehicle's centre when it starts on the main road (m)."""
     entry_headway_s: float = field(default=1.0, metadata={"range": (0.0, 10.0)})
     """An arrival enters only where every vehicle whose band it would overlap keeps at least
     ``spawn.gap_x_m`` + this time × the entry speed of bumper gap; otherwise it waits (s)."""

@@ -87,6 +87,9 @@ def evaluate(
     out = out or folder.eval_dir(None if d == trained_density else d,
                                  None if cfg.shield.enabled == trained_shield else cfg.shield.enabled)
     check_replaceable(out, overwrite, "evaluate")
+    if record and cfg.road.kind != "ring":
+        raise RunError("--record (for replay) is not available on the on-ramp yet: its vehicles come and go; "
+                       "evaluate without --record")
     model_path = folder.find_model()
     model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset

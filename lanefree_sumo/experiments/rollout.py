@@ -205,5 +205,6 @@ def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed:
         "mean_speed_mps": mean("mean_speed_mps"),
         "boundary_contacts": total("boundary_contacts"),
         "mean_return": mean("return"),
+        **({"merged_share": mean("merged"), "left_road_share": mean("left_road")} if cfg.road.kind == "onramp" else {}),
         "wall_s": wall,
     }

@@ -45,11 +45,14 @@ EPISODE_COLUMNS = (
 )
 MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
 """Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
+ONRAMP_COLUMNS = ("merged", "time_to_merge_s", "left_road")
+"""Added to ``EPISODE_COLUMNS`` in runs on the on-ramp."""
 
 
 def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
     """The columns of a run's ``episodes.csv``."""
-    return EPISODE_COLUMNS + (MULTI_AGENT_COLUMNS if cfg.scenario.agents > 1 else ())
+    return (EPISODE_COLUMNS + (MULTI_AGENT_COLUMNS if cfg.scenario.agents > 1 else ())
+            + (ONRAMP_COLUMNS if cfg.road.kind == "onramp" else ()))
 
 
 # -- provenance ----------------------------------------------------------------------------------
@@ -214,7 +217,8 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
 def run_name(cfg: LaneFreeConfig) -> str:
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     agents = f"_k{cfg.scenario.agents}" if cfg.scenario.agents > 1 else ""
-    return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}_d{cfg.scenario.density_veh_per_km:g}{agents}"
+    road = "_onramp" if cfg.road.kind == "onramp" else ""
+    return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}{road}_d{cfg.scenario.density_veh_per_km:g}{agents}"
             f"_s{cfg.seed}{'_shield' if cfg.shield.enabled else ''}")
 
 

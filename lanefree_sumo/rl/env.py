@@ -35,6 +35,7 @@ from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.simulation import Simulation, StepResult
 
 EGO_FEATURES = 4  # y, vx, vy, v_d
+ONRAMP_FEATURES = 4  # lowest and highest lateral position at the front (/W), on the ramp (0/1), ramp end ahead (/d)
 NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
 # Discrete actions (SPEC §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
 # four combinations.
@@ -52,9 +53,9 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
         cfg = config
     else:
         cfg = merge_config(LaneFreeConfig(), config)
-    if cfg.road.kind != "ring":
-        raise ConfigError(f"learning vehicles drive on the ring only in this version (road.kind = {cfg.road.kind!r}); "
-                          "the on-ramp runs background traffic: lanefree simulate --scenario onramp")
+    if cfg.road.kind != "ring" and (cfg.scenario.agents > 1 or cfg.shield.enabled):
+        raise ConfigError("on the on-ramp one learning vehicle drives, without the shield, in this version "
+                          f"(scenario.agents = {cfg.scenario.agents}, shield.enabled = {cfg.shield.enabled})")
     return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
 
 
@@ -70,22 +71,40 @@ class LearningVehicle:
         self.scales = scales
         self.index = -1
         """This vehicle's row in the simulation state (−1 before the first episode)."""
+        self.vid = ""
+        """Its vehicle id (on an open road rows come and go: the row is looked up by id every step)."""
+        self.open_road = not sim.road.periodic
         self.prev_dx = np.zeros(0)
+        self._prev_ids: list[str] = []
         self.books: dict[str, float] = {}
         self.shield_params: ShieldParams | None = None
 
     def start(self, index: int) -> Any:
         """Begin an episode as row ``index`` of the freshly reset simulation; returns the first observation."""
         self.index = index
+        self.vid = self.sim.current()[0].ids[index]
         self.books = {
             "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
             "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
-            "shield_interventions": 0, "shield_fallbacks": 0,
+            "shield_interventions": 0, "shield_fallbacks": 0, "merged_at_step": -1,
             **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
         }
         obs, _, _ = self.observe()
         self.prev_dx = self.sim.current()[1][0][self.index].copy()
+        self._prev_ids = self.sim.current()[0].ids
         return obs
+
+    def follow(self) -> None:
+        """On an open road: find this vehicle's row again (rows before it leave the road) and line the previous
+        step's offsets up with the current rows (a vehicle that just entered has none: no overtake)."""
+        state = self.sim.current()[0]
+        if state.ids is self._prev_ids:
+            return
+        self.index = state.ids.index(self.vid)
+        previous = dict(zip(self._prev_ids, self.prev_dx))
+        now = self.sim.current()[1][0][self.index]
+        self.prev_dx = np.array([previous.get(vid, d) for vid, d in zip(state.ids, now)])
+        self._prev_ids = state.ids
 
     def shield(self, ax: float, ay: float) -> ShieldDecision | None:
         """The shield's decision on the policy's (ax, ay) (m/s²), None when the shield is off."""
@@ -99,9 +118,12 @@ class LearningVehicle:
               agents: np.ndarray) -> tuple[Any, float, bool, dict[str, Any]]:
         """After a simulation step: (observation, reward, collided, info) of this vehicle, its books updated.
         ``agents``: the rows of every agent vehicle (collisions with them are also counted apart)."""
+        if self.open_road:
+            self.follow()
         (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self.index, self.cfg
         obs, idx, observed = self.observe()
         dx_row = dx_all[a]
+        lo, hi = self.lateral_bounds()
 
         new_pairs = result.new_collisions
         mine = (new_pairs == a).any(axis=1) if len(new_pairs) else np.zeros(0, dtype=bool)
@@ -113,10 +135,11 @@ class LearningVehicle:
         passes = detect_overtakes(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
         self.prev_dx = dx_row.copy()
 
+        # the zones and the lateral cost live within this vehicle's boundaries: [lo, hi] as [0, hi − lo]
         terms = compute_reward(
             dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
-            state.width[idx], float(state.y[a]), float(state.vx[a]), float(state.vy[a]),
-            float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), cfg.road.width_m,
+            state.width[idx], float(state.y[a]) - lo, float(state.vx[a]), float(state.vy[a]),
+            float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), hi - lo,
             self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
             config=cfg.reward,
         )
@@ -141,6 +164,8 @@ class LearningVehicle:
         b["sum_reward"] += reward
         b["shield_interventions"] += intervened
         b["shield_fallbacks"] += decision is not None and not decision.certified
+        if self.open_road and b["merged_at_step"] < 0 and not self.sim.on_ramp[a]:
+            b["merged_at_step"] = self.sim.steps
         info: dict[str, Any] = {
             **terms.as_dict(),
             "overtakes": passes,
@@ -154,6 +179,29 @@ class LearningVehicle:
         }
         return obs, float(reward), collided, info
 
+    def lateral_bounds(self) -> tuple[float, float]:
+        """(lowest, highest) lateral position this vehicle's body may reach at its front now (m): 0 and W on
+        the ring."""
+        if not self.open_road:
+            return 0.0, self.cfg.road.width_m
+        state, a = self.sim.current()[0], self.index
+        lo, hi = self.sim.road.bounds(state.x[a:a + 1] + 0.5 * state.length[a:a + 1], self.sim.on_ramp[a:a + 1])
+        return float(np.asarray(lo).ravel()[0]), float(np.asarray(hi).ravel()[0])
+
+    def left_road(self) -> bool:
+        """On an open road: this vehicle's centre passed the road's end."""
+        return self.open_road and float(self.sim.current()[0].x[self.index]) >= self.sim.road.length_m
+
+    def _road_features(self) -> np.ndarray:
+        """The on-ramp's ego features (module constants): the boundaries at the front (/W), on the ramp (0/1),
+        and the room to the ramp's end ahead of the front (/d, 1 when merged or beyond d)."""
+        state, a, road = self.sim.current()[0], self.index, self.sim.road
+        lo, hi = self.lateral_bounds()
+        on_ramp = bool(self.sim.on_ramp[a])
+        room = road.ramp_end_m - (float(state.x[a]) + 0.5 * float(state.length[a]))
+        ahead = min(max(room / self.cfg.observation.range_m, 0.0), 1.0) if on_ramp else 1.0
+        return np.array([lo / road.width_m, hi / road.width_m, float(on_ramp), ahead])
+
     def observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
         """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
         (state, (dx_all, dy_all)), a, o = self.sim.current(), self.index, self.cfg.observation
@@ -164,6 +212,8 @@ class LearningVehicle:
         idx = np.flatnonzero(in_range)
         order = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")]
         ego = np.array([state.y[a], state.vx[a], state.vy[a], state.v_desired[a]]) / self.scales[0]
+        if self.open_road:
+            ego = np.concatenate([ego, self._road_features()])
         observed = order[: o.n_neighbours]
         if o.kind == "vector":
             rows = np.empty((o.n_neighbours, NEIGHBOUR_FEATURES))
@@ -206,7 +256,17 @@ class LearningVehicle:
             "seed": seed,
             "reward_preset": self.cfg.reward.preset,
             "wall_s": time.perf_counter() - b["t0"],
+            **(self._onramp_metrics() if self.open_road else {}),
         }
+
+    def _onramp_metrics(self) -> dict[str, Any]:
+        """The on-ramp's episode metrics: merged (a ramp start whose body reached the main road), the time it
+        took (s; NaN when it did not, or started on the main road) and whether it left the road at its end."""
+        merged_at = self.books["merged_at_step"]
+        from_ramp = self.cfg.road.onramp.agent_start == "ramp"
+        return {"merged": bool(from_ramp and merged_at >= 0),
+                "time_to_merge_s": merged_at * self.cfg.sim.step_s if from_ramp and merged_at >= 0 else float("nan"),
+                "left_road": self.left_road()}
 
 
 def feature_scales(cfg: LaneFreeConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -218,15 +278,20 @@ def feature_scales(cfg: LaneFreeConfig) -> tuple[np.ndarray, np.ndarray]:
     return np.array([w, v, vy, v]), np.array([o.range_m, w, v, vy])
 
 
+def ego_features(cfg: LaneFreeConfig) -> int:
+    """How many ego features an observation has: 4, and 4 more on the on-ramp."""
+    return EGO_FEATURES + (ONRAMP_FEATURES if cfg.road.kind != "ring" else 0)
+
+
 def observation_space(cfg: LaneFreeConfig) -> spaces.Space:
     """A learning vehicle's observation space: a vector, or a dict of ego features and a padded table."""
     obs_cfg = cfg.observation
-    n_feat = EGO_FEATURES + NEIGHBOUR_FEATURES * obs_cfg.n_neighbours
+    n_feat = ego_features(cfg) + NEIGHBOUR_FEATURES * obs_cfg.n_neighbours
     if obs_cfg.kind == "vector":
         return spaces.Box(-np.inf, np.inf, (n_feat,), np.float32)
     return spaces.Dict(
         {
-            "ego": spaces.Box(-np.inf, np.inf, (EGO_FEATURES,), np.float32),
+            "ego": spaces.Box(-np.inf, np.inf, (ego_features(cfg),), np.float32),
             "others": spaces.Box(-np.inf, np.inf, (obs_cfg.max_rows, NEIGHBOUR_FEATURES + 1), np.float32),
         }
     )
@@ -320,7 +385,7 @@ class LaneFreeEnv(gym.Env):
         result = self.sim.step((ax, ay))
         t0 = time.perf_counter()
         obs, reward, collided, info = self.vehicle.score(result, ax, ay, decision, np.array([self._agent]))
-        terminated = bool(self.cfg.episode.terminate_on_collision and collided)
+        terminated = bool(self.cfg.episode.terminate_on_collision and collided) or self.vehicle.left_road()
         truncated = self.sim.steps >= self.cfg.sim.episode_steps
         if terminated or truncated:
             info["episode_metrics"] = self.episode_metrics()

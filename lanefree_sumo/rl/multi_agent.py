@@ -31,7 +31,7 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.config import ConfigError, LaneFreeConfig
 from lanefree_sumo.rl.env import (
     LearningVehicle,
     action_space,
@@ -54,6 +54,9 @@ class LaneFreeParallelEnv(ParallelEnv):
         if render_mode is not None:
             raise ValueError("the lane-free ring renders through sumo-gui: pass config={'gui': True} instead")
         self.cfg = resolve_config(config)
+        if self.cfg.road.kind != "ring":
+            raise ConfigError("the multi-agent environment runs on the ring in this version; the on-ramp takes one "
+                              "learning vehicle (LaneFree-v0 with road.kind: onramp)")
         self.render_mode = None
         self.sim = Simulation(self.cfg)
         self.possible_agents: list[str] = [agent_id(i) for i in range(self.cfg.scenario.agents)]

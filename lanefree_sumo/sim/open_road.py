@@ -33,6 +33,7 @@ import numpy as np
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.sim.forces import edge_bound
 from lanefree_sumo.sim.road import Road
+from lanefree_sumo.sim.spawn import AGENT_ID
 from lanefree_sumo.sim.state import VehicleState
 
 LATERAL_SLOTS = 5
@@ -105,12 +106,35 @@ class OpenRoadTraffic:
         return np.where(merging, self.cfg.road.onramp.merge_lateral_speed_mps, 0.0)
 
     def end_wall(self, state: VehicleState, on_ramp: np.ndarray, ax: np.ndarray) -> np.ndarray:
-        """``ax`` (m/s²) capped for unmerged ramp vehicles so that they can stop before the ramp's end."""
+        """``ax`` (m/s²) capped for unmerged ramp vehicles (agents too: the ramp's lane ends there, and SUMO
+        stops a vehicle at a lane's end) so that they can stop before the ramp's end."""
         if not on_ramp.any():
             return ax
         room = np.maximum(0.0, self.road.ramp_end_m - RAMP_END_MARGIN_M - (state.x + 0.5 * state.length))
         cap = edge_bound(state.vx, room, self.cfg.sim.step_s, self.cfg.scenario.driver.bounds.ax_min)
-        return np.where(on_ramp & state.controlled, np.minimum(ax, cap), ax)
+        return np.where(on_ramp, np.minimum(ax, cap), ax)
+
+    def agent_start(self, background: VehicleState) -> tuple[VehicleState, bool]:
+        """The learning vehicle's row at its start (``road.onramp.agent_start``: the ramp's start, in its
+        middle, at the ramp's entry speed; or the main road at ``agent_main_start_m``, at the main road's
+        entry speed, in the lateral slot farthest from every background vehicle near it) and whether it
+        starts on the ramp. Background vehicles overlapping its start are not moved: the start is chosen
+        where they are not (the main road), or the ramp, which starts empty."""
+        sc, o = self.cfg.scenario, self.cfg.road.onramp
+        length, width = sc.agent.length_m, sc.agent.width_m
+        if o.agent_start == "ramp":
+            x, y, speed = self.road.ramp_start_m + 0.5 * length, -0.5 * self.road.ramp_width_m, o.ramp_entry_speed_mps
+        else:
+            x, speed = o.agent_main_start_m, o.main_entry_speed_mps
+            clear = self.cfg.sim.edge_clearance_m + 0.5 * sc.spawn.gap_y_m
+            slots = np.linspace(0.5 * width + clear, self.road.width_m - 0.5 * width - clear, LATERAL_SLOTS)
+            near = np.abs(background.x - x) < 0.5 * (background.length + length) + sc.spawn.gap_x_m
+            clearance = [np.min(np.abs(background.y[near] - s), initial=np.inf) for s in slots]
+            y = float(slots[int(np.argmax(clearance))])
+        row = VehicleState([AGENT_ID], np.array([x]), np.array([y]), np.array([speed]), np.zeros(1),
+                           np.array([length]), np.array([width]), np.array([sc.agent.desired_speed_min_mps]),
+                           np.zeros(1, dtype=bool))
+        return row, o.agent_start == "ramp"
 
     def arrivals(self, state: VehicleState) -> tuple[VehicleState, np.ndarray]:
         """This step's new vehicles (at most one per source: the first in its queue, where it fits) and

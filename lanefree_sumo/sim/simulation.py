@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, validate_config
+from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config, validate_config
 from lanefree_sumo.sim.backends.numpy import Backend, NumpyBackend, OpenRoadNumpyBackend
 from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
@@ -105,9 +105,16 @@ class Simulation:
         """Spawn a new random traffic state (reproducible for a seed) and place it."""
         seed = self.cfg.seed if seed is None else seed
         rng = np.random.default_rng(seed)
-        if self.traffic is not None:
-            self.traffic.reset(seed)
-        return self.place(spawn(self.cfg, rng))
+        if self.traffic is None:
+            return self.place(spawn(self.cfg, rng))
+        self.traffic.reset(seed)
+        background = spawn(merge_config(self.cfg, {"scenario": {"with_agent": False}}), rng)
+        if not self.cfg.scenario.with_agent:
+            return self.place(background)
+        agent, on_ramp = self.traffic.agent_start(background)
+        state = self.place(append_rows(background, agent))
+        self.on_ramp[-1] = on_ramp
+        return state
 
     def place(self, state: VehicleState) -> VehicleState:
         """Start an episode from ``state`` as given (the vehicles at its positions and speeds); ``reset``
@@ -128,7 +135,7 @@ class Simulation:
         the state, the backend and the books; the new vehicles take part in the step."""
         state, backend, traffic = self.state, self.backend, self.traffic
         assert state is not None and backend is not None and traffic is not None
-        leaving = traffic.leaving(state)
+        leaving = traffic.leaving(state) & state.controlled  # an agent's episode ends when it leaves
         if leaving.any():
             keep = ~leaving
             traffic.counts.left += int(leaving.sum())
@@ -168,8 +175,6 @@ class Simulation:
             cfg.sim.edge_clearance_m, self.offsets, self.force_details, bounds=bounds,
             lateral_target=0.0 if self.traffic is None else self.traffic.lateral_target(state, self.on_ramp),
         )
-        if self.traffic is not None:
-            ax = self.traffic.end_wall(state, self.on_ramp, ax)
         if not state.controlled.all():
             agents = np.flatnonzero(~state.controlled)
             if agent_accel is None:
@@ -183,7 +188,9 @@ class Simulation:
                     float(agent_ax), float(agent_ay), cfg.scenario.agent_bounds, float(state.vx[agent]),
                     cfg.scenario.agent_max_speed_mps, cfg.sim.step_s,
                 )
-        if self.traffic is not None:  # the dynamics clip at the boundaries where each front will be
+        if self.traffic is not None:
+            ax = self.traffic.end_wall(state, self.on_ramp, ax)  # the ramp's lane ends: for agents too
+            # the dynamics clip at the boundaries where each front will be
             front = state.x + 0.5 * state.length
             travel = ballistic_distance(state.vx, np.maximum(state.vx + ax * cfg.sim.step_s, 0.0), cfg.sim.step_s)
             bounds = self.road.bounds(front + travel, self.on_ramp)

@@ -391,15 +391,15 @@ class OnRampSumoBackend(SumoBackend):
         return VTYPE_AGENT if is_agent_id(vid) else background_vtype(v_desired, self.cfg)
 
     def reset(self, state: VehicleState) -> None:
-        """Remove all vehicles and place ``state``'s (on the main road) at their exact positions and speeds."""
+        """Remove all vehicles and place ``state``'s at their exact positions and speeds."""
         v = self._conn.vehicle
         try:
             for vid in v.getIDList():
                 v.remove(vid)
             places = [self._where(float(x), float(y)) for x, y in zip(state.x, state.y)]
             for i, (vid, (edge, lane, pos, _)) in enumerate(zip(state.ids, places)):
-                v.add(vid, ROUTE_MAIN, self._vtype(vid, float(state.v_desired[i])), depart="now",
-                      departSpeed=repr(float(state.vx[i])))
+                v.add(vid, ROUTE_RAMP if (edge, lane) == ("merge", 0) else ROUTE_MAIN,
+                      self._vtype(vid, float(state.v_desired[i])), depart="now", departSpeed=repr(float(state.vx[i])))
                 v.setSpeedMode(vid, 0)
                 v.setLaneChangeMode(vid, 0)
                 v.moveTo(vid, f"{edge}_{lane}", pos)

@@ -1,0 +1,98 @@
+"""A learning vehicle on the on-ramp: the checkers, SUMO and numpy alike, merging and leaving, training."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+from lanefree_sumo.config import ConfigError
+from lanefree_sumo.rl.env import LaneFreeEnv
+from lanefree_sumo.rl.multi_agent import parallel_env
+
+from conftest import lanefree
+
+ONRAMP = {"backend": "numpy", "road": {"kind": "onramp"}, "scenario": {"density_veh_per_km": 20}}
+
+
+@pytest.mark.parametrize("kind", ["vector", "set"])
+def test_gymnasium_and_sb3_checkers_pass(kind):
+    env = LaneFreeEnv({**ONRAMP, "observation": {"kind": kind}})
+    gym_check_env(env, skip_render_check=True)
+    sb3_check_env(env, warn=False)
+    env.close()
+
+
+def _episode(backend: str, start: str, actions: np.ndarray) -> list:
+    env = LaneFreeEnv({**ONRAMP, "backend": backend, "road": {"kind": "onramp", "onramp": {"agent_start": start}}})
+    obs, _ = env.reset(seed=8)
+    steps = [obs]
+    try:
+        for action in actions:
+            out = env.step(action)
+            steps.append(out)
+            if out[2] or out[3]:
+                break
+    finally:
+        env.close()
+    return steps
+
+
+@pytest.mark.sumo
+def test_numpy_gives_sumos_on_ramp_episode_with_the_agent():
+    actions = np.random.default_rng(1).uniform(-0.3, 1.0, (300, 2)).astype(np.float32)
+    numpy_steps, sumo_steps = _episode("numpy", "ramp", actions), _episode("libsumo", "ramp", actions)
+    assert len(numpy_steps) == len(sumo_steps) > 100
+    assert np.array_equal(numpy_steps[0], sumo_steps[0])
+    for mine, theirs in zip(numpy_steps[1:], sumo_steps[1:]):
+        assert np.array_equal(mine[0], theirs[0]) and mine[1:4] == theirs[1:4]
+        mine_info, their_info = dict(mine[4]), dict(theirs[4])
+        mine_metrics, their_metrics = mine_info.pop("episode_metrics", None), their_info.pop("episode_metrics", None)
+        assert mine_info == their_info
+        if mine_metrics is not None:
+            mine_metrics.pop("wall_s"), their_metrics.pop("wall_s")
+            assert mine_metrics == their_metrics
+
+
+def test_a_merging_agent_merges_and_leaves_the_road_and_an_idle_one_stops_at_the_ramps_end():
+    steer_left = np.tile(np.array([0.2, 0.3], dtype=np.float32), (800, 1))
+    steps = _episode("numpy", "ramp", steer_left)
+    obs, _, terminated, truncated, info = steps[-1]
+    metrics = info["episode_metrics"]
+    assert terminated and not truncated and metrics["left_road"]
+    assert metrics["merged"] and 0 < metrics["time_to_merge_s"] < 60
+    assert obs.shape == (4 + 4 + 4 * 5,) and obs[6] == 0.0 and obs[7] == 1.0  # merged: not on the ramp
+
+    idle = _episode("numpy", "ramp", np.zeros((400, 2), dtype=np.float32))
+    first, last = idle[0], idle[-1][0]
+    assert first[6] == 1.0 and first[4] * 10.2 == pytest.approx(-3.0)  # on the ramp, its lower boundary
+    assert not idle[-1][2]  # it did not leave: it stopped at the ramp's end
+    assert last[1] * 25.0 < 1.0  # vx (scaled by 25 m/s) near 0
+
+    main = _episode("numpy", "main", np.zeros((800, 2), dtype=np.float32))
+    metrics = main[-1][4]["episode_metrics"]
+    assert metrics["left_road"] and not metrics["merged"] and np.isnan(metrics["time_to_merge_s"])
+
+
+def test_what_the_on_ramp_does_not_take_yet_is_refused():
+    with pytest.raises(ConfigError, match="one learning vehicle"):
+        LaneFreeEnv({**ONRAMP, "shield": {"enabled": True}})
+    with pytest.raises(ConfigError, match="one learning vehicle"):
+        parallel_env({**ONRAMP, "scenario": {"agents": 2}})
+
+
+def test_train_scenario_onramp_writes_the_merge_metrics(tmp_path):
+    run = tmp_path / "run"
+    res = lanefree("train", "--scenario", "onramp", "--density", "20", "--episodes", "2", "--episode-steps", "120",
+                   "--out", str(run), "--set", "train.actor_critic.learning_starts_steps=60")
+    assert res.returncode == 0, res.stderr
+    with open(run / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 and {"merged", "time_to_merge_s", "left_road"} <= set(rows[0])
+    res = lanefree("evaluate", str(run), "--episodes", "1", "--record")
+    assert res.returncode == 2 and "not available on the on-ramp" in res.stderr
+    res = lanefree("evaluate", str(run), "--episodes", "1")
+    assert res.returncode == 0, res.stderr
