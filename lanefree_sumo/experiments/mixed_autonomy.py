@@ -1,9 +1,11 @@
 """``lanefree mixed-autonomy RUN``: the whole ring when some of its vehicles drive by a trained shared policy.
 
-The ring holds ``--vehicles`` N vehicles (default: RUN's density × the ring length, 45 at 90 veh/km); for each
+The ring holds ``--vehicles`` N vehicles (default: RUN's density × the ring length plus RUN's agents: 45 + 1
+for a one-agent run at 90 veh/km); for each
 k of ``--agents`` (default 0, 2, 5, 10), k of them are replaced by agents driven by RUN's policy
 (deterministic; one shared policy, so a run trained with any number of agents drives any k) and N − k stay
-background vehicles of the force model. k = 0 is the background traffic alone. Every k runs the same
+background vehicles of the force model. A collision does not end an episode here (``terminate_on_collision``
+is switched off for the measurement). k = 0 is the background traffic alone. Every k runs the same
 ``--episodes`` traffic seeds (RUN's seed + the evaluation offset + episode).
 
 Per episode, of the whole ring: ``ring_collisions`` (collision events between any two vehicles),
@@ -98,8 +100,10 @@ def setting(cfg: LaneFreeConfig, vehicles: int, agents: int) -> LaneFreeConfig:
     density = (vehicles - agents) * 1000.0 / cfg.road.length_m
     if agents == vehicles:
         raise RunError("at least one background vehicle stays on the ring; use fewer --agents or more --vehicles")
+    # a measurement of the whole ring over a fixed time: a collision does not end it
     return merge_config(cfg, {"scenario": {"density_veh_per_km": density, "with_agent": agents > 0,
-                                           "agents": max(agents, 1)}})
+                                           "agents": max(agents, 1)},
+                              "episode": {"terminate_on_collision": False}})
 
 
 def measure(run_path: Path, counts: Sequence[int], vehicles: int | None, episodes: int, out: Path | None,
@@ -110,6 +114,9 @@ def measure(run_path: Path, counts: Sequence[int], vehicles: int | None, episode
 
     folder = RunDir(run_path)
     cfg = folder.load_config()
+    if cfg.road.kind != "ring":
+        raise RunError(f"{run_path} was trained on the {cfg.road.kind}; the mixed-autonomy measurement runs on "
+                       "the ring")
     n = vehicles if vehicles is not None else cfg.background_vehicles + cfg.scenario.agents
     settings = [setting(cfg, n, k) for k in counts]  # every k checked before anything runs
     out = out or folder.path / MIXED_AUTONOMY

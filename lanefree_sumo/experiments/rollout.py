@@ -177,8 +177,7 @@ def _episodes(driver: Any, policy: str, episodes: int, seed: int, model: Any, ro
 
 
 def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed: int, wall: float) -> dict[str, Any]:
-    n = len(rows)
-    """Agent-episodes: with several agents each episode counts once per agent."""
+    n = len(rows)  # agent-episodes: with several agents each episode counts once per agent
 
     def total(key: str) -> int:
         return int(sum(r[key] for r in rows))
@@ -197,7 +196,7 @@ def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed:
         "collisions": total("collisions"),
         "collisions_per_episode": total("collisions") / n if n else float("nan"),
         "collision_steps": total("collision_steps"),
-        "background_collisions": total("background_collisions"),
+        "background_collisions": total("background_collisions") // cfg.scenario.agents,  # every agent's row has it
         "shield_interventions": total("shield_interventions"),
         "shield_interventions_per_episode": total("shield_interventions") / n if n else float("nan"),
         "shield_fallbacks_per_episode": total("shield_fallbacks") / n if n else float("nan"),

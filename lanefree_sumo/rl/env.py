@@ -53,9 +53,9 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
         cfg = config
     else:
         cfg = merge_config(LaneFreeConfig(), config)
-    if cfg.road.kind != "ring" and (cfg.scenario.agents > 1 or cfg.shield.enabled):
-        raise ConfigError("on the on-ramp one learning vehicle drives, without the shield, in this version "
-                          f"(scenario.agents = {cfg.scenario.agents}, shield.enabled = {cfg.shield.enabled})")
+    if cfg.road.kind != "ring" and cfg.scenario.agents > 1:
+        raise ConfigError("on the on-ramp one learning vehicle drives in this version "
+                          f"(scenario.agents = {cfg.scenario.agents})")
     return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
 
 
@@ -112,14 +112,22 @@ class LearningVehicle:
             return None
         if self.shield_params is None:
             self.shield_params = ShieldParams.from_config(self.cfg)
-        return shield_action(self.index, self.sim.current()[0], ax, ay, self.shield_params)
+        state = self.sim.current()[0]
+        if not self.open_road:
+            return shield_action(self.index, state, ax, ay, self.shield_params)
+        self.follow()  # the shield acts before the step: this vehicle's row in the state it sees
+        bounds = self.sim.road.bounds(state.x + 0.5 * state.length, self.sim.on_ramp)
+        return shield_action(self.index, state, ax, ay, self.shield_params, bounds)
 
     def score(self, result: StepResult, ax: float, ay: float, decision: ShieldDecision | None,
-              agents: np.ndarray) -> tuple[Any, float, bool, dict[str, Any]]:
+              agents: np.ndarray | None = None) -> tuple[Any, float, bool, dict[str, Any]]:
         """After a simulation step: (observation, reward, collided, info) of this vehicle, its books updated.
-        ``agents``: the rows of every agent vehicle (collisions with them are also counted apart)."""
+        ``agents``: the rows of every agent vehicle (collisions with them are also counted apart); None:
+        this vehicle alone (its row as of after the step)."""
         if self.open_road:
             self.follow()
+        if agents is None:
+            agents = np.array([self.index])
         (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self.index, self.cfg
         obs, idx, observed = self.observe()
         dx_row = dx_all[a]
@@ -331,7 +339,8 @@ class LaneFreeEnv(gym.Env):
 
     ``config``: a :class:`~lanefree_sumo.config.LaneFreeConfig` or a nested dict of overrides.
     Episodes last ``sim.episode_steps`` steps and end by truncation; collisions end them only
-    with ``episode.terminate_on_collision``.  ``reset(seed=...)`` is reproducible.
+    with ``episode.terminate_on_collision``; on the on-ramp (``road.kind``) leaving the road ends them
+    (terminated).  ``reset(seed=...)`` is reproducible.
     """
 
     metadata = {"render_modes": []}
@@ -384,7 +393,7 @@ class LaneFreeEnv(gym.Env):
         self.env_seconds += time.perf_counter() - t0
         result = self.sim.step((ax, ay))
         t0 = time.perf_counter()
-        obs, reward, collided, info = self.vehicle.score(result, ax, ay, decision, np.array([self._agent]))
+        obs, reward, collided, info = self.vehicle.score(result, ax, ay, decision)
         terminated = bool(self.cfg.episode.terminate_on_collision and collided) or self.vehicle.left_road()
         truncated = self.sim.steps >= self.cfg.sim.episode_steps
         if terminated or truncated:

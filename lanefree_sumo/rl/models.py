@@ -38,6 +38,9 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     if base.scenario.agents > 1 and (t.envs > 1 or t.overlap):
         raise ConfigError(f"--agents {base.scenario.agents} trains one shared policy in one simulation: "
                           "use --envs 1 and no --overlap with it")
+    from lanefree_sumo.rl.env import resolve_config
+
+    resolve_config(base)  # what the environments would refuse, refused here: not inside their processes
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
     if base.train.envs > most:
         raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
@@ -162,7 +165,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
 
     dq = cfg.train.dqn
     policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
-    decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps / total_timesteps(cfg))
+    decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
     return cls(
         policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,
         gamma=dq.gamma, learning_starts=dq.learning_starts_steps, target_update_interval=dq.target_update_steps,

@@ -81,9 +81,12 @@ import numpy as np
 
 from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, ShieldConfig
 from lanefree_sumo.sim.dynamics import plan_step
+from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.simulation import clip_acceleration
 from lanefree_sumo.sim.state import VehicleState, wrap
 
+Bounds = tuple[np.ndarray | float, np.ndarray | float]
+"""(lowest, highest) lateral position of each vehicle's body (m): arrays over the state's rows, or scalars."""
 _SAME = 1e-9
 """Actions closer than this (m/s²) are the same action: no intervention."""
 _ROUNDING = 1e-9
@@ -122,7 +125,8 @@ class ShieldParams:
     def from_config(cls, cfg: LaneFreeConfig) -> ShieldParams:
         s = cfg.shield
         return cls(
-            cfg.sim.step_s, cfg.road.width_m, cfg.road.length_m, cfg.scenario.agent_bounds, cfg.scenario.driver.bounds,
+            cfg.sim.step_s, cfg.road.width_m, road_of(cfg).wrap_length, cfg.scenario.agent_bounds,
+            cfg.scenario.driver.bounds,
             cfg.scenario.agent_max_speed_mps, s.horizon_s, s.margin_x_m, s.margin_y_m, s.lateral_candidates,
             cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
         )
@@ -226,30 +230,38 @@ def min_speed_ahead(gap: np.ndarray | float, v: float, v_follower: np.ndarray | 
     return np.maximum(np.maximum(-2.0 * g / t, need), 0.0)
 
 
-def reach_band(y: np.ndarray, vy: np.ndarray, width: np.ndarray, params: ShieldParams
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _road_lines(width: np.ndarray | float, params: ShieldParams, bounds: Bounds | None
+                ) -> tuple[np.ndarray | float, np.ndarray | float]:
+    """The lowest and highest centre line (m) of bodies of ``width``: inside the ring's [0, W], or inside
+    ``bounds`` (each vehicle's own, on an open road)."""
+    if bounds is None:
+        return 0.5 * width + params.edge_clearance_m, params.road_width_m - 0.5 * width - params.edge_clearance_m
+    return (bounds[0] + 0.5 * width + params.edge_clearance_m,
+            bounds[1] - 0.5 * width - params.edge_clearance_m)
+
+
+def reach_band(y: np.ndarray, vy: np.ndarray, width: np.ndarray, params: ShieldParams,
+               bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(low, high) edges (m) of the band a body of ``width`` at ``y`` moving laterally at ``vy``
-    can cover within the horizon at the background's lateral bound (inside the road), widened
-    by ``margin_y``."""
+    can cover within the horizon at the background's lateral bound (inside the road: [0, W], or
+    ``bounds`` per vehicle), widened by ``margin_y``."""
     h, a = params.horizon_s, params.background_lateral
     up = np.maximum(0.0, vy * h + 0.5 * a * h * h)
     down = np.maximum(0.0, -vy * h + 0.5 * a * h * h)
-    lo_road = 0.5 * width + params.edge_clearance_m
-    hi_road = params.road_width_m - 0.5 * width - params.edge_clearance_m
+    lo_road, hi_road = _road_lines(width, params, bounds)
     low = np.minimum(np.maximum(y - down, lo_road), y)
     high = np.maximum(np.minimum(y + up, hi_road), y)
     return low - 0.5 * width - params.margin_y_m, high + 0.5 * width + params.margin_y_m
 
 
-def committed_band(y: np.ndarray, vy: np.ndarray, width: float, params: ShieldParams
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def committed_band(y: np.ndarray, vy: np.ndarray, width: float, params: ShieldParams,
+                   bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(low, high) edges (m) of the band the agent's body sweeps from ``y`` if it brakes laterally
-    at ay_b until vy = 0 (inside the road)."""
+    at ay_b until vy = 0 (inside the road: [0, W], or its own ``bounds``)."""
     y = np.asarray(y, dtype=float)
     vy = np.asarray(vy, dtype=float)
     stop = y + np.sign(vy) * stopping_distance(np.abs(vy), params.agent_lateral_brake, params.step_s)
-    lo_road = 0.5 * width + params.edge_clearance_m
-    hi_road = params.road_width_m - 0.5 * width - params.edge_clearance_m
+    lo_road, hi_road = _road_lines(width, params, bounds)
     low = np.minimum(np.maximum(np.minimum(y, stop), lo_road), y)
     high = np.maximum(np.minimum(np.maximum(y, stop), hi_road), y)
     return low - 0.5 * width, high + 0.5 * width
@@ -275,13 +287,23 @@ class _Scene:
     depth_now: np.ndarray
 
 
-def _scene(agent: int, state: VehicleState, params: ShieldParams) -> _Scene:
+def _own(bounds: Bounds | None, rows: np.ndarray | int) -> Bounds | None:
+    """The entries of per-vehicle ``bounds`` at ``rows`` (None stays None: the ring)."""
+    if bounds is None:
+        return None
+    lo, hi = bounds
+    return (lo[rows] if isinstance(lo, np.ndarray) else lo, hi[rows] if isinstance(hi, np.ndarray) else hi)
+
+
+def _scene(agent: int, state: VehicleState, params: ShieldParams, bounds: Bounds | None = None) -> _Scene:
     others = np.arange(state.n) != agent
     dx = wrap(state.x[others] - state.x[agent], params.ring_length_m)
     half_len = 0.5 * (state.length[agent] + state.length[others])
     vx = state.vx[others]
-    reach_lo, reach_hi = reach_band(state.y[others], state.vy[others], state.width[others], params)
-    c_lo, c_hi = committed_band(state.y[agent], state.vy[agent], float(state.width[agent]), params)
+    reach_lo, reach_hi = reach_band(state.y[others], state.vy[others], state.width[others], params,
+                                    _own(bounds, others))
+    c_lo, c_hi = committed_band(state.y[agent], state.vy[agent], float(state.width[agent]), params,
+                                _own(bounds, agent))
     corridor = (c_hi > reach_lo) & (c_lo < reach_hi)
     gap_behind = -dx - half_len
     s_follower = stopping_distance(vx, params.leader_brake, params.step_s)
@@ -303,17 +325,18 @@ def _depth(lo: np.ndarray, hi: np.ndarray, reach_lo: np.ndarray, reach_hi: np.nd
     return np.maximum(np.minimum(hi - reach_lo, reach_hi - lo), 0.0)
 
 
-def _candidate_bands(agent: int, state: VehicleState, ay: np.ndarray, params: ShieldParams
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _candidate_bands(agent: int, state: VehicleState, ay: np.ndarray, params: ShieldParams,
+                     bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Committed bands of the agent after one step with each lateral acceleration in ``ay``."""
     k = len(ay)
     a = agent
+    own = _own(bounds, a)
     cmd = plan_step(
         np.full(k, state.x[a]), np.full(k, state.y[a]), np.full(k, state.vx[a]), np.full(k, state.vy[a]),
         np.full(k, state.width[a]), np.zeros(k), ay, params.step_s, params.road_width_m,
-        params.edge_clearance_m, params.edge_contact_tolerance_m,
+        params.edge_clearance_m, params.edge_contact_tolerance_m, bounds=own,
     )
-    return committed_band(state.y[a] + cmd.dy, cmd.vy_next, float(state.width[a]), params)
+    return committed_band(state.y[a] + cmd.dy, cmd.vy_next, float(state.width[a]), params, own)
 
 
 def _violations(v: float, ax: np.ndarray, corridor: np.ndarray, depth: np.ndarray, scene: _Scene,
@@ -335,9 +358,11 @@ def _violations(v: float, ax: np.ndarray, corridor: np.ndarray, depth: np.ndarra
     return worst.max(axis=1, initial=0.0)
 
 
-def shield_action(agent: int, state: VehicleState, ax: float, ay: float, params: ShieldParams) -> ShieldDecision:
+def shield_action(agent: int, state: VehicleState, ax: float, ay: float, params: ShieldParams,
+                  road_bounds: Bounds | None = None) -> ShieldDecision:
     """The certified (ax, ay) closest to the policy's (m/s²) for the agent in row ``agent`` of
-    ``state``, or the least-violating fallback; see the module docstring for the rules."""
+    ``state``, or the least-violating fallback; see the module docstring for the rules. ``road_bounds``:
+    each vehicle's (lowest, highest) lateral position on an open road (None: the ring's 0 and W)."""
     a, t = agent, params.step_s
     v = float(state.vx[a])
     bounds = params.agent_bounds
@@ -346,8 +371,8 @@ def shield_action(agent: int, state: VehicleState, ax: float, ay: float, params:
     ax_min = min(bounds.ax_min, ax_top)
     stop_vy = float(np.clip(-state.vy[a] / t, bounds.ay_min, bounds.ay_max))
     ay_c = np.concatenate([[ay_p, stop_vy], np.linspace(bounds.ay_min, bounds.ay_max, params.lateral_candidates)])
-    scene = _scene(a, state, params)
-    c_lo, c_hi = _candidate_bands(a, state, ay_c, params)
+    scene = _scene(a, state, params, road_bounds)
+    c_lo, c_hi = _candidate_bands(a, state, ay_c, params, road_bounds)
     corridor = (c_hi[:, None] > scene.reach_lo[None, :]) & (c_lo[:, None] < scene.reach_hi[None, :])
 
     # rule 1: upper bounds on ax; rule 3: lower bounds; rule 2: no side conflict; rule 4: −b_L floor

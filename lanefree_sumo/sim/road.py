@@ -77,6 +77,9 @@ def road_of(cfg: LaneFreeConfig) -> Road:
     if o.merge_m > o.ramp_m:
         raise ConfigError(f"config 'road.onramp.merge_m' = {o.merge_m:g} is longer than the ramp "
                           f"(road.onramp.ramp_m = {o.ramp_m:g}); the merge zone is the ramp's last part")
+    if o.agent_start == "main" and o.agent_main_start_m + cfg.scenario.agent.length_m >= cfg.road.main_length_m:
+        raise ConfigError(f"config 'road.onramp.agent_main_start_m' = {o.agent_main_start_m:g} is not on the main road "
+                          f"(it ends at {cfg.road.main_length_m:g} m)")
     start = o.upstream_m
     return Road("onramp", cfg.road.main_length_m, cfg.road.width_m, ramp_start_m=start,
                 merge_start_m=start + o.ramp_m - o.merge_m, ramp_end_m=start + o.ramp_m, ramp_width_m=o.ramp_width_m)

@@ -273,7 +273,7 @@ def run_simulation(
         "background_collisions": collisions,
         "boundary_contacts": boundary_contacts,
         "mean_speed_mps": speed_sum / done if done else float("nan"),
-        "mean_desired_speed_mps": float(state.v_desired.mean()),
+        "mean_desired_speed_mps": float(state.v_desired.mean()) if state.n else float("nan"),
         "min_lateral_margin_m": min_margin,
         "wall_s": wall,
         "steps_per_s": done / wall if wall > 0 else float("nan"),

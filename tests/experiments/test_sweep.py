@@ -122,6 +122,7 @@ def test_yaml_grid_and_budget_overrides(tmp_path):
     ({**TINY, "seeds": [0, 1]}, "either 'seeds' or 'n_seeds'"),
     ({**TINY, "episodes": 0}, "episodes"),
     ({**TINY, "overrides": {"seed": 3}}, "overrides.seed"),
+    ({**TINY, "overrides": {"scenario": {"agents": 3}}}, "overrides.scenario.agents"),
     ({**TINY, "overrides": {"train": {"episodes": 3}}}, "overrides.train.episodes"),
     ({**TINY, "overrides": {"sim": {"episode_stepz": 3}}}, "sim.episode_stepz"),
     ({"algorithms": ["ddpg"]}, "'reward_presets' is missing"),

@@ -79,9 +79,23 @@ def test_a_merging_agent_merges_and_leaves_the_road_and_an_idle_one_stops_at_the
 
 def test_what_the_on_ramp_does_not_take_yet_is_refused():
     with pytest.raises(ConfigError, match="one learning vehicle"):
-        LaneFreeEnv({**ONRAMP, "shield": {"enabled": True}})
-    with pytest.raises(ConfigError, match="one learning vehicle"):
-        parallel_env({**ONRAMP, "scenario": {"agents": 2}})
+        LaneFreeEnv({**ONRAMP, "scenario": {"agents": 2}})
+    with pytest.raises(ConfigError, match="ring in this version"):
+        parallel_env(ONRAMP)
+
+
+def test_the_shield_keeps_a_random_policy_from_colliding_on_the_on_ramp():
+    """The shield with each vehicle's own boundaries and the open road's offsets: a random policy's
+    collisions on the same traffic (main road 3000 veh/h) with and without it."""
+    from lanefree_sumo.config import LaneFreeConfig, merge_config
+    from lanefree_sumo.experiments.rollout import rollout
+
+    road = {"kind": "onramp", "onramp": {"main_flow_veh_per_h": 3000}}
+    base = merge_config(LaneFreeConfig(), {**ONRAMP, "road": road, "sim": {"episode_steps": 400}})
+    plain = rollout(base, "random", 4, seed=9)
+    shielded = rollout(merge_config(base, {"shield": {"enabled": True}}), "random", 4, seed=9)
+    assert plain["collisions"] > 0 and shielded["shield_interventions"] > 0
+    assert shielded["collisions"] == 0
 
 
 def test_train_scenario_onramp_writes_the_merge_metrics(tmp_path):
@@ -96,3 +110,7 @@ def test_train_scenario_onramp_writes_the_merge_metrics(tmp_path):
     assert res.returncode == 2 and "not available on the on-ramp" in res.stderr
     res = lanefree("evaluate", str(run), "--episodes", "1")
     assert res.returncode == 0, res.stderr
+    res = lanefree("mixed-autonomy", str(run), "--agents", "0,1", "--episodes", "1")
+    assert res.returncode == 2 and "runs on the ring" in res.stderr
+    res = lanefree("train", "--scenario", "onramp", "--agents", "2", "--out", str(tmp_path / "two"))
+    assert res.returncode == 2 and "one learning vehicle" in res.stderr and "Traceback" not in res.stderr

@@ -36,6 +36,8 @@ def test_the_ramps_boundaries_close_in_the_merge_zone():
     assert np.array_equal(wrap(d, OPEN_ROAD_WRAP_M), d)
     with pytest.raises(ConfigError, match="road.onramp.merge_m"):
         road_of(onramp(merge_m=500.0))
+    with pytest.raises(ConfigError, match="agent_main_start_m"):
+        road_of(onramp(agent_start="main", agent_main_start_m=2500.0))
 
 
 def test_the_collision_tracker_follows_rows_leaving_and_entering():

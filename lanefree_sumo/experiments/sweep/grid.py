@@ -298,6 +298,11 @@ def validate_grid(grid: Grid, source: str) -> Grid:
     where = f"grid {source}"
     if not isinstance(grid.overrides, Mapping):
         raise ConfigError(f"{where}: overrides must be a mapping of config keys, got {grid.overrides!r}")
+    agents = grid.overrides.get("scenario", {}).get("agents", 1) if isinstance(grid.overrides.get("scenario"),
+                                                                                   Mapping) else 1
+    if agents != 1:
+        raise ConfigError(f"{where}: overrides.scenario.agents = {agents!r}: sweeps train one learning vehicle per run "
+                          "in this version (use lanefree train --agents K)")
     owned = _owned(grid.overrides)
     if owned:
         raise ConfigError(f"{where}: overrides.{owned[0]} is set by the grid itself "
