@@ -1,7 +1,6 @@
 """``lanefree mixed-autonomy RUN``: the whole ring when some of its vehicles drive by a trained shared policy.
 
-The ring holds ``--vehicles`` N vehicles (default: RUN's density × the ring length plus RUN's agents: 45 + 1
-for a one-agent run at 90 veh/km); for each
+The ring holds ``--vehicles`` N vehicles (default: RUN's density × the ring length: 45 at 90 veh/km); for each
 k of ``--agents`` (default 0, 2, 5, 10), k of them are replaced by agents driven by RUN's policy
 (deterministic; one shared policy, so a run trained with any number of agents drives any k) and N − k stay
 background vehicles of the force model. A collision does not end an episode here (``terminate_on_collision``
@@ -59,7 +58,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--agents", type=_counts, default=DEFAULT_AGENTS, metavar="K,K,…",
                    help=f"numbers of vehicles driven by the policy (default {','.join(map(str, DEFAULT_AGENTS))})")
     p.add_argument("--vehicles", type=argtypes.positive(int, "vehicles"), default=None,
-                   help="vehicles on the ring, agents included (default: RUN's density × ring length)")
+                   help="vehicles on the ring, agents included (default: RUN's density × ring length, 45 at 90 "
+                   "veh/km)")
     p.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=10,
                    help="episodes per k, the same traffic seeds for every k (default 10)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default RUN/mixed_autonomy)")
@@ -117,7 +117,7 @@ def measure(run_path: Path, counts: Sequence[int], vehicles: int | None, episode
     if cfg.road.kind != "ring":
         raise RunError(f"{run_path} was trained on the {cfg.road.kind}; the mixed-autonomy measurement runs on "
                        "the ring")
-    n = vehicles if vehicles is not None else cfg.background_vehicles + cfg.scenario.agents
+    n = vehicles if vehicles is not None else cfg.background_vehicles
     settings = [setting(cfg, n, k) for k in counts]  # every k checked before anything runs
     out = out or folder.path / MIXED_AUTONOMY
     model = load_model(folder, cfg) if any(counts) else None

@@ -79,17 +79,17 @@ def test_evaluate_record_replay_rollout_and_mixed_autonomy(tmp_path):
     assert done.returncode == 0, done.stderr
     measured = rows(run / "mixed_autonomy" / "episodes.csv")
     assert [(r["agents"], r["episode"]) for r in measured] == [("0", "1"), ("0", "2"), ("2", "1"), ("2", "2")]
-    assert {r["vehicles"] for r in measured} == {"38"}  # 35 background + 3 agents of the run, kept fixed
+    assert {r["vehicles"] for r in measured} == {"35"}  # the run's 70 veh/km on 500 m, kept fixed
     assert all(r["agent_collisions"] == "0" for r in measured if r["agents"] == "0")
     speeds = [float(r["mean_speed_mps"]) for r in measured]
     throughput = [float(r["throughput_veh_per_h"]) for r in measured]
-    # flow = density × speed: 38 vehicles on 0.5 km at v m/s cross x = 0 about 76 · 3.6 v times an hour
+    # flow = density × speed: 35 vehicles on 0.5 km at v m/s cross x = 0 about 70 · 3.6 v times an hour
     for v, q in zip(speeds, throughput):
-        assert q == pytest.approx(76 * 3.6 * v, rel=0.25)
+        assert q == pytest.approx(70 * 3.6 * v, rel=0.25)
     assert (run / "mixed_autonomy" / "mixed_autonomy.png").is_file()
     again = lanefree("mixed-autonomy", str(run), "--agents", "0", "--episodes", "1")
     assert again.returncode == 2 and "exists" in again.stderr
-    for args, needle in ((("--agents", "0,0"), "distinct"), (("--agents", "0,40"), "cannot replace 40 of 38"),
+    for args, needle in ((("--agents", "0,0"), "distinct"), (("--agents", "0,40"), "cannot replace 40 of 35"),
                          (("--agents", "x"), "whole numbers")):
         bad = lanefree("mixed-autonomy", str(run), *args, "--overwrite")
         assert bad.returncode == 2 and needle in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr
