@@ -53,9 +53,6 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
         cfg = config
     else:
         cfg = merge_config(LaneFreeConfig(), config)
-    if cfg.road.kind != "ring" and cfg.scenario.agents > 1:
-        raise ConfigError("on the on-ramp one learning vehicle drives in this version "
-                          f"(scenario.agents = {cfg.scenario.agents})")
     return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
 
 

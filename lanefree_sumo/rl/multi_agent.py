@@ -11,9 +11,11 @@ Collisions: each agent's ``episode_metrics`` count the collisions it took part i
 of them with another agent (``agent_collisions``) and the collisions among background vehicles only
 (``background_collisions``, the same for every agent).
 
-Episodes end for every agent at once: by truncation after ``sim.episode_steps`` steps, or — with
-``episode.terminate_on_collision`` — when any agent collides (the ring has no exit, so an agent that is
-done cannot leave the road; the project's choice, see the interpretation table).
+On the ring episodes end for every agent at once: by truncation after ``sim.episode_steps`` steps, or —
+with ``episode.terminate_on_collision`` — when any agent collides (the ring has no exit, so an agent that
+is done cannot leave the road; the project's choice, see the interpretation table). On the on-ramp
+(``road.kind: onramp``) an agent whose centre passes the road's end is done (terminated) and taken off
+the road, and leaves ``agents`` as PettingZoo's rules for done agents say; the others go on.
 
 :class:`SharedPolicyVecEnv` shows the k agents to Stable-Baselines3 as a ``VecEnv`` of k environments, so
 one learner trains one policy on every agent's transitions (parameter sharing; ``lanefree train --agents K``).
@@ -31,7 +33,7 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from lanefree_sumo.config import ConfigError, LaneFreeConfig
+from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.rl.env import (
     LearningVehicle,
     action_space,
@@ -54,9 +56,6 @@ class LaneFreeParallelEnv(ParallelEnv):
         if render_mode is not None:
             raise ValueError("the lane-free ring renders through sumo-gui: pass config={'gui': True} instead")
         self.cfg = resolve_config(config)
-        if self.cfg.road.kind != "ring":
-            raise ConfigError("the multi-agent environment runs on the ring in this version; the on-ramp takes one "
-                              "learning vehicle (LaneFree-v0 with road.kind: onramp)")
         self.render_mode = None
         self.sim = Simulation(self.cfg)
         self.possible_agents: list[str] = [agent_id(i) for i in range(self.cfg.scenario.agents)]
@@ -95,8 +94,11 @@ class LaneFreeParallelEnv(ParallelEnv):
 
     @property
     def agent_rows(self) -> np.ndarray:
-        """The agents' rows in the simulation state, in the order of ``possible_agents``."""
-        return self._rows
+        """The live agents' rows in the simulation state, in the order of ``agents``."""
+        if self.sim.road.periodic:
+            return self._rows
+        ids = self.sim.current()[0].ids
+        return np.array([ids.index(self.vehicles[name].vid) for name in self.agents], dtype=int)
 
     def step(self, actions: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, float], dict[str, bool],
                                                           dict[str, bool], dict[str, dict]]:
@@ -124,20 +126,22 @@ class LaneFreeParallelEnv(ParallelEnv):
         t0 = time.perf_counter()
         observations, rewards, infos = {}, {}, {}
         any_collided = False
+        rows = self.agent_rows  # after the step (on an open road rows come and go)
         for k, name in enumerate(self.agents):
             obs, reward, collided, info = self.vehicles[name].score(
-                result, float(commands[k, 0]), float(commands[k, 1]), decisions[k], self._rows)
+                result, float(commands[k, 0]), float(commands[k, 1]), decisions[k], rows)
             observations[name], rewards[name], infos[name] = obs, reward, info
             any_collided |= collided
-        terminated = bool(self.cfg.episode.terminate_on_collision and any_collided)
+        crashed = bool(self.cfg.episode.terminate_on_collision and any_collided)
         truncated = self.sim.steps >= self.cfg.sim.episode_steps
-        if terminated or truncated:
-            for name in self.agents:
-                infos[name]["episode_metrics"] = self.episode_metrics(name)
-        terminations = dict.fromkeys(self.agents, terminated)
-        truncations = dict.fromkeys(self.agents, truncated and not terminated)
-        if terminated or truncated:
-            self.agents = []
+        terminations = {name: crashed or self.vehicles[name].left_road() for name in self.agents}
+        truncations = {name: truncated and not terminations[name] for name in self.agents}
+        ended = [name for name in self.agents if terminations[name] or truncations[name]]
+        for name in ended:
+            infos[name]["episode_metrics"] = self.episode_metrics(name)
+        self.agents = [name for name in self.agents if name not in ended]
+        if ended and not self.sim.road.periodic:  # on an open road agents that are done are taken off it
+            self.sim.remove([self.vehicles[name].vid for name in ended])
         self.env_seconds += time.perf_counter() - t0
         return observations, rewards, terminations, truncations, infos
 
@@ -167,9 +171,11 @@ class SharedPolicyVecEnv(VecEnv):
     """The agents of a :class:`LaneFreeParallelEnv` as the k environments of an SB3 ``VecEnv`` (parameter
     sharing: one model acts for, and learns from, every agent).
 
-    All agents' episodes end together (:class:`LaneFreeParallelEnv`); then each agent's ``info`` carries
-    ``terminal_observation`` and ``episode`` (SB3's Monitor record) and the next episode starts, with the
-    traffic seed ``seeds(episode)`` (episodes numbered from ``first_episode``)."""
+    All agents' episodes end together: on the ring they do (:class:`LaneFreeParallelEnv`); on the on-ramp the
+    first agent to leave the road ends the episode of the others too (truncated: their values are
+    bootstrapped). Then each agent's ``info`` carries ``terminal_observation`` and ``episode`` (SB3's
+    Monitor record) and the next episode starts, with the traffic seed ``seeds(episode)`` (episodes
+    numbered from ``first_episode``)."""
 
     def __init__(self, env: LaneFreeParallelEnv, seeds: Any, first_episode: int = 1) -> None:
         self.par_env = env
@@ -203,6 +209,14 @@ class SharedPolicyVecEnv(VecEnv):
         dones = np.array([terminations[name] or truncations[name] for name in self.names])
         info_list = [dict(infos[name]) for name in self.names]
         obs = _stack([observations[name] for name in self.names], self.observation_space)
+        if dones.any() and not dones.all():
+            # an agent left the on-ramp: one simulation cannot go on for some slots of a VecEnv and restart
+            # for others, so the episode ends for every agent; the others' ends are truncations
+            for k, name in enumerate(self.names):
+                if not dones[k]:
+                    truncations[name] = True
+                    info_list[k]["episode_metrics"] = self.par_env.episode_metrics(name)
+            dones[:] = True
         if dones.all():
             for k, name in enumerate(self.names):
                 info_list[k]["TimeLimit.truncated"] = truncations[name] and not terminations[name]
@@ -245,6 +259,10 @@ class PolicyDriver:
         self.single = LaneFreeEnv(self.cfg) if self.agents == 1 else None
         self.multi = None if self.single is not None else LaneFreeParallelEnv(self.cfg)
         self.sim: Simulation = self.single.sim if self.single is not None else self.multi.sim  # type: ignore[union-attr]
+        self._last_obs: dict[str, Any] = {}
+        """Each agent's latest observation (an agent that left the road keeps its last)."""
+        self._ended: list[dict[str, Any]] = []
+        """The ``episode_metrics`` of the agents whose episode ended."""
         if self.multi is not None:
             self.names = list(self.multi.possible_agents)
             self.spaces = [self.multi.action_space(name) for name in self.names]
@@ -275,6 +293,8 @@ class PolicyDriver:
             return self.single.reset(seed=seed)[0]
         assert self.multi is not None
         observations, _ = self.multi.reset(seed=seed)
+        self._last_obs = dict(observations)
+        self._ended = []
         return _stack([observations[name] for name in self.names], self.multi.observation_space(self.names[0]))
 
     def step(self, actions: Any) -> tuple[Any, bool, np.ndarray, list[dict[str, Any]]]:
@@ -288,13 +308,18 @@ class PolicyDriver:
             return obs, done, shielded, [info["episode_metrics"]] if done else []
         assert self.multi is not None
         batch = np.asarray(actions)
-        observations, _, _, _, infos = self.multi.step({name: batch[k] for k, name in enumerate(self.names)})
+        live = list(self.multi.agents)
+        observations, _, _, _, infos = self.multi.step({name: batch[self.names.index(name)] for name in live})
         state = self.sim.current()[0]
         shielded = np.zeros(state.n, dtype=bool)
-        shielded[self.multi.agent_rows] = [infos[name]["shield_intervened"] for name in self.names]
+        # the agents that have a row now: all on the ring, those still on the road on the on-ramp
+        with_rows = self.names if self.sim.road.periodic else self.multi.agents
+        shielded[self.multi.agent_rows] = [infos[name]["shield_intervened"] for name in with_rows]
+        self._last_obs.update(observations)
+        self._ended += [infos[name]["episode_metrics"] for name in live if "episode_metrics" in infos[name]]
         done = not self.multi.agents
-        obs = _stack([observations[name] for name in self.names], self.multi.observation_space(self.names[0]))
-        return obs, done, shielded, [infos[name]["episode_metrics"] for name in self.names] if done else []
+        obs = _stack([self._last_obs[name] for name in self.names], self.multi.observation_space(self.names[0]))
+        return obs, done, shielded, sorted(self._ended, key=lambda m: self.names.index(m["agent"])) if done else []
 
     def close(self) -> None:
         (self.single or self.multi).close()  # type: ignore[union-attr]

@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.config import ConfigError, LaneFreeConfig
 from lanefree_sumo.sim.forces import edge_bound
 from lanefree_sumo.sim.road import Road
-from lanefree_sumo.sim.spawn import AGENT_ID
+from lanefree_sumo.sim.spawn import agent_id
 from lanefree_sumo.sim.state import VehicleState
 
 LATERAL_SLOTS = 5
@@ -115,26 +115,40 @@ class OpenRoadTraffic:
         return np.where(on_ramp, np.minimum(ax, cap), ax)
 
     def agent_start(self, background: VehicleState) -> tuple[VehicleState, bool]:
-        """The learning vehicle's row at its start (``road.onramp.agent_start``: the ramp's start, in its
-        middle, at the ramp's entry speed; or the main road at ``agent_main_start_m``, at the main road's
-        entry speed, in the lateral slot farthest from every background vehicle near it) and whether it
-        starts on the ramp. Background vehicles overlapping its start are not moved: the start is chosen
-        where they are not (the main road), or the ramp, which starts empty."""
+        """The learning vehicles' rows at their start and whether they start on the ramp
+        (``road.onramp.agent_start``): one behind the other, ``spawn.gap_x_m`` apart, the first at the ramp's
+        start, in its middle, at the ramp's entry speed; or the first at ``agent_main_start_m`` on the main
+        road, at its entry speed, each in the lateral slot farthest from every background vehicle near it.
+        Background vehicles are not moved: the ramp starts empty, and on the main road the slot is chosen
+        where they are not."""
         sc, o = self.cfg.scenario, self.cfg.road.onramp
-        length, width = sc.agent.length_m, sc.agent.width_m
+        length, width, k = sc.agent.length_m, sc.agent.width_m, sc.agents
+        step = length + sc.spawn.gap_x_m
         if o.agent_start == "ramp":
-            x, y, speed = self.road.ramp_start_m + 0.5 * length, -0.5 * self.road.ramp_width_m, o.ramp_entry_speed_mps
+            xs = self.road.ramp_start_m + 0.5 * length + step * np.arange(k)[::-1]  # agent (row first) in front
+            if xs.max() + 0.5 * length > self.road.merge_start_m:
+                raise ConfigError(f"{k} learning vehicles do not fit one behind the other on the ramp before its merge "
+                                  "zone; use fewer (scenario.agents)")
+            ys = np.full(k, -0.5 * self.road.ramp_width_m)
+            speed = o.ramp_entry_speed_mps
         else:
-            x, speed = o.agent_main_start_m, o.main_entry_speed_mps
+            xs = o.agent_main_start_m - step * np.arange(k)
+            if xs.min() - 0.5 * length < 0.0:
+                raise ConfigError(f"{k} learning vehicles do not fit one behind the other before "
+                                  f"road.onramp.agent_main_start_m = {o.agent_main_start_m:g} m; use fewer or a "
+                                  "later start")
             clear = self.cfg.sim.edge_clearance_m + 0.5 * sc.spawn.gap_y_m
             slots = np.linspace(0.5 * width + clear, self.road.width_m - 0.5 * width - clear, LATERAL_SLOTS)
-            near = np.abs(background.x - x) < 0.5 * (background.length + length) + sc.spawn.gap_x_m
-            clearance = [np.min(np.abs(background.y[near] - s), initial=np.inf) for s in slots]
-            y = float(slots[int(np.argmax(clearance))])
-        row = VehicleState([AGENT_ID], np.array([x]), np.array([y]), np.array([speed]), np.zeros(1),
-                           np.array([length]), np.array([width]), np.array([sc.agent.desired_speed_min_mps]),
-                           np.zeros(1, dtype=bool))
-        return row, o.agent_start == "ramp"
+            ys = np.empty(k)
+            for i, x in enumerate(xs):
+                near = np.abs(background.x - x) < 0.5 * (background.length + length) + sc.spawn.gap_x_m
+                clearance = [np.min(np.abs(background.y[near] - s), initial=np.inf) for s in slots]
+                ys[i] = slots[int(np.argmax(clearance))]
+            speed = o.main_entry_speed_mps
+        rows = VehicleState([agent_id(i) for i in range(k)], np.asarray(xs, dtype=float), ys, np.full(k, speed),
+                            np.zeros(k), np.full(k, length), np.full(k, width),
+                            np.full(k, sc.agent.desired_speed_min_mps), np.zeros(k, dtype=bool))
+        return rows, o.agent_start == "ramp"
 
     def arrivals(self, state: VehicleState) -> tuple[VehicleState, np.ndarray]:
         """This step's new vehicles (at most one per source: the first in its queue, where it fits) and

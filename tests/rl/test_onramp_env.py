@@ -7,6 +7,7 @@ import csv
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
+from pettingzoo.test import parallel_api_test
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from lanefree_sumo.config import ConfigError
@@ -77,11 +78,51 @@ def test_a_merging_agent_merges_and_leaves_the_road_and_an_idle_one_stops_at_the
     assert metrics["left_road"] and not metrics["merged"] and np.isnan(metrics["time_to_merge_s"])
 
 
-def test_what_the_on_ramp_does_not_take_yet_is_refused():
-    with pytest.raises(ConfigError, match="one learning vehicle"):
-        LaneFreeEnv({**ONRAMP, "scenario": {"agents": 2}})
-    with pytest.raises(ConfigError, match="ring in this version"):
-        parallel_env(ONRAMP)
+NEAR_THE_END = {**ONRAMP, "sim": {"episode_steps": 200},
+                "road": {"kind": "onramp", "onramp": {"agent_start": "main", "agent_main_start_m": 1800.0}}}
+
+
+def _several(k: int) -> dict:
+    return {**NEAR_THE_END, "scenario": {"density_veh_per_km": 20, "agents": k}}
+
+
+def test_agents_leave_the_on_ramp_one_by_one_as_pettingzoo_says():
+    """Several agents near the road's end: each is done when it leaves (terminated), drops out of ``agents``
+    and off the road, while the others go on; PettingZoo's API test agrees."""
+    parallel_api_test(parallel_env(_several(3)), num_cycles=300)
+    env = parallel_env(_several(3))
+    env.reset(seed=2)
+    finished: dict[str, int] = {}
+    speeds = {"agent": 1.0, "agent1": 0.0, "agent2": -0.5}  # they leave at different steps
+    while env.agents:
+        _, _, terminations, truncations, infos = env.step({n: np.array([speeds[n], 0.0]) for n in env.agents})
+        for name in terminations:
+            if terminations[name] or truncations[name]:
+                finished[name] = env.sim.steps
+                metrics = infos[name]["episode_metrics"]
+                assert metrics["left_road"] == terminations[name]
+                assert name not in env.agents and name not in env.sim.current()[0].ids
+    assert set(finished) == {"agent", "agent1", "agent2"} and len(set(finished.values())) > 1
+    assert finished["agent"] <= finished["agent1"] <= finished["agent2"]
+    env.close()
+    with pytest.raises(ConfigError, match="do not fit"):
+        parallel_env({**ONRAMP, "scenario": {"density_veh_per_km": 20, "agents": 60}}).reset(seed=0)
+
+
+def test_shared_policy_training_and_evaluation_on_the_on_ramp(tmp_path):
+    run = tmp_path / "run"
+    res = lanefree("train", "--scenario", "onramp", "--agents", "3", "--density", "20", "--episodes", "2",
+                   "--episode-steps", "200", "--out", str(run), "--set", "train.actor_critic.learning_starts_steps=60",
+                   "--set", "road.onramp.agent_start=main", "--set", "road.onramp.agent_main_start_m=1800")
+    assert res.returncode == 0, res.stderr
+    with open(run / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["episode"], r["agent"]) for r in rows] == [(e, a) for e in "12" for a in ("agent", "agent1", "agent2")]
+    res = lanefree("evaluate", str(run), "--episodes", "2")
+    assert res.returncode == 0, res.stderr
+    with open(run / "eval" / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 6 and {r["left_road"] for r in rows} <= {"True", "False"}
 
 
 def test_the_shield_keeps_a_random_policy_from_colliding_on_the_on_ramp():
@@ -112,5 +153,5 @@ def test_train_scenario_onramp_writes_the_merge_metrics(tmp_path):
     assert res.returncode == 0, res.stderr
     res = lanefree("mixed-autonomy", str(run), "--agents", "0,1", "--episodes", "1")
     assert res.returncode == 2 and "runs on the ring" in res.stderr
-    res = lanefree("train", "--scenario", "onramp", "--agents", "2", "--out", str(tmp_path / "two"))
-    assert res.returncode == 2 and "one learning vehicle" in res.stderr and "Traceback" not in res.stderr
+    res = lanefree("train", "--scenario", "onramp", "--agents", "2", "--envs", "2", "--out", str(tmp_path / "two"))
+    assert res.returncode == 2 and "--envs 1" in res.stderr and "Traceback" not in res.stderr
