@@ -109,14 +109,15 @@ class EpisodeLog:
 
     @staticmethod
     def missing(path: Path, episodes: int, rows_per_episode: int = 1) -> list[int]:
-        """Episodes among 1..``episodes`` that ``path`` lacks or holds a wrong number of times (each has
-        ``rows_per_episode`` rows: one per agent)."""
+        """Episodes among 1..``episodes`` that ``path`` lacks, holds a wrong number of times (each has
+        ``rows_per_episode`` rows: one per agent) or holds in a half-written row (fewer fields than the header)."""
         counts: dict[int, int] = {}
         if path.exists():
             with open(path, newline="") as fh:
                 for row in csv.DictReader(fh):
                     text = (row.get("episode") or "").strip()
-                    if text.isdigit():
+                    whole = None not in row.values() and None not in row
+                    if text.isdigit() and whole:
                         counts[int(text)] = counts.get(int(text), 0) + 1
         return [k for k in range(1, episodes + 1) if counts.get(k, 0) != rows_per_episode]
 

@@ -567,3 +567,18 @@ def test_set_adds_to_the_grids_overrides_and_cannot_set_what_the_grid_sets(tmp_p
     res = lanefree("sweep", str(write_grid(tmp_path / "g.yaml", TINY)), "--out", str(tmp_path / "s"),
                    "--set", "reward.nope=1")
     assert res.returncode == 2 and "reward.nope" in res.stderr and not (tmp_path / "s").exists()
+
+
+@pytest.mark.slow
+def test_a_sweep_on_the_on_ramp(tmp_path):
+    """Grids take the road too: a run of the on-ramp's merge task through the sweep, complete, with the
+    merge metrics in its episodes.csv."""
+    grid = write_grid(tmp_path / "onramp.yaml", {
+        "reward_presets": ["fields_zones_overtake_collision"], "densities": [20], "seeds": [0], "episodes": 2,
+        "overrides": {"road": {"kind": "onramp"}, "sim": {"episode_steps": 60},
+                      "train": {"actor_critic": {"learning_starts_steps": 30}}}})
+    out = tmp_path / "sweep"
+    res = lanefree("sweep", str(grid), "--out", str(out), "--workers", "1", "--no-progress")
+    assert res.returncode == 0, res.stderr
+    run = out / "runs" / "ddpg_fields_zones_overtake_collision_d20_s0"
+    assert (run / "model.zip").is_file() and "merged" in (run / "episodes.csv").read_text().splitlines()[0]

@@ -193,9 +193,14 @@ def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_
     assert done == 4 and [r["episode"] for r in rows(run / "episodes.csv")] == ["1", "2", "3", "4"]
 
     log = run / "episodes.csv"
-    kept = [line for line in log.read_text().splitlines(keepends=True) if not line.startswith("2,")]
+    whole = log.read_text()
+    kept = [line for line in whole.splitlines(keepends=True) if not line.startswith("2,")]
     log.write_text("".join(kept))
     before = log.read_text()
     with pytest.raises(RunError, match="does not hold episode 2 of the 4"):
         train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
     assert log.read_text() == before
+    lines = whole.splitlines(keepends=True)  # a row cut in the middle (a crash while writing it)
+    log.write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 3])
+    with pytest.raises(RunError, match="does not hold episode 4 of the 4"):
+        train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
