@@ -73,21 +73,19 @@ def sumo_version() -> str:
 def build_ring_net(cfg: LaneFreeConfig, directory: Path) -> Path:
     """Write the plain files, run netconvert and write the default vTypes/route file next to
     them (for opening the net by hand in sumo-gui); return the ``.net.xml`` path."""
-    length_m, width_m, speed_mps = cfg.road.length_m, cfg.road.width_m, cfg.road.speed_limit_mps
-    nod, edg = write_plain_ring(length_m, width_m, speed_mps, directory)
-    net = nod.with_name(nod.name.replace(".nod.xml", ".net.xml"))
-    cmd = [sumo_binary("netconvert"), *netconvert_args(nod, edg, net), "--no-warnings", "true"]
-    result = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if result.returncode != 0:
-        msg = (result.stderr or result.stdout).strip().splitlines()
-        raise SumoError(f"netconvert failed: {msg[-1] if msg else 'no output'}")
-    write_additional(cfg, net.with_name(net.name.replace(".net.xml", ".add.xml")))
-    return net
+    nod, edg = write_plain_ring(cfg.road.length_m, cfg.road.width_m, cfg.road.speed_limit_mps, directory)
+    return _netconvert(cfg, nod, edg)
 
 
 def build_onramp_net(cfg: LaneFreeConfig, directory: Path) -> Path:
     """The on-ramp's plain files, netconvert, and its vTypes/routes file beside them; the ``.net.xml`` path."""
     nod, edg, con = write_plain_onramp(cfg, directory)
+    return _netconvert(cfg, nod, edg, con)
+
+
+def _netconvert(cfg: LaneFreeConfig, nod: Path, edg: Path, con: Path | None = None) -> Path:
+    """netconvert of plain files into ``<name>.net.xml`` beside them, and the vTypes/routes file
+    ``<name>.add.xml``; the ``.net.xml`` path."""
     net = nod.with_name(nod.name.replace(".nod.xml", ".net.xml"))
     cmd = [sumo_binary("netconvert"), *netconvert_args(nod, edg, net, con), "--no-warnings", "true"]
     result = subprocess.run(cmd, capture_output=True, text=True, check=False)
