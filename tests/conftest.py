@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -29,10 +30,17 @@ def lanefree(*args: str, cwd: Path | None = None, timeout: float = 300) -> subpr
                           cwd=cwd or ROOT, timeout=timeout, env=CLI_ENV)
 
 
+def _default_sigint() -> None:
+    """In the child: Ctrl-C as a terminal gives it, also when the suite itself runs with SIGINT ignored (a
+    background job inherits SIG_IGN, and Python then installs no KeyboardInterrupt handler)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def lanefree_popen(*args: str, **kwargs) -> subprocess.Popen:
     """Start ``lanefree ARGS`` in the background (to interrupt it)."""
     return subprocess.Popen([sys.executable, "-m", "lanefree_sumo.cli", *args], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=CLI_ENV, **kwargs)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=CLI_ENV,
+                            preexec_fn=_default_sigint, **kwargs)
 
 
 def wait_for(condition, proc: subprocess.Popen, what: str = "the state", limit_s: float = 300) -> None:

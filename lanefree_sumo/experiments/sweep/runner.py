@@ -231,7 +231,8 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
         bar.set_postfix_str(f"runs {done}/{len(cells)} done, {running} running, "
                             f"{len(refs) - running} queued, {failed} failed", refresh=False)
 
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    # Ctrl-C and SIGTERM stop the sweep, also when it was started with SIGINT ignored (a background job)
+    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         while refs:
             ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=POLL_S)
@@ -245,7 +246,8 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
         outcome.interrupted = True
         _stop(ray, sweep, refs, outcome, bar)
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         refresh()
         bar.close()
     return outcome
