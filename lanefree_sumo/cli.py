@@ -217,8 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     size = "x".join(map(str, REPLAY.size_px))
     rp.add_argument("--size", type=argtypes.size, default=REPLAY.size_px,
                     help=f"view size WIDTHxHEIGHT in pixels (default {size})")
-    rp.add_argument("--zoom", type=argtypes.positive(float, "%"), default=REPLAY.zoom_percent,
-                    help=f"view zoom in %% (default {REPLAY.zoom_percent:g})")
+    rp.add_argument("--zoom", type=argtypes.positive(float, "%"), default=None,
+                    help=f"view zoom in %% (default {REPLAY.zoom_percent:g} on the ring, "
+                         f"{REPLAY.onramp_zoom_percent:g} on the on-ramp)")
     rp.add_argument("--no-gui", action="store_true", help="replay without a window (with --fcd: export only)")
     rp.add_argument("--fcd", type=Path, default=None, help="also write SUMO FCD XML (with posLat) of the replay")
 

@@ -467,7 +467,9 @@ class ReplayConfig:
     delay_s: float = 0.05
     """Wall-clock delay per step (s)."""
     zoom_percent: float = 400.0
-    """View zoom (%)."""
+    """View zoom on the ring (%; 100 fits the whole network into the view)."""
+    onramp_zoom_percent: float = 2000.0
+    """View zoom on the on-ramp (%): its network spans ~2.2 km, so this shows ~110 m around the agent."""
     size_px: tuple[int, int] = (1024, 768)
     """View size, width × height (pixels)."""
     collision_color_rgb: tuple[int, int, int] = (255, 0, 0)

@@ -4,10 +4,11 @@ Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at anoth
 trained; ``eval_shield/`` or ``eval_noshield/``, after the density, when the safety shield is
 switched on or off against the run's config), one row per episode with the SPEC §8 columns, and
 with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
-vehicle at every step including the initial state, in the format of
+vehicle on the road at every step including the initial state (on the on-ramp vehicles come and
+go: a vehicle's rows run from the step it entered to the step before it left), in the format of
 :mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column; the agents' ids are
 ``agent`` (``agent1``, … in a run of several agents, with one ``episodes.csv`` row per agent) — and
-``episode_NNNN.vehicles.csv`` with each vehicle's length, width and desired speed.  ``recording.json``
+``episode_NNNN.vehicles.csv`` with the length, width and desired speed of every vehicle seen.  ``recording.json``
 beside them names the network and the config so that a replay can rebuild the scene.  A shielded
 recording has a ``shielded`` column (1 in an agent's row on the steps the shield changed its action).
 """
@@ -87,9 +88,6 @@ def evaluate(
     out = out or folder.eval_dir(None if d == trained_density else d,
                                  None if cfg.shield.enabled == trained_shield else cfg.shield.enabled)
     check_replaceable(out, overwrite, "evaluate")
-    if record and cfg.road.kind != "ring":
-        raise RunError("--record (for replay) is not available on the on-ramp yet: its vehicles come and go; "
-                       "evaluate without --record")
     model_path = folder.find_model()
     model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
@@ -138,7 +136,7 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     from tqdm import tqdm
 
     from lanefree_sumo.experiments.train import episode_columns
-    from lanefree_sumo.experiments.trajectory import TrajectoryWriter, write_vehicles
+    from lanefree_sumo.experiments.trajectory import TrajectoryWriter
     from lanefree_sumo.rl.multi_agent import PolicyDriver
 
     log = EpisodeLog(out / EPISODES, episode_columns(cfg))
@@ -150,11 +148,10 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
             if stop.requested:
                 break
             obs = driver.reset(base_seed + k)
-            writer = (TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True, shield=cfg.shield.enabled)
-                      if record else None)
+            writer = (TrajectoryWriter(trajectory_path(out, k), cfg.sim.step_s, overlap=True, shield=cfg.shield.enabled,
+                                       vehicles=vehicles_path(out, k)) if record else None)
             if writer:
                 writer.write(0, sim.current()[0], None)
-                write_vehicles(vehicles_path(out, k), sim.current()[0])
             rows: list[dict[str, Any]] = []
             finished = False
             while not finished and not stop.requested:

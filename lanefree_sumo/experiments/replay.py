@@ -7,7 +7,9 @@ each step lands exactly on the recorded positions (the ballistic update inverted
 ``v' = 2·Δx/T − v``).  So the replay is exact (the fidelity is measured and returned) and
 vehicles move naturally in sumo-gui: the agent green and tracked by the view (magenta on the
 steps the safety shield changed its action, in a shielded recording), background vehicles
-coloured by desired speed (blue = slow … orange = fast), overlapping vehicles red.
+coloured by desired speed (blue = slow … orange = fast), overlapping vehicles red.  On the on-ramp
+vehicles come and go: a vehicle that left is taken off before the step, and one that entered at its
+start is placed as recorded (SUMO's ``moveTo``), then commanded like the others.
 
 Without a GUI the same replay can write SUMO's own FCD XML (``--fcd``), with lateral positions.
 """
@@ -36,6 +38,7 @@ from lanefree_sumo.experiments.rundir import (
     vehicles_path,
 )
 from lanefree_sumo.sim.dynamics import StepCommand
+from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.spawn import AGENT_ID, is_agent_id
 from lanefree_sumo.sim.state import VehicleState, wrap
 
@@ -49,10 +52,13 @@ class ReplayError(RunError):
 
 @dataclass
 class Recording:
-    """One recorded episode: arrays of shape (steps + 1, vehicles), row 0 the initial state."""
+    """One recorded episode: arrays of shape (steps + 1, vehicles), row 0 the initial state, one column
+    per vehicle seen; on an open road vehicles come and go, and a vehicle's values are NaN on the steps
+    it was not on the road (``present`` False)."""
 
     ids: list[str]
     t: np.ndarray
+    present: np.ndarray
     x: np.ndarray
     y: np.ndarray
     vx: np.ndarray
@@ -70,11 +76,13 @@ class Recording:
     def steps(self) -> int:
         return len(self.t) - 1
 
-    def state(self, k: int) -> VehicleState:
+    def state(self, k: int, which: np.ndarray | None = None) -> VehicleState:
+        """The vehicles on the road after step ``k`` (only those where ``which`` is True, if given)."""
+        cols = np.flatnonzero(self.present[k] if which is None else which)
         return VehicleState(
-            list(self.ids), self.x[k].copy(), self.y[k].copy(), self.vx[k].copy(), self.vy[k].copy(),
-            self.length.copy(), self.width.copy(), self.v_desired.copy(),
-            np.array([not is_agent_id(vid) for vid in self.ids]),
+            [self.ids[i] for i in cols], self.x[k, cols], self.y[k, cols], self.vx[k, cols], self.vy[k, cols],
+            self.length[cols], self.width[cols], self.v_desired[cols],
+            np.array([not is_agent_id(self.ids[i]) for i in cols], dtype=bool),
         )
 
 
@@ -96,26 +104,34 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
         table = pd.read_csv(traj)
         attrs = pd.read_csv(vehicles)
         ids = list(attrs["id"])
-        n = len(ids)
-        table["id"] = pd.Categorical(table["id"], categories=ids, ordered=True)
-        table = table.sort_values(["t", "id"], kind="stable")
-        steps = len(table) // n if n else 0
-        if steps < 2:
-            raise ValueError("it holds no steps to replay")
-        if steps * n != len(table) or table["id"].isna().any():
-            raise ValueError("rows are not one per vehicle and step")
         numbers = table[["t", "x", "y", "vx", "vy", "overlap"]].to_numpy(dtype=float)
         sizes = attrs[["length", "width", "v_desired"]].to_numpy(dtype=float)
         if not (np.isfinite(numbers).all() and np.isfinite(sizes).all()):
             raise ValueError("it has NaN or infinite values")
+        t = np.unique(numbers[:, 0])
+        if len(t) < 2:
+            raise ValueError("it holds no steps to replay")
+        column = {vid: i for i, vid in enumerate(ids)}
+        if len(column) != len(ids) or not table["id"].isin(column).all():
+            raise ValueError(f"its vehicles are not those of {vehicles.name}")
+        rows, cols = np.searchsorted(t, numbers[:, 0]), table["id"].map(column).to_numpy(dtype=int)
+        present = np.zeros((len(t), len(ids)), dtype=bool)
+        present[rows, cols] = True
+        entries = present[0].astype(int) + (np.diff(present.astype(int), axis=0) == 1).sum(axis=0)
+        if present.sum() != len(table) or (entries != 1).any() or (cfg.road.kind == "ring" and not present.all()):
+            raise ValueError("rows are not one per vehicle and step on the road")
 
-        def grid(col: str) -> np.ndarray:
-            return table[col].to_numpy(dtype=float).reshape(steps, n)
+        def grid(values: np.ndarray) -> np.ndarray:
+            out = np.full(present.shape, np.nan)
+            out[rows, cols] = values
+            return out
 
-        shielded = grid("shielded").astype(bool) if "shielded" in table else np.zeros((steps, n), dtype=bool)
+        shielded = grid(table["shielded"].to_numpy(dtype=float)) == 1 if "shielded" in table else \
+            np.zeros(present.shape, dtype=bool)
         return Recording(
-            ids, grid("t")[:, 0], grid("x"), grid("y"), grid("vx"), grid("vy"), grid("overlap").astype(bool), shielded,
-            attrs["length"].to_numpy(float), attrs["width"].to_numpy(float), attrs["v_desired"].to_numpy(float), cfg,
+            ids, t, present, grid(numbers[:, 1]), grid(numbers[:, 2]), grid(numbers[:, 3]), grid(numbers[:, 4]),
+            grid(numbers[:, 5]) == 1, shielded,
+            sizes[:, 0], sizes[:, 1], sizes[:, 2], cfg,
         )
     except (KeyError, ValueError, TypeError, UnicodeDecodeError, pd.errors.ParserError) as exc:
         raise ReplayError(f"{traj} is not a usable recording ({' '.join(str(exc).split())[:200]}); "
@@ -161,15 +177,10 @@ def _sumo_args(tmp: Path, gui: bool, size: tuple[int, int], delay_s: float, fcd:
     return extra
 
 
-def _paint(backend: Any, rec: Recording, cfg: LaneFreeConfig, zoom: float) -> list[tuple[int, int, int, int]]:
-    """Colour every vehicle (agents, background by desired speed), track the (first) agent; return the colours."""
-    colours = [_rgba(cfg.scenario.agent.color_rgb) if is_agent_id(vid) else desired_speed_colour(v, cfg)
-               for vid, v in zip(rec.ids, rec.v_desired)]
-    for vid, colour in zip(rec.ids, colours):
-        backend.set_color(vid, colour)
-    if AGENT_ID in rec.ids:
-        backend.track(AGENT_ID, zoom)
-    return colours
+def _colours(rec: Recording, cfg: LaneFreeConfig) -> list[tuple[int, int, int, int]]:
+    """Each vehicle's own colour: agents', background vehicles' by desired speed."""
+    return [_rgba(cfg.scenario.agent.color_rgb) if is_agent_id(vid) else desired_speed_colour(v, cfg)
+            for vid, v in zip(rec.ids, rec.v_desired)]
 
 
 @dataclass
@@ -194,7 +205,7 @@ def replay(
     gif: Path | None = None,
     fcd: Path | None = None,
     size: tuple[int, int] = REPLAY.size_px,
-    zoom: float = REPLAY.zoom_percent,
+    zoom: float | None = None,
     overwrite: bool = False,
     verb: str = "replay",
 ) -> ReplayResult:
@@ -217,8 +228,8 @@ def replay(
 
 def _replay(run: Path, episode: int, gui: bool, delay_s: float, screenshot: Path | None, screenshot_step: int | None,
             frames: Path | None, every: int, gif: Path | None, fcd: Path | None, size: tuple[int, int],
-            zoom: float) -> ReplayResult:
-    from lanefree_sumo.sim.backends.sumo import SumoBackend
+            zoom: float | None) -> ReplayResult:
+    from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
 
     rec = load_recording(run, episode)
     cfg = merge_config(rec.cfg, {"gui": gui, "backend": "traci" if gui else "libsumo"})
@@ -234,44 +245,79 @@ def _replay(run: Path, episode: int, gui: bool, delay_s: float, screenshot: Path
     if frame_dir is not None:
         frame_dir.mkdir(parents=True, exist_ok=True)
     extra = _sumo_args(Path(tmp.name), gui, size, delay_s, fcd)
-    backend = SumoBackend(cfg, kind=cfg.backend, gui=gui, extra_args=extra)
+    onramp = cfg.road.kind == "onramp"
+    backend_class = OnRampSumoBackend if onramp else SumoBackend
+    if zoom is None:
+        zoom = REPLAY.onramp_zoom_percent if onramp else REPLAY.zoom_percent
+    backend = backend_class(cfg, kind=cfg.backend, gui=gui, extra_args=extra)
     written: list[Path] = []
     try:
-        backend.reset(rec.state(0))
-        collision_colour = _rgba(REPLAY.collision_color_rgb)
-        shield_colour = _rgba(REPLAY.shield_color_rgb)
-        base_colour = _paint(backend, rec, cfg, zoom) if gui else []
-        shown = np.zeros(len(rec.ids), dtype=int)  # 0 own colour, 1 shielded, 2 overlapping
-        x, y, vx = rec.x[0].copy(), rec.y[0].copy(), rec.vx[0].copy()
-        max_dx = max_dy = 0.0
-        step_s, length = cfg.sim.step_s, cfg.road.length_m
-        for k in range(1, rec.steps + 1):
-            if gui:
-                if screenshot is not None and k == shot_at:
-                    screenshot.parent.mkdir(parents=True, exist_ok=True)
-                    backend.screenshot(screenshot, *size)
-                if frame_dir is not None and k % every == 0:
-                    path = frame_dir / f"frame_{k:04d}.png"
-                    backend.screenshot(path, *size)
-                    written.append(path)
-                mode = np.where(rec.overlap[k], 2, rec.shielded[k].astype(int))
-                for i in np.flatnonzero(mode != shown):
-                    backend.set_color(rec.ids[i], (base_colour[i], shield_colour, collision_colour)[mode[i]])
-                shown = mode
-            vx_next = np.maximum(2.0 * wrap(rec.x[k] - x, length) / step_s - vx, 0.0)
-            dy = rec.y[k] - y
-            zeros = np.zeros_like(dy)
-            x, y, vx = backend.step(StepCommand(vx_next, dy, zeros, zeros, zeros, zeros.astype(bool)))
-            max_dx = max(max_dx, float(np.abs(wrap(x - rec.x[k], length)).max()))
-            max_dy = max(max_dy, float(np.abs(y - rec.y[k]).max()))
-        if gui and (screenshot is not None or written):
-            backend.idle_step()  # a screenshot requested for the last step is written here
+        max_dx, max_dy = _drive(backend, rec, cfg, gui, screenshot, shot_at, frame_dir, every, size, zoom, written)
     finally:
         backend.close()
     if gif is not None:
-        _write_gif([p for p in written if p.exists()], gif, step_s * every)
+        _write_gif([p for p in written if p.exists()], gif, cfg.sim.step_s * every)
     tmp.cleanup()
     return ReplayResult(rec.steps, max_dx, max_dy, written if frames is not None else [])
+
+
+def _drive(backend: Any, rec: Recording, cfg: LaneFreeConfig, gui: bool, screenshot: Path | None, shot_at: int,
+           frame_dir: Path | None, every: int, size: tuple[int, int], zoom: float,
+           written: list[Path]) -> tuple[float, float]:
+    """Place the initial state, then each step: take off the vehicles that left before it, place those
+    that entered at its start as the recording has them placed, command every vehicle onto its recorded
+    position and step (on the ring every vehicle stays). Returns the largest |dx|, |dy| (m) against the
+    recording; screenshots and frames go to ``written``."""
+    backend.reset(rec.state(0))
+    collision_colour = _rgba(REPLAY.collision_color_rgb)
+    shield_colour = _rgba(REPLAY.shield_color_rgb)
+    base_colour = _colours(rec, cfg)
+    on_road = rec.present[0].copy()
+    if gui:
+        for i in np.flatnonzero(on_road):
+            backend.set_color(rec.ids[i], base_colour[i])
+        if AGENT_ID in rec.ids:
+            backend.track(AGENT_ID, zoom)
+    shown = np.zeros(len(rec.ids), dtype=int)  # 0 own colour, 1 shielded, 2 overlapping
+    x, y, vx = rec.x[0].copy(), rec.y[0].copy(), rec.vx[0].copy()
+    max_dx = max_dy = 0.0
+    step_s, wrap_length = cfg.sim.step_s, road_of(cfg).wrap_length
+    for k in range(1, rec.steps + 1):
+        leaving = on_road & ~rec.present[k]
+        if leaving.any():
+            backend.remove(~leaving[on_road])
+            on_road &= ~leaving
+        entering = rec.present[k - 1] & rec.present[k] & ~on_road  # row k - 1: as placed at the start
+        if entering.any():
+            backend.add(rec.state(k - 1, entering))
+            x[entering], y[entering], vx[entering] = rec.x[k - 1, entering], rec.y[k - 1, entering], \
+                rec.vx[k - 1, entering]
+            on_road |= entering
+            for i in np.flatnonzero(entering) if gui else ():
+                backend.set_color(rec.ids[i], base_colour[i])
+        moving = np.flatnonzero(on_road)
+        if gui:
+            if screenshot is not None and k == shot_at:
+                screenshot.parent.mkdir(parents=True, exist_ok=True)
+                backend.screenshot(screenshot, *size)
+            if frame_dir is not None and k % every == 0:
+                path = frame_dir / f"frame_{k:04d}.png"
+                backend.screenshot(path, *size)
+                written.append(path)
+            mode = np.where(rec.overlap[k], 2, rec.shielded[k].astype(int))
+            for i in moving[mode[moving] != shown[moving]]:
+                backend.set_color(rec.ids[i], (base_colour[i], shield_colour, collision_colour)[mode[i]])
+                shown[i] = mode[i]
+        vx_next = np.maximum(2.0 * wrap(rec.x[k, moving] - x[moving], wrap_length) / step_s - vx[moving], 0.0)
+        dy = rec.y[k, moving] - y[moving]
+        zeros = np.zeros_like(dy)
+        x[moving], y[moving], vx[moving] = backend.step(StepCommand(vx_next, dy, zeros, zeros, zeros,
+                                                                    zeros.astype(bool)))
+        max_dx = float(np.maximum(max_dx, np.abs(wrap(x[moving] - rec.x[k, moving], wrap_length)).max(initial=0.0)))
+        max_dy = float(np.maximum(max_dy, np.abs(y[moving] - rec.y[k, moving]).max(initial=0.0)))
+    if gui and (screenshot is not None or written):
+        backend.idle_step()  # a screenshot requested for the last step is written here
+    return max_dx, max_dy
 
 
 def _write_gif(frames: list[Path], path: Path, seconds_per_frame: float) -> None:

@@ -6,6 +6,9 @@ edge), ``vx``, ``vy`` (m/s), ``ax``, ``ay`` (m/s², realised during the step end
 with ``overlap=True`` a column ``overlap`` (1 when the vehicle's body overlaps another's at t),
 with ``shield=True`` a column ``shielded`` (1 in an agent's row when the safety shield changed
 that agent's action in the step ending at t).
+On an open road (the on-ramp; x from the main road's upstream end, y < 0 on the ramp) vehicles come
+and go: a vehicle's rows run from its entry — a row at the start of the step it entered in, as it was
+placed, with zero accelerations — to the last step before it left.
 Values are rounded to 1 µm, 1 µm/s; the file is flushed every simulated second.
 """
 
@@ -23,18 +26,17 @@ COLUMNS = ("t", "id", "x", "y", "vx", "vy", "ax", "ay")
 DECIMALS = 6
 
 
-def write_vehicles(path: Path, state: VehicleState) -> None:
-    """The fixed attributes of a recording's vehicles: id, length, width (m), v_desired (m/s)."""
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(("id", "length", "width", "v_desired"))
-        writer.writerows(zip(state.ids, state.length, state.width, np.round(state.v_desired, 9)))
-
-
 class TrajectoryWriter:
-    """Appends the state of every vehicle after each step to a CSV file."""
+    """Appends the state of every vehicle after each step to a CSV file.
 
-    def __init__(self, path: Path, step_s: float, overlap: bool = False, shield: bool = False) -> None:
+    With ``vehicles`` a path, :meth:`close` writes there the fixed attributes of every vehicle that
+    appeared in a row — id, length, width (m), v_desired (m/s) — in the order they first appeared
+    (on an open road vehicles come and go; on the ring they are the initial state's)."""
+
+    def __init__(self, path: Path, step_s: float, overlap: bool = False, shield: bool = False,
+                 vehicles: Path | None = None) -> None:
+        self._vehicles_path = vehicles
+        self._attributes: dict[str, tuple[float, float, float]] = {}
         self._fh = open(path, "w", newline="")
         self._writer = csv.writer(self._fh)
         self._overlap = overlap
@@ -42,13 +44,23 @@ class TrajectoryWriter:
         self._writer.writerow(COLUMNS + (("overlap",) if overlap else ()) + (("shielded",) if shield else ()))
         self._flush_every = max(1, int(round(1.0 / step_s)))
         self._step_s = step_s
-        self._rows = 0
+        self._steps = 0
 
     def write(self, step: int, state: VehicleState, result: StepResult | None,
               shielded: bool | np.ndarray = False) -> None:
         """Rows for the state after ``step`` steps (``result`` None for the initial state);
         ``shielded``: the shield changed the agents' action in this step (one flag for every agent, or
-        one per row of the state)."""
+        one per row of the state). Vehicles that entered the road at the start of the step (an open road)
+        get a row at the step's start too, as they were placed, before the rows of its end."""
+        if result is not None and result.entered is not None:
+            self._rows_of(step - 1, result.entered, None, False)
+        self._rows_of(step, state, result, shielded)
+        self._steps += 1
+        if self._steps % self._flush_every == 0:
+            self._fh.flush()
+
+    def _rows_of(self, step: int, state: VehicleState, result: StepResult | None,
+                 shielded: bool | np.ndarray) -> None:
         n = state.n
         zeros = np.zeros(n)
         ax = zeros if result is None else result.ax
@@ -63,9 +75,16 @@ class TrajectoryWriter:
         if self._shield:
             cols.append((~state.controlled & shielded).astype(int))
         self._writer.writerows(zip(*cols))
-        self._rows += 1
-        if self._rows % self._flush_every == 0:
-            self._fh.flush()
+        if self._vehicles_path is not None and any(vid not in self._attributes for vid in state.ids):
+            for i, vid in enumerate(state.ids):
+                self._attributes.setdefault(vid, (float(state.length[i]), float(state.width[i]),
+                                                  round(float(state.v_desired[i]), 9)))
 
     def close(self) -> None:
+        """Close the trajectory file and write the vehicles' attributes (when asked for)."""
         self._fh.close()
+        if self._vehicles_path is not None:
+            with open(self._vehicles_path, "w", newline="") as fh:
+                writer = csv.writer(fh)
+                writer.writerow(("id", "length", "width", "v_desired"))
+                writer.writerows((vid, *attrs) for vid, attrs in self._attributes.items())

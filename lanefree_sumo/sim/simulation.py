@@ -56,6 +56,9 @@ class StepResult:
     """Pairwise overlap matrix after the step."""
     new_collisions: np.ndarray
     """(k, 2) index pairs (i < j) whose overlap started this step."""
+    entered: VehicleState | None = None
+    """Open road: the vehicles that entered at the start of this step, as they were placed (before they
+    moved in it; their rows are also the last rows of the state after the step); None when none did."""
 
 
 def clip_acceleration(
@@ -142,9 +145,10 @@ class Simulation:
         self._tracker.update(overlap_matrix(state, self._wrap, self.offsets))
         return state
 
-    def _leave_and_enter(self) -> None:
+    def _leave_and_enter(self) -> VehicleState | None:
         """Open road, before a step: remove the vehicles past the end and append the arrivals that fit, in
-        the state, the backend and the books; the new vehicles take part in the step."""
+        the state, the backend and the books; the new vehicles take part in the step. Returns them as
+        placed (None when none entered)."""
         state, backend, traffic = self.state, self.backend, self.traffic
         assert state is not None and backend is not None and traffic is not None
         leaving = traffic.leaving(state) & state.controlled  # an agent's episode ends when it leaves
@@ -164,6 +168,7 @@ class Simulation:
         if state is not self.state:
             self.state = state
             self.offsets = pairwise_offsets(state, self._wrap)
+        return rows if rows.n else None
 
     def current(self) -> tuple[VehicleState, tuple[np.ndarray, np.ndarray]]:
         """The current state and its (dx, dy) offset matrices (m); RuntimeError before ``reset``."""
@@ -177,8 +182,7 @@ class Simulation:
         bounds; required when the scenario has agents."""
         if self.state is None or self.backend is None:
             raise RuntimeError("call reset() before step()")
-        if self.traffic is not None:
-            self._leave_and_enter()
+        entered = self._leave_and_enter() if self.traffic is not None else None
         state = self.state
         cfg = self.cfg
         bounds = self.road.bounds(state.x + 0.5 * state.length, self.on_ramp)  # at the front
@@ -221,7 +225,7 @@ class Simulation:
         if self.traffic is not None:
             self.on_ramp = self.traffic.merge(state, self.on_ramp)
         new = self._tracker.update(overlap)
-        self.last_result = StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new)
+        self.last_result = StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new, entered)
         return self.last_result
 
     def close(self) -> None:

@@ -168,3 +168,56 @@ def test_sigterm_stops_a_replay_like_ctrl_c_and_leaves_no_file(display, recorded
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def onramp_recorded(tmp_path_factory) -> Path:
+    """An on-ramp run whose recorded episodes have vehicles entering and leaving."""
+    cfg = merge_config(LaneFreeConfig(), {
+        "road": {"kind": "onramp"},
+        "sim": {"episode_steps": 240},
+        "scenario": {"density_veh_per_km": 20},
+        "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": 60}},
+    })
+    run, _ = train(cfg, run=tmp_path_factory.mktemp("onramp_replay") / "run", progress=False)
+    evaluate(run, episodes=1, record=True, progress=False)
+    return run
+
+
+def test_onramp_recording_holds_every_vehicle_seen_while_it_was_on_the_road(onramp_recorded):
+    rec = load_recording(onramp_recorded, 1)
+    changes = np.diff(rec.present.astype(int), axis=0)
+    assert (changes == 1).any() and (changes == -1).any()  # vehicles entered and left during the episode
+    assert np.isnan(rec.x[~rec.present]).all() and np.isfinite(rec.x[rec.present]).all()
+    assert rec.present[:, rec.ids.index("agent")].all()
+    # an entering vehicle's first row is where it was placed, before it moved: the main road's upstream
+    # end (its rear at x = 0) or the ramp (y < 0)
+    first = rec.present.argmax(axis=0)
+    entered = np.flatnonzero(first > 0)
+    placed_x, placed_y = rec.x[first[entered], entered], rec.y[first[entered], entered]
+    assert np.all(np.isclose(placed_x, 0.5 * rec.length[entered]) | (placed_y < 0))
+
+
+def test_onramp_replay_is_exact_while_vehicles_come_and_go(onramp_recorded, tmp_path):
+    fcd = tmp_path / "onramp.fcd.xml"
+    result = replay(onramp_recorded, episode=1, gui=False, fcd=fcd)
+    assert result.steps == load_recording(onramp_recorded, 1).steps
+    assert result.max_dx_m <= 0.01 and result.max_dy_m <= 0.01
+    # SUMO's own output has, after every step, exactly the vehicles the recording has on the road then
+    # (a vehicle's placement row, before its first step, is not a SUMO time step)
+    rec = load_recording(onramp_recorded, 1)
+    first = rec.present.argmax(axis=0)
+    steps = ET.parse(fcd).getroot().findall("timestep")
+    assert len(steps) == rec.steps + 1
+    for k in range(1, rec.steps + 1):
+        expected = {vid for j, vid in enumerate(rec.ids) if rec.present[k, j] and first[j] < k}
+        assert {v.attrib["id"] for v in steps[k].findall("vehicle")} == expected, k
+
+
+def test_onramp_gui_replay_shows_the_green_agent(display, onramp_recorded, tmp_path):
+    shot = tmp_path / "onramp.png"
+    result = replay(onramp_recorded, episode=1, screenshot=shot, screenshot_step=40, size=(640, 480))
+    assert result.max_dx_m <= 0.01 and result.max_dy_m <= 0.01
+    image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    assert ((g > 150) & (r < 120) & (b < 120)).sum() > 50

@@ -148,9 +148,8 @@ def test_train_scenario_onramp_writes_the_merge_metrics(tmp_path):
         rows = list(csv.DictReader(fh))
     assert len(rows) == 2 and {"merged", "time_to_merge_s", "left_road"} <= set(rows[0])
     res = lanefree("evaluate", str(run), "--episodes", "1", "--record")
-    assert res.returncode == 2 and "not available on the on-ramp" in res.stderr
-    res = lanefree("evaluate", str(run), "--episodes", "1")
     assert res.returncode == 0, res.stderr
+    assert (run / "eval" / "trajectories" / "episode_0001.vehicles.csv").is_file()
     res = lanefree("mixed-autonomy", str(run), "--agents", "0,1", "--episodes", "1")
     assert res.returncode == 2 and "runs on the ring" in res.stderr
     res = lanefree("train", "--scenario", "onramp", "--agents", "2", "--envs", "2", "--out", str(tmp_path / "two"))
