@@ -226,8 +226,8 @@ class SetEncoder(nn.Module):
             self.feature = nn.Sequential(nn.Linear(self.pooled_dim, int(feature_dim)), _activation(activation)())
         self.out_dim = self.pooled_dim if feature_dim is None else int(feature_dim)
 
-    def _rows(self, x: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(m·f1(X), f2(X), n)``: row encodings (padding rows of y1 zeroed) and present-row counts."""
+    def _features_and_mask(self, x: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(features, m)``: the row features (padding rows zeroed) and the presence mask as 0/1."""
         if mask is None:
             if x.shape[-1] != self.in_features + 1:
                 raise ValueError(
@@ -242,7 +242,12 @@ class SetEncoder(nn.Module):
             m = (mask > self.presence_threshold).to(x.dtype) if mask.dtype != torch.bool else mask.to(x.dtype)
         # Zero the padding rows' inputs too (padding is zeros anyway; this also
         # protects against garbage/NaN in padded slots leaking through 0 * NaN).
-        feats = torch.where(m.unsqueeze(-1) > 0, feats, torch.zeros_like(feats))
+        return torch.where(m.unsqueeze(-1) > 0, feats, torch.zeros_like(feats)), m
+
+    def _rows(self, x: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(m·f1(X), f2(X), n)``: row encodings of every row (padding rows of y1 zeroed) and present-row
+        counts."""
+        feats, m = self._features_and_mask(x, mask)
         if self.presence_input:
             feats = torch.cat([feats, m.unsqueeze(-1)], dim=-1)
         y1 = self.f1(feats) * m.unsqueeze(-1)  # (..., N, d1), padding rows -> 0
@@ -256,12 +261,30 @@ class SetEncoder(nn.Module):
         return torch.einsum("...nd,...ne->...de", y1, y2) / n[..., None, None]
 
     def pooled(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Y after pooling, before normalisation: ``(..., pooled_dim)``."""
-        y1, y2, n = self._rows(x, mask)
+        """Y after pooling, before normalisation: ``(..., pooled_dim)``.
+
+        Only the present rows go through f1 and f2: they are gathered from the whole batch, encoded, and
+        summed back per set (``index_add``), so the cost follows the vehicles observed, not ``max_rows``
+        (the padding contributes nothing either way; the result equals :meth:`matrix`'s up to float
+        rounding)."""
+        feats, m = self._features_and_mask(x, mask)
+        lead, rows = feats.shape[:-2], feats.shape[-2]
+        sets_total = math.prod(lead)
+        flat_feats = feats.reshape(sets_total, rows, feats.shape[-1])
+        present = m.reshape(sets_total, rows) > 0
+        sets, slots = present.nonzero(as_tuple=True)
+        picked = flat_feats[sets, slots]
+        if self.presence_input:
+            picked = torch.cat([picked, torch.ones_like(picked[:, :1])], dim=-1)
+        y1, y2 = self.f1(picked), self.f2(picked)
         if self.pool_over == "rows":
-            return (torch.einsum("...nd,...ne->...de", y1, y2) / n[..., None, None]).flatten(start_dim=-2)
-        # mean over the d1 axis of Y without forming it: mean_a Σ_i y1_ia y2_ib = Σ_i (mean_a y1_ia) y2_ib
-        return torch.einsum("...n,...ne->...e", y1.mean(dim=-1), y2) / n[..., None]
+            per_row = (y1.unsqueeze(-1) * y2.unsqueeze(-2)).flatten(start_dim=-2)
+        else:  # mean over the d1 axis of Y without forming it: mean_a Σ_i y1_ia y2_ib = Σ_i (mean_a y1_ia) y2_ib
+            per_row = y1.mean(dim=-1, keepdim=True) * y2
+        total = torch.zeros(sets_total, self.pooled_dim, dtype=per_row.dtype, device=per_row.device)
+        total = total.index_add(0, sets, per_row)
+        n = present.sum(dim=-1).clamp(min=1).to(total.dtype)
+        return (total / n[:, None]).reshape(*lead, self.pooled_dim)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         y = self.pooled(x, mask)
