@@ -210,6 +210,8 @@ class SumoBackend:
         self._half_width = 0.5 * cfg.road.width_m
         self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
         self._y = np.zeros(0)
+        self._centre = np.zeros(0)
+        """y (m) of the centre of each vehicle's lane (as of the last reset or read)."""
         self._conn: Any = None
         self.gui_start_retries = 10
         """Attempts (about 1 s each) to connect to sumo-gui before giving up."""
@@ -272,29 +274,40 @@ class SumoBackend:
             pass
 
     # -- episodes -----------------------------------------------------------------------
-    def _lane_of(self, x: float) -> tuple[str, float]:
-        return lane_of(x, self.cfg.road.length_m)
+    _subscribed: tuple[int, ...] = _SUBSCRIBED
+    """The variables read back after every step."""
+
+    def _placement(self, x: float, y: float) -> tuple[str, str, float, float]:
+        """(route, lane id, lane position, centre y of that lane) of a vehicle at (x, y) (m)."""
+        lane, pos = lane_of(x, self.cfg.road.length_m)
+        return ROUTE_ID, lane, pos, self._half_width
+
+    def _vtype(self, vid: str, v_desired: float) -> str:
+        return VTYPE_AGENT if is_agent_id(vid) else background_vtype(v_desired, self.cfg)
+
+    def _insert(self, vid: str, route: str, lane: str, pos: float, speed: float, v_desired: float) -> None:
+        """Add ``vid`` under our control (speed and lane-change modes 0) and move it onto ``lane`` at ``pos``."""
+        v = self._conn.vehicle
+        v.add(vid, route, self._vtype(vid, v_desired), depart="now", departSpeed=repr(speed))
+        v.setSpeedMode(vid, 0)
+        v.setLaneChangeMode(vid, 0)
+        v.moveTo(vid, lane, pos)
 
     def reset(self, state: VehicleState) -> None:
         """Remove all vehicles and place ``state``'s vehicles at their exact positions/speeds."""
         v = self._conn.vehicle
+        places = [self._placement(float(x), float(y)) for x, y in zip(state.x, state.y)]
         try:
             for vid in v.getIDList():
                 v.remove(vid)
-            for i, vid in enumerate(state.ids):
-                vtype = VTYPE_AGENT if is_agent_id(vid) else background_vtype(float(state.v_desired[i]), self.cfg)
-                v.add(vid, ROUTE_ID, vtype, depart="now", departSpeed=f"{state.vx[i]:.6f}")
-                v.setSpeedMode(vid, 0)
-                v.setLaneChangeMode(vid, 0)
-                lane, pos = self._lane_of(float(state.x[i]))
-                v.moveTo(vid, lane, pos)
+            for i, (vid, (route, lane, pos, _)) in enumerate(zip(state.ids, places)):
+                self._insert(vid, route, lane, pos, float(state.vx[i]), float(state.v_desired[i]))
             self._conn.simulationStep()  # inserts them
-            for i, vid in enumerate(state.ids):
-                lane, pos = self._lane_of(float(state.x[i]))
+            for i, (vid, (_, lane, pos, centre)) in enumerate(zip(state.ids, places)):
                 v.moveTo(vid, lane, pos)
-                v.setLateralLanePosition(vid, float(state.y[i]) - self._half_width)
+                v.setLateralLanePosition(vid, float(state.y[i]) - centre)
                 v.setPreviousSpeed(vid, float(state.vx[i]))
-                v.subscribe(vid, _SUBSCRIBED)
+                v.subscribe(vid, self._subscribed)
             if self.gui and AGENT_ID in state.ids:
                 self._conn.gui.trackVehicle(GUI_VIEW, AGENT_ID)
         except SumoError:
@@ -303,6 +316,7 @@ class SumoBackend:
             raise SumoError(f"SUMO refused to place the vehicles: {exc}") from None
         self._ids = list(state.ids)
         self._y = state.y.copy()
+        self._centre = np.array([centre for *_, centre in places])
 
     def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(x, y, vx) of every vehicle in the order of the last ``reset`` (m, m, m/s)."""
@@ -369,52 +383,23 @@ class OnRampSumoBackend(SumoBackend):
     SUMO's lateral offset in that lane. Main-road vehicles follow the route ``up merge down``, ramp
     vehicles ``merge down`` from lane 0 of ``merge``."""
 
+    _subscribed = _SUBSCRIBED_ONRAMP
+
     def __init__(self, cfg: LaneFreeConfig, kind: str = "libsumo", gui: bool = False, label: str | None = None,
                  extra_args: Sequence[str] = ()) -> None:
         super().__init__(cfg, kind, gui, label, extra_args)
         self._offsets = np.array(onramp_edge_offsets(cfg))
         self._edge_offset = dict(zip(ONRAMP_EDGES, self._offsets.tolist()))
         self._ramp_half = 0.5 * cfg.road.onramp.ramp_width_m
-        self._centre = np.zeros(0)
-        """y (m) of the centre of each vehicle's lane (as of the last read)."""
 
-    def _where(self, x: float, y: float) -> tuple[str, int, float, float]:
-        """(edge id, lane index, lane position, lateral offset) of a vehicle at (x, y) (m)."""
+    def _placement(self, x: float, y: float) -> tuple[str, str, float, float]:
+        """(route, lane id, lane position, centre y of that lane) of a vehicle at (x, y) (m): the ramp's
+        lane is lane 0 of ``merge`` where y < 0; ramp vehicles take the route from ``merge`` on."""
         k = int(np.searchsorted(self._offsets, x, side="right")) - 1
         lane = (0 if y < 0.0 else 1) if k == 1 else 0
-        centre = -self._ramp_half if (k, lane) == (1, 0) else self._half_width
-        return ONRAMP_EDGES[k], lane, x - float(self._offsets[k]), y - centre
-
-    def _vtype(self, vid: str, v_desired: float) -> str:
-        return VTYPE_AGENT if is_agent_id(vid) else background_vtype(v_desired, self.cfg)
-
-    def reset(self, state: VehicleState) -> None:
-        """Remove all vehicles and place ``state``'s at their exact positions and speeds."""
-        v = self._conn.vehicle
-        try:
-            for vid in v.getIDList():
-                v.remove(vid)
-            places = [self._where(float(x), float(y)) for x, y in zip(state.x, state.y)]
-            for i, (vid, (edge, lane, pos, _)) in enumerate(zip(state.ids, places)):
-                v.add(vid, ROUTE_RAMP if (edge, lane) == ("merge", 0) else ROUTE_MAIN,
-                      self._vtype(vid, float(state.v_desired[i])), depart="now", departSpeed=repr(float(state.vx[i])))
-                v.setSpeedMode(vid, 0)
-                v.setLaneChangeMode(vid, 0)
-                v.moveTo(vid, f"{edge}_{lane}", pos)
-            self._conn.simulationStep()  # inserts them
-            for i, (vid, (edge, lane, pos, lat)) in enumerate(zip(state.ids, places)):
-                v.moveTo(vid, f"{edge}_{lane}", pos)
-                v.setLateralLanePosition(vid, lat)
-                v.setPreviousSpeed(vid, float(state.vx[i]))
-                v.subscribe(vid, _SUBSCRIBED_ONRAMP)
-        except SumoError:
-            raise
-        except Exception as exc:
-            raise SumoError(f"SUMO refused to place the vehicles: {exc}") from None
-        self._ids = list(state.ids)
-        self._y = state.y.copy()
-        self._centre = np.array([self._half_width if p[1] == 1 or p[0] != "merge" else -self._ramp_half
-                                 for p in places])
+        on_ramp = (k, lane) == (1, 0)
+        return (ROUTE_RAMP if on_ramp else ROUTE_MAIN, f"{ONRAMP_EDGES[k]}_{lane}", x - float(self._offsets[k]),
+                -self._ramp_half if on_ramp else self._half_width)
 
     def add(self, rows: VehicleState) -> None:
         """Vehicles entering the road where ``rows`` place them (appended, in order): inserted at once
@@ -424,17 +409,13 @@ class OnRampSumoBackend(SumoBackend):
         centres = []
         try:
             for i, vid in enumerate(rows.ids):
-                edge, lane, pos, lat = self._where(float(rows.x[i]), float(rows.y[i]))
+                route, lane, pos, centre = self._placement(float(rows.x[i]), float(rows.y[i]))
                 speed = float(rows.vx[i])
-                v.add(vid, ROUTE_RAMP if edge == "merge" and lane == 0 else ROUTE_MAIN,
-                      self._vtype(vid, float(rows.v_desired[i])), depart="now", departSpeed=repr(speed))
-                v.setSpeedMode(vid, 0)
-                v.setLaneChangeMode(vid, 0)
-                v.moveTo(vid, f"{edge}_{lane}", pos)
-                v.setLateralLanePosition(vid, lat)
+                self._insert(vid, route, lane, pos, speed, float(rows.v_desired[i]))
+                v.setLateralLanePosition(vid, float(rows.y[i]) - centre)
                 v.setPreviousSpeed(vid, speed)
-                v.subscribe(vid, _SUBSCRIBED_ONRAMP)
-                centres.append(-self._ramp_half if (edge, lane) == ("merge", 0) else self._half_width)
+                v.subscribe(vid, self._subscribed)
+                centres.append(centre)
         except SumoError:
             raise
         except Exception as exc:
