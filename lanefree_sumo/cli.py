@@ -192,6 +192,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--shield", action=argparse.BooleanOptionalAction, default=None,
                     help="switch the safety shield on (or off) for this evaluation, e.g. an unshielded policy "
                     "shielded (default: as trained; output eval_shield/ or eval_noshield/)")
+    ev.add_argument("--scenario", choices=("ring", "onramp"), default=None,
+                    help="the road to evaluate on (default: the run's own); onramp drives a ring-trained policy "
+                    "on the on-ramp's main road with the ring's observation, output eval_onramp/")
 
     rollout.add_parser(sub)
 
@@ -373,7 +376,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.evaluate import evaluate
 
     result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
-                      out=args.out, overwrite=args.overwrite, shield=args.shield)
+                      out=args.out, overwrite=args.overwrite, shield=args.shield,
+                      scenario=args.scenario)
     if result.kept_earlier:
         print(f"lanefree: interrupted; the earlier evaluation in {result.out} is kept (the new one was not complete)",
               file=sys.stderr)

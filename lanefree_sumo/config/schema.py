@@ -302,6 +302,10 @@ class ObservationConfig:
     """Longitudinal speeds (vx, v_d, vx_j) are divided by this when scaling (m/s)."""
     lateral_speed_scale_mps: float = field(default=2.0, metadata={"range": (0.01, 1000.0)})
     """Lateral speeds (vy, vy_j) are divided by this when scaling (m/s)."""
+    road_features: bool = True
+    """On the on-ramp, 4 more ego features: the boundaries at the front, on the ramp or not, the room to
+    the ramp's end. False keeps the ring's 4 ego features, so that a policy trained on the ring can drive
+    on the on-ramp (``lanefree evaluate RUN --scenario onramp``)."""
 
 
 @dataclass

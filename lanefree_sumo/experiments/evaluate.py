@@ -68,6 +68,7 @@ def evaluate(
     overwrite: bool = False,
     progress: bool = True,
     shield: bool | None = None,
+    scenario: str | None = None,
 ) -> EvaluationResult:
     """Run the deterministic policy for ``episodes`` episodes into the eval folder.
 
@@ -76,17 +77,21 @@ def evaluate(
     drop the one in progress, so no partial recording looks complete; when they interrupt the
     replacement of an earlier evaluation (``overwrite``), the earlier one is kept whole instead.
     ``shield`` True/False switches the safety
-    shield on/off for the evaluation only (None: as the run's config)."""
+    shield on/off for the evaluation only (None: as the run's config). ``scenario`` ``"onramp"`` drives a
+    ring-trained policy on the on-ramp (:func:`on_another_road`)."""
     folder = RunDir(run)
     cfg = folder.load_config()
-    trained_density, trained_shield = cfg.scenario.density_veh_per_km, cfg.shield.enabled
+    trained_density, trained_shield, trained_road = cfg.scenario.density_veh_per_km, cfg.shield.enabled, cfg.road.kind
+    if scenario is not None and scenario != trained_road:
+        cfg = on_another_road(cfg, scenario)
     if density is not None:
         cfg = merge_config(cfg, {"scenario": {"density_veh_per_km": validate_density(density)}})
     if shield is not None:
         cfg = merge_config(cfg, {"shield": {"enabled": shield}})
     d = cfg.scenario.density_veh_per_km
     out = out or folder.eval_dir(None if d == trained_density else d,
-                                 None if cfg.shield.enabled == trained_shield else cfg.shield.enabled)
+                                 None if cfg.shield.enabled == trained_shield else cfg.shield.enabled,
+                                 None if cfg.road.kind == trained_road else cfg.road.kind)
     check_replaceable(out, overwrite, "evaluate")
     model_path = folder.find_model()
     model = load_model(folder, cfg)
@@ -118,6 +123,18 @@ def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, 
         if done < episodes and replacing:
             raise _IncompleteError
     return EvaluationResult(out, done, done < episodes)
+
+
+def on_another_road(cfg: LaneFreeConfig, scenario: str) -> LaneFreeConfig:
+    """``cfg`` of a ring-trained run moved to the on-ramp for a zero-shot evaluation: the agent starts on
+    the main road upstream of the ramp (it never learned to merge) and sees the ring's observation (no
+    road features); traffic, density and everything else as configured. RunError for a road the policy
+    cannot drive (an on-ramp policy needs its road features)."""
+    if scenario != "onramp" or cfg.road.kind != "ring":
+        raise RunError(f"--scenario {scenario} cannot evaluate a policy trained on the {cfg.road.kind}: "
+                       "only ring-trained policies move to another road (--scenario onramp)")
+    return merge_config(cfg, {"road": {"kind": "onramp", "onramp": {"agent_start": "main"}},
+                              "observation": {"road_features": False}})
 
 
 def load_model(folder: RunDir, cfg: LaneFreeConfig) -> Any:

@@ -297,11 +297,12 @@ class RunDir:
     def load_config(self) -> LaneFreeConfig:
         return read_config(self.path)
 
-    def eval_dir(self, density: float | None = None, shield: bool | None = None) -> Path:
-        """``eval/`` at the training density (``density`` None), else ``eval_d<density>/``; with
-        ``shield`` True/False (the shield switched on/off against the run's config) ``_shield`` or
-        ``_noshield`` appended."""
-        name = EVAL if density is None else f"{EVAL}_d{density:g}"
+    def eval_dir(self, density: float | None = None, shield: bool | None = None, scenario: str | None = None) -> Path:
+        """``eval/`` at the training density (``density`` None), else ``eval_d<density>/``; on another road
+        than trained (``scenario``) ``eval_<scenario>`` first (``eval_onramp_d90``); with ``shield`` True/False
+        (the shield switched on/off against the run's config) ``_shield`` or ``_noshield`` appended."""
+        name = EVAL if scenario is None else f"{EVAL}_{scenario}"
+        name = name if density is None else f"{name}_d{density:g}"
         return self.path / (name if shield is None else f"{name}_{'shield' if shield else 'noshield'}")
 
     def newest_checkpoint(self) -> Checkpoint:

@@ -217,7 +217,7 @@ class LearningVehicle:
         idx = np.flatnonzero(in_range)
         order = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")]
         ego = np.array([state.y[a], state.vx[a], state.vy[a], state.v_desired[a]]) / self.scales[0]
-        if self.open_road:
+        if self.open_road and o.road_features:
             ego = np.concatenate([ego, self._road_features()])
         observed = order[: o.n_neighbours]
         if o.kind == "vector":
@@ -284,8 +284,9 @@ def feature_scales(cfg: LaneFreeConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def ego_features(cfg: LaneFreeConfig) -> int:
-    """How many ego features an observation has: 4, and 4 more on the on-ramp."""
-    return EGO_FEATURES + (ONRAMP_FEATURES if cfg.road.kind != "ring" else 0)
+    """How many ego features an observation has: 4, and 4 more on the on-ramp (unless
+    ``observation.road_features`` is off)."""
+    return EGO_FEATURES + (ONRAMP_FEATURES if cfg.road.kind != "ring" and cfg.observation.road_features else 0)
 
 
 def observation_space(cfg: LaneFreeConfig) -> spaces.Space:

@@ -150,7 +150,28 @@ def test_train_scenario_onramp_writes_the_merge_metrics(tmp_path):
     res = lanefree("evaluate", str(run), "--episodes", "1", "--record")
     assert res.returncode == 0, res.stderr
     assert (run / "eval" / "trajectories" / "episode_0001.vehicles.csv").is_file()
+    res = lanefree("evaluate", str(run), "--episodes", "1", "--scenario", "ring")
+    assert res.returncode == 2 and "only ring-trained policies" in res.stderr and res.stderr.count("\n") == 1
+    assert not (run / "eval_ring").exists()
     res = lanefree("mixed-autonomy", str(run), "--agents", "0,1", "--episodes", "1")
     assert res.returncode == 2 and "runs on the ring" in res.stderr
     res = lanefree("train", "--scenario", "onramp", "--agents", "2", "--envs", "2", "--out", str(tmp_path / "two"))
     assert res.returncode == 2 and "--envs 1" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("kind", ["vector", "set"])
+def test_a_ring_policy_is_evaluated_on_the_on_ramp_zero_shot(tmp_path, kind):
+    """The variable-dimension experiment's transfer: a ring-trained policy drives on the on-ramp's main road
+    with the ring's observation (no road features); the set policy sees whatever number of vehicles is there."""
+    run = tmp_path / "ring"
+    res = lanefree("train", "--density", "70", "--episodes", "1", "--episode-steps", "80", "--obs", kind,
+                   "--out", str(run), "--set", "train.actor_critic.learning_starts_steps=40")
+    assert res.returncode == 0, res.stderr
+    res = lanefree("evaluate", str(run), "--episodes", "2", "--scenario", "onramp", "--density", "20")
+    assert res.returncode == 0, res.stderr
+    out = run / "eval_onramp_d20"
+    with open(out / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 and all(row["density"] == "20.0" for row in rows) and "left_road" in rows[0]
+    saved = (out / "config.yaml").read_text()
+    assert "kind: onramp" in saved and "road_features: false" in saved and "agent_start: main" in saved
