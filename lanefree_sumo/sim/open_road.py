@@ -8,8 +8,11 @@ end, the merge bookkeeping, and the project's merge rule (pure numpy on state ar
   of ``LATERAL_SLOTS`` evenly spaced lateral positions (tried in a random order) where every vehicle whose
   band it would overlap keeps a bumper gap of at least ``spawn.gap_x_m`` + ``entry_headway_s`` × the entry
   speed ahead of it; on the ramp at its start, in the ramp's middle, under the same rule. Entry speed:
-  the source's entry speed, or the vehicle's desired speed if lower; desired speeds as the ring's
-  background vehicles'.
+  the source's entry speed, or the vehicle's desired speed if lower, or lower still where a slow vehicle
+  ahead in its band demands it: at most the speed from which braking at the driver's ``ax_min`` ends
+  ``spawn.gap_x_m`` behind that vehicle were it to brake as hard (so an arrival behind a queue that
+  reaches the entry enters slowly instead of running into it); desired speeds as the ring's background
+  vehicles'.
 * Removal: a vehicle whose centre passed the main road's downstream end leaves the road.
 * Merging: a ramp vehicle is *merged* once its whole body is on the main road (y − w/2 ≥ 0); from then on
   it is a main-road vehicle (:meth:`~lanefree_sumo.sim.road.Road.bounds`).
@@ -197,8 +200,18 @@ class OpenRoadTraffic:
             beside = np.abs(state.y - y) < 0.5 * (state.width + width) + 0.5 * self.cfg.scenario.spawn.gap_y_m
             bumper = np.abs(state.x - x) - 0.5 * (state.length + length)
             if not np.any(beside & (bumper < gap)):
-                return x, float(y), speed, v_desired
+                return x, float(y), min(speed, self._stoppable_speed(state, x, beside, bumper)), v_desired
         return None
+
+    def _stoppable_speed(self, state: VehicleState, x: float, beside: np.ndarray, bumper: np.ndarray) -> float:
+        """The highest entry speed (m/s) from which braking at the driver's ``ax_min`` ends ``spawn.gap_x_m``
+        behind every vehicle ahead in the band, should it brake as hard: √(v_l² + 2·|ax_min|·(gap − gap_x))."""
+        ahead = beside & (state.x > x)
+        if not ahead.any():
+            return float("inf")
+        room = np.maximum(bumper[ahead] - self.cfg.scenario.spawn.gap_x_m, 0.0)
+        brake = -self.cfg.scenario.driver.bounds.ax_min
+        return float(np.sqrt(state.vx[ahead] ** 2 + 2.0 * brake * room).min())
 
 
 def _rows(cfg: LaneFreeConfig, vehicles: list[tuple[str, float, float, float, float]]) -> VehicleState:

@@ -124,3 +124,32 @@ def test_simulate_scenario_onramp_on_the_command_line(tmp_path):
         bad = lanefree("simulate", "--scenario", "onramp", "--out", str(tmp_path / "bad"), *args)
         assert bad.returncode == 2 and needle in bad.stderr and bad.stderr.count("\n") == 1, bad.stderr
         assert not (tmp_path / "bad").exists()
+
+
+def test_an_arrival_behind_a_queue_at_the_entry_enters_slowly_and_stops_in_time():
+    """A queue of stopped vehicles across the whole road 35 m past the entry (congestion spilled back): an
+    arrival enters only at the speed from which braking at the driver's ax_min stops gap_x behind them,
+    √(2·4·(35 − 6)) ≈ 15.2 m/s rather than its desired speed, and the queue is not hit."""
+    from lanefree_sumo.sim.open_road import LATERAL_SLOTS
+    from lanefree_sumo.sim.state import VehicleState
+
+    cfg = onramp(main_flow_veh_per_h=14400.0, ramp_flow_veh_per_h=0.0)
+    bg = cfg.scenario.background
+    sim = Simulation(cfg)
+    sim.reset(0)
+    n = LATERAL_SLOTS + 1
+    y = np.linspace(0.5 * bg.width_m + 0.1, cfg.road.width_m - 0.5 * bg.width_m - 0.1, n)
+    front_of_queue = 0.5 * bg.length_m + 35.0 + bg.length_m
+    queue = VehicleState([f"q{i}" for i in range(n)], np.full(n, front_of_queue), y, np.zeros(n), np.zeros(n),
+                         np.full(n, bg.length_m), np.full(n, bg.width_m), np.zeros(n), np.ones(n, dtype=bool))
+    sim.place(queue)
+    result = sim.step()
+    entered = result.entered
+    assert entered is not None and entered.n == 1
+    brake = -cfg.scenario.driver.bounds.ax_min
+    assert entered.vx[0] == pytest.approx(np.sqrt(2 * brake * (35.0 - cfg.scenario.spawn.gap_x_m)))
+    assert entered.vx[0] < entered.v_desired[0]
+    collisions = 0
+    for _ in range(80):  # 20 s; the queue wants to stand still (desired speed 0), arrivals keep coming
+        collisions += len(sim.step().new_collisions)
+    assert collisions == 0
