@@ -178,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluate",
         help="run a trained policy deterministically on fresh seeds",
         description="Evaluate RUN's final model (or newest checkpoint) deterministically; writes RUN/eval/episodes.csv "
-        "(RUN/eval_d<density>/ at another density) and, with --record, one trajectory CSV of all vehicles per episode.",
+        "(RUN/eval_d<density>/ at another density, RUN/eval_onramp/ on the on-ramp) and, with --record, one "
+        "trajectory CSV of all vehicles per episode.",
     )
     ev.add_argument("run", type=Path, metavar="RUN", help="run folder made by 'lanefree train'")
     ev.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVAL.episodes,
@@ -187,7 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seed", type=int, default=None,
                     help=f"base seed; episode k uses seed+{EVAL.seed_offset}+k (default: the training seed)")
     ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
-    ev.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval or RUN/eval_d<density>)")
+    ev.add_argument("--out", type=Path, default=None,
+                    help="output folder (default RUN/eval, RUN/eval_d<density>, RUN/eval_onramp[_d<density>], "
+                    "with _shield or _noshield appended when --shield changes the run's setting)")
     ev.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     ev.add_argument("--shield", action=argparse.BooleanOptionalAction, default=None,
                     help="switch the safety shield on (or off) for this evaluation, e.g. an unshielded policy "

@@ -11,15 +11,23 @@ bin=$root/.venv/bin/lanefree
 episodes=${1:-50}
 base=$root/results/varobs
 runs=()
+# evaluate RUN into RUN/FOLDER unless it already holds EPISODES complete episodes (a partial one is replaced)
+evaluate() {
+    local run=$1 folder=$2
+    shift 2
+    local log=$run/$folder/episodes.csv
+    if [ -s "$log" ] && [ $(($(wc -l <"$log") - 1)) -ge "$episodes" ]; then return 0; fi
+    "$bin" evaluate "$run" --episodes "$episodes" --out "$run/$folder" --overwrite "$@"
+}
 for model in "$base"/vector/runs/*/model.zip "$base"/set/runs/*/model.zip; do
     [ -e "$model" ] || continue
     run=$(dirname "$model")
     runs+=("$run")
-    [ -s "$run/eval/episodes.csv" ] || "$bin" evaluate "$run" --episodes "$episodes"
+    evaluate "$run" eval
     for density in 90 120; do
-        [ -s "$run/eval_d$density/episodes.csv" ] || "$bin" evaluate "$run" --episodes "$episodes" --density "$density"
+        evaluate "$run" "eval_d$density" --density "$density"
     done
-    [ -s "$run/eval_onramp/episodes.csv" ] || "$bin" evaluate "$run" --episodes "$episodes" --scenario onramp
+    evaluate "$run" eval_onramp --scenario onramp
 done
 [ ${#runs[@]} -gt 0 ] || { echo "no finished run with a model under $base"; exit 0; }
 "$bin" report "${runs[@]}" --out "$base/report"

@@ -36,6 +36,7 @@ from lanefree_sumo.experiments.rundir import (
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
+from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.spawn import agent_id
 
 EVALUATION = EvaluationConfig()
@@ -113,7 +114,7 @@ def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, 
         if record:
             (tmp / TRAJECTORIES).mkdir()
             (tmp / RECORDING).write_text(json.dumps({
-                "model": str(model_path), "net_file": cfg.net_file, "road_length_m": cfg.road.length_m,
+                "model": str(model_path), "net_file": cfg.net_file, "road_length_m": road_of(cfg).length_m,
                 "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
                 "agent_ids": [agent_id(i) for i in range(cfg.scenario.agents)],
                 "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
@@ -133,7 +134,7 @@ def on_another_road(cfg: LaneFreeConfig, scenario: str) -> LaneFreeConfig:
     if scenario != "onramp" or cfg.road.kind != "ring":
         raise RunError(f"--scenario {scenario} cannot evaluate a policy trained on the {cfg.road.kind}: "
                        "only ring-trained policies move to another road (--scenario onramp)")
-    return merge_config(cfg, {"road": {"kind": "onramp", "onramp": {"agent_start": "main"}},
+    return merge_config(cfg, {"road": {"kind": "onramp", "onramp": {"agent_start": "main"}}, "net_file": "",
                               "observation": {"road_features": False}})
 
 

@@ -53,25 +53,32 @@ class TrajectoryWriter:
         one per row of the state). Vehicles that entered the road at the start of the step (an open road)
         get a row at the step's start too, as they were placed, before the rows of its end."""
         if result is not None and result.entered is not None:
-            self._rows_of(step - 1, result.entered, None, False)
-        self._rows_of(step, state, result, shielded)
+            self._rows_of(step - 1, result.entered, None, None, None, False)
+        if result is None:
+            self._rows_of(step, state, None, None, None, shielded)
+        else:
+            self._rows_of(step, state, result.ax, result.ay, np.asarray(result.overlap.any(axis=1)), shielded)
+        if result is not None and result.departed is not None:
+            gone = result.departed
+            self._rows_of(step, gone.state, gone.ax, gone.ay, gone.overlapping, False)
         self._steps += 1
         if self._steps % self._flush_every == 0:
             self._fh.flush()
 
-    def _rows_of(self, step: int, state: VehicleState, result: StepResult | None,
-                 shielded: bool | np.ndarray) -> None:
+    def _rows_of(self, step: int, state: VehicleState, ax: np.ndarray | None, ay: np.ndarray | None,
+                 overlapping: np.ndarray | None, shielded: bool | np.ndarray) -> None:
+        """One row per vehicle of ``state`` at the end of ``step`` (accelerations and overlap None: zeros)."""
         n = state.n
         zeros = np.zeros(n)
-        ax = zeros if result is None else result.ax
-        ay = zeros if result is None else result.ay
+        if any(len(values) != n for values in (ax, ay, overlapping) if values is not None):
+            raise ValueError(f"the step's values do not have one entry per vehicle ({n}) of the state")
         cols = [
             [round(step * self._step_s, DECIMALS)] * n, state.ids,
-            *(np.round(v, DECIMALS) for v in (state.x, state.y, state.vx, state.vy, ax, ay)),
+            *(np.round(v, DECIMALS) for v in (state.x, state.y, state.vx, state.vy,
+                                               zeros if ax is None else ax, zeros if ay is None else ay)),
         ]
         if self._overlap:
-            hit = np.zeros(n, dtype=int) if result is None else result.overlap.any(axis=1).astype(int)
-            cols.append(hit)
+            cols.append(np.zeros(n, dtype=int) if overlapping is None else overlapping.astype(int))
         if self._shield:
             cols.append((~state.controlled & shielded).astype(int))
         self._writer.writerows(zip(*cols))

@@ -59,6 +59,21 @@ class StepResult:
     entered: VehicleState | None = None
     """Open road: the vehicles that entered at the start of this step, as they were placed (before they
     moved in it; their rows are also the last rows of the state after the step); None when none did."""
+    departed: Departure | None = None
+    """Open road: the vehicles taken off the road after this step (:meth:`Simulation.remove`, e.g. learning
+    vehicles whose episode ended), with their state and values of this step; the fields above then
+    describe the remaining rows only. None when none were."""
+
+
+@dataclass
+class Departure:
+    """Vehicles taken off the road right after a step: their state after it and what happened to them in it."""
+
+    state: VehicleState
+    ax: np.ndarray
+    ay: np.ndarray
+    overlapping: np.ndarray
+    """True where the vehicle's body overlapped another's after the step."""
 
 
 def clip_acceleration(
@@ -125,6 +140,8 @@ class Simulation:
         if state is None or backend is None or not ids:
             return
         keep = np.array([vid not in ids for vid in state.ids])
+        if self.last_result is not None and len(self.last_result.ax) == state.n:
+            self.last_result = _without(self.last_result, keep, state)
         self.state = state = keep_rows(state, keep)
         backend.remove(keep)  # type: ignore[attr-defined]
         self.on_ramp = self.on_ramp[keep]
@@ -233,6 +250,17 @@ class Simulation:
         if self.backend is not None:
             self.backend.close()
             self.backend = None
+
+
+def _without(result: StepResult, keep: np.ndarray, state: VehicleState) -> StepResult:
+    """``result`` for the rows where ``keep`` is True, the others (rows of ``state``) as its departure."""
+    gone = ~keep
+    new_index = np.cumsum(keep) - 1
+    pairs = result.new_collisions
+    pairs = new_index[pairs[keep[pairs].all(axis=1)]] if len(pairs) else pairs
+    departed = Departure(keep_rows(state, gone), result.ax[gone], result.ay[gone], result.overlap[gone].any(axis=1))
+    return StepResult(result.ax[keep], result.ay[keep], result.boundary_contact[keep],
+                      result.overlap[np.ix_(keep, keep)], pairs, result.entered, departed)
 
 
 def run_simulation(

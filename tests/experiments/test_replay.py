@@ -11,6 +11,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from PIL import Image
 
@@ -19,6 +20,7 @@ from lanefree_sumo.errors import SumoError
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
 from lanefree_sumo.experiments.train import train
+from lanefree_sumo.sim.road import road_of
 
 from conftest import CLI_ENV, ROOT, lanefree, wait_for
 
@@ -196,6 +198,10 @@ def test_onramp_recording_holds_every_vehicle_seen_while_it_was_on_the_road(onra
     entered = np.flatnonzero(first > 0)
     placed_x, placed_y = rec.x[first[entered], entered], rec.y[first[entered], entered]
     assert np.all(np.isclose(placed_x, 0.5 * rec.length[entered]) | (placed_y < 0))
+    # ramp vehicles merged on the way: on the ramp (y < 0) at first, wholly on the main road later
+    was_on_ramp = ((rec.y < 0) & rec.present).any(axis=0)
+    merged = was_on_ramp & (np.nan_to_num(rec.y - 0.5 * rec.width, nan=-1.0) >= 0).any(axis=0)
+    assert merged.any()
 
 
 def test_onramp_replay_is_exact_while_vehicles_come_and_go(onramp_recorded, tmp_path):
@@ -221,3 +227,27 @@ def test_onramp_gui_replay_shows_the_green_agent(display, onramp_recorded, tmp_p
     image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
     assert ((g > 150) & (r < 120) & (b < 120)).sum() > 50
+
+
+def test_onramp_recording_of_several_agents_keeps_each_agents_rows_and_last_step(tmp_path):
+    """Agents taken off the road one by one: each keeps its row of the step it left in, every row's
+    realised acceleration is its own ((vx_k − vx_k−1)/T, to the recording's rounding), and the replay is exact."""
+    cfg = merge_config(LaneFreeConfig(), {
+        "road": {"kind": "onramp", "onramp": {"agent_start": "main", "agent_main_start_m": 1800.0}},
+        "sim": {"episode_steps": 240},
+        "scenario": {"density_veh_per_km": 20, "agents": 2},
+        "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": 60}},
+    })
+    run, _ = train(cfg, run=tmp_path / "run", progress=False)
+    evaluate(run, episodes=1, record=True, progress=False)
+    rec = load_recording(run, 1)
+    road_end = road_of(cfg).length_m
+    for name in ("agent", "agent1"):
+        rows = np.flatnonzero(rec.present[:, rec.ids.index(name)])
+        assert rows[0] == 0 and rec.x[rows[-1], rec.ids.index(name)] >= road_end  # its last row: past the end
+    assert rec.present[-1, rec.ids.index("agent")] or rec.present[-1, rec.ids.index("agent1")]
+    table = pd.read_csv(run / "eval" / "trajectories" / "episode_0001.csv").sort_values(["id", "t"], kind="stable")
+    realised = table.groupby("id")["vx"].diff() / cfg.sim.step_s
+    assert (table["ax"] - realised).abs().max() < 1e-4
+    result = replay(run, episode=1, gui=False)
+    assert result.max_dx_m <= 0.01 and result.max_dy_m <= 0.01
