@@ -52,7 +52,7 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
 
 ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner", "reward.broad_stretch",
                                "train.backend", "train.lean_loop", "train.overlap", "scenario.agents", "road.kind",
-                               "road.onramp")
+                               "road.onramp", "observation.road_features")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 
