@@ -15,6 +15,7 @@ Values are rounded to 1 µm, 1 µm/s; the file is flushed every simulated second
 from __future__ import annotations
 
 import csv
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -47,26 +48,26 @@ class TrajectoryWriter:
         self._steps = 0
 
     def write(self, step: int, state: VehicleState, result: StepResult | None,
-              shielded: bool | np.ndarray = False) -> None:
+              shielded: Collection[str] = ()) -> None:
         """Rows for the state after ``step`` steps (``result`` None for the initial state);
-        ``shielded``: the shield changed the agents' action in this step (one flag for every agent, or
-        one per row of the state). Vehicles that entered the road at the start of the step (an open road)
-        get a row at the step's start too, as they were placed, before the rows of its end."""
+        ``shielded``: the ids of the agents whose action the shield changed in this step. Vehicles that
+        entered the road at the start of the step (an open road) get a row at the step's start too, as they
+        were placed, before the rows of its end; vehicles taken off the road after it keep their row of it."""
         if result is not None and result.entered is not None:
-            self._rows_of(step - 1, result.entered, None, None, None, False)
+            self._rows_of(step - 1, result.entered, None, None, None, ())
         if result is None:
             self._rows_of(step, state, None, None, None, shielded)
         else:
             self._rows_of(step, state, result.ax, result.ay, np.asarray(result.overlap.any(axis=1)), shielded)
         if result is not None and result.departed is not None:
             gone = result.departed
-            self._rows_of(step, gone.state, gone.ax, gone.ay, gone.overlapping, False)
+            self._rows_of(step, gone.state, gone.ax, gone.ay, gone.overlapping, shielded)
         self._steps += 1
         if self._steps % self._flush_every == 0:
             self._fh.flush()
 
     def _rows_of(self, step: int, state: VehicleState, ax: np.ndarray | None, ay: np.ndarray | None,
-                 overlapping: np.ndarray | None, shielded: bool | np.ndarray) -> None:
+                 overlapping: np.ndarray | None, shielded: Collection[str]) -> None:
         """One row per vehicle of ``state`` at the end of ``step`` (accelerations and overlap None: zeros)."""
         n = state.n
         zeros = np.zeros(n)
@@ -80,7 +81,7 @@ class TrajectoryWriter:
         if self._overlap:
             cols.append(np.zeros(n, dtype=int) if overlapping is None else overlapping.astype(int))
         if self._shield:
-            cols.append((~state.controlled & shielded).astype(int))
+            cols.append([int(vid in shielded) for vid in state.ids])
         self._writer.writerows(zip(*cols))
         if self._vehicles_path is not None and any(vid not in self._attributes for vid in state.ids):
             for i, vid in enumerate(state.ids):

@@ -297,24 +297,20 @@ class PolicyDriver:
         self._ended = []
         return _stack([observations[name] for name in self.names], self.multi.observation_space(self.names[0]))
 
-    def step(self, actions: Any) -> tuple[Any, bool, np.ndarray, list[dict[str, Any]]]:
-        """(observation(s), episode over, vehicles whose action the shield changed — one flag per row of the
-        state —, the agents' ``episode_metrics`` at the episode's end, else [])."""
+    def step(self, actions: Any) -> tuple[Any, bool, set[str], list[dict[str, Any]]]:
+        """(observation(s), episode over, vehicle ids of the agents whose action the shield changed in this
+        step — those taken off the road after it included —, the agents' ``episode_metrics`` at the
+        episode's end, else [])."""
         if self.single is not None:
             obs, _, terminated, truncated, info = self.single.step(actions)
-            state = self.sim.current()[0]
-            shielded = ~state.controlled & bool(info["shield_intervened"])
+            shielded = {self.single.vehicle.vid} if info["shield_intervened"] else set()
             done = terminated or truncated
             return obs, done, shielded, [info["episode_metrics"]] if done else []
         assert self.multi is not None
         batch = np.asarray(actions)
         live = list(self.multi.agents)
         observations, _, _, _, infos = self.multi.step({name: batch[self.names.index(name)] for name in live})
-        state = self.sim.current()[0]
-        shielded = np.zeros(state.n, dtype=bool)
-        # the agents that have a row now: all on the ring, those still on the road on the on-ramp
-        with_rows = self.names if self.sim.road.periodic else self.multi.agents
-        shielded[self.multi.agent_rows] = [infos[name]["shield_intervened"] for name in with_rows]
+        shielded = {self.multi.vehicles[name].vid for name in live if infos[name]["shield_intervened"]}
         self._last_obs.update(observations)
         self._ended += [infos[name]["episode_metrics"] for name in live if "episode_metrics" in infos[name]]
         done = not self.multi.agents

@@ -230,8 +230,9 @@ def test_onramp_gui_replay_shows_the_green_agent(display, onramp_recorded, tmp_p
 
 
 def test_onramp_recording_of_several_agents_keeps_each_agents_rows_and_last_step(tmp_path):
-    """Agents taken off the road one by one: each keeps its row of the step it left in, every row's
-    realised acceleration is its own ((vx_k − vx_k−1)/T, to the recording's rounding), and the replay is exact."""
+    """Agents taken off the road one by one (shielded): each keeps its row of the step it left in, every
+    row's realised acceleration is its own ((vx_k − vx_k−1)/T, to the recording's rounding), its shielded
+    rows are its interventions, and the replay is exact."""
     cfg = merge_config(LaneFreeConfig(), {
         "road": {"kind": "onramp", "onramp": {"agent_start": "main", "agent_main_start_m": 1800.0}},
         "sim": {"episode_steps": 240},
@@ -239,15 +240,20 @@ def test_onramp_recording_of_several_agents_keeps_each_agents_rows_and_last_step
         "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": 60}},
     })
     run, _ = train(cfg, run=tmp_path / "run", progress=False)
-    evaluate(run, episodes=1, record=True, progress=False)
-    rec = load_recording(run, 1)
+    evaluate(run, episodes=1, record=True, progress=False, shield=True)
+    recorded = run / "eval_shield"
+    rec = load_recording(recorded, 1)
     road_end = road_of(cfg).length_m
     for name in ("agent", "agent1"):
         rows = np.flatnonzero(rec.present[:, rec.ids.index(name)])
         assert rows[0] == 0 and rec.x[rows[-1], rec.ids.index(name)] >= road_end  # its last row: past the end
     assert rec.present[-1, rec.ids.index("agent")] or rec.present[-1, rec.ids.index("agent1")]
-    table = pd.read_csv(run / "eval" / "trajectories" / "episode_0001.csv").sort_values(["id", "t"], kind="stable")
+    table = pd.read_csv(recorded / "trajectories" / "episode_0001.csv").sort_values(["id", "t"], kind="stable")
     realised = table.groupby("id")["vx"].diff() / cfg.sim.step_s
     assert (table["ax"] - realised).abs().max() < 1e-4
-    result = replay(run, episode=1, gui=False)
+    # each agent's shielded rows, its last step's included, are the interventions its episodes.csv row counts
+    episodes = pd.read_csv(recorded / "episodes.csv").set_index("agent")["shield_interventions"]
+    assert table.groupby("id")["shielded"].sum()[["agent", "agent1"]].tolist() == episodes[["agent", "agent1"]].tolist()
+    assert episodes.sum() > 0
+    result = replay(recorded, episode=1, gui=False)
     assert result.max_dx_m <= 0.01 and result.max_dy_m <= 0.01
