@@ -2,10 +2,11 @@
 
 Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at another density than
 trained; ``eval_shield/`` or ``eval_noshield/``, after the density, when the safety shield is
-switched on or off against the run's config), one row per episode with the SPEC §8 columns, and
+switched on or off against the run's config; ``eval_onramp…`` first for a ring-trained policy on the
+on-ramp, :func:`on_another_road`), one row per episode with the SPEC §8 columns, and
 with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
 vehicle on the road at every step including the initial state (on the on-ramp vehicles come and
-go: a vehicle's rows run from the step it entered to the step before it left), in the format of
+go: see :mod:`lanefree_sumo.experiments.trajectory`), in the format of
 :mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column; the agents' ids are
 ``agent`` (``agent1``, … in a run of several agents, with one ``episodes.csv`` row per agent) — and
 ``episode_NNNN.vehicles.csv`` with the length, width and desired speed of every vehicle seen.  ``recording.json``
