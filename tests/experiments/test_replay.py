@@ -27,16 +27,20 @@ from conftest import CLI_ENV, ROOT, lanefree, wait_for
 pytestmark = [pytest.mark.sumo, pytest.mark.gui, pytest.mark.slow]
 
 
+def _trained_and_recorded(folder: Path, overrides: dict, learning_starts: int, episodes: int = 1,
+                          shield: bool | None = None) -> Path:
+    """A one-episode run of ``overrides`` in ``folder``/run, its ``episodes`` evaluation episodes recorded."""
+    cfg = merge_config(LaneFreeConfig(), {
+        **overrides, "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": learning_starts}}})
+    run, _ = train(cfg, run=folder / "run", progress=False)
+    evaluate(run, episodes=episodes, record=True, progress=False, shield=shield)
+    return run
+
+
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory) -> Path:
-    cfg = merge_config(LaneFreeConfig(), {
-        "sim": {"episode_steps": 60},
-        "scenario": {"density_veh_per_km": 90},
-        "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": 30}},
-    })
-    run, _ = train(cfg, run=tmp_path_factory.mktemp("replay") / "run", progress=False)
-    evaluate(run, episodes=2, record=True, progress=False)
-    return run
+    return _trained_and_recorded(tmp_path_factory.mktemp("replay"), {
+        "sim": {"episode_steps": 60}, "scenario": {"density_veh_per_km": 90}}, learning_starts=30, episodes=2)
 
 
 def test_gui_replay_matches_the_recording_to_a_centimetre(display, recorded):
@@ -175,15 +179,9 @@ def test_sigterm_stops_a_replay_like_ctrl_c_and_leaves_no_file(display, recorded
 @pytest.fixture(scope="module")
 def onramp_recorded(tmp_path_factory) -> Path:
     """An on-ramp run whose recorded episodes have vehicles entering and leaving."""
-    cfg = merge_config(LaneFreeConfig(), {
-        "road": {"kind": "onramp"},
-        "sim": {"episode_steps": 240},
-        "scenario": {"density_veh_per_km": 20},
-        "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": 60}},
-    })
-    run, _ = train(cfg, run=tmp_path_factory.mktemp("onramp_replay") / "run", progress=False)
-    evaluate(run, episodes=1, record=True, progress=False)
-    return run
+    return _trained_and_recorded(tmp_path_factory.mktemp("onramp_replay"), {
+        "road": {"kind": "onramp"}, "sim": {"episode_steps": 240}, "scenario": {"density_veh_per_km": 20}},
+        learning_starts=60)
 
 
 def test_onramp_recording_holds_every_vehicle_seen_while_it_was_on_the_road(onramp_recorded):
@@ -233,14 +231,10 @@ def test_onramp_recording_of_several_agents_keeps_each_agents_rows_and_last_step
     """Agents taken off the road one by one (shielded): each keeps its row of the step it left in, every
     row's realised acceleration is its own ((vx_k − vx_k−1)/T, to the recording's rounding), its shielded
     rows are its interventions, and the replay is exact."""
-    cfg = merge_config(LaneFreeConfig(), {
-        "road": {"kind": "onramp", "onramp": {"agent_start": "main", "agent_main_start_m": 1800.0}},
-        "sim": {"episode_steps": 240},
-        "scenario": {"density_veh_per_km": 20, "agents": 2},
-        "train": {"episodes": 1, "actor_critic": {"learning_starts_steps": 60}},
-    })
-    run, _ = train(cfg, run=tmp_path / "run", progress=False)
-    evaluate(run, episodes=1, record=True, progress=False, shield=True)
+    overrides = {"road": {"kind": "onramp", "onramp": {"agent_start": "main", "agent_main_start_m": 1800.0}},
+                 "sim": {"episode_steps": 240}, "scenario": {"density_veh_per_km": 20, "agents": 2}}
+    cfg = merge_config(LaneFreeConfig(), overrides)
+    run = _trained_and_recorded(tmp_path, overrides, learning_starts=60, shield=True)
     recorded = run / "eval_shield"
     rec = load_recording(recorded, 1)
     road_end = road_of(cfg).length_m
