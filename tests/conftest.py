@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 
+from lanefree_sumo.experiments.markdown import TABLE_BEGIN, TABLE_END
+
 ROOT = Path(__file__).resolve().parent.parent
 """The repository root (the CLI runs from here)."""
 
@@ -110,3 +112,11 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def fenced_rows(text: str) -> list[str]:
+    """The table lines between the markers of ``text`` (exactly one fenced table expected)."""
+    lines = text.splitlines()
+    assert lines.count(TABLE_BEGIN) == 1 and lines.count(TABLE_END) == 1
+    inside = lines[lines.index(TABLE_BEGIN) + 1:lines.index(TABLE_END)]
+    return [line for line in inside if line]

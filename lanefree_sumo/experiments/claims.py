@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData
 from lanefree_sumo.experiments.statistics import bootstrap_difference_ci
@@ -162,10 +163,11 @@ def claims_markdown(table: pd.DataFrame) -> str:
              "Verdicts: *reproduced* when the CI excludes 0 on the paper's side, *opposite* on the other, "
              "*inconclusive* when it contains 0 (for a claim of no difference: *no difference detected*, which with 3 "
              "runs per group is low power, not equivalence), *no data* below 3 complete runs per group. With 3 runs "
-             "per group the percentile bootstrap is narrow: read n beside it.", "",
-             "| claim | metric | n (a, b) | paper | ours [95 % CI] | verdict |", "|---|---|---|---|---|---|"]
+             "per group the percentile bootstrap is narrow: read n beside it.", ""]
+    rows = []
     for r in table.itertuples():
         ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
-        lines.append(f"| {r.claim} | {r.metric} | {r.n_a}, {r.n_b} | {num(r.paper_difference)} | "
-                     f"{num(r.difference)}{ci} | {r.verdict} |")
+        rows.append([str(r.claim), str(r.metric), f"{r.n_a}, {r.n_b}", num(r.paper_difference),
+                     f"{num(r.difference)}{ci}", str(r.verdict)])
+    lines += markdown.table(["claim", "metric", "n (a, b)", "paper", "ours [95 % CI]", "verdict"], rows)
     return "\n".join(lines) + "\n"

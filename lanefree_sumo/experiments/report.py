@@ -57,6 +57,7 @@ import pandas as pd
 
 from lanefree_sumo.config import SAME_RESULTS, LaneFreeConfig, config_differences
 from lanefree_sumo.errors import ReportError, RunError
+from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, group_label, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData, RunKey
@@ -293,9 +294,8 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
          f"means over the last {last} evaluation episodes of each run, then mean ± sample std (ddof=1) over "
          "runs; paper values (training, last 50 episodes) in parentheses."),
         "",
-        "| " + " | ".join(headers) + " |",
-        "|" + "|".join("---" for _ in headers) + "|",
     ]
+    rows = []
     for _, row in table.iterrows():
         cells = [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density_veh_per_km']:g}",
                  str(row["variant"]) or "default", str(int(row["n_seeds"]))]
@@ -303,7 +303,8 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
             paper = row.get(f"{col}_paper")
             cells.append(_cell(row[f"{col}_mean"], row[f"{col}_std"], fmt,
                                None if paper is None or pd.isna(paper) else float(paper)))
-        lines.append("| " + " | ".join(cells) + " |")
+        rows.append(cells)
+    lines += markdown.table(headers, rows)
     if skipped:
         lines += ["", "## Skipped runs", ""] + [f"- `{p}`: {reason}" for p, reason in skipped]
     if notes:

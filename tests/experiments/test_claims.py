@@ -10,6 +10,8 @@ import pandas as pd
 from lanefree_sumo.experiments.claims import COMPARISONS, check_claims, claims_markdown, difference_ci, verdict
 from lanefree_sumo.experiments.report import RunData
 
+from conftest import fenced_rows
+
 
 def run(algo: str, preset: str, density: float, seed: int, collisions: list[float], speed_dev: float = 1.0) -> RunData:
     episodes = pd.DataFrame({"collisions": collisions, "speed_dev_mps": [speed_dev] * len(collisions)},
@@ -57,3 +59,4 @@ def test_claims_from_runs_last_episodes_and_windows():
     assert row["n_b"] == 0 and row["verdict"] == "no data"
     text = claims_markdown(table)
     assert text.count("\n| ") == len(COMPARISONS) + 1 and "reproduced" in text
+    assert len(fenced_rows(text)) == len(COMPARISONS) + 2  # header, rule, one row per claim

@@ -18,6 +18,8 @@ from lanefree_sumo.experiments.report import RunData, report
 from lanefree_sumo.experiments.rundir import write_config
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
+from conftest import fenced_rows
+
 FZOC = "fields_zones_overtake_collision"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -109,6 +111,7 @@ def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path
     md = (tmp_path / "out" / "summary.md").read_text()
     assert "| ddpg | fields_zones_overtake_collision | 70 | default | 2 |" in md
     assert "| shield.enabled=True | 1 |" in md
+    assert len(fenced_rows(md)) == 2 + 4  # header, rule, one row per group
 
 
 def test_eval_source_tabulates_each_runs_evaluation_at_its_density(tmp_path: Path) -> None:

@@ -41,7 +41,7 @@ from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTI
 from lanefree_sumo.experiments.sweep.summary import COLUMNS, bootstrap_ci, summarize
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
-from conftest import CLI_ENV, lanefree, lanefree_popen
+from conftest import CLI_ENV, fenced_rows, lanefree, lanefree_popen
 
 TINY = {"reward_presets": ["collision", "fields_collision"], "n_seeds": 2, "episodes": 2,
         "overrides": {"sim": {"episode_steps": 40}, "train": {"checkpoint_every_episodes": 1}}}
@@ -316,6 +316,7 @@ def test_a_setting_in_several_tables_is_drawn_once(tmp_path):
     assert [p.name for p in result.files[3:]] == ["summary.csv", "summary.md", "claims.csv", "claims.md"]
     md = (tmp_path / "summary.md").read_text()
     assert "- Table 6, Table 7, Table 8: [return](curves/table6_return.png)" in md
+    assert fenced_rows(md)[2].startswith("| ddpg | fields_zones_overtake_collision | 70 | 60 | 1/1 |")
 
 
 def test_lanefree_report_of_a_sweep_folder_writes_its_summary(tmp_path):

@@ -38,6 +38,7 @@ import pandas as pd
 
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
+from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import check_claims, claims_markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
@@ -125,14 +126,14 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
         f"count. Cell: mean over runs [{CI_LEVEL:.0%} percentile-bootstrap CI over runs, {BOOTSTRAP_RESAMPLES} "
         "resamples; n/a below 2 runs, too narrow with very few] (paper value, SPEC §10).",
         "",
-        "| algorithm | reward preset | density (veh/km) | episodes | runs | collisions / episode | "
-        "speed deviation (m/s) |",
-        "|---|---|---|---|---|---|---|",
     ]
-    for _, row in table.iterrows():
-        lines.append(f"| {row['algorithm']} | {row['reward_preset']} | {row['density']:g} | {row['episodes']} | "
-                     f"{row['n_runs']}/{row['runs_planned']} | {_cell(row, 'collisions', 'paper_collisions')} | "
-                     f"{_cell(row, 'speed_dev_mps', 'paper_speed_dev_mps')} |")
+    headers = ["algorithm", "reward preset", "density (veh/km)", "episodes", "runs", "collisions / episode",
+               "speed deviation (m/s)"]
+    lines += markdown.table(headers, [
+        [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density']:g}", str(row["episodes"]),
+         f"{row['n_runs']}/{row['runs_planned']}", _cell(row, "collisions", "paper_collisions"),
+         _cell(row, "speed_dev_mps", "paper_speed_dev_mps")]
+        for _, row in table.iterrows()])
     if curves:
         lines += ["", "## Learning curves", ""]
         titles: dict[tuple[Path, ...], list[str]] = {}  # tables drawn by the same files share a line

@@ -1,0 +1,30 @@
+"""Markdown tables of the result files (``summary.md``, ``claims.md``), fenced by two HTML comments.
+
+The comments are invisible where Markdown is rendered, and they let the documentation include a
+committed table as it stands (``{include}`` with ``:start-after: "<!-- table -->"`` and
+``:end-before: "<!-- /table -->"``, see ``docs/results.md``) instead of copying its numbers by hand.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+__all__ = ["TABLE_BEGIN", "TABLE_END", "table"]
+
+TABLE_BEGIN = "<!-- table -->"
+"""The line before a result file's table."""
+TABLE_END = "<!-- /table -->"
+"""The line after a result file's table."""
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    """The lines of a Markdown table of ``headers`` and ``rows`` (cells already formatted), fenced by
+    :data:`TABLE_BEGIN` and :data:`TABLE_END` with a blank line on either side of the table."""
+    width = len(headers)
+    if any(len(row) != width for row in rows):
+        raise ValueError(f"every row needs {width} cells, one per header")
+    return [TABLE_BEGIN, "",
+            "| " + " | ".join(headers) + " |",
+            "|" + "|".join("---" for _ in headers) + "|",
+            *("| " + " | ".join(row) + " |" for row in rows),
+            "", TABLE_END]
