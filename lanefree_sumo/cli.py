@@ -251,8 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
         "summary.md. Unusable runs are named and skipped. Given a sweep folder (one with sweep.yaml), writes the "
         "sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over seeds, as 'lanefree sweep'.",
     )
-    rep.add_argument("runs", type=Path, nargs="+", metavar="RUN",
-                     help="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep'")
+    rep.add_argument("runs", type=Path, nargs="*", metavar="RUN",
+                     help="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep' "
+                     "(at least one)")
     rep.add_argument("--out", type=Path, default=Path("runs/report"), help="output folder (default runs/report)")
     rep.add_argument("--last", type=argtypes.positive(int, "episodes"), default=REPORT.last_episodes,
                      help=f"episodes at the end of each run averaged in the table (default {REPORT.last_episodes}, "
@@ -260,9 +261,12 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--smooth", type=argtypes.positive(int, "episodes"), default=REPORT.smooth_episodes,
                      help="trailing moving-average window of the curves in episodes "
                      f"(default {REPORT.smooth_episodes})")
-    rep.add_argument("--eval", nargs="?", const="eval", default=None, metavar="NAME",
+    rep.add_argument("--eval", nargs="*", default=None, metavar="NAME",
                      help="tabulate each run's evaluation RUN/NAME/episodes.csv (default NAME eval; e.g. "
-                     "eval_d120, eval_shield) instead of its training episodes, at the evaluated density")
+                     "eval_d120, eval_shield) instead of its training episodes, at the evaluated density; several "
+                     "NAMEs: the evaluations side by side in one table and two bar charts "
+                     "(evaluations_collisions.png, evaluations_speed_dev.png), no learning curves. Put the RUN "
+                     "folders before --eval")
 
     sweep_command.add_parser(sub)
     mixed_autonomy.add_parser(sub)
@@ -427,17 +431,33 @@ def _report(args: argparse.Namespace) -> int:
     from lanefree_sumo.experiments.report import report
     from lanefree_sumo.experiments.sweep.manifest import MANIFEST
 
+    sources = _evaluation_names(args.eval)
+    if not args.runs:
+        raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder)")
     sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
     if sweeps:
         return _report_sweep(args, sweeps)
-    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=args.eval or "")
+    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources)
     for path, reason in result.skipped:
         print(f"skipped {path}: {reason}", file=sys.stderr)
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
-    print(f"{len(result.table)} group(s) -> {args.out}")
+    rows = "group(s)" if isinstance(sources, str) or len(sources) == 1 else "row(s), one per evaluation and group"
+    print(f"{len(result.table)} {rows} -> {args.out}")
     print((args.out / "summary.md").read_text())
     return 0
+
+
+def _evaluation_names(names: list[str] | None) -> list[str] | str:
+    """``report --eval``'s names: "" without the option (training episodes), ["eval"] for a bare ``--eval``;
+    a path among them is refused (the run folders were put after ``--eval``)."""
+    if names is None:
+        return ""
+    for name in names:
+        if not name or "/" in name or name in (".", ".."):
+            raise UsageError(f"--eval takes evaluation folder names inside each run (eval, eval_d120, …), got "
+                             f"{name!r}: put the RUN folders before --eval")
+    return names or ["eval"]
 
 
 def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
@@ -446,7 +466,7 @@ def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
 
     if len(args.runs) > 1:
         raise UsageError(f"{sweeps[0]} is a sweep folder: report it alone (lanefree report {sweeps[0]})")
-    if "--out" in args.given or args.eval:
+    if "--out" in args.given or args.eval is not None:
         bad = "--out" if "--out" in args.given else "--eval"
         raise UsageError(f"a sweep's summary is written into the sweep folder {sweeps[0]} from its training runs; "
                          f"drop {bad}")

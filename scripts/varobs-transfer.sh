@@ -2,8 +2,8 @@
 # Issue 17, part 3: evaluate every finished run of the variable-dimension experiment (folders with
 # model.zip under results/varobs/{vector,set}/runs) deterministically at its training density (eval/),
 # zero-shot at 90 and 120 veh/km (eval_d90/, eval_d120/) and on the on-ramp's main road at its training
-# density (eval_onramp/), then write one report per evaluation into results/varobs/report*/ and the
-# training report (curves of both observations overlaid) into results/varobs/report/.
+# density (eval_onramp/), then write the training report (curves of both observations overlaid) into
+# results/varobs/report/ and the four evaluations side by side (table, bar charts) into results/varobs/report_transfer/.
 # Resumable: rerun it and it evaluates only what is missing. Usage: scripts/varobs-transfer.sh [EPISODES]
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -31,6 +31,4 @@ for model in "$base"/vector/runs/*/model.zip "$base"/set/runs/*/model.zip; do
 done
 [ ${#runs[@]} -gt 0 ] || { echo "no finished run with a model under $base"; exit 0; }
 "$bin" report "${runs[@]}" --out "$base/report"
-for eval in eval eval_d90 eval_d120 eval_onramp; do
-    "$bin" report "${runs[@]}" --eval "$eval" --out "$base/report_$eval"
-done
+"$bin" report "${runs[@]}" --eval eval eval_d90 eval_d120 eval_onramp --out "$base/report_transfer"

@@ -84,3 +84,47 @@ def plot_curves(groups: dict[Any, list[RunData]], column: str, ylabel: str, path
     fig.savefig(path, format="png", bbox_inches="tight")
 
 
+
+
+EVALUATION_FIGURES: tuple[tuple[str, str, str], ...] = (
+    # (column, file name suffix, y-axis label with unit)
+    ("collisions", "collisions", "agent collisions per evaluation episode (count)"),
+    ("speed_dev_mps", "speed_dev", "speed deviation mean |vx − v_d| (m/s)"),
+)
+"""Figures of several evaluations side by side (``lanefree report RUN… --eval A B …``)."""
+
+
+def plot_evaluations(table: pd.DataFrame, column: str, ylabel: str, path: Path) -> None:
+    """One PNG of grouped bars: along x the evaluations (``table['evaluation']``, in the table's order, each
+    labelled with its evaluated density), one bar per (algorithm, preset, variant) series = mean over runs of
+    ``<column>_mean``, error bar ± ``<column>_std`` (sample std over runs), the value and n written above."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as exc:  # matplotlib is an optional dependency
+        raise ReportError(f"matplotlib is needed for the figures ({exc}); pip install matplotlib") from None
+    evaluations = list(dict.fromkeys(table["evaluation"]))
+    series_keys = list(dict.fromkeys(zip(table["algorithm"], table["reward_preset"], table["variant"])))
+    fig = Figure(figsize=(max(6.0, 1.6 * len(evaluations) * max(1, len(series_keys)) ** 0.5 + 2.0), 5.0), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    width = 0.8 / len(series_keys)
+    for k, (algo, preset, variant) in enumerate(series_keys):
+        mine = table[(table["algorithm"] == algo) & (table["reward_preset"] == preset) & (table["variant"] == variant)]
+        for _, row in mine.iterrows():
+            x = evaluations.index(row["evaluation"]) - 0.4 + (k + 0.5) * width
+            mean, std = float(row[f"{column}_mean"]), float(row[f"{column}_std"])
+            ax.bar(x, mean, width * 0.9, color=f"C{k % 10}",
+                   yerr=std if np.isfinite(std) else None, capsize=3, ecolor="black")
+            ax.annotate(f"{mean:.2f}\nn={int(row['n_seeds'])}", (x, mean + (std if np.isfinite(std) else 0.0)),
+                        ha="center", va="bottom", fontsize=7, xytext=(0, 2), textcoords="offset points")
+        ax.bar([], [], color=f"C{k % 10}", label=f"{algo} / {preset}" + (f" / {variant}" if variant else ""))
+    densities = {e: sorted(set(table.loc[table["evaluation"] == e, "density_veh_per_km"])) for e in evaluations}
+    ax.set_xticks(range(len(evaluations)),
+                  [f"{e}\n{', '.join(f'{d:g}' for d in densities[e])} veh/km" for e in evaluations])
+    ax.set_ylabel(ylabel)
+    ax.set_title("mean over runs; error bar = ± sample std over runs", fontsize=10)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.margins(y=0.15)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.15), fontsize=8, frameon=False)
+    fig.savefig(path, format="png", bbox_inches="tight")

@@ -58,7 +58,13 @@ import pandas as pd
 from lanefree_sumo.config import SAME_RESULTS, LaneFreeConfig, config_differences
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.curves import CURVE_METRICS, group_label, plot_curves
+from lanefree_sumo.experiments.curves import (
+    CURVE_METRICS,
+    EVALUATION_FIGURES,
+    group_label,
+    plot_curves,
+    plot_evaluations,
+)
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData, RunKey
 from lanefree_sumo.experiments.rundir import EPISODES, check_writable, fresh_output, read_config
@@ -97,7 +103,8 @@ class ReportResult:
     table: pd.DataFrame
     """One row per group, the columns of ``summary.csv`` (see :func:`summary_table`)."""
     files: list[Path]
-    """Files written, in order: the three curve PNGs, ``summary.csv``, ``summary.md``."""
+    """Files written, in order: the three curve PNGs (the two evaluation figures of
+    :func:`evaluations_report`), ``summary.csv``, ``summary.md``."""
     skipped: list[tuple[Path, str]]
     """Run folders left out, each with the reason."""
     notes: list[str] = field(default_factory=list)
@@ -305,11 +312,35 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
                                None if paper is None or pd.isna(paper) else float(paper)))
         rows.append(cells)
     lines += markdown.table(headers, rows)
+    return "\n".join(lines + _skipped_and_notes(skipped, notes)) + "\n"
+
+
+def evaluations_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Path, str]] = (),
+                         notes: Sequence[str] = ()) -> str:
+    """The table of :func:`evaluations_report` as Markdown: one row per evaluation and group."""
+    headers = ["evaluation", "algorithm", "reward preset", "density (veh/km)", "variant", "seeds",
+               *[h for _, h, _ in TABLE_METRICS]]
+    rows = []
+    for _, row in table.iterrows():
+        cells = [f"`{row['evaluation']}`", str(row["algorithm"]), str(row["reward_preset"]),
+                 f"{row['density_veh_per_km']:g}", str(row["variant"]) or "default", str(int(row["n_seeds"]))]
+        cells += [_cell(row[f"{col}_mean"], row[f"{col}_std"], fmt, None) for col, _, fmt in TABLE_METRICS]
+        rows.append(cells)
+    lines = ["# lanefree_sumo evaluations, side by side", "",
+             f"Each evaluation (`RUN/<evaluation>/episodes.csv`, the policy without exploration noise; density = "
+             f"the evaluated one): means over the last {last} evaluation episodes of each run, then mean ± sample "
+             "std (ddof=1) over runs. Figures: `evaluations_collisions.png`, `evaluations_speed_dev.png`.", "",
+             *markdown.table(headers, rows)]
+    return "\n".join(lines + _skipped_and_notes(skipped, notes)) + "\n"
+
+
+def _skipped_and_notes(skipped: Sequence[tuple[Path, str]], notes: Sequence[str]) -> list[str]:
+    lines: list[str] = []
     if skipped:
         lines += ["", "## Skipped runs", ""] + [f"- `{p}`: {reason}" for p, reason in skipped]
     if notes:
         lines += ["", "## Notes", ""] + [f"- {n}" for n in notes]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 # -- the report ----------------------------------------------------------------------------------
@@ -322,27 +353,8 @@ def _check_writable(folder: Path) -> None:
         raise ReportError(str(exc)) from None
 
 
-def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, source: str = "") -> ReportResult:
-    """Learning curves and the last-``last``-episode summary table of training runs.
-
-    ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
-    ``out``: folder for ``curves_return.png``, ``curves_collisions.png``, ``curves_speed_dev.png``,
-    ``summary.csv``, ``summary.md``: a new folder, or the folder of an earlier report (its
-    ``.lanefree-output`` marker), replaced whole when the new report is complete; any other existing
-    folder is refused (a user's notes, a sweep folder, a run folder).
-    ``last``: episodes per run averaged for the table (paper: 50).
-    ``smooth``: width in episodes of the trailing moving average of the curves.
-    ``source``: ``""`` for the training episodes, else an evaluation folder name inside each run
-    (``eval``, ``eval_d120``, ``eval_shield``, …): its episodes instead, at the evaluated density.
-
-    Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, or
-    when ``out`` cannot be written.
-    """
-    if isinstance(last, bool) or not isinstance(last, int) or last < 1:
-        raise ReportError(f"last must be a whole number of episodes ≥ 1, got {last!r}")
-    if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
-        raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
-    out = Path(out)
+def _read_usable(runs: Sequence[Path], source: str) -> tuple[list[RunData], list[tuple[Path, str]], list[str]]:
+    """(usable runs, skipped runs with the reason, notes) of the folders given, each read once."""
     usable: list[RunData] = []
     skipped: list[tuple[Path, str]] = []
     notes: list[str] = []
@@ -358,12 +370,68 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, so
             usable.append(read_run(run, source))
         except _UnusableRunError as exc:
             skipped.append((run, _one_line(str(exc))))
+    return usable, skipped, notes
+
+
+def _no_usable_run(skipped: Sequence[tuple[Path, str]]) -> ReportError:
+    if not skipped:
+        return ReportError("no run folders given; pass the folders that 'lanefree train' made")
+    reasons = "; ".join(f"{p.name}: {r}" for p, r in skipped[:5])
+    more = f"; and {len(skipped) - 5} more" if len(skipped) > 5 else ""
+    return ReportError(f"no usable run among {len(skipped)} folder(s) ({reasons}{more})")
+
+
+def _write_report(out: Path, files: dict[str, Any]) -> list[Path]:
+    """Write ``files`` (name -> text, DataFrame for CSV, or a callable drawing into the path given) into
+    ``out`` through the safe-output mechanism of every verb: a new folder, or an earlier report (its marker)
+    replaced whole once the new one is complete; never a folder of anything else."""
+    _check_writable(out.parent)
+    try:
+        with fresh_output(out, overwrite=True, verb="report") as tmp:
+            for name, content in files.items():
+                if isinstance(content, str):
+                    (tmp / name).write_text(content, encoding="utf-8")
+                elif isinstance(content, pd.DataFrame):
+                    content.to_csv(tmp / name, index=False)
+                else:
+                    content(tmp / name)
+    except RunError as exc:
+        raise ReportError(str(exc)) from None
+    except OSError as exc:
+        raise ReportError(f"cannot write the report to {out}: {_one_line(exc)}") from None
+    return [out / name for name in files]
+
+
+def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
+           source: str | Sequence[str] = "") -> ReportResult:
+    """Learning curves and the last-``last``-episode summary table of training runs.
+
+    ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
+    ``out``: folder for ``curves_return.png``, ``curves_collisions.png``, ``curves_speed_dev.png``,
+    ``summary.csv``, ``summary.md``: a new folder, or the folder of an earlier report (its
+    ``.lanefree-output`` marker), replaced whole when the new report is complete; any other existing
+    folder is refused (a user's notes, a sweep folder, a run folder).
+    ``last``: episodes per run averaged for the table (paper: 50).
+    ``smooth``: width in episodes of the trailing moving average of the curves.
+    ``source``: ``""`` for the training episodes, else an evaluation folder name inside each run
+    (``eval``, ``eval_d120``, ``eval_shield``, …): its episodes instead, at the evaluated density.
+    Several names: :func:`evaluations_report` (the evaluations side by side, no learning curves).
+
+    Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, or
+    when ``out`` cannot be written.
+    """
+    if not isinstance(source, str):
+        if len(source) != 1:
+            return evaluations_report(runs, out, source, last)
+        source = source[0]
+    if isinstance(last, bool) or not isinstance(last, int) or last < 1:
+        raise ReportError(f"last must be a whole number of episodes ≥ 1, got {last!r}")
+    if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
+        raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
+    out = Path(out)
+    usable, skipped, notes = _read_usable(runs, source)
     if not usable:
-        if not skipped:
-            raise ReportError("no run folders given; pass the folders that 'lanefree train' made")
-        reasons = "; ".join(f"{p.name}: {r}" for p, r in skipped[:5])
-        more = f"; and {len(skipped) - 5} more" if len(skipped) > 5 else ""
-        raise ReportError(f"no usable run among {len(skipped)} folder(s) ({reasons}{more})")
+        raise _no_usable_run(skipped)
 
     groups = group_runs(usable)
     for key, members in groups.items():
@@ -375,18 +443,48 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20, so
             notes.append(f"group {group_label(key)} has runs with the same seed ({seeds}); each counts separately")
 
     table = summary_table(groups, last)
-    _check_writable(out.parent)
-    names = [name for _, name, _ in CURVE_METRICS] + ["summary.csv", "summary.md"]
-    try:
-        # the safe-output mechanism of every verb: a new folder, or an earlier report (marker) replaced whole
-        # once the new one is complete; never a folder of anything else
-        with fresh_output(out, overwrite=True, verb="report") as tmp:
-            for column, name, ylabel in CURVE_METRICS:
-                plot_curves(groups, column, ylabel, tmp / name, smooth)
-            table.to_csv(tmp / "summary.csv", index=False)
-            (tmp / "summary.md").write_text(summary_markdown(table, last, skipped, notes, source), encoding="utf-8")
-    except RunError as exc:
-        raise ReportError(str(exc)) from None
-    except OSError as exc:
-        raise ReportError(f"cannot write the report to {out}: {_one_line(exc)}") from None
-    return ReportResult(table=table, files=[out / name for name in names], skipped=skipped, notes=notes)
+    files: dict[str, Any] = {
+        name: (lambda path, column=column, ylabel=ylabel: plot_curves(groups, column, ylabel, path, smooth))
+        for column, name, ylabel in CURVE_METRICS}
+    files["summary.csv"] = table
+    files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
+    return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
+
+
+def evaluations_report(runs: Sequence[Path], out: Path, sources: Sequence[str], last: int = 50) -> ReportResult:
+    """The evaluations ``sources`` (folder names inside each run, e.g. ``eval``, ``eval_d90``,
+    ``eval_onramp``) of the same runs side by side: ``summary.csv``/``summary.md`` hold one row per
+    (evaluation, group) — the group keyed as in :func:`report`, at the evaluated density — and
+    ``evaluations_collisions.png``/``evaluations_speed_dev.png`` one bar per group and evaluation (mean
+    over runs, ± sample std over runs as the error bar). A run lacking one of the evaluations is left out
+    of that evaluation only (named in ``summary.md``).
+
+    Raises :class:`ReportError` for no or repeated names, ``last`` < 1, no usable run in any evaluation,
+    or an unwritable ``out``.
+    """
+    if isinstance(last, bool) or not isinstance(last, int) or last < 1:
+        raise ReportError(f"last must be a whole number of episodes ≥ 1, got {last!r}")
+    if not sources or len(set(sources)) < len(sources):
+        raise ReportError(f"name each evaluation folder once, got {list(sources)}")
+    out = Path(out)
+    tables, skipped, notes = [], [], []
+    for source in sources:
+        usable, missing, said = _read_usable(runs, source)
+        skipped += [(path, reason) for path, reason in missing]
+        notes += [note for note in said if note not in notes]
+        if usable:
+            tables.append(summary_table(group_runs(usable), last).assign(evaluation=source))
+    if not tables:
+        if not skipped:
+            raise _no_usable_run(skipped)
+        raise ReportError(f"no run has any of the evaluations {', '.join(sources)} ({skipped[0][0].name}: "
+                          f"{skipped[0][1]}); run 'lanefree evaluate' first")
+    table = pd.concat(tables, ignore_index=True)
+    table = table[["evaluation", *[c for c in table.columns if c != "evaluation"]]]
+    files: dict[str, Any] = {
+        f"evaluations_{name}.png": (lambda path, column=column, ylabel=ylabel:
+                                    plot_evaluations(table, column, ylabel, path))
+        for column, name, ylabel in EVALUATION_FIGURES}
+    files["summary.csv"] = table
+    files["summary.md"] = evaluations_markdown(table, last, skipped, notes)
+    return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)

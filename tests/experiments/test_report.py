@@ -18,7 +18,7 @@ from lanefree_sumo.experiments.report import RunData, report
 from lanefree_sumo.experiments.rundir import write_config
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
-from conftest import fenced_rows
+from conftest import fenced_rows, lanefree
 
 FZOC = "fields_zones_overtake_collision"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -128,6 +128,42 @@ def test_eval_source_tabulates_each_runs_evaluation_at_its_density(tmp_path: Pat
     assert "**Evaluation** (`RUN/eval_d120/episodes.csv`" in (tmp_path / "out" / "summary.md").read_text()
     with pytest.raises(ReportError, match="no eval/episodes.csv"):
         report(runs, tmp_path / "out2", source="eval")
+
+
+def test_several_evaluations_side_by_side_one_row_each_a_missing_one_named(tmp_path: Path) -> None:
+    runs = [make_run(tmp_path / "runs", f"s{seed}", seed=seed, collisions=[3.0] * 80) for seed in (0, 1)]
+    for run, at70, at120 in zip(runs, (1.0, 2.0), (10.0, 30.0)):
+        for folder, density, value in (("eval", 70.0, at70), ("eval_d120", 120.0, at120)):
+            if folder == "eval_d120" and run.name == "s1":
+                continue  # s1 was never evaluated at 120 veh/km
+            made = make_run(tmp_path / "made" / folder, run.name, density=density, collisions=[value] * 50,
+                            episodes=50)
+            (run / folder).mkdir()
+            (made / "episodes.csv").rename(run / folder / "episodes.csv")
+    result = report(runs, tmp_path / "out", source=["eval", "eval_d120"])
+    table = result.table
+    assert list(table.evaluation) == ["eval", "eval_d120"] and list(table.density_veh_per_km) == [70.0, 120.0]
+    assert list(table.n_seeds) == [2, 1] and list(table.collisions_mean) == [1.5, 10.0]
+    assert table.collisions_std.iloc[0] == pytest.approx(math.sqrt(0.5)) and math.isnan(table.collisions_std.iloc[1])
+    assert result.skipped == [(runs[1], "no eval_d120/episodes.csv (run 'lanefree evaluate' first)")]
+    assert [p.name for p in result.files] == ["evaluations_collisions.png", "evaluations_speed_dev.png",
+                                              "summary.csv", "summary.md"]
+    assert all(p.stat().st_size > 0 for p in result.files)
+    rows = fenced_rows((tmp_path / "out" / "summary.md").read_text())
+    assert rows[2].startswith(f"| `eval` | ddpg | {FZOC} | 70 | default | 2 | 1.500 ± 0.707 |")
+    assert rows[3].startswith(f"| `eval_d120` | ddpg | {FZOC} | 120 | default | 1 | 10.000 ± n/a |")
+    with pytest.raises(ReportError, match="name each evaluation folder once"):
+        report(runs, tmp_path / "out2", source=["eval", "eval"])
+    with pytest.raises(ReportError, match="no run has any of the evaluations eval_d90, eval_shield"):
+        report(runs, tmp_path / "out3", source=["eval_d90", "eval_shield"])
+
+
+def test_run_folders_after_eval_are_refused_in_one_line(two_seed_runs: list[Path], tmp_path: Path) -> None:
+    res = lanefree("report", "--eval", *map(str, two_seed_runs), "--out", str(tmp_path / "out"))
+    assert res.returncode == 2 and "put the RUN folders before --eval" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+    res = lanefree("report", "--eval", "eval_d90")
+    assert res.returncode == 2 and "needs at least one RUN folder" in res.stderr
 
 
 def test_last_50_means_averaged_over_seeds_exactly(two_seed_runs: list[Path], tmp_path: Path) -> None:
