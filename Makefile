@@ -20,7 +20,7 @@ TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENS
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv system-deps test test-fast lint docs train sweep evaluate replay report simulate nets bench traffic onramp-flows clean-venv
+.PHONY: venv system-deps test test-fast lint docs train sweep evaluate replay report simulate nets bench traffic onramp-flows results clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -92,6 +92,10 @@ sweep: system-deps $(STAMP)
 	@test -n "$(GRID)" || { echo "usage: make sweep GRID=table5|table6|table7|table8|paper|FILE.yaml [OUT=DIR] [SEEDS=N] [EPISODES=N] [WORKERS=N] [ADDRESS=HOST:PORT]"; exit 2; }
 	$(BIN)/lanefree sweep $(GRID) $(call opt,OUT,--out) $(call opt,SEEDS,--seeds) $(call opt,EPISODES,--episodes) \
 		$(call opt,WORKERS,--workers) $(call opt,ADDRESS,--address)
+
+# Issue 17: evaluate finished runs and rewrite every committed result table (results/paper, results/varobs).
+results: system-deps $(STAMP)
+	scripts/update-results.sh
 
 clean-venv:
 	rm -rf $(VENV)

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Issue 17: bring the committed result files up to date after runs finish. Evaluates every finished run of
+# the paper sweep that still has its model (deterministic and shielded, 50 episodes each), rewrites the
+# sweep's summary, claims and curves and both evaluation tables from the committed episodes.csv files, then
+# runs the variable-dimension evaluations and reports (scripts/varobs-transfer.sh). Resumable: it only
+# evaluates what is missing. Usage: scripts/update-results.sh   (make results)
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+bin=$root/.venv/bin/lanefree
+paper=$root/results/paper
+"$root/scripts/evaluate-runs.sh" "$paper"
+"$bin" report "$paper" >/dev/null
+for eval in eval eval_shield; do
+    "$bin" report "$paper"/runs/* --eval "$eval" --out "$paper/${eval}_report" >/dev/null
+done
+"$root/scripts/varobs-transfer.sh" >/dev/null
+echo "results updated: $paper (summary.md, claims.md, eval_report/, eval_shield_report/), results/varobs/report*/"
