@@ -5,13 +5,13 @@
 # runs the variable-dimension evaluations and reports (scripts/varobs-transfer.sh). Resumable: it only
 # evaluates what is missing. Usage: scripts/update-results.sh   (make results)
 set -euo pipefail
-root=$(cd "$(dirname "$0")/.." && pwd)
-bin=$root/.venv/bin/lanefree
-paper=$root/results/paper
-"$root/scripts/evaluate-runs.sh" "$paper"
+cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., on any machine
+bin=.venv/bin/lanefree
+paper=results/paper
+scripts/evaluate-runs.sh "$paper"
 "$bin" report "$paper" >/dev/null
 for eval in eval eval_shield; do
     "$bin" report "$paper"/runs/* --eval "$eval" --out "$paper/${eval}_report" >/dev/null
 done
-"$root/scripts/varobs-transfer.sh" >/dev/null
+scripts/varobs-transfer.sh >/dev/null
 echo "results updated: $paper (summary.md, claims.md, eval_report/, eval_shield_report/), results/varobs/report*/"

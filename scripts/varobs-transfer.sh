@@ -6,10 +6,10 @@
 # results/varobs/report/ and the four evaluations side by side (table, bar charts) into results/varobs/report_transfer/.
 # Resumable: rerun it and it evaluates only what is missing. Usage: scripts/varobs-transfer.sh [EPISODES]
 set -euo pipefail
-root=$(cd "$(dirname "$0")/.." && pwd)
-bin=$root/.venv/bin/lanefree
+cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., on any machine
+bin=.venv/bin/lanefree
 episodes=${1:-50}
-base=$root/results/varobs
+base=results/varobs
 runs=()
 # evaluate RUN into RUN/FOLDER unless it already holds EPISODES complete episodes (a partial one is replaced)
 evaluate() {

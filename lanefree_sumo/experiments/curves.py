@@ -84,8 +84,6 @@ def plot_curves(groups: dict[Any, list[RunData]], column: str, ylabel: str, path
     fig.savefig(path, format="png", bbox_inches="tight")
 
 
-
-
 EVALUATION_FIGURES: tuple[tuple[str, str, str], ...] = (
     # (column, file name suffix, y-axis label with unit)
     ("collisions", "collisions", "agent collisions per evaluation episode (count)"),
