@@ -62,8 +62,9 @@ def episodes_of(csv_path: Path) -> list[int]:
 
 
 def fake_run(folder: Path, grid, cell: Cell, episodes: int, collisions: float = 1.0, model: bool = True,
-             checkpoint: int | None = None, extra_rows: list[int] | None = None) -> None:
-    """A run folder as train() leaves it, without training: config, episodes.csv, checkpoint, model."""
+             checkpoint: int | None = None, extra_rows: list[int] | None = None, wall_s: float = 0.0) -> None:
+    """A run folder as train() leaves it, without training: config, episodes.csv (each episode taking
+    ``wall_s`` seconds), checkpoint, model."""
     folder.mkdir(parents=True)
     write_config(folder, grid.config(cell))
     with open(folder / "episodes.csv", "w", newline="") as fh:
@@ -71,7 +72,7 @@ def fake_run(folder: Path, grid, cell: Cell, episodes: int, collisions: float = 
         writer.writeheader()
         for e in list(range(1, episodes + 1)) + (extra_rows or []):
             writer.writerow({"episode": e, "return": 1.0, "collisions": collisions, "speed_dev_mps": collisions / 2,
-                             "overtakes": 0})
+                             "overtakes": 0, "wall_s": wall_s})
     if checkpoint is not None:
         ckpt = folder / "checkpoints" / f"ep_{checkpoint:05d}"
         ckpt.mkdir(parents=True)
@@ -303,6 +304,27 @@ def test_summary_and_status_from_run_folders(tmp_path):
     status = status_text(tmp_path)
     assert "5 complete" in status and "1 partial" in status and "REDUCED BUDGET" in status
     assert "episodes: 330/360" in status and "driver: not running" in status
+
+
+def test_status_says_the_time_left_at_the_pace_of_each_algorithms_complete_runs(tmp_path):
+    grid = parse_grid({"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision"], "n_seeds": 3,
+                       "episodes": 60}, "pace", "pace.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    sweep = SweepDir(tmp_path)
+    ddpg = [c for c in grid.cells() if c.setting.algorithm == "ddpg"]
+    assert "time left: unknown until a run completes" in status_text(tmp_path)
+    for cell, wall in zip(ddpg[:2], (100.0, 140.0)):  # DDPG's pace: the median over runs of 100 and 140 s
+        fake_run(sweep.run(cell), grid, cell, 60, wall_s=wall)
+    fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 30, model=False, checkpoint=25, wall_s=999.0)  # partial: 30 left
+    # left: 30 DDPG episodes and 3 × 60 DQN episodes (no complete DQN run: DDPG's pace assumed), 120 s each
+    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
+    assert line.startswith("time left: ≈ 7.0 core-hours for 210 episodes") and "median 120.0 s/episode" in line
+    assert "dqn: no complete run yet, the others' pace assumed" in line
+    for cell in grid.cells():
+        if cell.setting.algorithm == "dqn" or cell == ddpg[2]:
+            shutil.rmtree(sweep.run(cell), ignore_errors=True)
+            fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
+    assert "time left: none, every run is complete" in status_text(tmp_path)
 
 
 def test_a_setting_in_several_tables_is_drawn_once(tmp_path):

@@ -18,6 +18,7 @@ from typing import Any
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
+from lanefree_sumo.experiments.rundir import EPISODES
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -235,6 +236,48 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     return EXIT_OK if complete == len(cells) else EXIT_INCOMPLETE
 
 
+def _seconds_per_episode(run: Path) -> float | None:
+    """The median wall time of an episode of a complete run (s), from its ``episodes.csv``; None if unreadable."""
+    import numpy as np
+    import pandas as pd
+
+    try:
+        wall = pd.read_csv(run / EPISODES, usecols=["wall_s"])["wall_s"].to_numpy(dtype=float)
+    except (OSError, ValueError, KeyError):
+        return None
+    wall = wall[np.isfinite(wall) & (wall > 0)]
+    return float(np.median(wall)) if len(wall) else None
+
+
+def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> str:
+    """One line: the core-hours the unfinished runs still need at the pace of the complete ones (the median
+    episode wall time of each algorithm's complete runs, median over runs; an algorithm without a complete
+    run is assumed to go at the others' pace, and the line says so). ``runs``: name -> (state, episodes)."""
+    import numpy as np
+
+    pace: dict[str, list[float]] = {}
+    left: dict[str, int] = {}
+    for cell in grid.cells():
+        state, episodes = runs[cell.name]
+        algo = cell.setting.algorithm
+        if state == COMPLETE:
+            seconds = _seconds_per_episode(sweep.run(cell))
+            if seconds is not None:
+                pace.setdefault(algo, []).append(seconds)
+        else:
+            left[algo] = left.get(algo, 0) + max(grid.episodes - episodes, 0)
+    if not left:
+        return "time left: none, every run is complete"
+    if not pace:
+        return "time left: unknown until a run completes (its episodes' wall times set the pace)"
+    every = float(np.median([x for values in pace.values() for x in values]))
+    assumed = sorted(algo for algo in left if algo not in pace)
+    seconds = sum(n * (float(np.median(pace[algo])) if algo in pace else every) for algo, n in left.items())
+    note = f"; {', '.join(assumed)}: no complete run yet, the others' pace assumed" if assumed else ""
+    return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at the pace of the "
+            f"complete runs (median {every:.1f} s/episode{note}); divide by the workers running at once")
+
+
 def status_text(folder: Path) -> str:
     """The state of every run of the sweep in ``folder`` (read from the folders; no Ray needed)."""
     manifest = read_manifest(folder)
@@ -253,7 +296,8 @@ def status_text(folder: Path) -> str:
     lines = [head, f"driver: {who}",
              "runs: " + ", ".join(f"{sum(1 for i in infos.values() if i.state == s)} {s}"
                                   for s in (COMPLETE, RUNNING, PARTIAL, STALE, PENDING, FAILED, BUSY, DAMAGED)),
-             f"episodes: {done}/{total} ({100.0 * done / max(total, 1):.1f} %)", "",
+             f"episodes: {done}/{total} ({100.0 * done / max(total, 1):.1f} %)",
+             time_left(grid, sweep, {name: (info.state, info.episodes) for name, info in infos.items()}), "",
              f"{'setting':60} {'complete':>9} {'episodes':>12}"]
     for setting in grid.settings:
         names = [Cell(setting, s).name for s in grid.seeds]
