@@ -2,8 +2,8 @@
 # Issue 17's long runs, started and stopped the same way every session:
 #
 #   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper, 1 worker by default), the
-#                                                variable-dimension chain (results/varobs: the vector sweep, then
-#                                                the set-encoder sweep) on another core, and a watcher that runs
+#                                                set-encoder sweep of the variable-dimension experiment
+#                                                (results/varobs/set) on another core, and a watcher that runs
 #                                                scripts/update-results.sh whenever a run finishes
 #   scripts/reproduce.sh stop                    SIGTERM to both sweep drivers (every run saves a checkpoint) and
 #                                                the watcher; waits until they are gone
@@ -11,7 +11,8 @@
 #
 # The sweeps run the code of a git worktree pinned at HEAD (.worktrees/<commit>), so editing, committing or
 # switching branches in this checkout never changes the code of runs in flight; they write into this checkout's
-# results/. Never `git stash` or `git checkout` files under results/ while they run. Logs and process ids go to
+# results/. Never `git stash` or `git checkout` files under results/ while they run, and stop before editing
+# scripts/update-results.sh or scripts/varobs-transfer.sh (the watcher runs them from this checkout). Logs and process ids go to
 # .worktrees/logs/. Resumable: `start` after a stop (or a reboot) continues every partial run from its checkpoint.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -45,23 +46,18 @@ start() {
             >>"$logs/paper.log" 2>&1 &
     fi
     echo $! >"$logs/paper.pid"
-    # part 3 on one core, one sweep after the other: the vector baseline, then the paper set encoder; the
-    # chain stops when a sweep stops (a stopped sweep exits non-zero)
-    nohup bash -c '
-        root=$1; shift
-        for kind in vector set; do
-            grid=$root/results/varobs/$kind.yaml
-            [ "$kind" = set ] && grid=$root/results/varobs/set_paper.yaml
-            if [ -f "$root/results/varobs/$kind/sweep.yaml" ]; then
-                "$@" sweep --resume "$root/results/varobs/$kind" --workers 1 --no-progress || exit $?
-            else
-                "$@" sweep "$grid" --out "$root/results/varobs/$kind" --workers 1 --no-progress || exit $?
-            fi
-        done' chain "$root" "${cli[@]}" >>"$logs/varobs.log" 2>&1 &
+    # part 3 on the other core: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells)
+    if [ -f "$root/results/varobs/set/sweep.yaml" ]; then
+        nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers 1 --no-progress >>"$logs/varobs.log" 2>&1 &
+    else
+        nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" --workers 1 \
+            --no-progress >>"$logs/varobs.log" 2>&1 &
+    fi
     echo $! >"$logs/varobs.pid"
     cd "$root"
     # the watcher (its own process group): evaluations and tables whenever the set of finished models changes
     setsid nohup bash -c '
+        set -o pipefail
         last=""
         while true; do
             now=$(ls results/paper/runs/*/model.zip results/varobs/*/runs/*/model.zip 2>/dev/null | md5sum)
@@ -72,13 +68,13 @@ start() {
             sleep 300
         done' >>"$logs/watcher.log" 2>&1 &
     echo $! >"$logs/watcher.pid"
-    echo "started at $commit (code in $tree): paper sweep ($workers worker(s)), varobs chain, watcher; logs in $logs"
+    echo "started at $commit (code in $tree): paper sweep ($workers worker(s)), set-encoder sweep, watcher; logs in $logs"
 }
 
 stop() {
     # a sweep driver stops its runs with a checkpoint on SIGTERM: signal the drivers only, never their workers
     if alive "$logs/paper.pid"; then kill -TERM "$(cat "$logs/paper.pid")" || true; fi
-    if alive "$logs/varobs.pid"; then pkill -TERM -P "$(cat "$logs/varobs.pid")" || true; fi  # the chain's sweep
+    if alive "$logs/varobs.pid"; then kill -TERM "$(cat "$logs/varobs.pid")" || true; fi
     # the watcher's whole group: an evaluation in flight leaves nothing behind (evaluate writes its folder at the end)
     if alive "$logs/watcher.pid"; then kill -TERM -- "-$(cat "$logs/watcher.pid")" || true; fi
     for name in paper varobs watcher; do
@@ -89,7 +85,7 @@ stop() {
 }
 
 status() {
-    for folder in results/paper results/varobs/vector results/varobs/set; do
+    for folder in results/paper results/varobs/set; do
         [ -f "$folder/sweep.yaml" ] && .venv/bin/lanefree sweep --status "$folder" | sed -n '1,5p'
         echo
     done
