@@ -433,7 +433,7 @@ def _report(args: argparse.Namespace) -> int:
 
     sources = _evaluation_names(args.eval)
     if not args.runs:
-        raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder)")
+        raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder), before --eval")
     sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
     if sweeps:
         return _report_sweep(args, sweeps)
@@ -453,6 +453,7 @@ def _evaluation_names(names: list[str] | None) -> list[str] | str:
     a path among them is refused (the run folders were put after ``--eval``)."""
     if names is None:
         return ""
+    names = [name.rstrip("/") for name in names]
     for name in names:
         if not name or "/" in name or name in (".", ".."):
             raise UsageError(f"--eval takes evaluation folder names inside each run (eval, eval_d120, …), got "

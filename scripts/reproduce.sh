@@ -11,8 +11,8 @@
 #
 # The sweeps run the code of a git worktree pinned at HEAD (.worktrees/<commit>), so editing, committing or
 # switching branches in this checkout never changes the code of runs in flight; they write into this checkout's
-# results/. Never `git stash` or `git checkout` files under results/ while they run, and stop before editing
-# scripts/update-results.sh or scripts/varobs-transfer.sh (the watcher runs them from this checkout). Logs and process ids go to
+# results/; the watcher's evaluations use the pinned code too, but its scripts are this checkout's: stop before
+# editing scripts/*.sh. Never `git stash` or `git checkout` files under results/ while they run. Logs and process ids go to
 # .worktrees/logs/. Resumable: `start` after a stop (or a reboot) continues every partial run from its checkpoint.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -20,14 +20,23 @@ cd "$root"
 state=$root/.worktrees
 logs=$state/logs
 python=$root/.venv/bin/python
+marker="lanefree-reproduce $state"  # in the command line of every process started here
 mkdir -p "$logs"
 
-alive() { [ -s "$1" ] && kill -0 "$(cat "$1")" 2>/dev/null; }
+# alive NAME: the process in $logs/NAME.pid runs and is ours (its command line names this checkout's pinned
+# trees), not another that got the pid of one gone since (after a reboot)
+alive() {
+    local file=$logs/$1.pid pid
+    [ -s "$file" ] || return 1
+    pid=$(cat "$file")
+    kill -0 "$pid" 2>/dev/null && tr '\0' ' ' <"/proc/$pid/cmdline" 2>/dev/null | grep -q -- "$marker"
+}
 
 start() {
     local workers=${1:-1}
     for name in paper varobs watcher; do
-        if alive "$logs/$name.pid"; then echo "already running: $name (pid $(cat "$logs/$name.pid")); stop first"; exit 2; fi
+        if alive "$name"; then echo "already running: $name (pid $(cat "$logs/$name.pid")); stop first"; exit 2; fi
+        rm -f "$logs/$name.pid" "$logs/stopping"
     done
     local commit tree
     commit=$(git rev-parse --short HEAD)
@@ -35,8 +44,11 @@ start() {
     for old in "$state"/*/; do  # nothing runs: earlier pinned trees can go
         [ "${old%/}" = "$tree" ] || [ "${old%/}" = "$logs" ] || git worktree remove --force "${old%/}" 2>/dev/null || true
     done
+    git worktree prune
     [ -d "$tree" ] || git worktree add --detach "$tree" HEAD >/dev/null
-    local cli=(env PYTHONPATH="$tree" "$python" -c "import sys; from lanefree_sumo.cli import main; sys.exit(main())")
+    # the marker rides along as an ignored argument of python -c, so `alive` can recognise the process
+    local cli=(env PYTHONPATH="$tree" "$python" -c "import sys; del sys.argv[1]; from lanefree_sumo.cli import main; \
+sys.exit(main())" "$marker")
     cd "$tree"
     # the paper sweep, every setting of Tables 5-8 with 3 seeds; its pid is the sweep driver's
     if [ -f "$root/results/paper/sweep.yaml" ]; then
@@ -55,8 +67,9 @@ start() {
     fi
     echo $! >"$logs/varobs.pid"
     cd "$root"
-    # the watcher (its own process group): evaluations and tables whenever the set of finished models changes
-    setsid nohup bash -c '
+    # the watcher (its own process group, the pinned code too): evaluations and tables whenever the set of
+    # finished models changes
+    PYTHONPATH=$tree setsid nohup bash -c '
         set -o pipefail
         last=""
         while true; do
@@ -66,31 +79,37 @@ start() {
                 scripts/update-results.sh 2>&1 | grep -v "^not in the summary\|^skipped\|^evaluate:" && last=$now
             fi
             sleep 300
-        done' >>"$logs/watcher.log" 2>&1 &
+        done' "$marker" >>"$logs/watcher.log" 2>&1 &
     echo $! >"$logs/watcher.pid"
     echo "started at $commit (code in $tree): paper sweep ($workers worker(s)), set-encoder sweep, watcher; logs in $logs"
 }
 
 stop() {
-    # a sweep driver stops its runs with a checkpoint on SIGTERM: signal the drivers only, never their workers
-    if alive "$logs/paper.pid"; then kill -TERM "$(cat "$logs/paper.pid")" || true; fi
-    if alive "$logs/varobs.pid"; then kill -TERM "$(cat "$logs/varobs.pid")" || true; fi
-    # the watcher's whole group: an evaluation in flight leaves nothing behind (evaluate writes its folder at the end)
-    if alive "$logs/watcher.pid"; then kill -TERM -- "-$(cat "$logs/watcher.pid")" || true; fi
+    # a sweep driver stops its runs with a checkpoint on the first SIGTERM and kills them on a second one:
+    # signal each driver once (a second `stop` only waits), never their workers
+    if [ ! -e "$logs/stopping" ]; then
+        touch "$logs/stopping"
+        if alive paper; then kill -TERM "$(cat "$logs/paper.pid")" || true; fi
+        if alive varobs; then kill -TERM "$(cat "$logs/varobs.pid")" || true; fi
+        # the watcher's whole group; an evaluation stopped part-way is run again whole next time
+        if alive watcher; then kill -TERM -- "-$(cat "$logs/watcher.pid")" || true; fi
+    fi
     for name in paper varobs watcher; do
-        while alive "$logs/$name.pid"; do sleep 2; done
+        if alive "$name"; then echo "waiting for $name (pid $(cat "$logs/$name.pid")) to save its checkpoints and stop"; fi
+        while alive "$name"; do sleep 2; done
         rm -f "$logs/$name.pid"
     done
+    rm -f "$logs/stopping"
     echo "stopped; every run saved a checkpoint (continue with: scripts/reproduce.sh start)"
 }
 
 status() {
     for folder in results/paper results/varobs/set; do
-        [ -f "$folder/sweep.yaml" ] && .venv/bin/lanefree sweep --status "$folder" | sed -n '1,5p'
+        if [ -f "$folder/sweep.yaml" ]; then .venv/bin/lanefree sweep --status "$folder" | sed -n '1,5p' || true; fi
         echo
     done
     for name in paper varobs watcher; do
-        alive "$logs/$name.pid" && echo "$name: running (pid $(cat "$logs/$name.pid"))" || echo "$name: not running"
+        if alive "$name"; then echo "$name: running (pid $(cat "$logs/$name.pid"))"; else echo "$name: not running"; fi
     done
 }
 

@@ -14,14 +14,7 @@ bin=.venv/bin/lanefree
 episodes=${1:-50}
 base=results/varobs
 runs=()
-# evaluate RUN into RUN/FOLDER unless it already holds EPISODES complete episodes (a partial one is replaced)
-evaluate() {
-    local run=$1 folder=$2
-    shift 2
-    local log=$run/$folder/episodes.csv
-    if [ -s "$log" ] && [ $(($(wc -l <"$log") - 1)) -ge "$episodes" ]; then return 0; fi
-    "$bin" evaluate "$run" --episodes "$episodes" --out "$run/$folder" --overwrite "$@"
-}
+source scripts/evaluation-helper.sh
 for run in results/paper/runs/ddpg_fields_zones_overtake_collision_d70_s{0,1,2} "$base"/set/runs/*; do
     if [ -e "$run/model.zip" ]; then
         evaluate "$run" eval

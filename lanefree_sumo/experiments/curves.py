@@ -92,31 +92,45 @@ EVALUATION_FIGURES: tuple[tuple[str, str, str], ...] = (
 """Figures of several evaluations side by side (``lanefree report RUN… --eval A B …``)."""
 
 
+def evaluation_series(table: pd.DataFrame) -> list[tuple[Any, ...]]:
+    """The bar series of each row of an evaluations table: (algorithm, preset, variant), and the density too
+    when one evaluation holds such a series at several densities."""
+    columns = ["algorithm", "reward_preset", "variant"]
+    if table.groupby(["evaluation", *columns]).size().max() > 1:
+        columns.append("density_veh_per_km")
+    return [tuple(row) for row in table[columns].itertuples(index=False)]
+
+
 def plot_evaluations(table: pd.DataFrame, column: str, ylabel: str, path: Path) -> None:
     """One PNG of grouped bars: along x the evaluations (``table['evaluation']``, in the table's order, each
-    labelled with its evaluated density), one bar per (algorithm, preset, variant) series = mean over runs of
-    ``<column>_mean``, error bar ± ``<column>_std`` (sample std over runs), the value and n written above."""
+    labelled with its evaluated densities), one bar per (algorithm, preset, variant) series = mean over runs of
+    ``<column>_mean``, error bar ± ``<column>_std`` (sample std over runs), the value and n written above.
+    When one evaluation holds a series at several densities (runs trained at 70, 90 and 120 veh/km, each
+    evaluated at its own), the density is part of the series."""
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError as exc:  # matplotlib is an optional dependency
         raise ReportError(f"matplotlib is needed for the figures ({exc}); pip install matplotlib") from None
     evaluations = list(dict.fromkeys(table["evaluation"]))
-    series_keys = list(dict.fromkeys(zip(table["algorithm"], table["reward_preset"], table["variant"])))
+    series = evaluation_series(table)
+    series_keys = list(dict.fromkeys(series))
     fig = Figure(figsize=(max(6.0, 1.6 * len(evaluations) * max(1, len(series_keys)) ** 0.5 + 2.0), 5.0), dpi=110)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     width = 0.8 / len(series_keys)
-    for k, (algo, preset, variant) in enumerate(series_keys):
-        mine = table[(table["algorithm"] == algo) & (table["reward_preset"] == preset) & (table["variant"] == variant)]
-        for _, row in mine.iterrows():
+    for k, key in enumerate(series_keys):
+        algo, preset, variant = key[:3]
+        density = f" / d{key[3]:g}" if len(key) > 3 else ""
+        label: str | None = f"{algo} / {preset}{density}" + (f" / {variant}" if variant else "")
+        for _, row in table[[s == key for s in series]].iterrows():
             x = evaluations.index(row["evaluation"]) - 0.4 + (k + 0.5) * width
             mean, std = float(row[f"{column}_mean"]), float(row[f"{column}_std"])
-            ax.bar(x, mean, width * 0.9, color=f"C{k % 10}",
+            ax.bar(x, mean, width * 0.9, color=f"C{k % 10}", label=label,
                    yerr=std if np.isfinite(std) else None, capsize=3, ecolor="black")
+            label = None  # one legend entry per series
             ax.annotate(f"{mean:.2f}\nn={int(row['n_seeds'])}", (x, mean + (std if np.isfinite(std) else 0.0)),
                         ha="center", va="bottom", fontsize=7, xytext=(0, 2), textcoords="offset points")
-        ax.bar([], [], color=f"C{k % 10}", label=f"{algo} / {preset}" + (f" / {variant}" if variant else ""))
     densities = {e: sorted(set(table.loc[table["evaluation"] == e, "density_veh_per_km"])) for e in evaluations}
     ax.set_xticks(range(len(evaluations)),
                   [f"{e}\n{', '.join(f'{d:g}' for d in densities[e])} veh/km" for e in evaluations])

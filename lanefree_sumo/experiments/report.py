@@ -101,7 +101,8 @@ class ReportResult:
     """What :func:`report` produced."""
 
     table: pd.DataFrame
-    """One row per group, the columns of ``summary.csv`` (see :func:`summary_table`)."""
+    """One row per group (per evaluation and group, with an ``evaluation`` column first, from
+    :func:`evaluations_report`), the columns of ``summary.csv`` (see :func:`summary_table`)."""
     files: list[Path]
     """Files written, in order: the three curve PNGs (the two evaluation figures of
     :func:`evaluations_report`), ``summary.csv``, ``summary.md``."""
@@ -373,6 +374,22 @@ def _read_usable(runs: Sequence[Path], source: str) -> tuple[list[RunData], list
     return usable, skipped, notes
 
 
+def _group_notes(groups: dict[RunKey, list[RunData]], last: int, where: str = "") -> list[str]:
+    """What a reader of the table must know about its groups: runs (or evaluations, ``where`` naming them)
+    with fewer than ``last`` episodes, and groups holding a seed twice."""
+    notes = []
+    for key, members in groups.items():
+        for member in members:
+            if len(member.episodes) < last:
+                notes.append(f"{member.path}{where} has {len(member.episodes)} episodes (< {last}); its mean uses all "
+                             "of them")
+        seeds = [r.seed for r in members]
+        if len(set(seeds)) < len(seeds):
+            notes.append(f"group {group_label(key)}{where} has runs with the same seed ({seeds}); each counts "
+                         "separately")
+    return notes
+
+
 def _no_usable_run(skipped: Sequence[tuple[Path, str]]) -> ReportError:
     if not skipped:
         return ReportError("no run folders given; pass the folders that 'lanefree train' made")
@@ -434,14 +451,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
         raise _no_usable_run(skipped)
 
     groups = group_runs(usable)
-    for key, members in groups.items():
-        for member in members:
-            if len(member.episodes) < last:
-                notes.append(f"{member.path} has {len(member.episodes)} episodes (< {last}); its mean uses all of them")
-        seeds = [r.seed for r in members]
-        if len(set(seeds)) < len(seeds):
-            notes.append(f"group {group_label(key)} has runs with the same seed ({seeds}); each counts separately")
-
+    notes += _group_notes(groups, last)
     table = summary_table(groups, last)
     files: dict[str, Any] = {
         name: (lambda path, column=column, ylabel=ylabel: plot_curves(groups, column, ylabel, path, smooth))
@@ -467,18 +477,22 @@ def evaluations_report(runs: Sequence[Path], out: Path, sources: Sequence[str], 
     if not sources or len(set(sources)) < len(sources):
         raise ReportError(f"name each evaluation folder once, got {list(sources)}")
     out = Path(out)
-    tables, skipped, notes = [], [], []
+    tables: list[pd.DataFrame] = []
+    skipped: list[tuple[Path, str]] = []
+    notes: list[str] = []
     for source in sources:
         usable, missing, said = _read_usable(runs, source)
-        skipped += [(path, reason) for path, reason in missing]
+        skipped += [entry for entry in missing if entry not in skipped]  # a broken run: named once
         notes += [note for note in said if note not in notes]
         if usable:
-            tables.append(summary_table(group_runs(usable), last).assign(evaluation=source))
+            groups = group_runs(usable)
+            notes += _group_notes(groups, last, where=f" ({source})")
+            tables.append(summary_table(groups, last).assign(evaluation=source))
     if not tables:
         if not skipped:
             raise _no_usable_run(skipped)
         raise ReportError(f"no run has any of the evaluations {', '.join(sources)} ({skipped[0][0].name}: "
-                          f"{skipped[0][1]}); run 'lanefree evaluate' first")
+                          f"{skipped[0][1]})")
     table = pd.concat(tables, ignore_index=True)
     table = table[["evaluation", *[c for c in table.columns if c != "evaluation"]]]
     files: dict[str, Any] = {

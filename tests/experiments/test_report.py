@@ -12,7 +12,7 @@ import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ReportError
-from lanefree_sumo.experiments.curves import smoothed_curve
+from lanefree_sumo.experiments.curves import evaluation_series, smoothed_curve
 from lanefree_sumo.experiments.paper import PAPER_REFERENCE
 from lanefree_sumo.experiments.report import RunData, report
 from lanefree_sumo.experiments.rundir import write_config
@@ -158,12 +158,36 @@ def test_several_evaluations_side_by_side_one_row_each_a_missing_one_named(tmp_p
         report(runs, tmp_path / "out3", source=["eval_d90", "eval_shield"])
 
 
+def test_evaluations_of_runs_at_several_densities_keep_each_density_its_own_bar(tmp_path: Path) -> None:
+    runs = []
+    for density, value in ((70.0, 1.0), (120.0, 4.0)):
+        run = make_run(tmp_path / "runs", f"d{density:g}", density=density, collisions=[3.0] * 80)
+        for folder, episodes in (("eval", 50), ("eval_shield", 20)):  # the shielded one stopped after 20
+            made = make_run(tmp_path / "made" / folder, run.name, density=density, collisions=[value] * episodes,
+                            episodes=episodes)
+            (run / folder).mkdir()
+            (made / "episodes.csv").rename(run / folder / "episodes.csv")
+        runs.append(run)
+    broken = tmp_path / "runs" / "broken"
+    broken.mkdir()
+    result = report([*runs, broken], tmp_path / "out", source=["eval", "eval_shield"])
+    assert evaluation_series(result.table) == [("ddpg", FZOC, "", 70.0), ("ddpg", FZOC, "", 120.0)] * 2
+    one = result.table[result.table.density_veh_per_km == 70.0]
+    assert evaluation_series(one) == [("ddpg", FZOC, "")] * 2  # one density per evaluation: no split
+    assert [p for p, _ in result.skipped] == [broken]  # named once, not once per evaluation
+    assert sum("(eval_shield) has 20 episodes (< 50)" in note for note in result.notes) == 2
+    assert "(eval) has" not in " ".join(result.notes)
+    assert "## Notes" in (tmp_path / "out" / "summary.md").read_text()
+
+
 def test_run_folders_after_eval_are_refused_in_one_line(two_seed_runs: list[Path], tmp_path: Path) -> None:
     res = lanefree("report", "--eval", *map(str, two_seed_runs), "--out", str(tmp_path / "out"))
     assert res.returncode == 2 and "put the RUN folders before --eval" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
     res = lanefree("report", "--eval", "eval_d90")
     assert res.returncode == 2 and "needs at least one RUN folder" in res.stderr
+    res = lanefree("report", *map(str, two_seed_runs), "--eval", "eval/", "--out", str(tmp_path / "out"))
+    assert "put the RUN folders" not in res.stderr and "no eval/episodes.csv" in res.stderr  # a name with its slash
 
 
 def test_last_50_means_averaged_over_seeds_exactly(two_seed_runs: list[Path], tmp_path: Path) -> None:

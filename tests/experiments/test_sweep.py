@@ -318,12 +318,16 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_complete_runs(
     fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 30, model=False, checkpoint=25, wall_s=999.0)  # partial: 30 left
     # left: 30 DDPG episodes and 3 × 60 DQN episodes (no complete DQN run: DDPG's pace assumed), 120 s each
     line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
-    assert line.startswith("time left: ≈ 7.0 core-hours for 210 episodes") and "median 120.0 s/episode" in line
-    assert "dqn: no complete run yet, the others' pace assumed" in line
-    for cell in grid.cells():
-        if cell.setting.algorithm == "dqn" or cell == ddpg[2]:
-            shutil.rmtree(sweep.run(cell), ignore_errors=True)
-            fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
+    assert line.startswith("time left: ≈ 7.0 core-hours for 210 episodes") and "s/episode: ddpg 120.0" in line
+    assert "dqn: no complete run yet, 120.0 assumed" in line
+    dqn = [c for c in grid.cells() if c.setting.algorithm == "dqn"]
+    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=30.0)  # DQN's own pace from now on
+    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
+    assert line.startswith("time left: ≈ 2.0 core-hours for 150 episodes")  # 30 × 120 s + 120 × 30 s
+    assert "s/episode: ddpg 120.0, dqn 30.0)" in line
+    for cell in [*dqn[1:], ddpg[2]]:
+        shutil.rmtree(sweep.run(cell), ignore_errors=True)
+        fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
     assert "time left: none, every run is complete" in status_text(tmp_path)
 
 

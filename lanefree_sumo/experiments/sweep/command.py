@@ -271,11 +271,13 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
     if not pace:
         return "time left: unknown until a run completes (its episodes' wall times set the pace)"
     every = float(np.median([x for values in pace.values() for x in values]))
-    assumed = sorted(algo for algo in left if algo not in pace)
-    seconds = sum(n * (float(np.median(pace[algo])) if algo in pace else every) for algo, n in left.items())
-    note = f"; {', '.join(assumed)}: no complete run yet, the others' pace assumed" if assumed else ""
+    own = {algo: float(np.median(values)) for algo, values in pace.items()}
+    assumed = sorted(algo for algo in left if algo not in own)
+    seconds = sum(n * own.get(algo, every) for algo, n in left.items())
+    paces = ", ".join(f"{algo} {own[algo]:.1f}" for algo in sorted(own))
+    note = f"; {', '.join(assumed)}: no complete run yet, {every:.1f} assumed" if assumed else ""
     return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at the pace of the "
-            f"complete runs (median {every:.1f} s/episode{note}); divide by the workers running at once")
+            f"complete runs (s/episode: {paces}{note}); divide by the workers running at once")
 
 
 def status_text(folder: Path) -> str:
