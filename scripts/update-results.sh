@@ -6,6 +6,8 @@
 # evaluates what is missing. Usage: scripts/update-results.sh   (make results)
 set -euo pipefail
 cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., on any machine
+exec 9>results/.lock  # one update at a time (the watcher of scripts/reproduce.sh runs this too)
+flock -n 9 || { echo "another update of the results is running; waiting for it"; flock 9; }
 bin=.venv/bin/lanefree
 paper=results/paper
 scripts/evaluate-runs.sh "$paper"
