@@ -18,7 +18,7 @@ The paper's own difference (Karalakou et al. 2023, SPEC §10) is printed beside 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,10 +136,19 @@ def _paper_difference(c: Comparison) -> float:
     return float(getattr(ra, field) - getattr(rb, field))
 
 
-def check_claims(groups: Mapping[Key, Sequence[RunData]], last: int = 50) -> pd.DataFrame:
-    """One row per :data:`COMPARISONS` entry (columns :data:`COLUMNS`) from runs grouped by setting."""
+def decidable(settings: Iterable[Key]) -> tuple[Comparison, ...]:
+    """The comparisons whose two settings are both among ``settings`` (a sweep's grid): the claims its
+    runs can decide once complete."""
+    present = {(algo, preset, float(density)) for algo, preset, density in settings}
+    return tuple(c for c in COMPARISONS if c.a in present and c.b in present)
+
+
+def check_claims(groups: Mapping[Key, Sequence[RunData]], last: int = 50,
+                 comparisons: Sequence[Comparison] = COMPARISONS) -> pd.DataFrame:
+    """One row per comparison (default every :data:`COMPARISONS` entry; columns :data:`COLUMNS`) from
+    runs grouped by setting."""
     rows = []
-    for c in COMPARISONS:
+    for c in comparisons:
         a = per_run(groups.get(c.a, ()), c.metric, last, c.window)
         b = per_run(groups.get(c.b, ()), c.metric, last, c.window)
         diff, low, high = difference_ci(a, b)

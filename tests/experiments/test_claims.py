@@ -7,7 +7,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from lanefree_sumo.experiments.claims import COMPARISONS, check_claims, claims_markdown, difference_ci, verdict
+from lanefree_sumo.experiments.claims import (
+    COMPARISONS,
+    check_claims,
+    claims_markdown,
+    decidable,
+    difference_ci,
+    verdict,
+)
 from lanefree_sumo.experiments.report import RunData
 
 from conftest import fenced_rows
@@ -60,3 +67,15 @@ def test_claims_from_runs_last_episodes_and_windows():
     text = claims_markdown(table)
     assert text.count("\n| ") == len(COMPARISONS) + 1 and "reproduced" in text
     assert len(fenced_rows(text)) == len(COMPARISONS) + 2  # header, rule, one row per claim
+
+
+def test_a_grid_decides_only_the_claims_that_compare_two_of_its_settings():
+    table5 = [("ddpg", preset, 70) for preset in ("collision", "fields_collision", "overtake_collision",
+                                                 "fields_overtake_collision")]
+    claims = [c.claim for c in decidable(table5)]
+    assert len(claims) == 4 and all("(Table 5)" in c for c in claims)
+    assert decidable([("ddpg", "fields_zones_overtake_collision", 70.0)]) == ()  # one setting: nothing to compare
+    assert len(decidable([("ddpg", "fields_zones_overtake_collision", 70), ("ddpg", "fields_overtake_collision", 70),
+                          ("dqn", "fields_zones_overtake_collision", 70)])) == 3  # zones at 70, DQN vs DDPG twice
+    table = check_claims({}, comparisons=decidable(table5))
+    assert list(table["claim"]) == claims and (table["verdict"] == "no data").all()

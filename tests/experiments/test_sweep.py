@@ -298,6 +298,9 @@ def test_summary_and_status_from_run_folders(tmp_path):
     assert len(on_disk) == 2 and on_disk[0]["collisions_ci95_low"]
     md = (tmp_path / "summary.md").read_text()
     assert "**Reduced budget**" in md and "0.500 [0.400, 0.600] (paper 0.726, 0.7×)" in md
+    claims = list(csv.DictReader(open(tmp_path / "claims.csv")))  # the one claim comparing these two settings
+    assert [(c["a"], c["b"], c["n_a"], c["n_b"], c["verdict"]) for c in claims] == \
+        [("ddpg/collision/70", "ddpg/fields_collision/70", "2", "3", "no data")]
     assert f"runs/{cells[-1].name}" in md and "2/3" in md
     assert {p.name for p in (tmp_path / "curves").iterdir()} == {"table5_collisions.png", "table5_return.png",
                                                                  "table5_speed_dev.png"}
@@ -339,7 +342,8 @@ def test_a_setting_in_several_tables_is_drawn_once(tmp_path):
     result = summarize(tmp_path)
     assert sorted(p.name for p in (tmp_path / "curves").iterdir()) == \
         ["table6_collisions.png", "table6_return.png", "table6_speed_dev.png"]
-    assert [p.name for p in result.files[3:]] == ["summary.csv", "summary.md", "claims.csv", "claims.md"]
+    assert [p.name for p in result.files[3:]] == ["summary.csv", "summary.md"]  # no claim compares one setting
+    assert not (tmp_path / "claims.csv").exists() and not (tmp_path / "claims.md").exists()
     md = (tmp_path / "summary.md").read_text()
     assert "- Table 6, Table 7, Table 8: [return](curves/table6_return.png)" in md
     assert fenced_rows(md)[2].startswith("| ddpg | fields_zones_overtake_collision | 70 | 60 | 1/1 |")

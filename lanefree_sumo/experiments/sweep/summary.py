@@ -12,8 +12,9 @@ Definitions (SPEC §8, §10):
   random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
   very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
 * **Paper values**: SPEC §10 where the paper has the setting.
-* **Claims**: ``claims.csv``/``claims.md``, the paper's claims checked on the complete runs
-  (:mod:`lanefree_sumo.experiments.claims`).
+* **Claims**: ``claims.csv``/``claims.md``, the paper's claims that compare two of the grid's
+  settings, checked on the complete runs (:mod:`lanefree_sumo.experiments.claims`); neither file
+  when no claim does (a grid of one setting).
 * **Curves**: one PNG per table of the paper and metric (``curves/table7_collisions.png``; settings
   in no table in ``curves/other_*.png``) drawn by :func:`curves.plot_curves` (mean ± std over runs).
 
@@ -39,7 +40,7 @@ import pandas as pd
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import check_claims, claims_markdown
+from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.report import RunData, group_runs, read_run
@@ -209,11 +210,17 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
         table.to_csv(sweep.summary_csv, index=False)
         write_atomic(sweep.summary_md, summary_markdown(grid, table, curves, folder, incomplete,
                                                         notes + plot_notes, last))
-        claims = check_claims(groups, last)
-        claims.to_csv(sweep.claims_csv, index=False)
-        write_atomic(sweep.claims_md, claims_markdown(claims))
+        files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [
+            sweep.summary_csv, sweep.summary_md]
+        comparisons = decidable((s.algorithm, s.preset, s.density) for s in grid.settings)
+        if comparisons:
+            claims = check_claims(groups, last, comparisons)
+            claims.to_csv(sweep.claims_csv, index=False)
+            write_atomic(sweep.claims_md, claims_markdown(claims))
+            files += [sweep.claims_csv, sweep.claims_md]
+        else:  # no claim compares two of this grid's settings (one written by an earlier version goes)
+            sweep.claims_csv.unlink(missing_ok=True)
+            sweep.claims_md.unlink(missing_ok=True)
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
-    files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [
-        sweep.summary_csv, sweep.summary_md, sweep.claims_csv, sweep.claims_md]
     return SweepSummary(table, files, incomplete, notes + plot_notes)
