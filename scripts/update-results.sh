@@ -13,7 +13,12 @@ paper=results/paper
 scripts/evaluate-runs.sh "$paper"
 "$bin" report "$paper" >/dev/null
 for eval in eval eval_shield; do
-    "$bin" report "$paper"/runs/* --eval "$eval" --out "$paper/${eval}_report" >/dev/null
+    finished=()  # runs with a model (trained here) or this evaluation (committed): not those still training
+    for run in "$paper"/runs/*/; do
+        run=${run%/}
+        if [ -e "$run/model.zip" ] || [ -d "$run/$eval" ]; then finished+=("$run"); fi
+    done
+    "$bin" report "${finished[@]}" --eval "$eval" --out "$paper/${eval}_report" >/dev/null
 done
 scripts/varobs-transfer.sh >/dev/null
 echo "results updated: $paper (summary.md, claims.md, eval_report/, eval_shield_report/), results/varobs/report*/"
