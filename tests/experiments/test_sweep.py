@@ -315,16 +315,30 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_complete_runs(
     write_manifest(tmp_path, Manifest(grid))
     sweep = SweepDir(tmp_path)
     ddpg = [c for c in grid.cells() if c.setting.algorithm == "ddpg"]
-    assert "time left: unknown until a run completes" in status_text(tmp_path)
+    assert "time left: unknown until a run completes or has 25 episodes" in status_text(tmp_path)
+    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 24, model=False, checkpoint=20, wall_s=50.0)
+    assert "time left: unknown until a run completes" in status_text(tmp_path)  # 24 episodes: too few to tell
+    shutil.rmtree(sweep.run(ddpg[0]))
+    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 30, model=False, checkpoint=25, wall_s=50.0)
+    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
+    # no complete run yet: the unfinished run's 30 episodes set DDPG's pace; 30 + 120 DDPG, 180 DQN episodes left
+    assert line.startswith("time left: ≈ 4.6 core-hours for 330 episodes")
+    assert "ddpg 50.0 (unfinished runs so far)" in line and "dqn: no run far enough yet, 50.0 assumed" in line
+    shutil.rmtree(sweep.run(ddpg[0]))
     for cell, wall in zip(ddpg[:2], (100.0, 140.0)):  # DDPG's pace: the median over runs of 100 and 140 s
         fake_run(sweep.run(cell), grid, cell, 60, wall_s=wall)
     fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 30, model=False, checkpoint=25, wall_s=999.0)  # partial: 30 left
     # left: 30 DDPG episodes and 3 × 60 DQN episodes (no complete DQN run: DDPG's pace assumed), 120 s each
     line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
     assert line.startswith("time left: ≈ 7.0 core-hours for 210 episodes") and "s/episode: ddpg 120.0" in line
-    assert "dqn: no complete run yet, 120.0 assumed" in line
+    assert "dqn: no run far enough yet, 120.0 assumed" in line
     dqn = [c for c in grid.cells() if c.setting.algorithm == "dqn"]
-    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=30.0)  # DQN's own pace from now on
+    fake_run(sweep.run(dqn[0]), grid, dqn[0], 40, model=False, checkpoint=25, wall_s=30.0)  # unfinished, 40 done
+    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
+    assert line.startswith("time left: ≈ 2.2 core-hours for 170 episodes")  # 30 × 120 s + 140 × 30 s
+    assert "s/episode: ddpg 120.0, dqn 30.0 (unfinished runs so far))" in line
+    shutil.rmtree(sweep.run(dqn[0]))
+    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=30.0)  # complete: DQN's own pace from now on
     line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
     assert line.startswith("time left: ≈ 2.0 core-hours for 150 episodes")  # 30 × 120 s + 120 × 30 s
     assert "s/episode: ddpg 120.0, dqn 30.0)" in line

@@ -236,48 +236,60 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     return EXIT_OK if complete == len(cells) else EXIT_INCOMPLETE
 
 
-def _seconds_per_episode(run: Path) -> float | None:
-    """The median wall time of an episode of a complete run (s), from its ``episodes.csv``; None if unreadable."""
+PARTIAL_PACE_EPISODES = 25
+"""Episodes an algorithm's unfinished runs must have recorded before their pace stands in for a complete run's."""
+
+
+def _episode_walls(run: Path) -> list[float]:
+    """The wall times of the episodes in a run's ``episodes.csv`` (s; positive, finite); empty if unreadable."""
     import numpy as np
     import pandas as pd
 
     try:
         wall = pd.read_csv(run / EPISODES, usecols=["wall_s"])["wall_s"].to_numpy(dtype=float)
     except (OSError, ValueError, KeyError):
-        return None
-    wall = wall[np.isfinite(wall) & (wall > 0)]
-    return float(np.median(wall)) if len(wall) else None
+        return []
+    return [float(x) for x in wall[np.isfinite(wall) & (wall > 0)]]
 
 
 def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> str:
-    """One line: the core-hours the unfinished runs still need at the pace of the complete ones (the median
-    episode wall time of each algorithm's complete runs, median over runs; an algorithm without a complete
-    run is assumed to go at the others' pace, and the line says so). ``runs``: name -> (state, episodes)."""
+    """One line: the core-hours the unfinished runs still need, at each algorithm's pace. The pace is the median
+    episode wall time of the algorithm's complete runs (median over runs); without a complete run, the median
+    over the episodes its unfinished runs have recorded (from :data:`PARTIAL_PACE_EPISODES` on); else the
+    other algorithms' pace is assumed. The line says which. ``runs``: name -> (state, episodes)."""
     import numpy as np
 
-    pace: dict[str, list[float]] = {}
+    complete: dict[str, list[float]] = {}
+    unfinished: dict[str, list[float]] = {}
     left: dict[str, int] = {}
     for cell in grid.cells():
         state, episodes = runs[cell.name]
         algo = cell.setting.algorithm
         if state == COMPLETE:
-            seconds = _seconds_per_episode(sweep.run(cell))
-            if seconds is not None:
-                pace.setdefault(algo, []).append(seconds)
+            walls = _episode_walls(sweep.run(cell))
+            if walls:
+                complete.setdefault(algo, []).append(float(np.median(walls)))
         else:
             left[algo] = left.get(algo, 0) + max(grid.episodes - episodes, 0)
+            if episodes > 0:
+                unfinished.setdefault(algo, []).extend(_episode_walls(sweep.run(cell)))
     if not left:
         return "time left: none, every run is complete"
-    if not pace:
-        return "time left: unknown until a run completes (its episodes' wall times set the pace)"
-    every = float(np.median([x for values in pace.values() for x in values]))
-    own = {algo: float(np.median(values)) for algo, values in pace.items()}
-    assumed = sorted(algo for algo in left if algo not in own)
-    seconds = sum(n * own.get(algo, every) for algo, n in left.items())
-    paces = ", ".join(f"{algo} {own[algo]:.1f}" for algo in sorted(own))
-    note = f"; {', '.join(assumed)}: no complete run yet, {every:.1f} assumed" if assumed else ""
-    return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at the pace of the "
-            f"complete runs (s/episode: {paces}{note}); divide by the workers running at once")
+    own = {algo: float(np.median(values)) for algo, values in complete.items()}
+    so_far = {algo: float(np.median(walls)) for algo, walls in unfinished.items()
+              if algo not in own and len(walls) >= PARTIAL_PACE_EPISODES}
+    known = {**own, **so_far}
+    if not known:
+        return (f"time left: unknown until a run completes or has {PARTIAL_PACE_EPISODES} episodes "
+                "(its episodes' wall times set the pace)")
+    every = float(np.median(list(known.values())))
+    assumed = sorted(algo for algo in left if algo not in known)
+    seconds = sum(n * known.get(algo, every) for algo, n in left.items())
+    paces = ", ".join(f"{algo} {known[algo]:.1f}" + (" (unfinished runs so far)" if algo in so_far else "")
+                      for algo in sorted(known))
+    note = f"; {', '.join(assumed)}: no run far enough yet, {every:.1f} assumed" if assumed else ""
+    return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at each algorithm's "
+            f"pace (s/episode: {paces}{note}); divide by the workers running at once")
 
 
 def status_text(folder: Path) -> str:
