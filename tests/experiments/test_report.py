@@ -101,17 +101,25 @@ def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path
             make_run(tmp_path, "shield_s0", seed=0, collisions=[0.0] * 80, extra={"shield": {"enabled": True}}),
             make_run(tmp_path, "top40_s0", seed=0, collisions=[5.0] * 80,
                      extra={"scenario": {"agent_max_speed_mps": 40.0}, "shield": {"enabled": True}}),
-            make_run(tmp_path, "short_s0", seed=0, collisions=[7.0] * 80, extra={"train": {"episodes": 150}})]
+            make_run(tmp_path, "short_s0", seed=0, collisions=[7.0] * 80, extra={"train": {"episodes": 150}}),
+            # DDPG never reads the DQN section: a run saved with another DQN default is the same DDPG run
+            make_run(tmp_path, "dqn_section_s2", seed=2, collisions=[2.0] * 80,
+                     extra={"train": {"dqn": {"target_update_steps": 1000}}}),
+            make_run(tmp_path, "dqn_s0", "dqn", seed=0, collisions=[4.0] * 80),
+            make_run(tmp_path, "dqn_target_s0", "dqn", seed=0, collisions=[6.0] * 80,
+                     extra={"train": {"dqn": {"target_update_steps": 1000}, "actor_critic": {"tau": 0.01}}})]
     result = report(runs, tmp_path / "out")
     table = result.table
+    assert list(table.algorithm) == ["ddpg"] * 4 + ["dqn"] * 2
     assert list(table.variant) == ["", "scenario.agent_max_speed_mps=40.0, shield.enabled=True",
-                                   "shield.enabled=True", "train.episodes=150"]
-    assert list(table.n_seeds) == [2, 1, 1, 1] and list(table.collisions_mean) == [2.0, 5.0, 0.0, 7.0]
-    assert list(table.collisions_paper) == [0.449] * 4
+                                   "shield.enabled=True", "train.episodes=150",
+                                   "", "train.dqn.target_update_steps=1000"]
+    assert list(table.n_seeds) == [3, 1, 1, 1, 1, 1] and list(table.collisions_mean) == [2.0, 5.0, 0.0, 7.0, 4.0, 6.0]
+    assert list(table.collisions_paper) == [0.449] * 4 + [0.952] * 2
     md = (tmp_path / "out" / "summary.md").read_text()
-    assert "| ddpg | fields_zones_overtake_collision | 70 | default | 2 |" in md
+    assert "| ddpg | fields_zones_overtake_collision | 70 | default | 3 |" in md
     assert "| shield.enabled=True | 1 |" in md
-    assert len(fenced_rows(md)) == 2 + 4  # header, rule, one row per group
+    assert len(fenced_rows(md)) == 2 + 6  # header, rule, one row per group
 
 
 def test_eval_source_tabulates_each_runs_evaluation_at_its_density(tmp_path: Path) -> None:

@@ -600,3 +600,11 @@ def test_variant_registry():
     assert [n for n, s in ALGORITHMS.items() if not s.off_policy] == ["ppo"]
     assert issubclass(PrioritizedDoubleDQN, DoubleDQN) and issubclass(DoubleDQN, DQN)
     assert issubclass(PrioritizedReplayBuffer, ReplayBuffer)
+
+
+def test_each_family_never_reads_the_other_familys_section():
+    from lanefree_sumo.rl.algorithms import unused_sections
+
+    assert {name: unused_sections(name) for name in ALGORITHMS} == {
+        **{name: ("train.dqn",) for name in ("ddpg", "td3", "sac", "ppo")},
+        **{name: ("train.actor_critic",) for name in ("dqn", "ddqn", "dueling", "per")}}

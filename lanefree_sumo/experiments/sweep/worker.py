@@ -40,16 +40,20 @@ from lanefree_sumo.experiments.sweep.state import (
 
 def config_difference(existing: Any, expected: Any) -> str | None:
     """First key (dotted) where two configs differ, ignoring ``train.episodes`` (a run may be
-    extended) and the keys that do not change results (:data:`~lanefree_sumo.config.SAME_RESULTS`:
-    a run trained on libsumo is a run of the same setting as one on numpy); ``key = saved vs
-    expected``, or None."""
+    extended), the keys that do not change results (:data:`~lanefree_sumo.config.SAME_RESULTS`:
+    a run trained on libsumo is a run of the same setting as one on numpy) and the other algorithm
+    family's hyperparameters (:func:`~lanefree_sumo.rl.algorithms.unused_sections`: a DDPG run
+    never reads ``train.dqn``); ``key = saved vs expected``, or None."""
     from lanefree_sumo.config import SAME_RESULTS, config_to_dict
+    from lanefree_sumo.rl.algorithms import unused_sections
+
+    unused = unused_sections(expected.train.algo)
 
     def walk(a: Any, b: Any, path: str) -> str | None:
         if isinstance(a, dict) and isinstance(b, dict):
             for key in list(b) + [k for k in a if k not in b]:
                 where = f"{path}.{key}" if path else key
-                if where == "train.episodes" or where in SAME_RESULTS:
+                if where == "train.episodes" or where in SAME_RESULTS or where in unused:
                     continue
                 found = walk(a.get(key, "<missing>"), b.get(key, "<missing>"), where)
                 if found:

@@ -69,6 +69,16 @@ def get_algorithm(name: str) -> AlgorithmSpec:
         raise ConfigError(f"unknown algorithm '{name}'; choose one of {', '.join(ALGORITHM_NAMES)}") from None
 
 
+def unused_sections(name: str) -> tuple[str, ...]:
+    """Config sections (dotted) a run of algorithm ``name`` never reads: the other family's hyperparameters
+    (``train.dqn`` for DDPG, ``train.actor_critic`` for DQN). A difference there does not make another run,
+    so report variants and sweep adoption ignore them."""
+    spec = ALGORITHMS.get(name)
+    if spec is None:
+        return ()
+    return tuple(f"train.{section}" for section in ("actor_critic", "dqn") if section != spec.config_section)
+
+
 def help_text() -> str:
     """``name (summary, action kind)`` of every algorithm, for ``--help``."""
     return "; ".join(f"{s.name}: {s.summary} ({s.actions} actions)" for s in ALGORITHMS.values())
