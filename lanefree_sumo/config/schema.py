@@ -388,8 +388,10 @@ class DQNConfig:
     epsilon_end: float = 0.1
     epsilon_decay_episodes: int = 200
     """ε falls linearly from start to end over this many episodes, then stays."""
-    target_update_steps: int = 1000
-    """Hard target-network update interval (steps; the paper does not give it)."""
+    target_update_steps: int = 10_000
+    """Hard target-network update interval (steps, one gradient update per step). The paper does not give it:
+    10 000 is the Nature DQN's (Mnih et al. 2015), which the paper's double-DQN reference [19] (van Hasselt
+    et al. 2016) keeps for its double DQN, and SB3's default."""
     learning_starts_steps: int = 800
 
 
