@@ -18,7 +18,9 @@ for eval in eval eval_shield; do
         run=${run%/}
         if [ -e "$run/model.zip" ] || [ -d "$run/$eval" ]; then finished+=("$run"); fi
     done
-    "$bin" report "${finished[@]}" --eval "$eval" --out "$paper/${eval}_report" >/dev/null
+    if ((${#finished[@]})); then
+        "$bin" report "${finished[@]}" --eval "$eval" --out "$paper/${eval}_report" >/dev/null
+    fi
 done
 scripts/varobs-transfer.sh >/dev/null
 echo "results updated: $paper (summary.md, claims.md, eval_report/, eval_shield_report/), results/varobs/report*/"

@@ -389,9 +389,10 @@ class DQNConfig:
     epsilon_decay_episodes: int = 200
     """ε falls linearly from start to end over this many episodes, then stays."""
     target_update_steps: int = 10_000
-    """Hard target-network update interval (steps, one gradient update per step). The paper does not give it:
-    10 000 is the Nature DQN's (Mnih et al. 2015), which the paper's double-DQN reference [19] (van Hasselt
-    et al. 2016) keeps for its double DQN, and SB3's default."""
+    """Hard target-network update interval (steps; one gradient update per step, so also updates). The paper
+    does not give it. 10 000 is the Nature DQN's convention (Mnih et al. 2015: every 10 000 parameter
+    updates), which the paper's double-DQN reference [19] takes over (its tuned double DQN uses 30 000),
+    and SB3's default (there counted in environment steps). Until session 8: 1000 (docs/interpretation.md)."""
     learning_starts_steps: int = 800
 
 

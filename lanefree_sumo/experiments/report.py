@@ -85,9 +85,10 @@ TABLE_METRICS: tuple[tuple[str, str, str], ...] = (
 """Metrics of the summary table, in column order."""
 
 NOT_VARIANT: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
-                                 "scenario.with_agent", *SAME_RESULTS)
-"""Config keys that are part of the group key already, the same in every training run (the agent),
-or do not change what a run learns (:data:`~lanefree_sumo.config.SAME_RESULTS`). A run's planned
+                                 "scenario.with_agent", "action.kind", *SAME_RESULTS)
+"""Config keys that are part of the group key already or follow from it (training sets ``action.kind``
+from the algorithm), the same in every training run (the agent), or do not change what a run learns
+(:data:`~lanefree_sumo.config.SAME_RESULTS`). A run's planned
 ``train.episodes`` is part of the variant: last-50 means of 150- and 625-episode runs do not average."""
 
 _DEFAULT_CONFIG = LaneFreeConfig()

@@ -105,9 +105,11 @@ def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path
             # DDPG never reads the DQN section: a run saved with another DQN default is the same DDPG run
             make_run(tmp_path, "dqn_section_s2", seed=2, collisions=[2.0] * 80,
                      extra={"train": {"dqn": {"target_update_steps": 1000}}}),
-            make_run(tmp_path, "dqn_s0", "dqn", seed=0, collisions=[4.0] * 80),
+            # a DQN run's discrete actions follow from its algorithm: not a variant
+            make_run(tmp_path, "dqn_s0", "dqn", seed=0, collisions=[4.0] * 80, extra={"action": {"kind": "discrete"}}),
             make_run(tmp_path, "dqn_target_s0", "dqn", seed=0, collisions=[6.0] * 80,
-                     extra={"train": {"dqn": {"target_update_steps": 1000}, "actor_critic": {"tau": 0.01}}})]
+                     extra={"action": {"kind": "discrete"},
+                            "train": {"dqn": {"target_update_steps": 1000}, "actor_critic": {"tau": 0.01}}})]
     result = report(runs, tmp_path / "out")
     table = result.table
     assert list(table.algorithm) == ["ddpg"] * 4 + ["dqn"] * 2

@@ -602,9 +602,42 @@ def test_variant_registry():
     assert issubclass(PrioritizedReplayBuffer, ReplayBuffer)
 
 
-def test_each_family_never_reads_the_other_familys_section():
-    from lanefree_sumo.rl.algorithms import unused_sections
+_OTHER_FAMILY_JUNK = {
+    "actor_critic": {"actor_layers": [8], "critic_layers": [8], "learning_rate": 0.5, "batch_size": 7, "gamma": 0.5,
+                     "buffer_size": 123, "tau": 0.5, "learning_starts_steps": 5, "ou_sigma": 0.9, "ou_theta": 0.9,
+                     "ppo_n_steps": 16},
+    "dqn": {"layers": [8], "learning_rate": 0.5, "batch_size": 7, "gamma": 0.5, "buffer_size": 123,
+            "epsilon_start": 0.5, "epsilon_end": 0.4, "epsilon_decay_episodes": 3, "target_update_steps": 1,
+            "learning_starts_steps": 5},
+}
 
-    assert {name: unused_sections(name) for name in ALGORITHMS} == {
-        **{name: ("train.dqn",) for name in ("ddpg", "td3", "sac", "ppo")},
-        **{name: ("train.actor_critic",) for name in ("dqn", "ddqn", "dueling", "per")}}
+
+class _SpacesOnly(gym.Env):
+    """Just the spaces of LaneFree-v0 (24 observation values) for building a model."""
+
+    def __init__(self, discrete: bool) -> None:
+        self.observation_space = spaces.Box(-1.0, 1.0, shape=(24,), dtype=np.float32)
+        self.action_space = spaces.Discrete(9) if discrete else spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+
+
+@pytest.mark.parametrize("algo", list(ALGORITHMS))
+def test_a_model_never_reads_the_other_familys_section(algo):
+    """What unused_sections promises (report variants and sweep adoption rely on it): the same model, bit for
+    bit and hyperparameter for hyperparameter, whatever the other family's section holds."""
+    from lanefree_sumo.config import LaneFreeConfig, merge_config
+    from lanefree_sumo.rl.algorithms import unused_sections
+    from lanefree_sumo.rl.models import build_model, training_config
+
+    spec = ALGORITHMS[algo]
+    (other,) = unused_sections(algo)
+    assert other != f"train.{spec.config_section}"
+    base = training_config(merge_config(LaneFreeConfig(), {"train": {"algo": algo}}))
+    junk = merge_config(base, {"train": {other.split(".")[1]: _OTHER_FAMILY_JUNK[other.split(".")[1]]}})
+    models = [build_model(cfg, _SpacesOnly(spec.actions == "discrete"), seed=0, tensorboard_log=None)
+              for cfg in (base, junk)]
+    names = ("learning_rate", "gamma", "batch_size", "buffer_size", "tau", "learning_starts", "n_steps",
+             "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "exploration_fraction")
+    assert [{n: getattr(m, n, None) for n in names} for m in models][0] == \
+        [{n: getattr(m, n, None) for n in names} for m in models][1]
+    first, second = (m.policy.state_dict() for m in models)
+    assert first.keys() == second.keys() and all(th.equal(first[k], second[k]) for k in first)

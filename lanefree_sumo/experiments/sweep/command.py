@@ -271,7 +271,7 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
                 complete.setdefault(algo, []).append(float(np.median(walls)))
         else:
             left[algo] = left.get(algo, 0) + max(grid.episodes - episodes, 0)
-            if episodes > 0:
+            if state in (PARTIAL, RUNNING) and episodes > 0:  # not a stale, failed or damaged run's episodes
                 unfinished.setdefault(algo, []).extend(_episode_walls(sweep.run(cell)))
     if not left:
         return "time left: none, every run is complete"

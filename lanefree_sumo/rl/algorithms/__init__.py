@@ -76,7 +76,8 @@ def unused_sections(name: str) -> tuple[str, ...]:
     spec = ALGORITHMS.get(name)
     if spec is None:
         return ()
-    return tuple(f"train.{section}" for section in ("actor_critic", "dqn") if section != spec.config_section)
+    sections = dict.fromkeys(s.config_section for s in ALGORITHMS.values())
+    return tuple(f"train.{section}" for section in sections if section != spec.config_section)
 
 
 def help_text() -> str:
