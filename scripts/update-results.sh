@@ -3,14 +3,16 @@
 # the paper sweep that still has its model (deterministic and shielded, 50 episodes each), rewrites the
 # sweep's summary, claims and curves and both evaluation tables from the committed episodes.csv files, then
 # runs the variable-dimension evaluations and reports (scripts/varobs-transfer.sh). Resumable: it only
-# evaluates what is missing. Usage: scripts/update-results.sh   (make results)
+# evaluates what is missing. Usage: scripts/update-results.sh [EPISODES]   (make results; EPISODES per
+# evaluation, default 50)
 set -euo pipefail
 cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., on any machine
 exec 9>results/.lock  # one update at a time (the watcher of scripts/reproduce.sh runs this too)
 flock -n 9 || { echo "another update of the results is running; waiting for it"; flock 9; }
 bin=.venv/bin/lanefree
 paper=results/paper
-scripts/evaluate-runs.sh "$paper"
+episodes=${1:-50}
+scripts/evaluate-runs.sh "$paper" "$episodes"
 "$bin" report "$paper" >/dev/null
 for eval in eval eval_shield; do
     finished=()  # runs with a model (trained here) or this evaluation (committed): not those still training
@@ -22,5 +24,5 @@ for eval in eval eval_shield; do
         "$bin" report "${finished[@]}" --eval "$eval" --out "$paper/${eval}_report" >/dev/null
     fi
 done
-scripts/varobs-transfer.sh >/dev/null
+scripts/varobs-transfer.sh "$episodes" >/dev/null
 echo "results updated: $paper (summary.md, claims.md, eval_report/, eval_shield_report/), results/varobs/report*/"

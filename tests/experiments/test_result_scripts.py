@@ -1,0 +1,71 @@
+"""Issue 17's result scripts on a tiny real sweep: `make results` (scripts/update-results.sh) evaluates a
+finished run deterministically and shielded, zero-shot at 90 and 120 veh/km and on the on-ramp, writes every
+table; a second pass evaluates only what a stopped evaluation left unfinished."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, lanefree
+
+SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh")
+CELL = "ddpg_fields_zones_overtake_collision_d70_s0"  # a paper sweep cell and the vector baseline's seed 0
+EPISODES = 4  # per evaluation (50 in make results)
+
+
+def rows(path: Path) -> int:
+    with open(path, newline="") as fh:
+        return sum(1 for _ in csv.DictReader(fh))
+
+
+def make_results(root: Path) -> subprocess.CompletedProcess:
+    """``scripts/update-results.sh EPISODES`` of the checkout ``root``, to completion."""
+    return subprocess.run(["bash", str(root / "scripts" / "update-results.sh"), str(EPISODES)],
+                          capture_output=True, text=True, timeout=900)
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp_path):
+    root = tmp_path / "checkout"  # the scripts work relative to their checkout: a copy with this venv
+    (root / "scripts").mkdir(parents=True)
+    for name in SCRIPTS:
+        shutil.copy2(ROOT / "scripts" / name, root / "scripts" / name)
+    (root / ".venv").symlink_to(sys.prefix)  # the venv running this suite (its lanefree command)
+    grid = tmp_path / "one.yaml"
+    grid.write_text("reward_presets: [fields_zones_overtake_collision]\nn_seeds: 1\nepisodes: 2\n"
+                    "overrides: {sim: {episode_steps: 40}, train: {checkpoint_every_episodes: 1}}\n")
+    paper = root / "results" / "paper"
+    done = lanefree("sweep", str(grid), "--out", str(paper), "--workers", "1", "--no-progress", timeout=600)
+    assert done.returncode == 0, done.stderr
+    run = paper / "runs" / CELL
+
+    first = make_results(root)
+    assert first.returncode == 0, first.stdout + first.stderr
+    for folder in ("eval", "eval_shield", "eval_d90", "eval_d120", "eval_onramp"):
+        assert rows(run / folder / "episodes.csv") == EPISODES, folder
+    assert {r["density"] for r in csv.DictReader(open(run / "eval_d90" / "episodes.csv"))} == {"90.0"}
+    assert (paper / "summary.md").is_file() and not (paper / "claims.md").exists()  # one setting: no claim
+    for report in ("eval_report", "eval_shield_report"):
+        text = (paper / report / "summary.md").read_text()
+        assert "| ddpg | fields_zones_overtake_collision | 70 |" in text and "Skipped runs" not in text
+    transfer = (root / "results" / "varobs" / "report_transfer" / "summary.md").read_text()
+    assert all(f"| `{name}` |" in transfer for name in ("eval", "eval_d90", "eval_d120", "eval_onramp"))
+    assert (root / "results" / "varobs" / "report" / "summary.md").is_file()
+
+    # a second pass evaluates nothing again, but an evaluation stopped part-way (it keeps the episodes it
+    # finished) is run again whole
+    cut = run / "eval_d120" / "episodes.csv"
+    cut.write_text("".join(cut.read_text().splitlines(keepends=True)[:3]))
+    assert rows(cut) == 2
+    evaluations = {p: p.stat().st_mtime_ns for p in run.glob("eval*/episodes.csv") if p != cut}
+    again = make_results(root)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert {p: p.stat().st_mtime_ns for p in evaluations} == evaluations and len(evaluations) == 4
+    assert rows(cut) == EPISODES
