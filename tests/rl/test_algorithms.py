@@ -637,7 +637,7 @@ def test_a_model_never_reads_the_other_familys_section(algo):
               for cfg in (base, junk)]
     names = ("learning_rate", "gamma", "batch_size", "buffer_size", "tau", "learning_starts", "n_steps",
              "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "exploration_fraction")
-    assert [{n: getattr(m, n, None) for n in names} for m in models][0] == \
-        [{n: getattr(m, n, None) for n in names} for m in models][1]
+    settings, junk_settings = ({n: getattr(m, n, None) for n in names} for m in models)
+    assert settings == junk_settings
     first, second = (m.policy.state_dict() for m in models)
     assert first.keys() == second.keys() and all(th.equal(first[k], second[k]) for k in first)
