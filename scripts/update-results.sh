@@ -12,6 +12,7 @@ flock -n 9 || { echo "another update of the results is running; waiting for it";
 bin=.venv/bin/lanefree
 paper=results/paper
 episodes=${1:-50}
+[[ $episodes =~ ^[1-9][0-9]*$ ]] || { echo "update-results: EPISODES must be a whole number >= 1, got '$episodes'" >&2; exit 2; }
 scripts/evaluate-runs.sh "$paper" "$episodes"
 "$bin" report "$paper" >/dev/null
 for eval in eval eval_shield; do

@@ -45,6 +45,11 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     done = lanefree("sweep", str(grid), "--out", str(paper), "--workers", "1", "--no-progress", timeout=600)
     assert done.returncode == 0, done.stderr
     run = paper / "runs" / CELL
+    for bad in ("abc", "0", "-3"):  # refused in one line before anything is evaluated
+        refused = subprocess.run(["bash", str(root / "scripts" / "update-results.sh"), bad], capture_output=True,
+                                 text=True, timeout=60)
+        assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and bad in refused.stderr
+    assert not list(run.glob("eval*"))
 
     first = make_results(root)
     assert first.returncode == 0, first.stdout + first.stderr
