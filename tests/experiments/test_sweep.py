@@ -435,12 +435,14 @@ def test_a_killed_worker_is_retried_and_ctrl_c_then_resume_finish_every_run_exac
     checkpoint. Then Ctrl-C on the driver stops the run with a checkpoint (exit 130), and --resume
     finishes it. The CSV holds episodes 1 … N exactly once."""
     # a budget far longer than the few episodes the test waits for, so the Ctrl-C always lands mid-run,
-    # however fast the machine (the run can never finish before the driver is interrupted)
+    # however fast the machine (the run can never finish before the driver is interrupted); no gradient
+    # steps (learning starts after the budget): what is checked is the run folder's bookkeeping, and
+    # resuming a learner's state is test_train's (this keeps the 200 episodes cheap)
     episodes, every = 200, 5
     grid = write_grid(tmp_path / "kill.yaml", {
         "reward_presets": ["fields_zones_overtake_collision"], "seeds": [0], "episodes": episodes,
         "overrides": {"sim": {"episode_steps": 25},
-                      "train": {"checkpoint_every_episodes": every, "actor_critic": {"learning_starts_steps": 50}}}})
+                      "train": {"checkpoint_every_episodes": every, "actor_critic": {"learning_starts_steps": 10**6}}}})
     out = tmp_path / "sweep"
     sweep = SweepDir(out)
     name = "ddpg_fields_zones_overtake_collision_d70_s0"
