@@ -3,7 +3,8 @@
 #
 #   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper, 1 worker by default), the
 #                                                set-encoder sweep of the variable-dimension experiment
-#                                                (results/varobs/set) on another core, and a watcher that runs
+#                                                (results/varobs/set) on another core if one is left (with as
+#                                                many paper workers as cores it waits), and a watcher that runs
 #                                                scripts/update-results.sh whenever a run finishes
 #   scripts/reproduce.sh stop                    SIGTERM to both sweep drivers (every run saves a checkpoint) and
 #                                                the watcher; waits until they are gone
@@ -34,6 +35,10 @@ alive() {
 
 start() {
     local workers=${1:-1}
+    if ! [[ $workers =~ ^[1-9][0-9]*$ ]] || [ "$workers" -gt "$(nproc)" ]; then
+        echo "reproduce.sh: PAPER_WORKERS must be a whole number from 1 to $(nproc) (the cores), got '$workers'" >&2
+        exit 2
+    fi
     for name in paper varobs watcher; do
         if alive "$name"; then echo "already running: $name (pid $(cat "$logs/$name.pid")); stop first"; exit 2; fi
         rm -f "$logs/$name.pid" "$logs/stopping"
@@ -58,14 +63,18 @@ sys.exit(main())" "$marker")
             >>"$logs/paper.log" 2>&1 &
     fi
     echo $! >"$logs/paper.pid"
-    # part 3 on the other core: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells)
-    if [ -f "$root/results/varobs/set/sweep.yaml" ]; then
+    # part 3 on the other core: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells);
+    # never more runs than cores
+    local varobs="set-encoder sweep"
+    if [ "$workers" -ge "$(nproc)" ]; then
+        varobs="no set-encoder sweep (no core left)"
+    elif [ -f "$root/results/varobs/set/sweep.yaml" ]; then
         nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers 1 --no-progress >>"$logs/varobs.log" 2>&1 &
     else
         nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" --workers 1 \
             --no-progress >>"$logs/varobs.log" 2>&1 &
     fi
-    echo $! >"$logs/varobs.pid"
+    [ "$workers" -ge "$(nproc)" ] || echo $! >"$logs/varobs.pid"
     cd "$root"
     # the watcher (its own process group, the pinned code too): evaluations and tables whenever the set of
     # finished models changes
@@ -81,7 +90,7 @@ sys.exit(main())" "$marker")
             sleep 300
         done' "$marker" >>"$logs/watcher.log" 2>&1 &
     echo $! >"$logs/watcher.pid"
-    echo "started at $commit (code in $tree): paper sweep ($workers worker(s)), set-encoder sweep, watcher; logs in $logs"
+    echo "started at $commit (code in $tree): paper sweep ($workers worker(s)), $varobs, watcher; logs in $logs"
 }
 
 stop() {

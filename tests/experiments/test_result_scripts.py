@@ -5,6 +5,7 @@ table; a second pass evaluates only what a stopped evaluation left unfinished.""
 from __future__ import annotations
 
 import csv
+import os
 import shutil
 import subprocess
 import sys
@@ -74,3 +75,17 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     assert again.returncode == 0, again.stdout + again.stderr
     assert {p: p.stat().st_mtime_ns for p in evaluations} == evaluations and len(evaluations) == 4
     assert rows(cut) == EPISODES
+
+
+def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anything(tmp_path):
+    (tmp_path / "scripts").mkdir()
+    shutil.copy2(ROOT / "scripts" / "reproduce.sh", tmp_path / "scripts" / "reproduce.sh")
+    script = str(tmp_path / "scripts" / "reproduce.sh")
+    cores = len(os.sched_getaffinity(0))  # what nproc counts
+    for bad in ("abc", "0", "-1", str(cores + 1)):  # more paper workers than cores: more runs than cores
+        refused = subprocess.run(["bash", script, "start", bad], capture_output=True, text=True, timeout=60,
+                                 cwd=tmp_path)
+        assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and f"'{bad}'" in refused.stderr
+    usage = subprocess.run(["bash", script, "begin"], capture_output=True, text=True, timeout=60)
+    assert usage.returncode == 2 and "usage: scripts/reproduce.sh start" in usage.stdout
+    assert not (tmp_path / ".worktrees" / "logs" / "paper.pid").exists()
