@@ -4,7 +4,8 @@
 #   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper, 1 worker by default), the
 #                                                set-encoder sweep of the variable-dimension experiment
 #                                                (results/varobs/set) on another core if one is left (with as
-#                                                many paper workers as cores it waits), and a watcher that runs
+#                                                many paper workers as cores it is not started; a later `start`
+#                                                with fewer resumes it), and a watcher that runs
 #                                                scripts/update-results.sh whenever a run finishes
 #   scripts/reproduce.sh stop                    SIGTERM to both sweep drivers (every run saves a checkpoint) and
 #                                                the watcher; waits until they are gone
@@ -22,6 +23,7 @@ state=$root/.worktrees
 logs=$state/logs
 python=$root/.venv/bin/python
 marker="lanefree-reproduce $state"  # in the command line of every process started here
+cores=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)  # the cores this process may use (nproc obeys OMP_*)
 mkdir -p "$logs"
 
 # alive NAME: the process in $logs/NAME.pid runs and is ours (its command line names this checkout's pinned
@@ -35,8 +37,8 @@ alive() {
 
 start() {
     local workers=${1:-1}
-    if ! [[ $workers =~ ^[1-9][0-9]*$ ]] || [ "$workers" -gt "$(nproc)" ]; then
-        echo "reproduce.sh: PAPER_WORKERS must be a whole number from 1 to $(nproc) (the cores), got '$workers'" >&2
+    if ! [[ $workers =~ ^[1-9][0-9]{0,3}$ ]] || [ "$workers" -gt "$cores" ]; then
+        echo "reproduce.sh: PAPER_WORKERS must be a whole number from 1 to $cores (the cores), got '$workers'" >&2
         exit 2
     fi
     for name in paper varobs watcher; do
@@ -66,7 +68,7 @@ sys.exit(main())" "$marker")
     # part 3 on the other core: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells);
     # never more runs than cores
     local varobs="set-encoder sweep"
-    if [ "$workers" -ge "$(nproc)" ]; then
+    if [ "$workers" -ge "$cores" ]; then
         varobs="no set-encoder sweep (no core left)"
     elif [ -f "$root/results/varobs/set/sweep.yaml" ]; then
         nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers 1 --no-progress >>"$logs/varobs.log" 2>&1 &
@@ -74,7 +76,7 @@ sys.exit(main())" "$marker")
         nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" --workers 1 \
             --no-progress >>"$logs/varobs.log" 2>&1 &
     fi
-    [ "$workers" -ge "$(nproc)" ] || echo $! >"$logs/varobs.pid"
+    [ "$workers" -ge "$cores" ] || echo $! >"$logs/varobs.pid"
     cd "$root"
     # the watcher (its own process group, the pinned code too): evaluations and tables whenever the set of
     # finished models changes

@@ -81,10 +81,11 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
     (tmp_path / "scripts").mkdir()
     shutil.copy2(ROOT / "scripts" / "reproduce.sh", tmp_path / "scripts" / "reproduce.sh")
     script = str(tmp_path / "scripts" / "reproduce.sh")
-    cores = len(os.sched_getaffinity(0))  # what nproc counts
-    for bad in ("abc", "0", "-1", str(cores + 1)):  # more paper workers than cores: more runs than cores
+    cores = len(os.sched_getaffinity(0))  # what nproc counts without OMP_NUM_THREADS, which must not count
+    env = {**os.environ, "OMP_NUM_THREADS": str(cores + 8)}
+    for bad in ("abc", "0", "-1", str(cores + 1), "9" * 20):  # more paper workers than cores: more runs than cores
         refused = subprocess.run(["bash", script, "start", bad], capture_output=True, text=True, timeout=60,
-                                 cwd=tmp_path)
+                                 cwd=tmp_path, env=env)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and f"'{bad}'" in refused.stderr
     usage = subprocess.run(["bash", script, "begin"], capture_output=True, text=True, timeout=60)
     assert usage.returncode == 2 and "usage: scripts/reproduce.sh start" in usage.stdout

@@ -437,8 +437,8 @@ def test_a_killed_worker_is_retried_and_ctrl_c_then_resume_finish_every_run_exac
     # a budget far longer than the few episodes the test waits for, so the Ctrl-C always lands mid-run,
     # however fast the machine (the run can never finish before the driver is interrupted); no gradient
     # steps (learning starts after the budget): what is checked is the run folder's bookkeeping, and
-    # resuming a learner's state is test_train's (this keeps the 200 episodes cheap)
-    episodes, every = 200, 5
+    # resuming a learner's state is test_train's (this keeps the 300 episodes cheap)
+    episodes, every = 300, 5
     grid = write_grid(tmp_path / "kill.yaml", {
         "reward_presets": ["fields_zones_overtake_collision"], "seeds": [0], "episodes": episodes,
         "overrides": {"sim": {"episode_steps": 25},
