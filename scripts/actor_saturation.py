@@ -1,8 +1,10 @@
 """How fast DDPG's actor saturates its tanh output (issue 17, part 3): trains the paper's DDPG (the config of
-`lanefree train`, numpy backend) for a few episodes per observation and prints, every K gradient steps, the
-actor's median |pre-tanh| activation and the share of action components at the bound (|a| > 0.999) over a
-fixed set of states drawn from the replay buffer after the random warm-up. Past |pre-tanh| ≈ 10 the gradient
-reaching the actor is tanh' < 1e-8 of dQ/da, below Adam's epsilon: the policy can no longer move there.
+`lanefree train`, numpy backend) for a few episodes per observation and prints, every K environment steps
+after learning starts, the actor's median |pre-tanh| activation and the share of action components at the
+bound (|a| > 0.999) over 256 fixed states of the random warm-up (drawn with a generator of their own, so the
+probe leaves the training's random draws, and so the run, exactly as `lanefree train` has them). Past
+|pre-tanh| ≈ 10 the gradient reaching the actor is tanh' < 1e-8 of dQ/da, below Adam's epsilon: the policy can
+no longer move there.
 
     python scripts/actor_saturation.py [--episodes 6] [--seeds 0 1 2] [--every 400] [--obs vector set:paper ...]
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
@@ -20,20 +23,28 @@ from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 
 
 class Probe(BaseCallback):
-    """Every ``every`` steps after learning starts: (gradient steps, median |pre-tanh|, share at the bound)."""
+    """Every ``every`` environment steps after learning starts: (gradient steps, median |pre-tanh|, share of
+    action components at the bound) over ``states`` warm-up states."""
 
     def __init__(self, every: int, states: int = 256) -> None:
         super().__init__()
         self.every, self.states = every, states
         self.rows: list[tuple[int, float, float]] = []
+        self.returns: list[float] = []  # per finished episode, to compare with a `lanefree train` run's episodes.csv
         self.probe: Any = None
 
     def _on_step(self) -> bool:
         model: Any = self.model
+        self.returns += [i["episode_metrics"]["return"] for i in self.locals["infos"] if "episode_metrics" in i]
         if self.num_timesteps <= model.learning_starts or self.num_timesteps % self.every:
             return True
         if self.probe is None:  # states of the random warm-up, the same for every later probe
-            self.probe = model.replay_buffer.sample(self.states).observations
+            rb = model.replay_buffer
+            rows = np.random.default_rng(0).integers(0, model.learning_starts, self.states)
+            if isinstance(rb.observations, dict):
+                self.probe = {key: rb.to_torch(value[rows, 0]) for key, value in rb.observations.items()}
+            else:
+                self.probe = rb.to_torch(rb.observations[rows, 0])
         actor: Any = model.policy.actor
         with torch.no_grad():
             features = actor.extract_features(self.probe, actor.features_extractor)
@@ -43,7 +54,7 @@ class Probe(BaseCallback):
         return True
 
 
-def measure(obs: str, episodes: int, seed: int, every: int) -> list[tuple[int, float, float]]:
+def measure(obs: str, episodes: int, seed: int, every: int) -> Probe:
     kind, _, encoder = obs.partition(":")
     overrides: dict[str, Any] = {"seed": seed, "train": {"episodes": episodes, "backend": "numpy"},
                                  "observation": {"kind": kind, **({"encoder": encoder} if encoder else {})}}
@@ -53,14 +64,14 @@ def measure(obs: str, episodes: int, seed: int, every: int) -> list[tuple[int, f
     probe = Probe(every)
     model.learn(total_timesteps=episodes * cfg.sim.episode_steps, callback=probe)
     env.close()
-    return probe.rows
+    return probe
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=6, help="episodes of 800 steps (the first is random)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--every", type=int, default=400, help="steps between probes")
+    parser.add_argument("--every", type=int, default=400, help="environment steps between probes")
     parser.add_argument("--obs", nargs="+", default=["vector", "set:paper", "set:small"],
                         help="observations: vector, set:paper, set:small")
     args = parser.parse_args()
@@ -68,15 +79,17 @@ def main() -> None:
     print("# DDPG's actor at the tanh bound: the vector and the set observations\n")
     print(f"`python scripts/actor_saturation.py --episodes {args.episodes} --every {args.every} --seeds "
           f"{' '.join(map(str, args.seeds))} --obs {' '.join(args.obs)}`: DDPG, fields_zones_overtake_collision, "
-          "70 veh/km. Cell: median |pre-tanh| of the actor over 256 fixed warm-up states (share of action "
-          "components at the bound, |a| > 0.999) after n gradient steps.", flush=True)
+          "70 veh/km. Cell: median |pre-tanh| of the actor over 256 fixed states of the random warm-up (share of "
+          "action components at the bound, |a| > 0.999) after n gradient steps.", flush=True)
     for seed in args.seeds:
         results = {obs: measure(obs, args.episodes, seed, args.every) for obs in args.obs}
         print(f"\nseed {seed}\n\n| gradient steps | " + " | ".join(results) + " |")
         print("|---|" + "---|" * len(results))
-        for i, (steps, *_rest) in enumerate(next(iter(results.values()))):
-            cells = [f"{rows[i][1]:.2f} ({rows[i][2]:.0%})" if i < len(rows) else "–" for rows in results.values()]
+        for i, (steps, *_rest) in enumerate(next(iter(results.values())).rows):
+            cells = [f"{p.rows[i][1]:.2f} ({p.rows[i][2]:.0%})" if i < len(p.rows) else "–" for p in results.values()]
             print(f"| {steps} | " + " | ".join(cells) + " |", flush=True)
+        print("| episode returns | " + " | ".join(", ".join(f"{r:.3f}" for r in p.returns) for p in results.values())
+              + " |", flush=True)
 
 
 if __name__ == "__main__":
