@@ -70,13 +70,16 @@ sys.exit(main())" "$marker")
     local varobs="set-encoder sweep"
     if [ "$workers" -ge "$cores" ]; then
         varobs="no set-encoder sweep (no core left)"
-    elif [ -f "$root/results/varobs/set/sweep.yaml" ]; then
-        nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers 1 --no-progress >>"$logs/varobs.log" 2>&1 &
     else
-        nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" --workers 1 \
-            --no-progress >>"$logs/varobs.log" 2>&1 &
+        if [ -f "$root/results/varobs/set/sweep.yaml" ]; then
+            nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers 1 --no-progress \
+                >>"$logs/varobs.log" 2>&1 &
+        else
+            nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" --workers 1 \
+                --no-progress >>"$logs/varobs.log" 2>&1 &
+        fi
+        echo $! >"$logs/varobs.pid"
     fi
-    [ "$workers" -ge "$cores" ] || echo $! >"$logs/varobs.pid"
     cd "$root"
     # the watcher (its own process group, the pinned code too): evaluations and tables whenever the set of
     # finished models changes
