@@ -43,8 +43,13 @@ $(BENCH_STAMP): $(STAMP)
 system-deps:
 	@bash scripts/system-deps.sh
 
+# One pytest worker per core, at most 4 (TEST_WORKERS=; each worker holds torch, SUMO and at times a Ray
+# of its own): pytest-xdist, `worksteal` hands a worker that ran out the queued tests of another, so the few
+# minute-long sweep tests do not leave a core idle at the end. Tests share nothing but the machine: each
+# has its own tmp dirs, Ray instance, ports and Xvfb display.
+TEST_WORKERS ?= $(shell n=$$(nproc); echo $$(( n < 4 ? n : 4 )))
 test: system-deps $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 # Pure-numpy and small-torch tests only (no SUMO, no GUI, no training): < 30 s.
 test-fast: $(STAMP)

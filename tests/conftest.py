@@ -69,17 +69,18 @@ TINY_TRAINING = {
 @pytest.fixture(scope="session")
 def display() -> Iterator[str]:
     """A private Xvfb server for sumo-gui; the tests need it, so a missing Xvfb is a failure
-    (``make test`` installs it through ``make system-deps``)."""
+    (``make test`` installs it through ``make system-deps``). Xvfb picks a free display number itself and
+    writes it to a pipe once it accepts connections (``-displayfd``): parallel test workers never race
+    for one number, and the fixture waits for that state, not for a time."""
     xvfb = shutil.which("Xvfb")
     assert xvfb, "Xvfb is not installed: run 'make system-deps' (make test does)"
-    number = next(n for n in range(90, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists()
-                  and not Path(f"/tmp/.X{n}-lock").exists())
-    proc = subprocess.Popen([xvfb, f":{number}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    for _ in range(100):
-        if Path(f"/tmp/.X11-unix/X{number}").exists():
-            break
-        time.sleep(0.05)
+    read_end, write_end = os.pipe()
+    proc = subprocess.Popen([xvfb, "-displayfd", str(write_end), "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, pass_fds=(write_end,))
+    os.close(write_end)
+    with os.fdopen(read_end) as announced:
+        number = announced.readline().strip()  # "" if Xvfb ended without a display
+    assert number.isdigit(), f"Xvfb did not start (exit code {proc.poll()})"
     old = os.environ.get("DISPLAY")
     os.environ["DISPLAY"] = f":{number}"
     yield f":{number}"
