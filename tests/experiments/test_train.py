@@ -113,8 +113,12 @@ def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
 
 
 def test_evaluate_a_saved_model_with_recording(tmp_path):
+    import torch
+
     run, _ = train(tiny_config("ddpg"), run=tmp_path / "run", progress=False)
+    torch.set_num_threads(2)  # torch's default on two cores; the policy runs on the run's torch_threads
     out = evaluate(run, episodes=2, record=True, progress=False).out
+    assert torch.get_num_threads() == 1
     assert out == run / "eval"
     table = rows(out / "episodes.csv")
     assert [r["episode"] for r in table] == ["1", "2"]
