@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -90,3 +91,67 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
     usage = subprocess.run(["bash", script, "begin"], capture_output=True, text=True, timeout=60)
     assert usage.returncode == 2 and "usage: scripts/reproduce.sh start" in usage.stdout
     assert not (tmp_path / ".worktrees" / "logs" / "paper.pid").exists()
+
+
+def test_reproduce_starts_the_set_sweep_only_on_a_core_the_paper_sweep_leaves_and_stops_everything(tmp_path):
+    """``start N``: the paper sweep on N workers, the set-encoder sweep beside it only when N < cores (never
+    more runs than cores), the watcher; ``stop`` ends every one of them. The venv's python is a stand-in that
+    records its arguments and runs until SIGTERM, so no real sweep starts."""
+    root = tmp_path / "checkout"
+    (root / "scripts").mkdir(parents=True)
+    shutil.copy2(ROOT / "scripts" / "reproduce.sh", root / "scripts" / "reproduce.sh")
+    watched = root / "watcher-ran"
+    (root / "scripts" / "update-results.sh").write_text(f"#!/usr/bin/env bash\ntouch {watched}\n")
+    calls = root / "calls"
+    (root / ".venv" / "bin").mkdir(parents=True)
+    python = root / ".venv" / "bin" / "python"
+    python.write_text(f"#!/usr/bin/env bash\necho \"$*\" >> {calls}\ntrap 'exit 0' TERM\n"
+                      "while true; do sleep 0.05; done\n")
+    python.chmod(0o755)
+    (root / "scripts" / "update-results.sh").chmod(0o755)
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(root)]
+    subprocess.run(["git", "init", "-q", str(root)], check=True)
+    (root / ".gitignore").write_text(".worktrees/\n.venv/\ncalls\nwatcher-ran\n")
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "scripts"], check=True)
+    script, logs = str(root / "scripts" / "reproduce.sh"), root / ".worktrees" / "logs"
+    cores = len(os.sched_getaffinity(0))
+
+    def start_and_stop(workers: int) -> tuple[list[str], str]:
+        """The sweep drivers' command lines, and what ``start`` said."""
+        calls.unlink(missing_ok=True)
+        watched.unlink(missing_ok=True)
+        started = subprocess.run(["bash", script, "start", str(workers)], capture_output=True, text=True, timeout=120)
+        assert started.returncode == 0, started.stderr
+        drivers = [name for name in ("paper", "varobs") if (logs / f"{name}.pid").exists()]  # written by start
+        assert drivers == (["paper"] if workers >= cores else ["paper", "varobs"]), started.stdout
+        pids = [int((logs / f"{name}.pid").read_text()) for name in (*drivers, "watcher")]
+        deadline = time.monotonic() + 120
+        while not (calls.exists() and len(calls.read_text().splitlines()) == len(drivers) and watched.exists()):
+            assert time.monotonic() < deadline, "the sweeps and the watcher did not all start"
+            time.sleep(0.05)
+        stopped = subprocess.run(["bash", script, "stop"], capture_output=True, text=True, timeout=120)
+        assert stopped.returncode == 0 and "stopped" in stopped.stdout, stopped.stderr
+        assert not [pid for pid in pids if running(pid)]  # stop waits until they are gone
+        return calls.read_text().splitlines(), started.stdout
+
+    try:
+        alone, said = start_and_stop(cores)  # every core to the paper sweep: no set-encoder sweep
+        assert len(alone) == 1 and f"--workers {cores}" in alone[0] and "results/paper" in alone[0]
+        assert "no set-encoder sweep (no core left)" in said
+        if cores > 1:  # one paper worker: the set-encoder sweep on a core of its own
+            beside, said = start_and_stop(1)
+            assert sorted("results/varobs/set" in call for call in beside) == [False, True]
+            assert any("--workers 1" in call and "results/paper" in call for call in beside)
+            assert "set-encoder sweep," in said
+    finally:  # a failed assertion leaves no stand-in running
+        subprocess.run(["bash", script, "stop"], capture_output=True, timeout=120)
+
+
+def running(pid: int) -> bool:
+    """Process ``pid`` exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            return "zombie" not in status.read().lower()
+    except FileNotFoundError:
+        return False
