@@ -140,10 +140,11 @@ def on_another_road(cfg: LaneFreeConfig, scenario: str) -> LaneFreeConfig:
 
 
 def load_model(folder: RunDir, cfg: LaneFreeConfig) -> Any:
-    """RUN's final model (or newest checkpoint's), on the CPU with the run's ``train.torch_threads`` (as it
-    trained: torch's default, one thread per core, only contends with SUMO and with runs beside it — measured
-    5.3 against 8.3 s for 3 set-encoder episodes with two trainings on both cores, the same episodes bit for
-    bit); RunError naming it when unusable."""
+    """RUN's final model (or newest checkpoint's), on the CPU; RunError naming it when unusable.
+
+    torch runs on the run's ``train.torch_threads``, as in training. Its default, a thread per core, gives the
+    same episodes bit for bit but only contends with SUMO and with runs beside it (3 set-encoder episodes with
+    two trainings on both cores: 8.3 s, against 5.3 s on one thread)."""
     import torch
 
     torch.set_num_threads(cfg.train.torch_threads)
