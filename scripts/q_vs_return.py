@@ -1,0 +1,88 @@
+"""Does a trained critic over- or underestimate what its own policy earns? (issue 17: why the DQN family races)
+
+For each run: drives the final policy deterministically (numpy backend, the evaluation seeds 100001, …) and
+compares, state by state, the critic's Q(s, a) of the action taken (DQN family: ``q_net``; DDPG: the first
+critic) with the discounted return G the episode then realised (γ of the run). States of the last 300 steps
+are left out (γ^300 < 0.003 at γ = 0.98, so G is the full discounted return). A Q far above G would say
+the policy chases values that are not there.
+
+    python scripts/q_vs_return.py RUN... [--episodes 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lanefree_sumo.config import merge_config
+from lanefree_sumo.experiments.evaluate import load_model
+from lanefree_sumo.experiments.rundir import RunDir
+from lanefree_sumo.rl.env import LaneFreeEnv
+
+TAIL_STEPS = 300
+"""Steps at an episode's end whose return is cut short by the episode's end (left out)."""
+
+
+def discounted_returns(rewards: np.ndarray, gamma: float) -> np.ndarray:
+    """G_t = Σ_k γ^k r_{t+k} to the episode's end, for every t."""
+    out, acc = np.zeros_like(rewards), 0.0
+    for t in range(len(rewards) - 1, -1, -1):
+        acc = rewards[t] + gamma * acc
+        out[t] = acc
+    return out
+
+
+def critic_values(model: Any, observations: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Q(s, a) of the actions taken, one per state."""
+    obs = torch.as_tensor(observations, dtype=torch.float32)
+    with torch.no_grad():
+        if hasattr(model, "q_net"):
+            q_all = model.q_net(obs).numpy()
+            return q_all[np.arange(len(actions)), actions.astype(int).ravel()]
+        return model.critic(obs, torch.as_tensor(actions, dtype=torch.float32))[0].numpy().ravel()
+
+
+def measure(run: Path, episodes: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(Q, G, γ) over the kept states of ``episodes`` deterministic episodes of ``run``."""
+    folder = RunDir(run)
+    cfg = merge_config(folder.load_config(), {"backend": "numpy"})
+    model = load_model(folder, cfg)
+    env = LaneFreeEnv(cfg)
+    qs, gs = [], []
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=100001 + episode)
+        observations, actions, rewards = [], [], []
+        done = False
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            observations.append(obs)
+            actions.append(action)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            rewards.append(reward)
+            done = terminated or truncated
+        keep = slice(0, max(0, len(rewards) - TAIL_STEPS))
+        qs.append(critic_values(model, np.array(observations), np.array(actions))[keep])
+        gs.append(discounted_returns(np.array(rewards, dtype=float), model.gamma)[keep])
+    env.close()
+    return np.concatenate(qs), np.concatenate(gs), model.gamma
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="run folders with model.zip (vector observation)")
+    parser.add_argument("--episodes", type=int, default=10, help="deterministic episodes per run")
+    args = parser.parse_args()
+    print("| run | γ | states | mean Q | mean G | mean Q − G (sd) | corr(Q, G) |")
+    print("|---|---|---|---|---|---|---|")
+    for run in args.runs:
+        q, g, gamma = measure(run, args.episodes)
+        print(f"| `{run.name}` | {gamma:g} | {len(q)} | {q.mean():.2f} | {g.mean():.2f} | "
+              f"{np.mean(q - g):+.2f} ({np.std(q - g):.2f}) | {np.corrcoef(q, g)[0, 1]:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
