@@ -68,7 +68,7 @@ from lanefree_sumo.experiments.curves import (
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData, RunKey
 from lanefree_sumo.experiments.rundir import EPISODES, check_writable, fresh_output, read_config
-from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, unused_sections
+from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, unused_config
 
 # -- constants -----------------------------------------------------------------------------------
 
@@ -125,9 +125,9 @@ def _one_line(text: object) -> str:
 
 def variant_of(cfg: LaneFreeConfig) -> str:
     """``key=value, …`` of the settings where ``cfg`` differs from the defaults (beyond
-    :data:`NOT_VARIANT` and the hyperparameters of the other algorithm family, which the run never
-    read); ``""`` for a default run."""
-    ignore = NOT_VARIANT + unused_sections(cfg.train.algo)
+    :data:`NOT_VARIANT` and the hyperparameters the run never read,
+    :func:`~lanefree_sumo.rl.algorithms.unused_config`); ``""`` for a default run."""
+    ignore = NOT_VARIANT + unused_config(cfg.train.algo)
     return ", ".join(f"{k}={v}" for k, v in config_differences(cfg, _DEFAULT_CONFIG, ignore).items())
 
 

@@ -102,9 +102,10 @@ def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path
             make_run(tmp_path, "top40_s0", seed=0, collisions=[5.0] * 80,
                      extra={"scenario": {"agent_max_speed_mps": 40.0}, "shield": {"enabled": True}}),
             make_run(tmp_path, "short_s0", seed=0, collisions=[7.0] * 80, extra={"train": {"episodes": 150}}),
-            # DDPG never reads the DQN section: a run saved with another DQN default is the same DDPG run
+            # DDPG never reads the DQN section nor PPO's rollout length: a run saved with other values there
+            # is the same DDPG run
             make_run(tmp_path, "dqn_section_s2", seed=2, collisions=[2.0] * 80,
-                     extra={"train": {"dqn": {"target_update_steps": 1000}}}),
+                     extra={"train": {"dqn": {"target_update_steps": 1000}, "actor_critic": {"ppo_n_steps": 64}}}),
             # a DQN run's discrete actions follow from its algorithm: not a variant
             make_run(tmp_path, "dqn_s0", "dqn", seed=0, collisions=[4.0] * 80, extra={"action": {"kind": "discrete"}}),
             make_run(tmp_path, "dqn_target_s0", "dqn", seed=0, collisions=[6.0] * 80,

@@ -216,8 +216,9 @@ def test_committed_runs_without_models_are_complete_and_any_backend_is_adopted(t
     states = plan(tmp_path, grid)
     assert [states[x.name].state for x in (a, b, c)] == [COMPLETE, STALE, COMPLETE]
     assert "without models" in states[a.name].detail
-    # so is one saved with other hyperparameters of the algorithm family it never reads (DDPG: train.dqn)
-    write_config(sweep.run(c), merge_config(libsumo, {"train": {"dqn": {"target_update_steps": 1000}}}))
+    # so is one saved with hyperparameters the algorithm never reads (DDPG: train.dqn, PPO's rollout length)
+    write_config(sweep.run(c), merge_config(libsumo, {"train": {"dqn": {"target_update_steps": 1000},
+                                                                "actor_critic": {"ppo_n_steps": 64}}}))
     assert plan(tmp_path, grid)[c.name].state == COMPLETE
     # but a setting that changes what is learned is still another config
     overlap = merge_config(grid.config(c), {"train": {"overlap": True}})

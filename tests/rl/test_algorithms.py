@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -621,23 +623,36 @@ class _SpacesOnly(gym.Env):
 
 
 @pytest.mark.parametrize("algo", list(ALGORITHMS))
-def test_a_model_never_reads_the_other_familys_section(algo):
-    """What unused_sections promises (report variants and sweep adoption rely on it): the same model, bit for
-    bit and hyperparameter for hyperparameter, whatever the other family's section holds."""
+def test_a_model_never_reads_what_unused_config_names(algo):
+    """What unused_config promises (report variants and sweep adoption rely on it): the same model, bit for
+    bit and hyperparameter for hyperparameter, whatever the other family's section and the algorithm's own
+    unread keys hold; and a key it does read changes the model."""
     from lanefree_sumo.config import LaneFreeConfig, merge_config
-    from lanefree_sumo.rl.algorithms import unused_sections
+    from lanefree_sumo.rl.algorithms import unused_config
     from lanefree_sumo.rl.models import build_model, training_config
 
     spec = ALGORITHMS[algo]
-    (other,) = unused_sections(algo)
-    assert other != f"train.{spec.config_section}"
+    unused = unused_config(algo)
+    own = f"train.{spec.config_section}"
+    (other,) = [key for key in unused if not key.startswith(own + ".")]
+    assert other != own and [key for key in unused if key != other] == [f"{own}.{k}" for k in spec.unread_keys]
     base = training_config(merge_config(LaneFreeConfig(), {"train": {"algo": algo}}))
-    junk = merge_config(base, {"train": {other.split(".")[1]: _OTHER_FAMILY_JUNK[other.split(".")[1]]}})
+    other_section = other.split(".")[1]
+    own_junk = {k: _OTHER_FAMILY_JUNK[spec.config_section][k] for k in spec.unread_keys}
+    junk = merge_config(base, {"train": {other_section: _OTHER_FAMILY_JUNK[other_section],
+                                         spec.config_section: own_junk}})
+    read = merge_config(base, {"train": {spec.config_section: {"batch_size": 7}}})  # every algorithm reads it
     models = [build_model(cfg, _SpacesOnly(spec.actions == "discrete"), seed=0, tensorboard_log=None)
-              for cfg in (base, junk)]
+              for cfg in (base, junk, read)]
     names = ("learning_rate", "gamma", "batch_size", "buffer_size", "tau", "learning_starts", "n_steps",
              "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "exploration_fraction")
-    settings, junk_settings = ({n: getattr(m, n, None) for n in names} for m in models)
-    assert settings == junk_settings
-    first, second = (m.policy.state_dict() for m in models)
+
+    def hyperparameters(model: Any) -> dict[str, Any]:
+        noise = getattr(model, "action_noise", None)  # OU: sigma and theta
+        return {**{n: getattr(model, n, None) for n in names},
+                "noise": None if noise is None else (noise._sigma.tolist(), noise._theta)}
+
+    settings, junk_settings, read_settings = (hyperparameters(m) for m in models)
+    assert settings == junk_settings and settings != read_settings
+    first, second = (m.policy.state_dict() for m in models[:2])
     assert first.keys() == second.keys() and all(th.equal(first[k], second[k]) for k in first)

@@ -41,13 +41,14 @@ from lanefree_sumo.experiments.sweep.state import (
 def config_difference(existing: Any, expected: Any) -> str | None:
     """First key (dotted) where two configs differ, ignoring ``train.episodes`` (a run may be
     extended), the keys that do not change results (:data:`~lanefree_sumo.config.SAME_RESULTS`:
-    a run trained on libsumo is a run of the same setting as one on numpy) and the other algorithm
-    family's hyperparameters (:func:`~lanefree_sumo.rl.algorithms.unused_sections`: a DDPG run
-    never reads ``train.dqn``); ``key = saved vs expected``, or None."""
+    a run trained on libsumo is a run of the same setting as one on numpy) and the hyperparameters
+    the algorithm never reads (:func:`~lanefree_sumo.rl.algorithms.unused_config`: a DDPG run
+    never reads ``train.dqn`` nor ``train.actor_critic.ppo_n_steps``); ``key = saved vs expected``, or
+    None."""
     from lanefree_sumo.config import SAME_RESULTS, config_to_dict
-    from lanefree_sumo.rl.algorithms import unused_sections
+    from lanefree_sumo.rl.algorithms import unused_config
 
-    unused = unused_sections(expected.train.algo)
+    unused = unused_config(expected.train.algo)
 
     def walk(a: Any, b: Any, path: str) -> str | None:
         if isinstance(a, dict) and isinstance(b, dict):

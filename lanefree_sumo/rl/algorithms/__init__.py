@@ -33,6 +33,9 @@ class AlgorithmSpec:
     """One line for ``--help``."""
     fast_learner: bool = False
     """The class takes ``fast_learner=`` (from ``train.fast_learner``); False runs SB3's own update."""
+    unread_keys: tuple[str, ...] = ()
+    """Keys of its own ``config_section`` the model never reads (PPO keeps no replay buffer, SAC adds no
+    Ornstein-Uhlenbeck noise, the off-policy algorithms have no rollout length)."""
 
     @property
     def cls(self) -> Any:
@@ -42,14 +45,19 @@ class AlgorithmSpec:
 
 
 _ALGOS = "lanefree_sumo.rl.algorithms"
+_OU = ("ou_sigma", "ou_theta")
 ALGORITHMS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
         AlgorithmSpec("ddpg", f"{_ALGOS}.fast_ddpg:FastDDPG", "continuous", True, "actor_critic",
-                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", fast_learner=True),
-        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3"),
-        AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC"),
-        AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO"),
+                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", fast_learner=True,
+                      unread_keys=("ppo_n_steps",)),
+        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3",
+                      unread_keys=("ppo_n_steps",)),
+        AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC",
+                      unread_keys=("ppo_n_steps", *_OU)),
+        AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
+                      unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
         AlgorithmSpec("dqn", "stable_baselines3:DQN", "discrete", True, "dqn", "DQN"),
         AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN"),
         AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
@@ -69,15 +77,17 @@ def get_algorithm(name: str) -> AlgorithmSpec:
         raise ConfigError(f"unknown algorithm '{name}'; choose one of {', '.join(ALGORITHM_NAMES)}") from None
 
 
-def unused_sections(name: str) -> tuple[str, ...]:
-    """Config sections (dotted) a run of algorithm ``name`` never reads: the other family's hyperparameters
-    (``train.dqn`` for DDPG, ``train.actor_critic`` for DQN). A difference there does not make another run,
-    so report variants and sweep adoption ignore them."""
+def unused_config(name: str) -> tuple[str, ...]:
+    """Config sections and keys (dotted) a run of algorithm ``name`` never reads: the other family's
+    hyperparameters (``train.dqn`` for DDPG, ``train.actor_critic`` for DQN) and its own section's
+    :attr:`~AlgorithmSpec.unread_keys` (``train.actor_critic.ppo_n_steps`` for DDPG). A difference there
+    does not make another run, so report variants and sweep adoption ignore them."""
     spec = ALGORITHMS.get(name)
     if spec is None:
         return ()
     sections = dict.fromkeys(s.config_section for s in ALGORITHMS.values())
-    return tuple(f"train.{section}" for section in sections if section != spec.config_section)
+    return (*(f"train.{section}" for section in sections if section != spec.config_section),
+            *(f"train.{spec.config_section}.{key}" for key in spec.unread_keys))
 
 
 def help_text() -> str:
