@@ -1,6 +1,7 @@
 """Does a trained critic over- or underestimate what its own policy earns? (issue 17: why the DQN family races)
 
-For each run: drives the final policy deterministically (numpy backend, the evaluation seeds 100001, …) and
+For each run: drives the final policy deterministically (numpy backend, the traffic seeds of `lanefree
+evaluate`: the run's seed + 100000 + k) and
 compares, state by state, the critic's Q(s, a) of the action taken (DQN family: ``q_net``; DDPG: the first
 critic) with the discounted return G the episode then realised (γ of the run). States of the last 300 steps
 are left out (γ^300 < 0.003 at γ = 0.98, so G is the full discounted return). A Q far above G would say
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 
 from lanefree_sumo.config import merge_config
-from lanefree_sumo.experiments.evaluate import load_model
+from lanefree_sumo.experiments.evaluate import EVALUATION, load_model
 from lanefree_sumo.experiments.rundir import RunDir
 from lanefree_sumo.rl.env import LaneFreeEnv
 
@@ -53,8 +54,9 @@ def measure(run: Path, episodes: int) -> tuple[np.ndarray, np.ndarray, float]:
     model = load_model(folder, cfg)
     env = LaneFreeEnv(cfg)
     qs, gs = [], []
-    for episode in range(episodes):
-        obs, _ = env.reset(seed=100001 + episode)
+    base_seed = cfg.seed + EVALUATION.seed_offset  # as lanefree evaluate: episode k drives base_seed + k
+    for k in range(1, episodes + 1):
+        obs, _ = env.reset(seed=base_seed + k)
         observations, actions, rewards = [], [], []
         done = False
         while not done:
