@@ -409,13 +409,14 @@ class TrainConfig:
     torch_threads: int = 1
     """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
     fast_learner: bool = True
-    """DDPG: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` (hand-written
-    backprop, multi-tensor Adam and target updates): the same parameters bit for bit, ~1.7× faster per
-    update. False runs SB3's own ``train``. Other algorithms ignore it."""
+    """DDPG and the DQN family: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` /
+    :mod:`~lanefree_sumo.rl.algorithms.fast_dqn` (hand-written backprop, multi-tensor Adam and target
+    updates): the same parameters bit for bit, faster per update. False runs the autograd update (SB3's own
+    ``train``). TD3, SAC and PPO ignore it."""
     lean_loop: bool = True
-    """DDPG with the fast learner: collect experience with :meth:`FastDDPG.collect_rollouts
-    <lanefree_sumo.rl.algorithms.fast_ddpg.FastDDPG.collect_rollouts>`, SB3's loop bit for bit without its
-    per-step overhead (mode switches, ``predict``). False runs SB3's own loop. Other algorithms ignore it."""
+    """DDPG and the DQN family with the fast learner: collect experience with :class:`LeanCollector
+    <lanefree_sumo.rl.algorithms.lean.LeanCollector>`, SB3's loop bit for bit without its per-step overhead
+    (mode switches, ``predict``). False runs SB3's own loop. TD3, SAC and PPO ignore it."""
     overlap: bool = False
     """DDPG with the lean loop and one environment: step the environment in its own process (a second
     core) while this one updates, so a step costs the longer of the two instead of their sum. The action

@@ -57,8 +57,23 @@ def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
 
 # -- provenance ----------------------------------------------------------------------------------
 
+def numpy_simd() -> str:
+    """The SIMD kernel tiers numpy runs on (its baseline and the dispatched ones in use, as
+    ``numpy.show_runtime`` lists them), e.g. ``X86_V2 X86_V3``; ``unknown`` if numpy does not say."""
+    try:
+        from numpy._core._multiarray_umath import (
+            __cpu_baseline__,
+            __cpu_dispatch__,
+            __cpu_features__,
+        )
+    except ImportError:
+        return "unknown"
+    return " ".join([*__cpu_baseline__, *(f for f in __cpu_dispatch__ if __cpu_features__.get(f))])
+
+
 def versions() -> dict[str, str]:
-    """Versions of everything that shapes a result."""
+    """Versions of everything that shapes a result, with the SIMD kernels numpy and torch run on (they round
+    differently from one CPU generation to the next: :data:`lanefree_sumo.PORTABLE_NUMPY_DISPATCH`)."""
     import gymnasium
     import stable_baselines3
     import torch
@@ -80,6 +95,8 @@ def versions() -> dict[str, str]:
         "stable_baselines3": stable_baselines3.__version__,
         "gymnasium": gymnasium.__version__,
         "numpy": np.__version__,
+        "numpy_simd": numpy_simd(),
+        "torch_cpu": torch.backends.cpu.get_cpu_capability(),
         "sumo": sumo_version(),
         "lanefree_sumo": version("lanefree_sumo"),
         "git_commit": commit or "unknown",

@@ -31,7 +31,7 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
     t = base.train
-    if t.overlap and not (get_algorithm(t.algo).fast_learner and t.fast_learner and t.lean_loop and t.envs == 1
+    if t.overlap and not (get_algorithm(t.algo).overlap and t.fast_learner and t.lean_loop and t.envs == 1
                           and base.observation.kind == "vector"):
         raise ConfigError("--overlap needs DDPG with the fast learner and the lean loop, one environment and the "
                           "vector observation (it would silently run SB3's order otherwise)")
@@ -113,7 +113,7 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
         return SharedPolicyVecEnv(LaneFreeParallelEnv(cfg), seeds=lambda k: episode_seed(cfg.seed, 0, k),
                                   first_episode=episodes_done + 1)
     n_envs = cfg.train.envs
-    own_process = n_envs > 1 or (cfg.train.overlap and get_algorithm(cfg.train.algo).fast_learner)
+    own_process = n_envs > 1 or (cfg.train.overlap and get_algorithm(cfg.train.algo).overlap)
     cfg_dict = config_to_dict(cfg)
     first = episodes_done // n_envs + 1
     factories = [_env_factory(cfg_dict, rank, cfg.seed, first, own_process) for rank in range(n_envs)]
@@ -158,21 +158,24 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
         if spec.fast_learner and own_class:
-            kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
-                          overlap=cfg.train.overlap)
+            kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop)
+        if spec.overlap and own_class:
+            kwargs.update(overlap=cfg.train.overlap)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
         return cls(policy, env, **kwargs)
 
     dq = cfg.train.dqn
     policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
     decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
+    fast: dict[str, Any] = ({"fast_learner": cfg.train.fast_learner, "lean_loop": cfg.train.lean_loop}
+                            if spec.fast_learner and own_class else {})
     return cls(
         policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,
         gamma=dq.gamma, learning_starts=dq.learning_starts_steps, target_update_interval=dq.target_update_steps,
         exploration_initial_eps=dq.epsilon_start, exploration_final_eps=dq.epsilon_end,
         exploration_fraction=decay, train_freq=1, gradient_steps=1,
         policy_kwargs={"net_arch": list(dq.layers), "activation_fn": torch.nn.ReLU, **extractor},
-        **common,
+        **common, **fast,
     )
 
 

@@ -9,8 +9,9 @@ For 70, 90 and 120 veh/km, 800 steps each:
 (a) and (b) are measured alternately ``REPEATS`` times and the median is reported, so that
 machine noise hits both alike.  Timings are not tests: the numbers are for reading.
 Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's update and the fast one,
-against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved
-(``--training-only`` runs just that section).
+against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved, and
+:func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
+(``--training-only`` runs just these sections, ``--dqn-only`` the last).
 """
 
 from __future__ import annotations
@@ -171,17 +172,18 @@ def _env_rate(make_env: Callable[[], Any], steps: int, seed: int) -> float:
         env.close()
 
 
-def _ddpg_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int, cls: Any = None) -> float:
-    """Env steps per second of a DDPG run (build_model: the paper's settings and ``cfg.train``'s paths; ``cls``
-    another class, e.g. SB3's ``DDPG``) over ``steps`` steps after ``SPEED_STARTS`` random ones: env step,
-    exploration, one update per step."""
+def _train_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int, cls: Any = None) -> float:
+    """Env steps per second of a training run of ``cfg.train.algo`` (build_model: the paper's settings and
+    ``cfg.train``'s paths; ``cls`` another class, e.g. SB3's ``DDPG``) over ``steps`` steps after
+    ``SPEED_STARTS`` random ones: env step, exploration, one update per step."""
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
     from lanefree_sumo.rl.models import build_model
 
     torch.set_num_threads(cfg.train.torch_threads)  # as training does: 2 threads on a busy core crawl
-    cfg = merge_config(cfg, {"train": {"actor_critic": {"learning_starts_steps": SPEED_STARTS}}})
+    cfg = merge_config(cfg, {"train": {"actor_critic": {"learning_starts_steps": SPEED_STARTS},
+                                       "dqn": {"learning_starts_steps": SPEED_STARTS}}})
     stamps: dict[int, float] = {}
 
     class Clock(BaseCallback):
@@ -260,6 +262,52 @@ TRAINING_CASES: dict[str, tuple[str, dict[str, Any]]] = {
 """The DDPG training paths compared (label: (class — SB3's ``DDPG`` or the registry's, ``train`` overrides))."""
 
 
+DQN_FAMILY = ("dqn", "ddqn", "dueling", "per")
+"""The discrete-action algorithms of Table 8, whose update :mod:`lanefree_sumo.rl.algorithms.fast_dqn` writes out."""
+
+
+def dqn_family_speed(seed: int, steps: int = 1600, repeats: int = REPEATS) -> str:
+    """Markdown: env steps/s of each DQN-family algorithm on LaneFree-v0 at 90 veh/km (numpy backend, the paper's
+    settings) with the autograd update and SB3's loop (for DQN SB3's own class: what a user would write) and
+    with the written-out update and the lean loop (``lanefree train``'s default), every case measured
+    ``repeats`` times interleaved (medians)."""
+    from stable_baselines3 import DQN
+
+    from lanefree_sumo.rl.models import make_vec_env, training_config
+
+    paths = {"autograd": {"fast_learner": False, "lean_loop": False}, "fast": {}}
+    cases: dict[tuple[str, str], Callable[[], float]] = {}
+    for algo in DQN_FAMILY:
+        for path, train in paths.items():
+            cfg = training_config(merge_config(LaneFreeConfig(), {
+                "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": algo, **train}}))
+            cls = DQN if algo == "dqn" and path == "autograd" else None
+            cases[(algo, path)] = functools.partial(_train_rate, cfg, functools.partial(make_vec_env, cfg), seed,
+                                                    steps, cls)
+    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
+    for _ in range(repeats):
+        for case, measure in cases.items():
+            samples[case].append(measure())
+            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
+    rate = {case: statistics.median(v) for case, v in samples.items()}
+    total = 625 * LaneFreeConfig().sim.episode_steps
+    lines = [
+        f"The DQN family (paper settings: 128-64, batch 64, one update per env step, target copy every 10 000 steps; "
+        f"LaneFree-v0 at {PEER_DENSITY:g} veh/km, numpy backend, one env; {SPEED_STARTS} random steps, then {steps} "
+        f"timed; median of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} "
+        "cores at the end), env steps/s; both paths give the same parameters bit for bit:",
+        "",
+        "| algorithm | autograd update, SB3 loop | written out, lean loop (`lanefree train`) | × | 625 episodes |",
+        "|---|---|---|---|---|",
+    ]
+    for algo in DQN_FAMILY:
+        slow, fast = rate[(algo, "autograd")], rate[(algo, "fast")]
+        label = f"{algo} (autograd: SB3's `DQN`)" if algo == "dqn" else algo
+        lines.append(f"| {label} | {slow:.1f} | {fast:.1f} | {fast / slow:.2f}× "
+                     f"| {total / slow / 60:.0f} → {total / fast / 60:.0f} min |")
+    return "\n".join(lines)
+
+
 def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats: int = REPEATS) -> str:
     """Markdown: env steps/s of DDPG on LaneFree-v0 at 90 veh/km along the training paths of
     :data:`TRAINING_CASES` (plain SB3 DDPG — what a user would write — first), of the peer highway-v0 with
@@ -286,7 +334,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
         case_cfg = merge_config(case_cfg, {"backend": case_cfg.train.backend})
         cls = DDPG if kind == "sb3" else None
         cases[("lanefree", label)] = functools.partial(
-            _ddpg_rate, case_cfg, functools.partial(make_vec_env, case_cfg), seed, steps, cls)
+            _train_rate, case_cfg, functools.partial(make_vec_env, case_cfg), seed, steps, cls)
     try:
         import highway_env  # noqa: F401
         peers: tuple[int, ...] = (4, 16)
@@ -295,8 +343,8 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     for hz in peers:
         highway = functools.partial(_highway_env, n, hz, seed)
         cases[(f"highway{hz}", "env")] = functools.partial(_env_rate, highway, peer_steps, seed)
-        cases[(f"highway{hz}", "sb3")] = functools.partial(_ddpg_rate, sb3, highway, seed, peer_steps, DDPG)
-        cases[(f"highway{hz}", "fast")] = functools.partial(_ddpg_rate, cfg, highway, seed, peer_steps)
+        cases[(f"highway{hz}", "sb3")] = functools.partial(_train_rate, sb3, highway, seed, peer_steps, DDPG)
+        cases[(f"highway{hz}", "fast")] = functools.partial(_train_rate, cfg, highway, seed, peer_steps)
     samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
     for _ in range(repeats):  # A, B, C, …, A, B, C, …: machine noise hits every case alike
         for case, measure in cases.items():
@@ -340,6 +388,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     lines += ["", "One update, the learner alone (ms, median of interleaved repeats):", "",
               "| update | ms | SB3 / this |\n|---|---|---|"]
     lines += [f"| {name} | {ms:.2f} | {reference / ms:.2f}× |" for name, ms in costs.items()]
+    lines += ["", dqn_family_speed(seed, steps, repeats)]
     return "\n".join(lines)
 
 
@@ -417,9 +466,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=800, help="steps per measurement (default 800)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the traffic (default 0)")
     parser.add_argument("--out", type=Path, default=Path("runs/bench"), help="folder for the table")
-    parser.add_argument("--training-only", action="store_true", help="only the training-speed section")
+    parser.add_argument("--training-only", action="store_true", help="only the training-speed sections")
+    parser.add_argument("--dqn-only", action="store_true", help="only the DQN family's training-speed section")
     args = parser.parse_args()
-    print(training_speed(args.seed) if args.training_only else run(args.steps, args.seed, args.out))
+    if args.dqn_only:
+        print(dqn_family_speed(args.seed))
+    else:
+        print(training_speed(args.seed) if args.training_only else run(args.steps, args.seed, args.out))
 
 
 if __name__ == "__main__":

@@ -4,8 +4,9 @@ Training, evaluation, the benchmark, the CLI's help and the tests all read :data
 Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
 import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
 :mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`). ``ddpg`` is :mod:`.fast_ddpg`'s
-subclass of SB3's DDPG: SB3's update bit for bit, faster (``train.fast_learner``); it loads models
-saved by SB3's DDPG, and SB3's DDPG loads its models.
+subclass of SB3's DDPG and ``dqn`` :mod:`.fast_dqn`'s of SB3's DQN (the base of the other three): SB3's
+update bit for bit, faster (``train.fast_learner``, ``train.lean_loop``; shared pieces in :mod:`.lean`);
+they load models saved by SB3's classes, and SB3's classes load theirs.
 """
 
 from __future__ import annotations
@@ -32,7 +33,9 @@ class AlgorithmSpec:
     summary: str
     """One line for ``--help``."""
     fast_learner: bool = False
-    """The class takes ``fast_learner=`` (from ``train.fast_learner``); False runs SB3's own update."""
+    """The class takes ``fast_learner=`` and ``lean_loop=`` (from ``train``); False runs SB3's own update."""
+    overlap: bool = False
+    """The class takes ``overlap=`` (``train.overlap``: the env steps on a second core, one update behind)."""
     unread_keys: tuple[str, ...] = ()
     """Keys of its own ``config_section`` the model never reads (PPO keeps no replay buffer, SAC adds no
     Ornstein-Uhlenbeck noise, the off-policy algorithms have no rollout length)."""
@@ -51,19 +54,20 @@ ALGORITHMS: dict[str, AlgorithmSpec] = {
     for spec in (
         AlgorithmSpec("ddpg", f"{_ALGOS}.fast_ddpg:FastDDPG", "continuous", True, "actor_critic",
                       "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", fast_learner=True,
-                      unread_keys=("ppo_n_steps",)),
+                      overlap=True, unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3",
                       unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC",
                       unread_keys=("ppo_n_steps", *_OU)),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
                       unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
-        AlgorithmSpec("dqn", "stable_baselines3:DQN", "discrete", True, "dqn", "DQN"),
-        AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN"),
+        AlgorithmSpec("dqn", f"{_ALGOS}.fast_dqn:FastDQN", "discrete", True, "dqn", "DQN", fast_learner=True),
+        AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN",
+                      fast_learner=True),
         AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
-                      "dueling double DQN"),
+                      "dueling double DQN", fast_learner=True),
         AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
-                      "double DQN with prioritised replay"),
+                      "double DQN with prioritised replay", fast_learner=True),
     )
 }
 ALGORITHM_NAMES: tuple[str, ...] = tuple(ALGORITHMS)

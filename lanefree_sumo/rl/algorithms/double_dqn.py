@@ -3,43 +3,44 @@
 The TD target uses the action chosen by the *online* network and evaluated by the *target*
 network: ``y = r + γ (1 − d) Q_target(s', argmax_a Q_online(s', a))``.
 
-``DoubleDQN.train`` reproduces SB3's ``DQN.train`` (Huber loss ``smooth_l1_loss`` with β = 1,
-gradient-norm clipping at ``max_grad_norm``, the n-step ``discounts`` field, ``train/loss`` and
-``train/n_updates`` logging) but is split into overridable hooks: ``_sample_batch`` (data +
-optional per-sample weights), ``_compute_target_q_values`` (the TD target), ``_compute_loss``
-(Huber, optionally weighted) and ``_after_gradient_step`` (receives the TD errors), so the PER
-class overrides hooks instead of duplicating the loop. The online network's greedy action on
-``s'`` is computed with the online net in its current (training) mode, as the online Q(s, a) is.
+:class:`DoubleDQN` is :class:`~.fast_dqn.FastDQN` with ``double_q``: for plain MLPs the update is
+written out there. :meth:`DoubleDQN._autograd_train`, the update for any other network (or with
+``fast_learner=False``), reproduces SB3's ``DQN.train`` through autograd (Huber loss
+``smooth_l1_loss`` with β = 1, gradient-norm clipping at ``max_grad_norm``, the n-step
+``discounts`` field, ``train/loss`` and ``train/n_updates`` logging) split into overridable hooks:
+``_sample_batch`` (data + optional per-sample weights), ``_compute_target_q_values`` (the TD
+target), ``_compute_loss`` (Huber, optionally weighted) and ``_after_gradient_step`` (receives the
+TD errors), so the PER class overrides hooks instead of duplicating the loop. The online network's
+greedy action on ``s'`` is computed with the online net in its current (training) mode, as the
+online Q(s, a) is.
 """
 
-
+from typing import ClassVar
 
 import numpy as np
 import torch as th
-from stable_baselines3 import DQN
 from stable_baselines3.common.type_aliases import (
     ReplayBufferSamples,
 )
 from torch.nn import functional as F
 
+from lanefree_sumo.rl.algorithms.fast_dqn import FastDQN
 
-class DoubleDQN(DQN):
-    """Double DQN (Van Hasselt, Guez & Silver 2016) on top of SB3's ``DQN``.
+
+class DoubleDQN(FastDQN):
+    """Double DQN (Van Hasselt, Guez & Silver 2016) on top of SB3's ``DQN`` (through :class:`~.fast_dqn.FastDQN`).
 
     Identical to ``stable_baselines3.DQN`` except for the TD target, which
     decouples action selection (online ``q_net``) from evaluation (``q_net_target``):
     ``y = r + γ (1 - d) Q_target(s', argmax_a Q_online(s', a))``.
     Constructor arguments are those of ``DQN``.
 
-    ``train`` is split into hooks so variants can override single pieces:
+    The autograd update is split into hooks so variants can override single pieces:
     ``_sample_batch``, ``_compute_target_q_values``, ``_compute_loss`` and
     ``_after_gradient_step``.
     """
 
-    def _sample_batch(self, batch_size: int) -> tuple[ReplayBufferSamples, th.Tensor | None]:
-        """Draw a minibatch; return it with per-sample loss weights (None = uniform)."""
-        replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-        return replay_data, None
+    double_q: ClassVar[bool] = True
 
     def _compute_target_q_values(self, replay_data: ReplayBufferSamples) -> th.Tensor:
         """Double-Q TD target, shape ``(batch, 1)`` (no gradient).
@@ -64,11 +65,8 @@ class DoubleDQN(DQN):
         per_sample = F.smooth_l1_loss(current_q_values, target_q_values, reduction="none")
         return (weights.reshape(per_sample.shape) * per_sample).mean()
 
-    def _after_gradient_step(self, td_errors: th.Tensor) -> None:
-        """Hook called after each gradient step with the batch TD errors ``y - Q(s, a)`` (detached, 1-D)."""
-
-    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
-        """SB3's ``DQN.train`` loop with the double-Q target (and hooks, see class doc)."""
+    def _autograd_train(self, gradient_steps: int, batch_size: int) -> None:
+        """SB3's ``DQN.train`` loop through autograd with the double-Q target (and hooks, see class doc)."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
 

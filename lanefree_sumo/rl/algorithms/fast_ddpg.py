@@ -30,7 +30,6 @@ Where the time goes instead (one thread, batch 64, actor and critic 256-128; REA
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any, cast
 
 import numpy as np
@@ -38,203 +37,24 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.torch_layers import FlattenExtractor
-from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import MaybeCallback, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import polyak_update
-from stable_baselines3.common.vec_env import VecEnv
-from torch import nn
 from torch.nn import functional as F
 
-_aten = th.ops.aten
-_MEAN = 1
-"""torch's ``Reduction::Mean``, the reduction argument of ``mse_loss_backward``."""
-
-Layer = tuple[th.Tensor, th.Tensor, th.Tensor]
-"""A linear layer: weight W, the view Wᵀ (kept: in-place updates of W show through it), bias."""
-
-
-def _mean(values: list[float]) -> float:
-    """``np.mean`` (SB3's loss logging), without its overhead for the usual single value."""
-    return values[0] if len(values) == 1 else float(np.mean(values))
-
-
-# -- the MLP, written out ------------------------------------------------------------------------------
-
-def mlp_layers(net: nn.Module, squash: bool) -> list[Layer] | None:
-    """The layers of ``Sequential(Linear, ReLU, …, Linear[, Tanh])`` (Tanh iff ``squash``), all with a
-    bias and float32; None for any other network."""
-    modules = list(net) if isinstance(net, nn.Sequential) else []
-    if squash:
-        if not modules or type(modules[-1]) is not nn.Tanh:
-            return None
-        modules = modules[:-1]
-    if len(modules) % 2 != 1:
-        return None
-    layers: list[Layer] = []
-    for k, module in enumerate(modules):
-        if k % 2 == 1:
-            if type(module) is not nn.ReLU:
-                return None
-        elif type(module) is not nn.Linear or module.bias is None or module.weight.dtype != th.float32:
-            return None
-        else:
-            layers.append((module.weight, module.weight.t(), module.bias))
-    return layers
-
-
-def forward(layers: Sequence[Layer], x: th.Tensor, squash: bool) -> list[th.Tensor]:
-    """[input, output of each layer] of the MLP, as ``nn.Linear`` (``addmm(b, x, Wᵀ)``), ReLU and Tanh
-    compute them."""
-    outs = [x]
-    last = len(layers) - 1
-    for k, (_, weight_t, bias) in enumerate(layers):
-        z = th.addmm(bias, x, weight_t)
-        x = th.relu(z) if k < last else (th.tanh(z) if squash else z)
-        outs.append(x)
-    return outs
-
-
-def backward(
-    layers: Sequence[Layer], outs: Sequence[th.Tensor], grad: th.Tensor, squash: bool,
-    weights: bool = True, to_input: bool = False,
-) -> tuple[list[th.Tensor], th.Tensor | None]:
-    """(gradients [W1, b1, W2, b2, …] — empty unless ``weights``, gradient of the input — None unless
-    ``to_input``) given ``grad``, the gradient of the output, and ``outs`` from :func:`forward`.
-
-    The kernels and operands are those of autograd's formulas for ``addmm`` with a transposed
-    weight (weight: gᵀ·x; bias: g summed over the batch; input: g·W), ReLU (``threshold_backward`` on
-    its output) and Tanh (``tanh_backward`` on its output), so the gradients are the same bits."""
-    if squash:
-        grad = _aten.tanh_backward(grad, outs[-1])
-    grads: list[th.Tensor] = []
-    for k in range(len(layers) - 1, -1, -1):
-        if weights:
-            grads += [grad.sum(0), grad.t().mm(outs[k])]
-        if k > 0 or to_input:
-            grad = grad.mm(layers[k][0])
-            if k > 0:
-                grad = _aten.threshold_backward(grad, outs[k], 0)
-    grads.reverse()
-    return grads, grad if to_input else None
-
-
-# -- Adam -----------------------------------------------------------------------------------------------
-
-def _plain_adam(optimizer: th.optim.Optimizer, params: Sequence[th.Tensor]) -> bool:
-    """``optimizer`` is a ``torch.optim.Adam`` with one group of exactly ``params`` (CPU float32), default
-    options and no hooks: the case :class:`LeanAdam` reproduces."""
-    if type(optimizer) is not th.optim.Adam or len(optimizer.param_groups) != 1:
-        return False
-    group = optimizer.param_groups[0]
-    return (
-        {id(p) for p in group["params"]} == {id(p) for p in params} and len(group["params"]) == len(params)
-        and all(p.device.type == "cpu" and p.dtype == th.float32 for p in params)
-        and not group.get("amsgrad") and group.get("weight_decay") == 0 and not group.get("maximize")
-        and not group.get("capturable") and not group.get("differentiable") and not group.get("fused")
-        and not group.get("decoupled_weight_decay")
-        and isinstance(group["lr"], float) and all(isinstance(b, float) for b in group["betas"])
-        and not getattr(optimizer, "_optimizer_step_pre_hooks", None)
-        and not getattr(optimizer, "_optimizer_step_post_hooks", None)
-    )
-
-
-def flatten_parameters(params: Sequence[th.Tensor]) -> th.Tensor:
-    """Move ``params`` into one contiguous buffer, in order, and return it: each parameter's ``.data``
-    becomes a view of it (the values are unchanged), so elementwise updates can run once over the buffer
-    instead of once per tensor — the same kernels on the same elements, the same bits."""
-    flat = th.cat([p.detach().reshape(-1) for p in params])
-    at = 0
-    for p in params:
-        p.data = flat[at:at + p.numel()].view_as(p)
-        at += p.numel()
-    return flat
-
-
-def _flat_state(state: dict[Any, Any], params: Sequence[th.Tensor], key: str) -> th.Tensor:
-    """Like :func:`flatten_parameters` for the optimiser's ``state[p][key]`` tensors (replaced by views)."""
-    flat = th.cat([state[p][key].reshape(-1) for p in params])
-    at = 0
-    for p in params:
-        state[p][key] = flat[at:at + p.numel()].view_as(p)
-        at += p.numel()
-    return flat
-
-
-class LeanAdam:
-    """``optimizer.step()`` for gradients given as a list, in ``params`` order.
-
-    For a plain Adam (:func:`_plain_adam`) this is the arithmetic of torch 2.13's multi-tensor Adam
-    (``torch.optim.adam._multi_tensor_adam`` without the options) on the optimiser's own state tensors,
-    fetched once; with ``flat`` (the buffer :func:`flatten_parameters` made of ``params``) the state is
-    moved into buffers of the same layout too and each of Adam's elementwise operations runs once over
-    the buffers. Otherwise, and for the very first step (which creates the state), the gradients go to
-    ``.grad`` and the optimiser steps itself. Call under ``torch.no_grad()``."""
-
-    def __init__(self, optimizer: th.optim.Optimizer, params: Sequence[th.Tensor],
-                 flat: th.Tensor | None = None) -> None:
-        self.optimizer = optimizer
-        self.params = list(params)
-        self.flat = flat
-        self.plain = _plain_adam(optimizer, self.params)
-        self._state: Any = None
-        self._one = th.tensor(1.0)
-        self.exp_avgs: list[th.Tensor] = []
-        self.exp_avg_sqs: list[th.Tensor] = []
-        self.steps: list[th.Tensor] = []
-        self.flat_exp_avg = self.flat_exp_avg_sq = th.empty(0)
-
-    def _fetch(self) -> bool:
-        """Point at the optimiser's state tensors (again after a ``load_state_dict``); False before its
-        first step."""
-        state = self.optimizer.state
-        if state is self._state:
-            return True
-        if not all(p in state for p in self.params):
-            return False
-        self.plain = _plain_adam(self.optimizer, self.params)  # a loaded state brings its own options
-        if self.flat is not None and self.plain:
-            self.flat_exp_avg = _flat_state(state, self.params, "exp_avg")
-            self.flat_exp_avg_sq = _flat_state(state, self.params, "exp_avg_sq")
-        per_param = [state[p] for p in self.params]
-        self.exp_avgs = [s["exp_avg"] for s in per_param]
-        self.exp_avg_sqs = [s["exp_avg_sq"] for s in per_param]
-        self.steps = [s["step"] for s in per_param]
-        self._state = state
-        return all(t.device.type == "cpu" for t in self.steps)
-
-    def step(self, grads: Sequence[th.Tensor | None]) -> None:
-        if any(g is None for g in grads) or not self._fetch() or not self.plain:
-            for p, g in zip(self.params, grads):
-                p.grad = g
-            self.optimizer.step()
-            for p in self.params:
-                p.grad = None
-            return
-        given = cast(list[th.Tensor], list(grads))
-        group = self.optimizer.param_groups[0]
-        lr, (beta1, beta2), eps = group["lr"], group["betas"], group["eps"]
-        th._foreach_add_(self.steps, self._one, alpha=1.0)
-        counts = [s.item() for s in self.steps]
-        if self.flat is not None and len(set(counts)) == 1:
-            n = counts[0]
-            grad = th.cat([g.reshape(-1) for g in given])
-            self.flat_exp_avg.lerp_(grad, 1 - beta1)
-            self.flat_exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            denom = self.flat_exp_avg_sq.sqrt().div_((1 - beta2**n) ** 0.5).add_(eps)
-            self.flat.addcdiv_(self.flat_exp_avg, denom, value=(lr / (1 - beta1**n)) * -1)
-            return
-        th._foreach_lerp_(self.exp_avgs, given, 1 - beta1)
-        th._foreach_mul_(self.exp_avg_sqs, beta2)
-        th._foreach_addcmul_(self.exp_avg_sqs, given, given, 1 - beta2)
-        step_size = [(lr / (1 - beta1**n)) * -1 for n in counts]
-        bias_correction2_sqrt = [(1 - beta2**n) ** 0.5 for n in counts]
-        denom_list = th._foreach_sqrt(self.exp_avg_sqs)
-        th._foreach_div_(denom_list, bias_correction2_sqrt)
-        th._foreach_add_(denom_list, eps)
-        th._foreach_addcdiv_(self.params, self.exp_avgs, denom_list, step_size)
-
+from lanefree_sumo.rl.algorithms.lean import (
+    MEAN,
+    Layer,
+    LeanAdam,
+    LeanCollector,
+    aten,
+    backward,
+    flatten_parameters,
+    forward,
+    mean_of,
+    mlp_layers,
+)
 
 # -- the update -----------------------------------------------------------------------------------------
 
@@ -327,7 +147,7 @@ class _Plan:
                 polyak_update(stats, targets, 1.0)
 
 
-class FastDDPG(DDPG):
+class FastDDPG(LeanCollector, DDPG):
     """SB3's DDPG with the same update computed with less overhead (module docstring).
 
     :param fast_learner: False runs SB3's own ``train`` (the reference the fast one equals).
@@ -384,52 +204,10 @@ class FastDDPG(DDPG):
             scaled = np.clip(scaled + action_noise(), -1, 1)
         return policy.unscale_action(scaled), scaled
 
-    def _after_step(self, replay_buffer: ReplayBuffer, buffer_actions: np.ndarray, new_obs: Any, rewards: np.ndarray,
-                    dones: np.ndarray, infos: list[dict[str, Any]], action_noise: ActionNoise | None,
-                    log_interval: int | None) -> int:
-        """What SB3's ``collect_rollouts`` does after ``callback.on_step``: episode info, the transition into
-        the buffer, progress, ``_on_step``, noise resets and logs at episode ends. Returns episodes ended."""
-        self._update_info_buffer(infos, dones)
-        self._store_transition(replay_buffer, buffer_actions, new_obs, rewards, dones, infos)
-        self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
-        self._on_step()
-        ended = 0
-        for idx, done in enumerate(dones):
-            if done:
-                ended += 1
-                self._episode_num += 1
-                if action_noise is not None:
-                    action_noise.reset(**({"indices": [idx]} if len(dones) > 1 else {}))
-                if log_interval is not None and self._episode_num % log_interval == 0:
-                    self.dump_logs()
-        return ended
-
-    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, train_freq: TrainFreq,
-                         replay_buffer: ReplayBuffer, action_noise: ActionNoise | None = None,
-                         learning_starts: int = 0, log_interval: int | None = None) -> RolloutReturn:
-        """SB3's ``collect_rollouts`` with the same arithmetic, draws and calls to the env, the callback, the
-        replay buffer and the logger, minus what cannot change a number for plain MLPs: the three
-        ``set_training_mode`` walks over every module per step (here, ``predict`` and ``train``) and
-        ``predict``'s generic path (:meth:`_lean_action`)."""
+    def _lean_plan(self) -> _Plan | None:
+        """The plan when the lean collection loop applies (:class:`~.lean.LeanCollector`), else None."""
         plan = self._plan()
-        if not self._lean(plan) or train_freq.unit != TrainFrequencyUnit.STEP:
-            return super().collect_rollouts(env, callback, train_freq, replay_buffer, action_noise,
-                                            learning_starts, log_interval)
-        assert plan is not None
-        collected, episodes, n_envs = 0, 0, env.num_envs
-        callback.on_rollout_start()
-        while collected < train_freq.frequency:
-            actions, buffer_actions = self._lean_action(plan, learning_starts, action_noise, n_envs)
-            new_obs, rewards, dones, infos = env.step(actions)
-            self.num_timesteps += n_envs
-            collected += 1
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return RolloutReturn(collected * n_envs, episodes, continue_training=False)
-            episodes += self._after_step(replay_buffer, buffer_actions, new_obs, rewards, dones, infos,
-                                         action_noise, log_interval)
-        callback.on_rollout_end()
-        return RolloutReturn(collected * n_envs, episodes, continue_training=True)
+        return plan if self._lean(plan) else None
 
     def learn(self, total_timesteps: int, callback: MaybeCallback = None, log_interval: int = 4,
               tb_log_name: str = "run", reset_num_timesteps: bool = True, progress_bar: bool = False) -> FastDDPG:
@@ -487,8 +265,8 @@ class FastDDPG(DDPG):
             actor_losses.append(actor_loss)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         if len(actor_losses) > 0:
-            self.logger.record("train/actor_loss", _mean(actor_losses))
-        self.logger.record("train/critic_loss", _mean(critic_losses))
+            self.logger.record("train/actor_loss", mean_of(actor_losses))
+        self.logger.record("train/critic_loss", mean_of(critic_losses))
 
     def _target_actions(self, plan: _Plan, actions: th.Tensor, next_actions: th.Tensor) -> th.Tensor:
         """μ'(s') plus SB3's clipped target noise (drawn as SB3 draws it), clipped to [−1, 1]."""
@@ -516,7 +294,7 @@ class FastDDPG(DDPG):
 
             critic = forward(plan.critic, th.cat([obs, actions], dim=1), False)
             critic_loss = F.mse_loss(critic[-1], target_q)
-            grad_q = _aten.mse_loss_backward(plan.one, critic[-1], target_q, _MEAN)
+            grad_q = aten.mse_loss_backward(plan.one, critic[-1], target_q, MEAN)
             plan.critic_adam.step(backward(plan.critic, critic, grad_q, False)[0])
 
             actor = forward(plan.actor, obs, True)

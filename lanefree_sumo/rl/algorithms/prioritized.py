@@ -228,7 +228,7 @@ class PrioritizedDoubleDQN(DoubleDQN):
     ) -> None:
         if kwargs.get("n_steps", 1) != 1:
             raise ValueError("PrioritizedDoubleDQN does not support n-step returns (n_steps must be 1)")
-        super().__init__(policy, env, *args, _init_setup_model=False, **kwargs)  # type: ignore[misc]
+        super().__init__(policy, env, *args, _init_setup_model=False, **kwargs)
         self.per_alpha = float(per_alpha)
         self.per_beta0 = float(per_beta0)
         self.per_eps = float(per_eps)
@@ -279,6 +279,10 @@ class PrioritizedDoubleDQN(DoubleDQN):
         assert self._per_indices is not None, "_sample_batch must run before _after_gradient_step"
         self.replay_buffer.update_priorities(self._per_indices, td_errors.abs())
         self._per_indices = None
+
+    def _written_out_buffer(self, buffer: ReplayBuffer) -> bool:
+        """The written-out update draws from the prioritised buffer through :meth:`_sample_batch`."""
+        return type(buffer) is PrioritizedReplayBuffer
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         self._update_beta()

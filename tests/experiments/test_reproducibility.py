@@ -1,0 +1,62 @@
+"""A run gives the same episodes on every machine: numpy kept on its portable kernels (AVX2 on x86-64) unless the
+user chose, the kernels recorded in versions.json, and a new run's first episodes equal to those of the committed
+paper run that another machine trained."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lanefree_sumo import PORTABLE_NUMPY_DISPATCH
+
+from conftest import ROOT, lanefree
+
+pytestmark = pytest.mark.slow
+
+COMMITTED = ROOT / "results/paper/runs/ddpg_fields_zones_overtake_collision_d70_s0"
+"""Seed 0 of the paper's DDPG fields_zones_overtake_collision at 70 veh/km, trained on an AVX2 machine."""
+
+
+def _kernels(**env: str) -> set[str]:
+    """The numpy kernel tiers of a fresh interpreter that imports the package first (as ``lanefree`` does)."""
+    base = {k: v for k, v in os.environ.items() if k != "NPY_DISABLE_CPU_FEATURES"}
+    code = "import lanefree_sumo, numpy\nfrom lanefree_sumo.experiments.train import numpy_simd\nprint(numpy_simd())"
+    out = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True,
+                         check=True, cwd=ROOT)
+    return set(out.stdout.split())
+
+
+def _cpu_has_avx512() -> bool:
+    """The CPU offers x86-64-v4 (AVX-512 F, CD, VL, BW, DQ), read from /proc/cpuinfo."""
+    flags = set(Path("/proc/cpuinfo").read_text().split("flags", 1)[1].split("\n", 1)[0].split())
+    return {"avx512f", "avx512cd", "avx512vl", "avx512bw", "avx512dq"} <= flags
+
+
+def test_numpy_keeps_portable_kernels_unless_the_user_chose() -> None:
+    pinned, own = _kernels(), _kernels(NPY_DISABLE_CPU_FEATURES="")
+    assert "X86_V3" in pinned and not set(PORTABLE_NUMPY_DISPATCH.split()) & pinned
+    assert ("X86_V4" in own) is _cpu_has_avx512()  # the user's empty setting gives numpy the whole CPU
+
+
+def test_a_new_run_repeats_the_committed_run_of_another_machine(tmp_path: Path) -> None:
+    """DDPG's first two episodes (random actions, then 800 updates and the actor's actions) equal, in every
+    column but wall time, those of the committed run trained on an AVX2 machine; versions.json names the kernels."""
+    out = tmp_path / "run"
+    done = lanefree("train", "--algo", "ddpg", "--reward", "fields_zones_overtake_collision", "--density", "70",
+                    "--seed", "0", "--episodes", "2", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+
+    def rows(path: Path) -> list[dict[str, str]]:
+        with open(path, newline="") as fh:
+            return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)][:2]
+
+    assert rows(out / "episodes.csv") == rows(COMMITTED / "episodes.csv")
+    versions = json.loads((out / "versions.json").read_text())
+    assert "X86_V3" in versions["numpy_simd"].split() and "X86_V4" not in versions["numpy_simd"].split()
+    assert versions["torch_cpu"]
