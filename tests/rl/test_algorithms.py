@@ -284,6 +284,26 @@ def test_sum_tree_matches_brute_force_and_min_tree():
     np.testing.assert_array_equal(tree.find_prefixsum_idx(q), expected)
 
 
+@pytest.mark.parametrize("cls", [SumTree, MinTree])
+def test_every_node_is_exactly_its_childrens_combination_after_single_and_batch_updates(cls):
+    """The tree's invariant, exactly (so the values are those of recomputing every ancestor from its children):
+    after single-leaf updates (a new transition) and batches with repeated indices (a minibatch's priorities)."""
+    rng = np.random.default_rng(1)
+    cap = 1000
+    tree = cls(cap)
+    combine = np.add if cls is SumTree else np.minimum
+    for step in range(300):
+        if step % 3:
+            tree.update(int(rng.integers(cap)), float(rng.uniform(0.01, 5.0)))
+        else:
+            idx = rng.integers(0, cap, size=64)
+            idx[:8] = idx[8:16]  # duplicates: the last value wins
+            tree.update(idx, rng.uniform(0.01, 5.0, size=64))
+        internal = np.arange(1, tree.size)
+        children = combine(tree.tree[2 * internal], tree.tree[2 * internal + 1])
+        np.testing.assert_array_equal(tree.tree[internal], children)
+
+
 # ---------------------------------------------------------------------------
 # Prioritised replay buffer
 # ---------------------------------------------------------------------------

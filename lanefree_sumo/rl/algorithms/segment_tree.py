@@ -39,17 +39,30 @@ class _SegmentTree:
             raise IndexError(f"tree index out of range [0, {self.capacity}): {idx.min()}..{idx.max()}")
         return idx
 
+    @staticmethod
+    def _combine_two(a: float, b: float) -> float:
+        """:meth:`_combine` of two numbers (the same result, without array overhead)."""
+        raise NotImplementedError
+
     def update(self, indices: np.ndarray | int, values: np.ndarray | float) -> None:
-        """Set leaves ``indices`` to ``values`` and recompute their ancestors."""
+        """Set leaves ``indices`` to ``values`` and recompute their ancestors, each node from its two children
+        (one leaf, as a new transition sets: node by node; several: level by level)."""
         idx = self._check(indices)
         if idx.size == 0:
             return
         vals = np.broadcast_to(np.asarray(values, dtype=np.float64).reshape(-1), idx.shape)
         nodes = idx + self.size
-        self.tree[nodes] = vals  # duplicate indices: last value wins
-        for _ in range(self.depth):
-            nodes = np.unique(nodes >> 1)
-            self.tree[nodes] = self._combine(self.tree[2 * nodes], self.tree[2 * nodes + 1])
+        tree = self.tree
+        tree[nodes] = vals  # duplicate indices: last value wins
+        if nodes.size == 1:
+            node = int(nodes[0]) >> 1
+            while node:
+                tree[node] = self._combine_two(tree[2 * node], tree[2 * node + 1])
+                node >>= 1
+            return
+        for _ in range(self.depth):  # a node listed twice gets the same value twice: its children are final
+            tree[nodes >> 1] = self._combine(tree[nodes & ~1], tree[nodes | 1])
+            nodes = nodes >> 1
 
     def get(self, indices: np.ndarray | int) -> np.ndarray:
         """Leaf values at ``indices``."""
@@ -70,6 +83,10 @@ class SumTree(_SegmentTree):
 
     @staticmethod
     def _combine(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return a + b
+
+    @staticmethod
+    def _combine_two(a: float, b: float) -> float:
         return a + b
 
     def total(self) -> float:
@@ -101,6 +118,10 @@ class MinTree(_SegmentTree):
     @staticmethod
     def _combine(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.minimum(a, b)
+
+    @staticmethod
+    def _combine_two(a: float, b: float) -> float:
+        return min(a, b)
 
     def min(self) -> float:
         """Minimum over all leaves (+inf when empty)."""
