@@ -410,7 +410,7 @@ class TrainConfig:
     """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
     fast_learner: bool = True
     """DDPG and the DQN family: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` /
-    :mod:`~lanefree_sumo.rl.algorithms.fast_dqn` (hand-written backprop, multi-tensor Adam and target
+    :mod:`~lanefree_sumo.rl.algorithms.fast_dqn` (hand-written backprop, multi-tensor Adam, DDPG's target
     updates): the same parameters bit for bit, faster per update. False runs the autograd update (SB3's own
     ``train``). TD3, SAC and PPO ignore it."""
     lean_loop: bool = True

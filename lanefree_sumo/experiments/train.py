@@ -73,7 +73,7 @@ def numpy_simd() -> str:
 
 def versions() -> dict[str, str]:
     """Versions of everything that shapes a result, with the SIMD kernels numpy and torch run on (they round
-    differently from one CPU generation to the next: :data:`lanefree_sumo.PORTABLE_NUMPY_DISPATCH`)."""
+    differently from one CPU generation to the next: :mod:`lanefree_sumo.numerics`)."""
     import gymnasium
     import stable_baselines3
     import torch

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from lanefree_sumo import PORTABLE_NUMPY_DISPATCH
+from lanefree_sumo.numerics import PORTABLE_NUMPY_DISPATCH, VARIABLE
 
 from conftest import ROOT, lanefree
 
@@ -23,13 +23,22 @@ COMMITTED = ROOT / "results/paper/runs/ddpg_fields_zones_overtake_collision_d70_
 """Seed 0 of the paper's DDPG fields_zones_overtake_collision at 70 veh/km, trained on an AVX2 machine."""
 
 
-def _kernels(**env: str) -> set[str]:
-    """The numpy kernel tiers of a fresh interpreter that imports the package first (as ``lanefree`` does)."""
-    base = {k: v for k, v in os.environ.items() if k != "NPY_DISABLE_CPU_FEATURES"}
-    code = "import lanefree_sumo, numpy\nfrom lanefree_sumo.experiments.train import numpy_simd\nprint(numpy_simd())"
+def _python(code: str, **env: str) -> list[str]:
+    """The lines a fresh interpreter prints, run without the suite's own numpy setting plus ``env``."""
+    base = {k: v for k, v in os.environ.items() if k != VARIABLE}
     out = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True,
                          check=True, cwd=ROOT)
-    return set(out.stdout.split())
+    return out.stdout.splitlines()
+
+
+def _kernels(**env: str) -> tuple[set[str], str]:
+    """(numpy's kernel tiers, the variable a child process sees) in a fresh interpreter that imports the package
+    first, as ``lanefree`` does."""
+    lines = _python("import os, subprocess, sys, lanefree_sumo, numpy\n"
+                    "from lanefree_sumo.experiments.train import numpy_simd\nprint(numpy_simd())\n"
+                    f"print(subprocess.run([sys.executable, '-c', 'import os; print(os.environ.get(\"{VARIABLE}\"))'],"
+                    " capture_output=True, text=True).stdout.strip())", **env)
+    return set(lines[0].split()), lines[1]
 
 
 def _cpu_has_avx512() -> bool:
@@ -39,9 +48,20 @@ def _cpu_has_avx512() -> bool:
 
 
 def test_numpy_keeps_portable_kernels_unless_the_user_chose() -> None:
-    pinned, own = _kernels(), _kernels(NPY_DISABLE_CPU_FEATURES="")
+    (pinned, child), (own, own_child) = _kernels(), _kernels(**{VARIABLE: ""})
     assert "X86_V3" in pinned and not set(PORTABLE_NUMPY_DISPATCH.split()) & pinned
-    assert ("X86_V4" in own) is _cpu_has_avx512()  # the user's empty setting gives numpy the whole CPU
+    assert child == PORTABLE_NUMPY_DISPATCH  # sweep workers and env processes inherit it
+    assert ("X86_V4" in own) is _cpu_has_avx512() and own_child == ""  # the user's empty setting: the whole CPU
+
+
+def test_a_numpy_that_cannot_switch_a_tier_off_keeps_its_kernels() -> None:
+    """numpy refuses to switch off a tier of its baseline (a build for a newer CPU): the setting is withdrawn
+    and numpy imports with its own kernels instead of failing."""
+    lines = _python("import os, runpy\n"
+                    "keep = runpy.run_path('lanefree_sumo/numerics.py')['keep_numpy_portable']\n"
+                    f"print(keep('X86_V2'), os.environ.get('{VARIABLE}'))\n"
+                    "import numpy\nprint(int(numpy.ones(3).sum()))")
+    assert lines == ["False None", "3"]
 
 
 def test_a_new_run_repeats_the_committed_run_of_another_machine(tmp_path: Path) -> None:

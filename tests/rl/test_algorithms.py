@@ -491,7 +491,8 @@ def test_per_train_passes_weights_and_updates_priorities_with_td_errors(fast_lea
         seen["weights"] = weights
         return real(current, tgt, weights)
 
-    model._compute_loss = spy
+    if not fast_learner:  # (a patched hook would send the fast learner down the autograd path too)
+        model._compute_loss = spy
     model.train(gradient_steps=1, batch_size=8)
     idx = buf.last_indices
     if not fast_learner:
@@ -499,7 +500,7 @@ def test_per_train_passes_weights_and_updates_priorities_with_td_errors(fast_lea
         np.testing.assert_allclose(seen["weights"].numpy().ravel(), buf.last_weights)
         assert seen["weights"].numpy().min() < 1.0
     else:
-        assert "weights" not in seen and model._fast_plan.written_out and buf.last_weights.min() < 1.0
+        assert model._fast_plan.written_out and buf.last_weights.min() < 1.0
     np.testing.assert_allclose(buf.priorities(idx), (np.abs(td[idx]) + EPS) ** ALPHA, rtol=1e-5)
     untouched = np.setdiff1d(np.arange(n), idx)
     np.testing.assert_array_equal(buf.priorities(untouched), prio_before[untouched])

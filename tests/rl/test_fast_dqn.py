@@ -67,13 +67,18 @@ class ToyEnv(gym.Env):
         return self._obs(), reward, end and self.episode % 3 == 0, end and self.episode % 3 != 0, {}
 
 
-def _model(cls: type[DQN], as_dict: bool = False, seed: int = 0, **kwargs: Any) -> DQN:
-    """The paper's DQN settings (build_model's) on the toy env, with a short target interval."""
+def _model(cls: type[DQN], as_dict: bool = False, seed: int = 0, envs: int = 1, optimizer: Any = None,
+           **kwargs: Any) -> DQN:
+    """The paper's DQN settings (build_model's) on the toy env (``envs`` copies), with a short target interval."""
+    policy_kwargs = {"net_arch": [128, 64], "activation_fn": th.nn.ReLU,
+                     **({"optimizer_class": optimizer} if optimizer else {})}
+    env = DummyVecEnv([lambda: ToyEnv(as_dict)] * envs) if envs > 1 else ToyEnv(as_dict)
+    kwargs = {"learning_rate": 1e-3, **kwargs}
     return cls(
-        "MultiInputPolicy" if as_dict else "MlpPolicy", ToyEnv(as_dict), learning_rate=1e-3, buffer_size=5000,
+        "MultiInputPolicy" if as_dict else "MlpPolicy", env, buffer_size=5000,
         batch_size=BATCH, gamma=0.98, learning_starts=100, target_update_interval=50, exploration_fraction=0.3,
         exploration_initial_eps=1.0, exploration_final_eps=0.1, train_freq=1, gradient_steps=1, seed=seed,
-        device="cpu", policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU}, **kwargs,
+        device="cpu", policy_kwargs=policy_kwargs, **kwargs,
     )
 
 
@@ -99,6 +104,11 @@ def _tensors(model: DQN) -> list[th.Tensor]:
     for state in model.policy.optimizer.state_dict()["state"].values():
         out += [state["step"], state["exp_avg"], state["exp_avg_sq"]]
     return out
+
+
+def _assert_params_same(a: DQN, b: DQN) -> None:
+    pa, pb = ([p.detach() for net in (m.q_net, m.q_net_target) for p in net.state_dict().values()] for m in (a, b))
+    assert all(th.equal(x, y) for x, y in zip(pa, pb))
 
 
 def _assert_same(a: DQN, b: DQN) -> None:
@@ -167,6 +177,55 @@ def test_the_clip_acts_and_the_dict_observation_takes_the_autograd_path() -> Non
     assert fast._fast_plan is not None and not fast._fast_plan.written_out
 
 
+@pytest.mark.parametrize("optimizer", [th.optim.RMSprop, th.optim.AdamW], ids=["rmsprop", "adamw"])
+def test_another_optimiser_steps_itself_on_the_written_out_gradients(optimizer: Any) -> None:
+    reference, fast = _filled(DQN, optimizer=optimizer), _filled(FastDQN, optimizer=optimizer)
+    _steps(reference, 20)
+    _steps(fast, 20)
+    ref, got = (dict(m.policy.optimizer.state_dict()["state"]) for m in (reference, fast))
+    assert ref.keys() == got.keys() and all(th.equal(ref[k][n], got[k][n]) for k in ref for n in ref[k])
+    _assert_params_same(reference, fast)
+    plan = fast._fast_plan
+    assert plan is not None and plan.written_out and not plan.adam.plain
+
+
+class HuberScaled(DoubleDQN):
+    """A user's variant: its own loss through the double-DQN hook."""
+
+    def _compute_loss(self, current: th.Tensor, target: th.Tensor, weights: th.Tensor | None = None) -> th.Tensor:
+        return 2.0 * super()._compute_loss(current, target, weights)
+
+
+class Weighted(FastDQN):
+    """A user's variant: its own minibatch (with weights) through the ``_sample_batch`` hook."""
+
+    calls = 0
+
+    def _sample_batch(self, batch_size: int) -> tuple[Any, th.Tensor | None]:
+        self.calls += 1
+        data, _ = super()._sample_batch(batch_size)
+        return data, th.linspace(0.5, 1.5, batch_size).reshape(-1, 1)
+
+
+def test_overridden_hooks_are_honoured() -> None:
+    """A variant's own loss hook sends it down the autograd path (the written-out step computes its own loss);
+    an own ``_sample_batch`` is drawn through, weights and all, by the written-out step."""
+    reference, fast = _filled(HuberScaled, fast_learner=False), _filled(HuberScaled)
+    _steps(reference, 10)
+    _steps(fast, 10)
+    _assert_same(reference, fast)
+    assert fast._fast_plan is not None and not fast._fast_plan.written_out
+    weighted, plain = _filled(Weighted), _filled(FastDQN)
+    _steps(weighted, 10)
+    _steps(plain, 10)
+    assert weighted.calls == 10 and weighted._fast_plan is not None and weighted._fast_plan.written_out
+    assert not all(th.equal(a, b) for a, b in zip(_tensors(weighted), _tensors(plain)))  # the weights acted
+    patched = _filled(FastDQN)
+    patched.predict = lambda *args, **kwargs: (np.zeros(1, dtype=np.int64), None)  # type: ignore[method-assign]
+    _steps(patched, 1)
+    assert patched._fast_plan is not None and not patched._fast_plan.written_out  # the lean loop would bypass it
+
+
 def test_several_gradient_steps_per_call_and_the_switch() -> None:
     reference, fast, off = _filled(DQN), _filled(FastDQN), _filled(FastDQN, fast_learner=False)
     for model in (reference, fast, off):
@@ -175,6 +234,23 @@ def test_several_gradient_steps_per_call_and_the_switch() -> None:
     _assert_same(reference, fast)
     _assert_same(reference, off)
     assert off._fast_plan is None  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("algo", ["dqn", "per"])
+def test_learn_with_two_envs_and_a_learning_rate_schedule_equals_the_reference(algo: str) -> None:
+    def schedule(progress_remaining: float) -> float:
+        return 1e-3 * progress_remaining
+
+    kwargs: dict[str, Any] = {"envs": 2, "seed": 4, "learning_rate": schedule}
+    reference = _model(DQN, **kwargs) if algo == "dqn" else _model(ALGOS[algo], fast_learner=False,
+                                                                    lean_loop=False, **kwargs)
+    fast = _model(ALGOS[algo], **kwargs)
+    for model in (reference, fast):
+        np.random.seed(4)
+        model.learn(total_timesteps=600)
+    _assert_same(reference, fast)
+    assert fast._n_updates == reference._n_updates > 100 and fast._fast_plan is not None and fast._fast_plan.written_out
+    assert fast.policy.optimizer.param_groups[0]["lr"] < 1e-3
 
 
 @pytest.mark.parametrize("algo", list(ALGOS))

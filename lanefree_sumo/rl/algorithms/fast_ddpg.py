@@ -195,7 +195,7 @@ class FastDDPG(LeanCollector, DDPG):
         if self.num_timesteps < learning_starts:
             unscaled = np.array([space.sample() for _ in range(n_envs)])
         else:
-            obs = th.as_tensor(self._last_obs).reshape((-1, *self.observation_space.shape))  # type: ignore[misc]
+            obs = th.as_tensor(self._last_obs).float().reshape((-1, *self.observation_space.shape))  # type: ignore[misc]
             with th.no_grad():
                 raw = forward(plan.actor, obs, True)[-1]
             unscaled = policy.unscale_action(raw.numpy().reshape((-1, *space.shape)))
@@ -253,7 +253,7 @@ class FastDDPG(LeanCollector, DDPG):
         if plan is None or not plan.supported:
             super().train(gradient_steps, batch_size)
             return
-        if not self._lean(plan):
+        if not self._lean_collecting():
             self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
         step = self._mlp_step if plan.mlp else self._autograd_step

@@ -23,7 +23,8 @@ streams with ``torch.equal`` after many steps, and whole ``learn`` calls with ca
 
 ``fast_learner=False`` runs the autograd update (SB3's ``DQN.train``, or the double-DQN loop with its
 hooks), and so does anything the written-out path does not cover (another extractor, e.g. the set encoder,
-a Dict observation, another device, replay buffer or optimiser).
+a Dict observation, another device or replay buffer, a network, policy or hook that a subclass overrides).
+Another optimiser than a plain Adam keeps the written-out gradients but steps itself.
 """
 
 from __future__ import annotations
@@ -109,6 +110,31 @@ class _DuelingQ:
         return [*grads_trunk, *grads_value, *grads_advantage]
 
 
+def _defined_by(obj: object, name: str) -> type | None:
+    """The class whose definition of ``name`` ``obj`` uses; None when ``obj`` itself holds one (a patch) or none."""
+    if name in vars(obj):
+        return None
+    return next((klass for klass in type(obj).__mro__ if name in vars(klass)), None)
+
+
+def _stock_methods(model: FastDQN) -> bool:
+    """What the written-out path replaces is SB3's or the project's own: ``predict`` and the policy's
+    ``_predict``/``predict`` (the lean loop), the Q-network classes, and the double-DQN hooks
+    ``_compute_target_q_values``/``_compute_loss`` (the written-out step computes both itself)."""
+    from stable_baselines3.common.policies import BasePolicy
+    from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
+
+    from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
+    from lanefree_sumo.rl.algorithms.dueling import DuelingQNetwork
+
+    hooks = ("_compute_target_q_values", "_compute_loss")
+    return (_defined_by(model, "predict") is DQN and _defined_by(model.policy, "_predict") is DQNPolicy
+            and _defined_by(model.policy, "predict") is BasePolicy
+            and all(type(net) in (QNetwork, DuelingQNetwork) for net in (model.q_net, model.q_net_target))
+            and all(_defined_by(model, hook) in (DoubleDQN, *(() if isinstance(model, DoubleDQN) else (None,)))
+                    for hook in hooks))
+
+
 def _q_head(net: nn.Module) -> _MlpQ | _DuelingQ | None:
     """The written-out form of a QNetwork's ``q_net`` (a plain MLP or a dueling head), or None."""
     from lanefree_sumo.rl.algorithms.dueling import DuelingHead
@@ -148,7 +174,9 @@ class _QPlan:
 
     def _written_out(self, model: FastDQN) -> bool:
         """A flat float32 Box observation through SB3's FlattenExtractor into a plain MLP or dueling head, on
-        the CPU, with a float32 replay buffer the model samples itself (:meth:`FastDQN._written_out_buffer`)."""
+        the CPU, with a float32 replay buffer the model samples itself (:meth:`FastDQN._written_out_buffer`),
+        and nothing the written-out path replaces overridden (:func:`_stock_methods`). The optimiser may be
+        any: :class:`~.lean.LeanAdam` lets any but a plain Adam step itself."""
         rb, space = model.replay_buffer, model.observation_space
         if not (model.device.type == "cpu" and model._vec_normalize_env is None and isinstance(space, spaces.Box)
                 and len(space.shape) == 1 and isinstance(model.action_space, spaces.Discrete)
@@ -157,7 +185,7 @@ class _QPlan:
                                                         rb.dones, rb.timeouts))
                 and type(model.q_net.features_extractor) is FlattenExtractor
                 and type(model.q_net_target.features_extractor) is FlattenExtractor
-                and not model.batch_norm_stats):
+                and not model.batch_norm_stats and _stock_methods(model)):
             return False
         online, target = _q_head(model.q_net.q_net), _q_head(model.q_net_target.q_net)
         if online is None or target is None or type(online) is not type(target):
@@ -243,7 +271,7 @@ class FastDQN(LeanCollector, DQN):
             action = np.array([space.sample() for _ in range(self._last_obs.shape[0])])  # type: ignore[union-attr]
         else:
             assert plan.online is not None
-            obs = th.as_tensor(self._last_obs).reshape((-1, *self.observation_space.shape))  # type: ignore[misc]
+            obs = th.as_tensor(self._last_obs).float().reshape((-1, *self.observation_space.shape))  # type: ignore[misc]
             with th.no_grad():
                 q_values = plan.online.forward(obs)[1]
             action = q_values.argmax(dim=1).reshape(-1).numpy()  # SB3 reshapes to (-1, *shape): shape () for Discrete
@@ -254,7 +282,7 @@ class FastDQN(LeanCollector, DQN):
         if plan is None or not plan.written_out:
             self._autograd_train(gradient_steps, batch_size)
             return
-        if self._lean_plan() is None:
+        if not self._lean_collecting():
             self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         losses = [self._written_out_step(plan, batch_size) for _ in range(gradient_steps)]
@@ -268,9 +296,10 @@ class FastDQN(LeanCollector, DQN):
 
     def _batch(self, batch_size: int) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
         """(observations, actions, next observations, dones, rewards, weights or None) of one minibatch: SB3's
-        ``ReplayBuffer.sample`` draws wrapped without copies, or :meth:`_sample_batch`'s."""
+        ``ReplayBuffer.sample`` draws wrapped without copies (when :meth:`_sample_batch` is not overridden), or
+        :meth:`_sample_batch`'s."""
         rb = self.replay_buffer
-        if type(rb) is ReplayBuffer:
+        if type(rb) is ReplayBuffer and _defined_by(self, "_sample_batch") is FastDQN:
             upper = rb.buffer_size if rb.full else rb.pos
             batch = np.random.randint(0, upper, size=batch_size)
             env = np.random.randint(0, high=rb.n_envs, size=(batch_size,))
@@ -280,6 +309,7 @@ class FastDQN(LeanCollector, DQN):
                     th.from_numpy(rb.rewards[batch, env].reshape(-1, 1)), None)
         data, weights = self._sample_batch(batch_size)
         assert isinstance(data.observations, th.Tensor) and isinstance(data.next_observations, th.Tensor)
+        assert data.discounts is None, "the written-out step uses one γ: n-step samples need the autograd update"
         return data.observations, data.actions, data.next_observations, data.dones, data.rewards, weights
 
     def _written_out_step(self, plan: _QPlan, batch_size: int) -> float:

@@ -41,7 +41,7 @@ def mean_of(values: list[float]) -> float:
 def mlp_layers(net: nn.Module, squash: bool) -> list[Layer] | None:
     """The layers of ``Sequential(Linear, ReLU, …, Linear[, Tanh])`` (Tanh iff ``squash``), all with a
     bias and float32; None for any other network."""
-    modules = list(net) if isinstance(net, nn.Sequential) else []
+    modules = list(net) if type(net) is nn.Sequential else []  # a subclass may compute something else
     if squash:
         if not modules or type(modules[-1]) is not nn.Tanh:
             return None
@@ -170,7 +170,10 @@ class LeanAdam:
         if not all(p in state for p in self.params):
             return False
         self.plain = _plain_adam(self.optimizer, self.params)  # a loaded state brings its own options
-        if self.flat is not None and self.plain:
+        if not self.plain:  # another optimiser (or Adam option): it steps itself, its state is its own
+            self._state = state
+            return False
+        if self.flat is not None:
             self.flat_exp_avg = _flat_state(state, self.params, "exp_avg")
             self.flat_exp_avg_sq = _flat_state(state, self.params, "exp_avg_sq")
         per_param = [state[p] for p in self.params]
@@ -263,17 +266,23 @@ class LeanCollector:
         if plan is None or train_freq.unit != TrainFrequencyUnit.STEP:
             return cast(Any, super()).collect_rollouts(env, callback, train_freq, replay_buffer, action_noise,
                                                        learning_starts, log_interval)
-        collected, episodes, n_envs = 0, 0, env.num_envs
+        # SB3's local names: a callback reads them through ``self.locals``
+        num_collected_steps, num_collected_episodes, n_envs = 0, 0, env.num_envs
+        continue_training = True
         callback.on_rollout_start()
-        while collected < train_freq.frequency:
+        while num_collected_steps < train_freq.frequency:
             actions, buffer_actions = self._lean_action(plan, learning_starts, action_noise, n_envs)
             new_obs, rewards, dones, infos = env.step(actions)
             self.num_timesteps += n_envs
-            collected += 1
+            num_collected_steps += 1
             callback.update_locals(locals())
             if not callback.on_step():
-                return RolloutReturn(collected * n_envs, episodes, continue_training=False)
-            episodes += self._after_step(replay_buffer, buffer_actions, new_obs, rewards, dones, infos,
-                                         action_noise, log_interval)
+                return RolloutReturn(num_collected_steps * n_envs, num_collected_episodes, continue_training=False)
+            num_collected_episodes += self._after_step(replay_buffer, buffer_actions, new_obs, rewards, dones, infos,
+                                                       action_noise, log_interval)
         callback.on_rollout_end()
-        return RolloutReturn(collected * n_envs, episodes, continue_training=True)
+        return RolloutReturn(num_collected_steps * n_envs, num_collected_episodes, continue_training)
+
+    def _lean_collecting(self) -> bool:
+        """The lean loop collects (so no ``set_training_mode(False)`` happened that ``train`` must undo)."""
+        return self._lean_plan() is not None and cast(Any, self).train_freq.unit == TrainFrequencyUnit.STEP
