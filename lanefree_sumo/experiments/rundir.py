@@ -12,6 +12,8 @@ with the safety shield) holds::
     checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json (written last)
     model.zip            the final model
     last_session.json    wall time, steps/s and how the latest session ended
+    sessions.jsonl       one line per training session: its episodes, wall time, how it ended, the versions and
+                         SIMD kernels it ran on (versions.json is the first session's)
     eval/                an evaluation (eval_d<density>/ at another density; eval[_d<density>]_shield/ or
                          _noshield/ with the safety shield switched): config.yaml, episodes.csv,
                          recording.json, trajectories/episode_NNNN.csv and episode_NNNN.vehicles.csv
@@ -44,6 +46,7 @@ VERSIONS = "versions.json"
 EPISODES = "episodes.csv"
 MODEL = "model.zip"
 LAST_SESSION = "last_session.json"
+SESSIONS = "sessions.jsonl"
 TENSORBOARD = "tb"
 CHECKPOINTS = "checkpoints"
 LOCK = ".lock"
@@ -97,7 +100,8 @@ def check_writable(path: Path, folder: bool = False) -> None:
         raise RunError(f"cannot write {path}: {exc.strerror or exc}") from None
 
 
-RUN_OWNED: tuple[str, ...] = (CONFIG, COMMAND, VERSIONS, EPISODES, MODEL, LAST_SESSION, LOCK, CHECKPOINTS, TENSORBOARD)
+RUN_OWNED: tuple[str, ...] = (CONFIG, COMMAND, VERSIONS, EPISODES, MODEL, LAST_SESSION, SESSIONS, LOCK, CHECKPOINTS,
+                               TENSORBOARD)
 """Top-level names in a run folder that only training writes."""
 
 
@@ -187,6 +191,14 @@ def fresh_output(out: Path, overwrite: bool, verb: str) -> Iterator[Path]:
 def write_config(folder: Path, cfg: LaneFreeConfig) -> None:
     """``folder/config.yaml``: the full resolved configuration."""
     (folder / CONFIG).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+
+def record_session(folder: Path, session: dict[str, Any]) -> None:
+    """The end of a training session: ``last_session.json`` becomes ``session`` and ``sessions.jsonl`` gains it
+    as one line (the run's history: which code, versions and kernels trained which episodes)."""
+    (folder / LAST_SESSION).write_text(json.dumps(session, indent=2) + "\n")
+    with open(folder / SESSIONS, "a") as fh:
+        fh.write(json.dumps(session) + "\n")
 
 
 def append_command(folder: Path, command: str) -> None:

@@ -25,7 +25,7 @@ import signal
 import subprocess
 import sys
 import time
-from datetime import datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,7 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, write_config
+from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import spawn
@@ -356,6 +356,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
 
     resume = ckpt is not None
     done = ckpt.episodes if ckpt is not None else 0
+    first_episode = done + 1
     torch.set_num_threads(cfg.train.torch_threads)
     algo = cfg.train.algo
     spec = get_algorithm(algo)
@@ -389,10 +390,11 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
         save_checkpoint(model, folder, done, algo)  # also at the end: a finished run can be extended
         if not stop.requested and done >= cfg.train.episodes:
             model.save(folder.model)
-        folder.last_session.write_text(json.dumps(
-            {"episodes_done": done, "timesteps": int(model.num_timesteps), "wall_s": wall,
-             "steps_per_s": (model.num_timesteps - timesteps) / wall if wall > 0 else None,
-             "stopped_by": stop.signal_name or None}, indent=2) + "\n")
+        record_session(folder.path, {
+            "episodes_done": done, "timesteps": int(model.num_timesteps), "wall_s": wall,
+            "steps_per_s": (model.num_timesteps - timesteps) / wall if wall > 0 else None,
+            "stopped_by": stop.signal_name or None, "first_episode": first_episode,
+            "ended": datetime.now(timezone.utc).isoformat(timespec="seconds"), "versions": versions()})
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -110,6 +110,12 @@ def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
     assert [int(r["seed"]) for r in rows(csv_path)] == [episode_seed(0, 0, k) for k in range(1, 7)]
     assert (run / "model.zip").is_file()
     assert len((run / "command.txt").read_text().splitlines()) == 2
+    # each session's episodes, end and versions (the kernels too), as one line each
+    sessions = [json.loads(line) for line in (run / "sessions.jsonl").read_text().splitlines()]
+    assert [(s["first_episode"], s["episodes_done"], s["stopped_by"]) for s in sessions] == [
+        (1, len(first), "SIGINT"), (len(first) + 1, 6, None)]
+    assert all(s["versions"]["numpy_simd"] and s["versions"]["git_commit"] for s in sessions)
+    assert json.loads((run / "last_session.json").read_text()) == sessions[-1]
 
 
 def test_evaluate_a_saved_model_with_recording(tmp_path):
