@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -15,12 +16,18 @@ import pytest
 
 from lanefree_sumo.numerics import PORTABLE_NUMPY_DISPATCH, VARIABLE
 
-from conftest import ROOT, lanefree
+from conftest import ROOT, lanefree, lanefree_popen, wait_for
 
 pytestmark = pytest.mark.slow
 
 COMMITTED = ROOT / "results/paper/runs/ddpg_fields_zones_overtake_collision_d70_s0"
 """Seed 0 of the paper's DDPG fields_zones_overtake_collision at 70 veh/km, trained on an AVX2 machine."""
+
+
+def _rows(path: Path, n: int) -> list[dict[str, str]]:
+    """The first ``n`` rows of an episodes.csv, every column but wall time."""
+    with open(path, newline="") as fh:
+        return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)][:n]
 
 
 def _python(code: str, **env: str) -> list[str]:
@@ -72,11 +79,24 @@ def test_a_new_run_repeats_the_committed_run_of_another_machine(tmp_path: Path) 
                     "--seed", "0", "--episodes", "2", "--out", str(out))
     assert done.returncode == 0, done.stderr
 
-    def rows(path: Path) -> list[dict[str, str]]:
-        with open(path, newline="") as fh:
-            return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)][:2]
-
-    assert rows(out / "episodes.csv") == rows(COMMITTED / "episodes.csv")
+    assert _rows(out / "episodes.csv", 2) == _rows(COMMITTED / "episodes.csv", 2)
     versions = json.loads((out / "versions.json").read_text())
     assert "X86_V3" in versions["numpy_simd"].split() and "X86_V4" not in versions["numpy_simd"].split()
     assert versions["torch_cpu"]
+
+
+@pytest.mark.parametrize("algo", ["dqn", "per"])
+def test_the_written_out_dqn_update_repeats_the_committed_autograd_run(algo: str, tmp_path: Path) -> None:
+    """Seed 0 of the paper's 625-episode DQN (or PER) run, stopped after three episodes: the first three equal, in
+    every column but wall time, those of the committed run that SB3's autograd update (and, for PER, the double-DQN
+    hooks loop) trained on another machine: episodes 2 and 3 act on 1600 written-out updates."""
+    out = tmp_path / "run"
+    proc = lanefree_popen("train", "--algo", algo, "--reward", "fields_zones_overtake_collision", "--density", "70",
+                          "--seed", "0", "--episodes", "625", "--out", str(out))
+    episodes = out / "episodes.csv"
+    wait_for(lambda: episodes.is_file() and len(episodes.read_text().splitlines()) > 3, proc, "three episodes")
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    committed = ROOT / f"results/paper/runs/{algo}_fields_zones_overtake_collision_d70_s0/episodes.csv"
+    assert _rows(episodes, 3) == _rows(committed, 3)
