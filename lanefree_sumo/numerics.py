@@ -29,14 +29,15 @@ def keep_numpy_portable(tiers: str = PORTABLE_NUMPY_DISPATCH) -> bool:
     """Switch numpy's ``tiers`` off before numpy is imported, on x86-64, unless the user set :data:`VARIABLE`
     (empty: every kernel of the CPU) or numpy is already imported. A numpy built with one of them in its
     baseline refuses to import with them switched off, and a failed import cannot be retried in the same
-    process, so a child interpreter tries first (once: child processes inherit the setting); if it fails,
-    numpy keeps its kernels. True when the setting applies."""
+    process, so a child interpreter tries first; if it fails, numpy keeps its kernels (the variable is set
+    empty). Either way child processes inherit the decision. True when the setting applies."""
     if ("numpy" in sys.modules or VARIABLE in os.environ or not sys.executable
             or platform.machine().lower() not in ("x86_64", "amd64")):
         return False
     probe = subprocess.run([sys.executable, "-c", "import numpy"], env={**os.environ, VARIABLE: tiers},
                            capture_output=True, check=False)
     if probe.returncode != 0:  # "You cannot disable CPU feature …, since it is part of the baseline"
+        os.environ[VARIABLE] = ""  # numpy's own kernels, decided once: child processes do not probe again
         return False
     os.environ[VARIABLE] = tiers
     return True

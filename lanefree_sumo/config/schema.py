@@ -412,7 +412,7 @@ class TrainConfig:
     """DDPG and the DQN family: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` /
     :mod:`~lanefree_sumo.rl.algorithms.fast_dqn` (hand-written backprop, multi-tensor Adam, DDPG's target
     updates): the same parameters bit for bit, faster per update. False runs the autograd update (SB3's own
-    ``train``). TD3, SAC and PPO ignore it."""
+    ``train``; for the DQN family SB3's ``train`` split into hooks). TD3, SAC and PPO ignore it."""
     lean_loop: bool = True
     """DDPG and the DQN family with the fast learner: collect experience with :class:`LeanCollector
     <lanefree_sumo.rl.algorithms.lean.LeanCollector>`, SB3's loop bit for bit without its per-step overhead

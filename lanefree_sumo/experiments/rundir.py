@@ -12,8 +12,9 @@ with the safety shield) holds::
     checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json (written last)
     model.zip            the final model
     last_session.json    wall time, steps/s and how the latest session ended
-    sessions.jsonl       one line per training session: its episodes, wall time, how it ended, the versions and
-                         SIMD kernels it ran on (versions.json is the first session's)
+    sessions.jsonl       one line per training session that ended (finished, interrupted; not one killed
+                         outright): its episodes, start, end, the versions and SIMD kernels it ran on (read at
+                         its start; versions.json is the first session's)
     eval/                an evaluation (eval_d<density>/ at another density; eval[_d<density>]_shield/ or
                          _noshield/ with the safety shield switched): config.yaml, episodes.csv,
                          recording.json, trajectories/episode_NNNN.csv and episode_NNNN.vehicles.csv

@@ -357,6 +357,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     resume = ckpt is not None
     done = ckpt.episodes if ckpt is not None else 0
     first_episode = done + 1
+    started, session_versions = datetime.now(timezone.utc).isoformat(timespec="seconds"), versions()
     torch.set_num_threads(cfg.train.torch_threads)
     algo = cfg.train.algo
     spec = get_algorithm(algo)
@@ -393,8 +394,8 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
         record_session(folder.path, {
             "episodes_done": done, "timesteps": int(model.num_timesteps), "wall_s": wall,
             "steps_per_s": (model.num_timesteps - timesteps) / wall if wall > 0 else None,
-            "stopped_by": stop.signal_name or None, "first_episode": first_episode,
-            "ended": datetime.now(timezone.utc).isoformat(timespec="seconds"), "versions": versions()})
+            "stopped_by": stop.signal_name or None, "first_episode": first_episode, "started": started,
+            "ended": datetime.now(timezone.utc).isoformat(timespec="seconds"), "versions": session_versions})
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

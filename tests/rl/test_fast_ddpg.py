@@ -59,13 +59,15 @@ class ToyEnv(gym.Env):
         return self._obs(), float(action[0]), end and self.episode % 3 == 0, end and self.episode % 3 != 0, {}
 
 
-def _model(cls: type[DDPG], as_dict: bool = False, seed: int = 0, **kwargs: Any) -> DDPG:
+def _model(cls: type[DDPG], as_dict: bool = False, seed: int = 0, policy_kwargs_extra: dict[str, Any] | None = None,
+           **kwargs: Any) -> DDPG:
     """The paper's DDPG (build_model's settings) on the toy env."""
     return cls(
         "MultiInputPolicy" if as_dict else "MlpPolicy", ToyEnv(as_dict), learning_rate=1e-3, buffer_size=5000,
         batch_size=BATCH, gamma=0.98, tau=0.001, learning_starts=100, train_freq=1, gradient_steps=1, seed=seed,
         device="cpu", action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
-        policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU}, **kwargs,
+        policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU,
+                       **(policy_kwargs_extra or {})}, **kwargs,
     )
 
 
@@ -95,6 +97,13 @@ def _tensors(model: DDPG) -> list[th.Tensor]:
     return out
 
 
+def _assert_params(a: DDPG, b: DDPG) -> None:
+    """Actor, critic and both targets equal (any optimiser's state aside)."""
+    pa, pb = ([p.detach() for net in (m.actor, m.critic, m.actor_target, m.critic_target)
+               for p in net.state_dict().values()] for m in (a, b))
+    assert len(pa) == len(pb) > 8 and all(th.equal(x, y) for x, y in zip(pa, pb))
+
+
 def _assert_same(a: DDPG, b: DDPG) -> None:
     ta, tb = _tensors(a), _tensors(b)
     assert len(ta) == len(tb) > 12
@@ -122,6 +131,20 @@ def test_fast_update_equals_sb3_bit_for_bit(as_dict: bool) -> None:
     assert ref_log == fast_log and fast_log["train/n_updates"] == STEPS
     assert fast._fast_plan is not None and fast._fast_plan.mlp is not as_dict  # the path named in the id ran
     assert bool(fast._fast_plan.flat) is not as_dict  # the MLP path updates flat buffers
+
+
+def test_another_optimiser_steps_itself_and_an_own_action_rule_turns_the_fast_path_off() -> None:
+    reference = _model(DDPG, policy_kwargs_extra={"optimizer_class": th.optim.RMSprop})
+    fast = _model(FastDDPG, policy_kwargs_extra={"optimizer_class": th.optim.RMSprop})
+    for model in (reference, fast):
+        np.random.seed(2)
+        model.learn(total_timesteps=200)
+    _assert_params(reference, fast)
+    assert fast._fast_plan is not None and fast._fast_plan.mlp and not fast._fast_plan.actor_adam.plain
+    for name in ("predict", "_sample_action"):
+        patched = _filled(FastDDPG)
+        setattr(patched, name, lambda *args, **kwargs: (np.zeros((1, ACT), dtype=np.float32), None))
+        assert patched._lean_plan() is None and patched._fast_plan is not None and not patched._fast_plan.mlp, name
 
 
 def test_several_gradient_steps_per_call_and_the_switch() -> None:

@@ -208,22 +208,29 @@ class Weighted(FastDQN):
 
 
 def test_overridden_hooks_are_honoured() -> None:
-    """A variant's own loss hook sends it down the autograd path (the written-out step computes its own loss);
-    an own ``_sample_batch`` is drawn through, weights and all, by the written-out step."""
+    """A variant's own loss hook sends it down the autograd path (the written-out step computes its own loss),
+    also when patched after the first update; an own ``_sample_batch`` is drawn through, weights and all, by
+    both paths alike; an own action rule (``_sample_action``, ``predict``) turns the lean loop off."""
     reference, fast = _filled(HuberScaled, fast_learner=False), _filled(HuberScaled)
     _steps(reference, 10)
     _steps(fast, 10)
     _assert_same(reference, fast)
     assert fast._fast_plan is not None and not fast._fast_plan.written_out
-    weighted, plain = _filled(Weighted), _filled(FastDQN)
-    _steps(weighted, 10)
-    _steps(plain, 10)
-    assert weighted.calls == 10 and weighted._fast_plan is not None and weighted._fast_plan.written_out
+    weighted, weighted_autograd, plain = _filled(Weighted), _filled(Weighted, fast_learner=False), _filled(FastDQN)
+    for model in (weighted, weighted_autograd, plain):
+        _steps(model, 10)
+    _assert_same(weighted, weighted_autograd)
+    assert weighted.calls == weighted_autograd.calls == 10 and weighted._fast_plan.written_out  # type: ignore[union-attr]
     assert not all(th.equal(a, b) for a, b in zip(_tensors(weighted), _tensors(plain)))  # the weights acted
-    patched = _filled(FastDQN)
-    patched.predict = lambda *args, **kwargs: (np.zeros(1, dtype=np.int64), None)  # type: ignore[method-assign]
-    _steps(patched, 1)
-    assert patched._fast_plan is not None and not patched._fast_plan.written_out  # the lean loop would bypass it
+    later = _filled(FastDQN)
+    _steps(later, 2)
+    assert later._fast_plan is not None and later._fast_plan.written_out
+    later._compute_loss = lambda *args: th.tensor(0.0, requires_grad=True)  # type: ignore[method-assign]
+    assert later._lean_plan() is None  # patched after the first update: the plan is rebuilt, not written out
+    for name in ("predict", "_sample_action"):
+        patched = _filled(FastDQN)
+        setattr(patched, name, lambda *args, **kwargs: (np.zeros(1, dtype=np.int64), None))
+        assert patched._lean_plan() is None, name
 
 
 def test_several_gradient_steps_per_call_and_the_switch() -> None:

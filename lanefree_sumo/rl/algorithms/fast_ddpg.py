@@ -25,7 +25,9 @@ Where the time goes instead (one thread, batch 64, actor and critic 256-128; REA
   samples wrapped with ``torch.from_numpy`` instead of copied.
 
 ``fast_learner=False`` runs SB3's ``train`` unchanged, and so does anything the fast path does not cover
-(another device, optimiser or Adam option, several critics, a delayed policy).
+(another device, several critics, a delayed policy); another network, action rule or policy class than SB3's
+(a subclass's) gets SB3's autograd update and loop; another optimiser than a plain Adam steps itself on the
+computed gradients.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from lanefree_sumo.rl.algorithms.lean import (
     LeanCollector,
     aten,
     backward,
+    defined_by,
     flatten_parameters,
     forward,
     mean_of,
@@ -57,6 +60,22 @@ from lanefree_sumo.rl.algorithms.lean import (
 )
 
 # -- the update -----------------------------------------------------------------------------------------
+
+def _stock_methods(model: FastDDPG) -> bool:
+    """What the written-out path and the lean loop replace is SB3's own: the action (``_sample_action``,
+    ``predict``, the policy's ``_predict``/``predict``) and the actor and critic classes. Checked on every use."""
+    from stable_baselines3.common.base_class import BaseAlgorithm
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+    from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
+    from stable_baselines3.td3.policies import Actor, TD3Policy
+
+    return (defined_by(model, "predict") is BaseAlgorithm
+            and defined_by(model, "_sample_action") is OffPolicyAlgorithm
+            and defined_by(model.policy, "_predict") is TD3Policy
+            and defined_by(model.policy, "predict") is BasePolicy
+            and type(model.actor) is Actor and type(model.actor_target) is Actor
+            and type(model.critic) is ContinuousCritic and type(model.critic_target) is ContinuousCritic)
+
 
 class _Plan:
     """What the fast update needs of a model, fetched once; rebuilt when the policy, an optimiser, the
@@ -90,8 +109,10 @@ class _Plan:
 
     def _mlp(self, model: FastDDPG) -> bool:
         """Flat Box observations through SB3's FlattenExtractor into plain MLPs, and a plain float32
-        replay buffer: the case written out by hand."""
+        replay buffer: the case written out by hand (with :func:`_stock_methods`)."""
         rb, space = model.replay_buffer, model.observation_space
+        if not _stock_methods(model):
+            return False
         extractors = (model.actor.features_extractor, model.critic.features_extractor,
                       model.actor_target.features_extractor, model.critic_target.features_extractor)
         if not (type(rb) is ReplayBuffer and not rb.optimize_memory_usage and model._vec_normalize_env is None
@@ -122,7 +143,8 @@ class _Plan:
     def valid(self, model: FastDDPG) -> bool:
         return (self.policy is model.policy and self.replay_buffer is model.replay_buffer
                 and self.vec_normalize is model._vec_normalize_env
-                and self.actor_opt is model.actor.optimizer and self.critic_opt is model.critic.optimizer)
+                and self.actor_opt is model.actor.optimizer and self.critic_opt is model.critic.optimizer
+                and (not self.mlp or _stock_methods(model)))
 
     def noise(self, like: th.Tensor) -> th.Tensor:
         """A reused tensor shaped like ``like`` for the target noise draw (SB3 draws into a clone of the

@@ -21,9 +21,9 @@ streams with ``torch.equal`` after many steps, and whole ``learn`` calls with ca
   ``_foreach_mul_`` by ``min(max_norm / (norm + 1e-6), 1)``); Adam as :class:`~.lean.LeanAdam`;
 * the ε-greedy action with the Q-network written out instead of ``predict`` (:class:`~.lean.LeanCollector`).
 
-``fast_learner=False`` runs the autograd update (SB3's ``DQN.train``, or the double-DQN loop with its
-hooks), and so does anything the written-out path does not cover (another extractor, e.g. the set encoder,
-a Dict observation, another device or replay buffer, a network, policy or hook that a subclass overrides).
+``fast_learner=False`` runs the autograd update (SB3's ``DQN.train`` split into hooks), and so does
+anything the written-out path does not cover (another extractor, e.g. the set encoder, a Dict observation,
+another device or replay buffer, a network, policy or hook that a subclass overrides).
 Another optimiser than a plain Adam keeps the written-out gradients but steps itself.
 """
 
@@ -49,6 +49,7 @@ from lanefree_sumo.rl.algorithms.lean import (
     LeanCollector,
     aten,
     backward,
+    defined_by,
     flatten_parameters,
     forward,
     mean_of,
@@ -110,29 +111,23 @@ class _DuelingQ:
         return [*grads_trunk, *grads_value, *grads_advantage]
 
 
-def _defined_by(obj: object, name: str) -> type | None:
-    """The class whose definition of ``name`` ``obj`` uses; None when ``obj`` itself holds one (a patch) or none."""
-    if name in vars(obj):
-        return None
-    return next((klass for klass in type(obj).__mro__ if name in vars(klass)), None)
-
-
 def _stock_methods(model: FastDQN) -> bool:
-    """What the written-out path replaces is SB3's or the project's own: ``predict`` and the policy's
-    ``_predict``/``predict`` (the lean loop), the Q-network classes, and the double-DQN hooks
-    ``_compute_target_q_values``/``_compute_loss`` (the written-out step computes both itself)."""
+    """What the written-out path replaces is SB3's or :class:`FastDQN`'s own: the action (``_sample_action``,
+    ``predict``, the policy's ``_predict``/``predict``: the lean loop), the Q-network classes, the hooks the
+    written-out step computes itself (``_compute_target_q_values``, ``_compute_loss``) and the autograd update
+    it stands in for (``_autograd_train``). Checked on every use (a patch after the first update counts)."""
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
     from stable_baselines3.common.policies import BasePolicy
     from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
 
-    from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
     from lanefree_sumo.rl.algorithms.dueling import DuelingQNetwork
 
-    hooks = ("_compute_target_q_values", "_compute_loss")
-    return (_defined_by(model, "predict") is DQN and _defined_by(model.policy, "_predict") is DQNPolicy
-            and _defined_by(model.policy, "predict") is BasePolicy
+    return (defined_by(model, "predict") is DQN and defined_by(model, "_sample_action") is OffPolicyAlgorithm
+            and defined_by(model.policy, "_predict") is DQNPolicy
+            and defined_by(model.policy, "predict") is BasePolicy
             and all(type(net) in (QNetwork, DuelingQNetwork) for net in (model.q_net, model.q_net_target))
-            and all(_defined_by(model, hook) in (DoubleDQN, *(() if isinstance(model, DoubleDQN) else (None,)))
-                    for hook in hooks))
+            and all(defined_by(model, name) is FastDQN
+                    for name in ("_compute_target_q_values", "_compute_loss", "_autograd_train")))
 
 
 def _q_head(net: nn.Module) -> _MlpQ | _DuelingQ | None:
@@ -199,17 +194,20 @@ class _QPlan:
 
     def valid(self, model: FastDQN) -> bool:
         return (self.policy is model.policy and self.replay_buffer is model.replay_buffer
-                and self.vec_normalize is model._vec_normalize_env and self.optimizer is model.policy.optimizer)
+                and self.vec_normalize is model._vec_normalize_env and self.optimizer is model.policy.optimizer
+                and (not self.written_out or _stock_methods(model)))
 
 
 class FastDQN(LeanCollector, DQN):
     """SB3's DQN with the same update computed with less overhead (module docstring); the base of the
     project's DQN variants, which set :attr:`double_q` and override the hooks.
 
-    Hooks: :meth:`_sample_batch` (data + optional per-sample loss weights), :meth:`_after_gradient_step`
-    (receives the TD errors), :meth:`_written_out_buffer`.
+    Hooks, called by both update paths: :meth:`_sample_batch` (data + optional per-sample loss weights),
+    :meth:`_after_gradient_step` (receives the TD errors), :meth:`_written_out_buffer`; a subclass that
+    overrides :meth:`_compute_target_q_values` or :meth:`_compute_loss` trains through autograd.
 
-    :param fast_learner: False runs the autograd update (:meth:`_autograd_train`: SB3's ``DQN.train``).
+    :param fast_learner: False runs the autograd update (:meth:`_autograd_train`: SB3's ``DQN.train`` split
+        into the hooks).
     :param lean_loop: collect with the lean loop (SB3's, bit for bit, without the per-step mode switches and
         ``predict``'s generic path); False runs SB3's own.
 
@@ -228,12 +226,35 @@ class FastDQN(LeanCollector, DQN):
         """Never pickled into ``model.zip``: the plan holds the policy, the optimiser and the replay buffer."""
         return [*super()._excluded_save_params(), "_fast_plan"]
 
-    # -- hooks ------------------------------------------------------------------------------------------
+    # -- hooks (both update paths call them) -----------------------------------------------------------
 
     def _sample_batch(self, batch_size: int) -> tuple[ReplayBufferSamples, th.Tensor | None]:
         """Draw a minibatch; return it with per-sample loss weights (None = uniform)."""
         replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
         return replay_data, None
+
+    def _compute_target_q_values(self, replay_data: ReplayBufferSamples) -> th.Tensor:
+        """The TD target, shape ``(batch, 1)`` (no gradient): the target network's value of its own greedy
+        action (DQN, SB3's) or of the online network's (``double_q``); ``replay_data.discounts`` (n-step buffer)
+        when present, else γ."""
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        with th.no_grad():
+            if self.double_q:
+                next_actions = self.q_net(replay_data.next_observations).argmax(dim=1, keepdim=True)
+                next_q_values = th.gather(self.q_net_target(replay_data.next_observations), dim=1,
+                                          index=next_actions)
+            else:
+                next_q_values, _ = self.q_net_target(replay_data.next_observations).max(dim=1)
+            next_q_values = next_q_values.reshape(-1, 1)
+            return replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values
+
+    def _compute_loss(self, current_q_values: th.Tensor, target_q_values: th.Tensor,
+                      weights: th.Tensor | None = None) -> th.Tensor:
+        """Huber loss; with ``weights`` it is ``mean_i(w_i · huber_i)`` (SB3's when None)."""
+        if weights is None:
+            return F.smooth_l1_loss(current_q_values, target_q_values)
+        per_sample = F.smooth_l1_loss(current_q_values, target_q_values, reduction="none")
+        return (weights.reshape(per_sample.shape) * per_sample).mean()
 
     def _after_gradient_step(self, td_errors: th.Tensor) -> None:
         """Called after each gradient step with the batch TD errors ``y − Q(s, a)`` (detached, 1-D)."""
@@ -291,15 +312,33 @@ class FastDQN(LeanCollector, DQN):
         self.logger.record("train/loss", mean_of(losses))
 
     def _autograd_train(self, gradient_steps: int, batch_size: int) -> None:
-        """The update through autograd: SB3's ``DQN.train``."""
-        DQN.train(self, gradient_steps, batch_size)
+        """SB3's ``DQN.train`` through autograd (the same calls and draws; with the default hooks the same
+        numbers), split into the hooks."""
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        losses = []
+        for _ in range(gradient_steps):
+            replay_data, weights = self._sample_batch(batch_size)
+            target_q_values = self._compute_target_q_values(replay_data)
+            current_q_values = th.gather(self.q_net(replay_data.observations), dim=1,
+                                         index=replay_data.actions.long())
+            loss = self._compute_loss(current_q_values, target_q_values, weights)
+            losses.append(loss.item())
+            self.policy.optimizer.zero_grad()
+            loss.backward()
+            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+            self.policy.optimizer.step()
+            self._after_gradient_step((target_q_values - current_q_values.detach()).reshape(-1))
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/loss", np.mean(losses))
 
     def _batch(self, batch_size: int) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
         """(observations, actions, next observations, dones, rewards, weights or None) of one minibatch: SB3's
         ``ReplayBuffer.sample`` draws wrapped without copies (when :meth:`_sample_batch` is not overridden), or
         :meth:`_sample_batch`'s."""
         rb = self.replay_buffer
-        if type(rb) is ReplayBuffer and _defined_by(self, "_sample_batch") is FastDQN:
+        if type(rb) is ReplayBuffer and defined_by(self, "_sample_batch") is FastDQN:
             upper = rb.buffer_size if rb.full else rb.pos
             batch = np.random.randint(0, upper, size=batch_size)
             env = np.random.randint(0, high=rb.n_envs, size=(batch_size,))

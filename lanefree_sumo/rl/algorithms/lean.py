@@ -215,6 +215,14 @@ class LeanAdam:
         th._foreach_addcdiv_(self.params, self.exp_avgs, denom_list, step_size)
 
 
+def defined_by(obj: object, name: str) -> type | None:
+    """The class whose definition of ``name`` ``obj`` uses; None when ``obj`` itself holds one (a patch) or none.
+    The fast learners take their written-out paths only where what they replace is the library's own."""
+    if name in vars(obj):
+        return None
+    return next((klass for klass in type(obj).__mro__ if name in vars(klass)), None)
+
+
 # -- the collection loop --------------------------------------------------------------------------------
 
 class LeanCollector:
