@@ -38,11 +38,15 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG
+from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import MaybeCallback, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.td3.policies import Actor, TD3Policy
 from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms.lean import (
@@ -64,11 +68,6 @@ from lanefree_sumo.rl.algorithms.lean import (
 def _stock_methods(model: FastDDPG) -> bool:
     """What the written-out path and the lean loop replace is SB3's own: the action (``_sample_action``,
     ``predict``, the policy's ``_predict``/``predict``) and the actor and critic classes. Checked on every use."""
-    from stable_baselines3.common.base_class import BaseAlgorithm
-    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-    from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
-    from stable_baselines3.td3.policies import Actor, TD3Policy
-
     return (defined_by(model, "predict") is BaseAlgorithm
             and defined_by(model, "_sample_action") is OffPolicyAlgorithm
             and defined_by(model.policy, "_predict") is TD3Policy

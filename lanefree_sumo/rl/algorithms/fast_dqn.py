@@ -37,8 +37,11 @@ from gymnasium import spaces
 from stable_baselines3 import DQN
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
 from torch import nn
 from torch.nn import functional as F
 
@@ -116,11 +119,7 @@ def _stock_methods(model: FastDQN) -> bool:
     ``predict``, the policy's ``_predict``/``predict``: the lean loop), the Q-network classes, the hooks the
     written-out step computes itself (``_compute_target_q_values``, ``_compute_loss``) and the autograd update
     it stands in for (``_autograd_train``). Checked on every use (a patch after the first update counts)."""
-    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-    from stable_baselines3.common.policies import BasePolicy
-    from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
-
-    from lanefree_sumo.rl.algorithms.dueling import DuelingQNetwork
+    from lanefree_sumo.rl.algorithms.dueling import DuelingQNetwork  # (dueling imports this module)
 
     return (defined_by(model, "predict") is DQN and defined_by(model, "_sample_action") is OffPolicyAlgorithm
             and defined_by(model.policy, "_predict") is DQNPolicy
