@@ -202,6 +202,17 @@ def record_session(folder: Path, session: dict[str, Any]) -> None:
         fh.write(json.dumps(session) + "\n")
 
 
+def last_session_end(folder: Path) -> str | None:
+    """When the run's last recorded training session ended (``sessions.jsonl``'s last ``ended``, ISO 8601 UTC);
+    None for a run without that file (trained before it existed) or with an unreadable last line."""
+    try:
+        lines = (folder / SESSIONS).read_text().splitlines()
+        ended = json.loads(lines[-1]).get("ended") if lines else None
+    except (OSError, ValueError, AttributeError):
+        return None
+    return ended if isinstance(ended, str) else None
+
+
 def append_command(folder: Path, command: str) -> None:
     """Add one command line to ``folder/command.txt``."""
     with open(folder / COMMAND, "a") as fh:

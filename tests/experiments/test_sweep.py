@@ -33,7 +33,7 @@ import yaml
 from lanefree_sumo.cli import main
 from lanefree_sumo.config import merge_config
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
-from lanefree_sumo.experiments.rundir import write_config
+from lanefree_sumo.experiments.rundir import record_session, write_config
 from lanefree_sumo.experiments.sweep.command import plan, status_text
 from lanefree_sumo.experiments.sweep.grid import Cell, builtin_grid, load_grid, parse_grid
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
@@ -62,9 +62,10 @@ def episodes_of(csv_path: Path) -> list[int]:
 
 
 def fake_run(folder: Path, grid, cell: Cell, episodes: int, collisions: float = 1.0, model: bool = True,
-             checkpoint: int | None = None, extra_rows: list[int] | None = None, wall_s: float = 0.0) -> None:
+             checkpoint: int | None = None, extra_rows: list[int] | None = None, wall_s: float = 0.0,
+             ended: str | None = None) -> None:
     """A run folder as train() leaves it, without training: config, episodes.csv (each episode taking
-    ``wall_s`` seconds), checkpoint, model."""
+    ``wall_s`` seconds), checkpoint, model, and a training session that ended at ``ended`` (ISO 8601)."""
     folder.mkdir(parents=True)
     write_config(folder, grid.config(cell))
     with open(folder / "episodes.csv", "w", newline="") as fh:
@@ -80,6 +81,8 @@ def fake_run(folder: Path, grid, cell: Cell, episodes: int, collisions: float = 
         (ckpt / "state.json").write_text(json.dumps({"episodes": checkpoint, "timesteps": 40 * checkpoint}))
     if model:
         (folder / "model.zip").write_bytes(b"model")
+    if ended is not None:
+        record_session(folder, {"episodes_done": episodes, "ended": ended})
 
 
 # -- grids ----------------------------------------------------------------------------------------
@@ -313,40 +316,45 @@ def test_summary_and_status_from_run_folders(tmp_path):
     assert "episodes: 330/360" in status and "driver: not running" in status
 
 
-def test_status_says_the_time_left_at_the_pace_of_each_algorithms_complete_runs(tmp_path):
-    grid = parse_grid({"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision"], "n_seeds": 3,
+def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tmp_path):
+    grid = parse_grid({"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision"], "n_seeds": 4,
                        "episodes": 60}, "pace", "pace.yaml")
     write_manifest(tmp_path, Manifest(grid))
     sweep = SweepDir(tmp_path)
     ddpg = [c for c in grid.cells() if c.setting.algorithm == "ddpg"]
-    assert "time left: unknown until a run completes or has 25 episodes" in status_text(tmp_path)
-    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 24, model=False, checkpoint=20, wall_s=50.0)
-    assert "time left: unknown until a run completes" in status_text(tmp_path)  # 24 episodes: too few to tell
-    shutil.rmtree(sweep.run(ddpg[0]))
-    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 30, model=False, checkpoint=25, wall_s=50.0)
-    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
-    # no complete run yet: the unfinished run's 30 episodes set DDPG's pace; 30 + 120 DDPG, 180 DQN episodes left
-    assert line.startswith("time left: ≈ 4.6 core-hours for 330 episodes")
-    assert "ddpg 50.0 (unfinished runs so far)" in line and "dqn: no run far enough yet, 50.0 assumed" in line
-    shutil.rmtree(sweep.run(ddpg[0]))
-    for cell, wall in zip(ddpg[:2], (100.0, 140.0)):  # DDPG's pace: the median over runs of 100 and 140 s
-        fake_run(sweep.run(cell), grid, cell, 60, wall_s=wall)
-    fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 30, model=False, checkpoint=25, wall_s=999.0)  # partial: 30 left
-    # left: 30 DDPG episodes and 3 × 60 DQN episodes (no complete DQN run: DDPG's pace assumed), 120 s each
-    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
-    assert line.startswith("time left: ≈ 7.0 core-hours for 210 episodes") and "s/episode: ddpg 120.0" in line
-    assert "dqn: no run far enough yet, 120.0 assumed" in line
     dqn = [c for c in grid.cells() if c.setting.algorithm == "dqn"]
-    fake_run(sweep.run(dqn[0]), grid, dqn[0], 40, model=False, checkpoint=25, wall_s=30.0)  # unfinished, 40 done
-    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
-    assert line.startswith("time left: ≈ 2.2 core-hours for 170 episodes")  # 30 × 120 s + 140 × 30 s
-    assert "s/episode: ddpg 120.0, dqn 30.0 (unfinished runs so far))" in line
-    shutil.rmtree(sweep.run(dqn[0]))
-    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=30.0)  # complete: DQN's own pace from now on
-    line = next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
-    assert line.startswith("time left: ≈ 2.0 core-hours for 150 episodes")  # 30 × 120 s + 120 × 30 s
-    assert "s/episode: ddpg 120.0, dqn 30.0)" in line
-    for cell in [*dqn[1:], ddpg[2]]:
+
+    def time_line() -> str:
+        return next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
+
+    assert time_line().startswith("time left: unknown until a run completes or has 25 episodes")
+    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 24, model=False, checkpoint=20, wall_s=50.0)
+    assert time_line().startswith("time left: unknown until a run completes")  # 24 episodes: too few to tell
+    shutil.rmtree(sweep.run(ddpg[0]))
+    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 30, model=False, checkpoint=25, wall_s=48.0)
+    # the run in progress sets DDPG's pace; left: 30 + 3 × 60 DDPG and 4 × 60 DQN episodes, 48 s each
+    assert time_line().startswith("time left: ≈ 6.0 core-hours for 450 episodes")
+    assert "ddpg 48.0 (with runs in progress)" in time_line()
+    assert "dqn: no run far enough yet, 48.0 assumed" in time_line()
+    shutil.rmtree(sweep.run(ddpg[0]))
+    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 60, wall_s=400.0)  # no sessions.jsonl: the oldest
+    fake_run(sweep.run(ddpg[1]), grid, ddpg[1], 60, wall_s=100.0, ended="2026-11-24T10:00:00+00:00")
+    fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 60, wall_s=140.0, ended="2026-11-25T09:00:00+00:00")
+    fake_run(sweep.run(ddpg[3]), grid, ddpg[3], 30, model=False, checkpoint=25, wall_s=120.0)  # in progress
+    # the 3 latest: in progress 120, then 140 and 100 by their sessions' ends; the oldest run's 400 left out.
+    # Left: 30 DDPG and 240 DQN episodes (DQN has no run: DDPG's pace assumed), 120 s each
+    assert time_line().startswith("time left: ≈ 9.0 core-hours for 270 episodes")
+    assert "median of its 3 latest runs: ddpg 120.0 (with runs in progress); dqn: no run far enough yet, 120.0 " \
+        "assumed" in time_line()
+    (sweep.run(ddpg[1]) / "sessions.jsonl").write_text("not json\n")  # unreadable: counts as the oldest too
+    assert "ddpg 120.0" in time_line()  # 120, 140, and 100 or 400 by name: ddpg[0] sorts first, so 100 stays
+    shutil.rmtree(sweep.run(ddpg[0]))
+    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 60, wall_s=400.0, ended="2026-11-25T11:00:00+00:00")  # now latest
+    assert "ddpg 140.0" in time_line()  # median of 120, 400, 140
+    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=30.0)
+    assert time_line().startswith("time left: ≈ 2.7 core-hours for 210 episodes")  # 30 × 140 s + 180 × 30 s
+    assert "ddpg 140.0 (with runs in progress), dqn 30.0)" in time_line()
+    for cell in [*dqn[1:], ddpg[3]]:
         shutil.rmtree(sweep.run(cell), ignore_errors=True)
         fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
     assert "time left: none, every run is complete" in status_text(tmp_path)

@@ -18,7 +18,7 @@ from typing import Any
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
-from lanefree_sumo.experiments.rundir import EPISODES
+from lanefree_sumo.experiments.rundir import EPISODES, last_session_end
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -237,7 +237,11 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
 
 
 PARTIAL_PACE_EPISODES = 25
-"""Episodes an algorithm's unfinished runs must have recorded before their pace stands in for a complete run's."""
+"""Episodes an unfinished run must have recorded before its pace counts."""
+
+PACE_RUNS = 3
+"""An algorithm's pace is the median over its this many most recent runs: machines and code change between
+sessions, and the latest runs measure the ones the rest will run on."""
 
 
 def _episode_walls(run: Path) -> list[float]:
@@ -253,43 +257,50 @@ def _episode_walls(run: Path) -> list[float]:
 
 
 def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> str:
-    """One line: the core-hours the unfinished runs still need, at each algorithm's pace. The pace is the median
-    episode wall time of the algorithm's complete runs (median over runs); without a complete run, the median
-    over the episodes its unfinished runs have recorded (from :data:`PARTIAL_PACE_EPISODES` on); else the
-    other algorithms' pace is assumed. The line says which. ``runs``: name -> (state, episodes)."""
+    """One line: the core-hours the unfinished runs still need, at each algorithm's pace. A run's pace is the
+    median wall time of its episodes; an algorithm's, the median over its :data:`PACE_RUNS` most recent runs —
+    runs in progress with at least :data:`PARTIAL_PACE_EPISODES` episodes first, then complete runs by the end
+    of their last training session (``sessions.jsonl``; runs without one count as the oldest). An algorithm
+    without such a run is assumed to go at the median of the others' paces; the line says which.
+    ``runs``: name -> (state, episodes)."""
     import numpy as np
 
-    complete: dict[str, list[float]] = {}
-    unfinished: dict[str, list[float]] = {}
+    measured: dict[str, list[tuple[tuple[int, str], float]]] = {}  # algo -> [(recency, the run's pace)]
+    in_progress: set[str] = set()
     left: dict[str, int] = {}
     for cell in grid.cells():
         state, episodes = runs[cell.name]
-        algo = cell.setting.algorithm
-        if state == COMPLETE:
-            walls = _episode_walls(sweep.run(cell))
-            if walls:
-                complete.setdefault(algo, []).append(float(np.median(walls)))
-        else:
+        algo, folder = cell.setting.algorithm, sweep.run(cell)
+        if state != COMPLETE:
             left[algo] = left.get(algo, 0) + max(grid.episodes - episodes, 0)
-            if state in (PARTIAL, RUNNING) and episodes > 0:  # not a stale, failed or damaged run's episodes
-                unfinished.setdefault(algo, []).extend(_episode_walls(sweep.run(cell)))
+        if state == COMPLETE:
+            ended = last_session_end(folder)
+            recency = (1, ended) if ended else (0, cell.name)
+        elif state in (PARTIAL, RUNNING) and episodes > 0:  # not a stale, failed or damaged run's episodes
+            recency = (2, cell.name)
+        else:
+            continue
+        walls = _episode_walls(folder)
+        if walls and (state == COMPLETE or len(walls) >= PARTIAL_PACE_EPISODES):
+            measured.setdefault(algo, []).append((recency, float(np.median(walls))))
+            if state != COMPLETE:
+                in_progress.add(algo)
     if not left:
         return "time left: none, every run is complete"
-    own = {algo: float(np.median(values)) for algo, values in complete.items()}
-    so_far = {algo: float(np.median(walls)) for algo, walls in unfinished.items()
-              if algo not in own and len(walls) >= PARTIAL_PACE_EPISODES}
-    known = {**own, **so_far}
+    known = {algo: float(np.median([pace for _, pace in sorted(paces)[-PACE_RUNS:]]))
+             for algo, paces in measured.items()}
     if not known:
         return (f"time left: unknown until a run completes or has {PARTIAL_PACE_EPISODES} episodes "
                 "(its episodes' wall times set the pace)")
     every = float(np.median(list(known.values())))
     assumed = sorted(algo for algo in left if algo not in known)
     seconds = sum(n * known.get(algo, every) for algo, n in left.items())
-    paces = ", ".join(f"{algo} {known[algo]:.1f}" + (" (unfinished runs so far)" if algo in so_far else "")
+    paces = ", ".join(f"{algo} {known[algo]:.1f}" + (" (with runs in progress)" if algo in in_progress else "")
                       for algo in sorted(known))
     note = f"; {', '.join(assumed)}: no run far enough yet, {every:.1f} assumed" if assumed else ""
     return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at each algorithm's "
-            f"pace (s/episode: {paces}{note}); divide by the workers running at once")
+            f"pace (s/episode, median of its {PACE_RUNS} latest runs: {paces}{note}); divide by the workers "
+            "running at once")
 
 
 def status_text(folder: Path) -> str:
