@@ -13,6 +13,7 @@ from lanefree_sumo.experiments.claims import (
     claims_markdown,
     decidable,
     difference_ci,
+    rank_test,
     verdict,
 )
 from lanefree_sumo.experiments.report import RunData
@@ -36,6 +37,17 @@ def test_difference_ci_and_verdicts():
     assert verdict(1, float("nan"), float("nan")) == "no data"
 
 
+def test_rank_test_counts_pairs_and_gives_the_exact_permutation_p():
+    high, low = [3.0, 3.2, 2.9], [1.0, 1.1, 0.9]
+    assert rank_test(high, low, 1) == (9.0, 0.05)  # every a above every b: 1 of the 20 splits of 6 runs
+    assert rank_test(high, low, 0) == (9.0, 0.1)  # two-sided: either extreme split
+    assert rank_test(high, low, -1) == (9.0, 1.0)
+    above, p = rank_test([1.0, 2.0, 3.0], [1.5, 2.5, 3.5], 1)  # pairs above: 2 > 1.5, 3 > 1.5, 3 > 2.5
+    assert above == 3.0 and np.isclose(p, 16 / 20)  # 16 of the 20 splits have U >= 3
+    assert rank_test([1.0, 2.0, 2.0], [2.0, 0.0, 0.5], 1)[0] == 7.0  # the two ties with 2.0 count ½ each
+    assert all(np.isnan(rank_test([1.0, 2.0], [1.0, 2.0, 3.0], 1)))  # below MIN_RUNS
+
+
 def test_claims_from_runs_last_episodes_and_windows():
     last = 10
     groups = {
@@ -54,6 +66,7 @@ def test_claims_from_runs_last_episodes_and_windows():
     assert len(table) == len(COMPARISONS)
     fields = table.iloc[0]
     assert fields["verdict"] == "reproduced" and np.isclose(fields["difference"], 2.0)  # the last 10 episodes only
+    assert (fields["pairs_a_above_b"], fields["rank_p"]) == (9.0, 0.05)
     assert np.isclose(fields["paper_difference"], 2.256 - 0.726)
     per = table[table["claim"].str.contains("temporarily")].iloc[0]
     assert per["verdict"] == "reproduced" and per["difference"] > 4 and np.isnan(per["paper_difference"])
@@ -66,6 +79,7 @@ def test_claims_from_runs_last_episodes_and_windows():
     assert row["n_b"] == 0 and row["verdict"] == "no data"
     text = claims_markdown(table)
     assert text.count("\n| ") == len(COMPARISONS) + 1 and "reproduced" in text
+    assert "| +2.000 [" in text and "| 9/9, p = 0.05 | reproduced |" in text
     assert len(fenced_rows(text)) == len(COMPARISONS) + 2  # header, rule, one row per claim
 
 

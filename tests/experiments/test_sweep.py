@@ -464,7 +464,10 @@ def test_a_killed_worker_is_retried_and_ctrl_c_then_resume_finish_every_run_exac
             time.sleep(0.05)
         victim = json.loads(sweep.heartbeat(name).read_text())["pid"]
         os.kill(victim, signal.SIGKILL)
-        while not (sweep.heartbeat(name).exists() and json.loads(sweep.heartbeat(name).read_text())["pid"] != victim
+        # resumed: the retry's command line is on file (it loaded the checkpoint, truncated the victim's later
+        # rows and handles SIGINT from then on) and it wrote 2 episodes of its own
+        command = sweep.run(name) / "command.txt"
+        while not (len(command.read_text().splitlines()) == 2
                    and len(episodes_of(sweep.run(name) / "episodes.csv")) >= every + 2):
             assert time.time() < deadline and proc.poll() is None, "the killed run was not resumed"
             time.sleep(0.05)
