@@ -198,19 +198,29 @@ def record_session(folder: Path, session: dict[str, Any]) -> None:
     """The end of a training session: ``last_session.json`` becomes ``session`` and ``sessions.jsonl`` gains it
     as one line (the run's history: which code, versions and kernels trained which episodes)."""
     (folder / LAST_SESSION).write_text(json.dumps(session, indent=2) + "\n")
-    with open(folder / SESSIONS, "a") as fh:
-        fh.write(json.dumps(session) + "\n")
+    path = folder / SESSIONS
+    cut_short = path.is_file() and path.stat().st_size > 0 and not path.read_bytes().endswith(b"\n")
+    with open(path, "a") as fh:  # after a line cut short (a process killed mid-write), on a line of its own
+        fh.write(("\n" if cut_short else "") + json.dumps(session) + "\n")
 
 
-def last_session_end(folder: Path) -> str | None:
-    """When the run's last recorded training session ended (``sessions.jsonl``'s last ``ended``, ISO 8601 UTC);
-    None for a run without that file (trained before it existed) or with an unreadable last line."""
+def read_sessions(folder: Path) -> list[dict[str, Any]]:
+    """The training sessions recorded in the run's ``sessions.jsonl``, oldest first (its lines that parse as
+    JSON objects; a half-written or damaged line is left out); empty for a run without that file (trained
+    before it existed)."""
     try:
         lines = (folder / SESSIONS).read_text().splitlines()
-        ended = json.loads(lines[-1]).get("ended") if lines else None
-    except (OSError, ValueError, AttributeError):
-        return None
-    return ended if isinstance(ended, str) else None
+    except (OSError, UnicodeDecodeError):
+        return []
+    sessions = []
+    for line in lines:
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(entry, dict):
+            sessions.append(entry)
+    return sessions
 
 
 def append_command(folder: Path, command: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -39,13 +40,39 @@ def test_difference_ci_and_verdicts():
 
 def test_rank_test_counts_pairs_and_gives_the_exact_permutation_p():
     high, low = [3.0, 3.2, 2.9], [1.0, 1.1, 0.9]
-    assert rank_test(high, low, 1) == (9.0, 0.05)  # every a above every b: 1 of the 20 splits of 6 runs
-    assert rank_test(high, low, 0) == (9.0, 0.1)  # two-sided: either extreme split
-    assert rank_test(high, low, -1) == (9.0, 1.0)
+    above, p = rank_test(high, low, 1)
+    assert above == 9.0 and np.isclose(p, 1 / 20)  # every a above every b: 1 of the 20 splits of 6 runs
+    assert np.isclose(rank_test(high, low, 0)[1], 2 / 20)  # two-sided: either extreme split
+    assert np.isclose(rank_test(high, low, -1)[1], 1.0)
     above, p = rank_test([1.0, 2.0, 3.0], [1.5, 2.5, 3.5], 1)  # pairs above: 2 > 1.5, 3 > 1.5, 3 > 2.5
     assert above == 3.0 and np.isclose(p, 16 / 20)  # 16 of the 20 splits have U >= 3
-    assert rank_test([1.0, 2.0, 2.0], [2.0, 0.0, 0.5], 1)[0] == 7.0  # the two ties with 2.0 count ½ each
+    assert np.isclose(rank_test([1.0, 2.0, 3.0], [1.5, 2.5, 3.5], -1)[1], 7 / 20)  # U <= 3: 1 + 1 + 2 + 3 splits
+    # ties: [1, 1, 2] vs [0, 1, 1] has U = 3 (2 > 0, 2 > 1 twice) + 2 × ½ × 2 (the 1s) + 1 (1s > 0) = 7
+    above, p = rank_test([1.0, 1.0, 2.0], [0.0, 1.0, 1.0], 1)
+    assert above == 7.0 and np.isclose(p, 6 / 20)  # counted over the 20 splits of the tied values (not 0.20)
+    assert rank_test([0.0] * 3, [0.0] * 3, 1) == (4.5, 1.0)  # all tied: nothing to tell them apart
     assert all(np.isnan(rank_test([1.0, 2.0], [1.0, 2.0, 3.0], 1)))  # below MIN_RUNS
+
+
+def test_rank_test_p_values_against_brute_force():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        values = rng.integers(0, 4, size=7).astype(float)  # many ties
+        a, b = list(values[:3]), list(values[3:])
+
+        def u(x: list[float], y: list[float]) -> float:
+            return sum(float(i > j) + 0.5 * float(i == j) for i in x for j in y)
+
+        splits = [(list(values[list(c)]), [values[k] for k in range(7) if k not in c])
+                  for c in itertools.combinations(range(7), 3)]
+        us = np.array([u(x, y) for x, y in splits])
+        observed = u(a, b)
+        assert rank_test(a, b, 1) == (observed, float((us >= observed).mean()))
+        assert rank_test(a, b, -1)[1] == float((us <= observed).mean())
+        assert rank_test(a, b, 0)[1] == float((np.abs(us - 6) >= abs(observed - 6)).mean())
+    many = list(np.linspace(0, 1, 11)), list(np.linspace(0.5, 1.5, 11))  # C(22, 11) splits: sampled
+    above, p = rank_test(*many, -1)
+    assert above == 121 - rank_test(many[1], many[0], 1)[0] and 0 < p < 0.05
 
 
 def test_claims_from_runs_last_episodes_and_windows():
@@ -66,7 +93,7 @@ def test_claims_from_runs_last_episodes_and_windows():
     assert len(table) == len(COMPARISONS)
     fields = table.iloc[0]
     assert fields["verdict"] == "reproduced" and np.isclose(fields["difference"], 2.0)  # the last 10 episodes only
-    assert (fields["pairs_a_above_b"], fields["rank_p"]) == (9.0, 0.05)
+    assert fields["pairs_a_above_b"] == 9.0 and np.isclose(fields["rank_p"], 0.05)
     assert np.isclose(fields["paper_difference"], 2.256 - 0.726)
     per = table[table["claim"].str.contains("temporarily")].iloc[0]
     assert per["verdict"] == "reproduced" and per["difference"] > 4 and np.isnan(per["paper_difference"])

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import platform
 import signal
 import subprocess
 import sys
@@ -18,7 +19,13 @@ from lanefree_sumo.numerics import PORTABLE_NUMPY_DISPATCH, VARIABLE
 
 from conftest import ROOT, lanefree, lanefree_popen, wait_for
 
-pytestmark = pytest.mark.slow
+pytestmark = [
+    pytest.mark.slow,
+    # what these tests hold to (numpy's x86-64 kernel tiers, episodes trained on an x86-64 machine) has no
+    # counterpart on another architecture, whose numpy rounds exp/log its own way: not a missing dependency
+    pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
+                       reason="the committed runs and numpy's kernel tiers are x86-64's"),
+]
 
 COMMITTED = ROOT / "results/paper/runs/ddpg_fields_zones_overtake_collision_d70_s0"
 """Seed 0 of the paper's DDPG fields_zones_overtake_collision at 70 veh/km, trained on an AVX2 machine."""

@@ -34,7 +34,7 @@ from lanefree_sumo.cli import main
 from lanefree_sumo.config import merge_config
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
 from lanefree_sumo.experiments.rundir import record_session, write_config
-from lanefree_sumo.experiments.sweep.command import plan, status_text
+from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
 from lanefree_sumo.experiments.sweep.grid import Cell, builtin_grid, load_grid, parse_grid
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
@@ -317,7 +317,7 @@ def test_summary_and_status_from_run_folders(tmp_path):
 
 
 def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tmp_path):
-    grid = parse_grid({"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision"], "n_seeds": 4,
+    grid = parse_grid({"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision"], "n_seeds": 5,
                        "episodes": 60}, "pace", "pace.yaml")
     write_manifest(tmp_path, Manifest(grid))
     sweep = SweepDir(tmp_path)
@@ -327,37 +327,92 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tm
     def time_line() -> str:
         return next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
 
+    def training(cell: Cell) -> None:  # a live heartbeat (this process's): the run is training now
+        sweep.heartbeat(cell.name).parent.mkdir(parents=True, exist_ok=True)
+        sweep.heartbeat(cell.name).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+
+    def walls_from(cell: Cell, episode: int, wall: float) -> None:  # episodes from ``episode`` on took ``wall`` s
+        path = sweep.run(cell) / "episodes.csv"
+        rows = list(csv.DictReader(open(path)))
+        for row in rows:
+            row["wall_s"] = str(wall) if int(row["episode"]) >= episode else row["wall_s"]
+        with open(path, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+
     assert time_line().startswith("time left: unknown until a run completes or has 25 episodes")
     fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 24, model=False, checkpoint=20, wall_s=50.0)
     assert time_line().startswith("time left: unknown until a run completes")  # 24 episodes: too few to tell
     shutil.rmtree(sweep.run(ddpg[0]))
     fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 30, model=False, checkpoint=25, wall_s=48.0)
-    # the run in progress sets DDPG's pace; left: 30 + 3 × 60 DDPG and 4 × 60 DQN episodes, 48 s each
-    assert time_line().startswith("time left: ≈ 6.0 core-hours for 450 episodes")
-    assert "ddpg 48.0 (with runs in progress)" in time_line()
-    assert "dqn: no run far enough yet, 48.0 assumed" in time_line()
+    # a stopped run's 30 episodes set DDPG's pace; left: 30 + 4 × 60 DDPG and 5 × 60 DQN episodes, 48 s each
+    assert time_line().startswith("time left: ≈ 7.6 core-hours for 570 episodes")
+    assert "ddpg 48.0; dqn: no run far enough yet, 48.0 assumed" in time_line()
     shutil.rmtree(sweep.run(ddpg[0]))
     fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 60, wall_s=400.0)  # no sessions.jsonl: the oldest
     fake_run(sweep.run(ddpg[1]), grid, ddpg[1], 60, wall_s=100.0, ended="2026-11-24T10:00:00+00:00")
     fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 60, wall_s=140.0, ended="2026-11-25T09:00:00+00:00")
-    fake_run(sweep.run(ddpg[3]), grid, ddpg[3], 30, model=False, checkpoint=25, wall_s=120.0)  # in progress
-    # the 3 latest: in progress 120, then 140 and 100 by their sessions' ends; the oldest run's 400 left out.
-    # Left: 30 DDPG and 240 DQN episodes (DQN has no run: DDPG's pace assumed), 120 s each
-    assert time_line().startswith("time left: ≈ 9.0 core-hours for 270 episodes")
-    assert "median of its 3 latest runs: ddpg 120.0 (with runs in progress); dqn: no run far enough yet, 120.0 " \
+    fake_run(sweep.run(ddpg[3]), grid, ddpg[3], 30, model=False, checkpoint=25, wall_s=120.0)  # stopped long ago
+    # the 3 latest: 140 and 100 by their sessions' ends, then the stopped run without one (sorted by name after
+    # the complete one without one); the oldest complete run's 400 left out. Left: 30 + 60 DDPG and 300 DQN
+    # episodes (DQN has no run: DDPG's pace assumed), 120 s each
+    assert time_line().startswith("time left: ≈ 13.0 core-hours for 390 episodes")
+    assert "median of its 3 latest runs' latest sessions: ddpg 120.0; dqn: no run far enough yet, 120.0 " \
         "assumed" in time_line()
+    training(ddpg[3])  # training now: the latest of all
+    assert "ddpg 120.0 (with runs training now)" in time_line()
+    fake_run(sweep.run(ddpg[4]), grid, ddpg[4], 60, wall_s=10.0, ended="2026-11-25T10:00:00+00:00")
+    assert "ddpg 120.0 (with runs training now)" in time_line()  # 120 training, then 10 and 140 by their ends
+    shutil.rmtree(sweep.run(ddpg[4]))
     (sweep.run(ddpg[1]) / "sessions.jsonl").write_text("not json\n")  # unreadable: counts as the oldest too
-    assert "ddpg 120.0" in time_line()  # 120, 140, and 100 or 400 by name: ddpg[0] sorts first, so 100 stays
-    shutil.rmtree(sweep.run(ddpg[0]))
-    fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 60, wall_s=400.0, ended="2026-11-25T11:00:00+00:00")  # now latest
-    assert "ddpg 140.0" in time_line()  # median of 120, 400, 140
-    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=30.0)
-    assert time_line().startswith("time left: ≈ 2.7 core-hours for 210 episodes")  # 30 × 140 s + 180 × 30 s
-    assert "ddpg 140.0 (with runs in progress), dqn 30.0)" in time_line()
-    for cell in [*dqn[1:], ddpg[3]]:
+    assert "ddpg 120.0" in time_line()  # 120 training, 140, then 100 (ddpg[1] sorts after ddpg[0]: 400 left out)
+    # a run resumed on another machine: its last session (episodes 31-60) sets its pace, not its 60 episodes
+    shutil.rmtree(sweep.run(ddpg[2]))
+    fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 60, wall_s=140.0)
+    walls_from(ddpg[2], 31, 110.0)
+    record_session(sweep.run(ddpg[2]), {"episodes_done": 60, "first_episode": 31, "ended": "2026-11-25T09:00:00"})
+    assert "ddpg 110.0 (with runs training now)" in time_line()  # 120 training, 110, 100 (all its episodes: 125)
+    fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=40.0)
+    # left: 30 + 60 DDPG episodes at 110 s, 240 DQN ones at 40 s
+    assert time_line().startswith("time left: ≈ 5.4 core-hours for 330 episodes")
+    assert "ddpg 110.0 (with runs training now), dqn 40.0)" in time_line()
+    for cell in [*dqn[1:], ddpg[3], ddpg[4]]:
         shutil.rmtree(sweep.run(cell), ignore_errors=True)
         fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
     assert "time left: none, every run is complete" in status_text(tmp_path)
+
+
+def test_a_runs_pace_is_its_latest_sessions(tmp_path):
+    grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 1, "episodes": 100}, "pace", "pace.yaml")
+    cell, run = grid.cells()[0], tmp_path / "run"
+    fake_run(run, grid, cell, 80, wall_s=50.0)
+    assert _pace_sample(run, running=False) == (None, [50.0] * 80)  # no sessions.jsonl: every episode
+    with open(run / "episodes.csv", "a") as fh:  # a damaged row's wall time is left out
+        fh.write("81," + ",".join(["x"] * (len(EPISODE_COLUMNS) - 1)) + "\n")
+    assert _pace_sample(run, running=False) == (None, [])  # an unreadable column: no sample
+    shutil.rmtree(run)
+    fake_run(run, grid, cell, 80, wall_s=50.0)
+    rows = list(csv.DictReader(open(run / "episodes.csv")))
+    for row in rows[50:]:
+        row["wall_s"] = "20.0"
+    with open(run / "episodes.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    record_session(run, {"episodes_done": 40, "first_episode": 1, "ended": "2026-11-24T10:00:00+00:00"})
+    record_session(run, {"episodes_done": 80, "first_episode": 41, "ended": "2026-11-25T10:00:00+00:00"})
+    assert _pace_sample(run, running=False) == ("2026-11-25T10:00:00+00:00", [50.0] * 10 + [20.0] * 30)
+    with open(run / "sessions.jsonl", "a") as fh:
+        fh.write('{"episodes_done": 90, "first_')  # a half-written last line: the one before stands
+    assert _pace_sample(run, running=False)[0] == "2026-11-25T10:00:00+00:00"
+    record_session(run, {"episodes_done": 50, "first_episode": 41, "ended": "2026-11-25T11:00:00+00:00"})
+    # training now: the episodes after the last recorded session (51-80), all at 20 s
+    assert _pace_sample(run, running=True) == ("2026-11-25T11:00:00+00:00", [20.0] * 30)
+    record_session(run, {"episodes_done": 60, "first_episode": 51, "ended": "2026-11-25T12:00:00+00:00"})
+    assert _pace_sample(run, running=True)[1] == [50.0] * 50 + [20.0] * 30  # 20 episodes since: too few, all
+    (run / "sessions.jsonl").write_text('["not", "a", "session"]\n{"episodes_done": "many"}\n')
+    assert _pace_sample(run, running=True) == (None, [50.0] * 50 + [20.0] * 30)
 
 
 def test_a_setting_in_several_tables_is_drawn_once(tmp_path):

@@ -18,7 +18,7 @@ from typing import Any
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
-from lanefree_sumo.experiments.rundir import EPISODES, last_session_end
+from lanefree_sumo.experiments.rundir import EPISODES, read_sessions
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -244,47 +244,59 @@ PACE_RUNS = 3
 sessions, and the latest runs measure the ones the rest will run on."""
 
 
-def _episode_walls(run: Path) -> list[float]:
-    """The wall times of the episodes in a run's ``episodes.csv`` (s; positive, finite); empty if unreadable."""
+def _pace_sample(run: Path, running: bool) -> tuple[str | None, list[float]]:
+    """(when the run's last recorded training session ended, ISO 8601 UTC, or None; the wall times in s of the
+    episodes of its latest session — the one in progress for a running run, else its last recorded one — or
+    of all its episodes when that session has fewer than :data:`PARTIAL_PACE_EPISODES` or none is recorded).
+    A session's episodes measure the machine and code it ran on; a resumed run's earlier ones may not."""
     import numpy as np
     import pandas as pd
 
+    sessions = read_sessions(run)
+    last = sessions[-1] if sessions else {}
+    ended = last.get("ended") if isinstance(last.get("ended"), str) else None
     try:
-        wall = pd.read_csv(run / EPISODES, usecols=["wall_s"])["wall_s"].to_numpy(dtype=float)
-    except (OSError, ValueError, KeyError):
-        return []
-    return [float(x) for x in wall[np.isfinite(wall) & (wall > 0)]]
+        table = pd.read_csv(run / EPISODES, usecols=["episode", "wall_s"])
+        episode, wall = table["episode"].to_numpy(dtype=float), table["wall_s"].to_numpy(dtype=float)
+    except (OSError, ValueError):
+        return ended, []
+    try:
+        first = int(last["episodes_done"]) + 1 if running else int(last["first_episode"])
+    except (KeyError, TypeError, ValueError):
+        first = 1
+    valid = np.isfinite(wall) & (wall > 0)
+    sample = wall[valid & (episode >= first)]
+    if sample.size < PARTIAL_PACE_EPISODES:
+        sample = wall[valid]
+    return ended, [float(x) for x in sample]
 
 
 def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> str:
-    """One line: the core-hours the unfinished runs still need, at each algorithm's pace. A run's pace is the
-    median wall time of its episodes; an algorithm's, the median over its :data:`PACE_RUNS` most recent runs —
-    runs in progress with at least :data:`PARTIAL_PACE_EPISODES` episodes first, then complete runs by the end
-    of their last training session (``sessions.jsonl``; runs without one count as the oldest). An algorithm
-    without such a run is assumed to go at the median of the others' paces; the line says which.
-    ``runs``: name -> (state, episodes)."""
+    """One line: the core-hours the unfinished runs still need, at each algorithm's pace: the median over its
+    :data:`PACE_RUNS` most recent runs of each run's median episode wall time in its latest session
+    (:func:`_pace_sample`). Most recent: the runs training now, then the others by the end of their last
+    training session (``sessions.jsonl``; runs without one count as the oldest). A run counts once complete, or
+    with :data:`PARTIAL_PACE_EPISODES` episodes. An algorithm without such a run is assumed to go at the median
+    of the others' paces; the line says which. ``runs``: name -> (state, episodes)."""
     import numpy as np
 
     measured: dict[str, list[tuple[tuple[int, str], float]]] = {}  # algo -> [(recency, the run's pace)]
-    in_progress: set[str] = set()
+    training: set[str] = set()
     left: dict[str, int] = {}
     for cell in grid.cells():
         state, episodes = runs[cell.name]
-        algo, folder = cell.setting.algorithm, sweep.run(cell)
+        algo = cell.setting.algorithm
         if state != COMPLETE:
             left[algo] = left.get(algo, 0) + max(grid.episodes - episodes, 0)
-        if state == COMPLETE:
-            ended = last_session_end(folder)
-            recency = (1, ended) if ended else (0, cell.name)
-        elif state in (PARTIAL, RUNNING) and episodes > 0:  # not a stale, failed or damaged run's episodes
-            recency = (2, cell.name)
-        else:
+        if state not in (COMPLETE, PARTIAL, RUNNING) or episodes == 0:  # not a stale, failed or damaged run's
             continue
-        walls = _episode_walls(folder)
-        if walls and (state == COMPLETE or len(walls) >= PARTIAL_PACE_EPISODES):
-            measured.setdefault(algo, []).append((recency, float(np.median(walls))))
-            if state != COMPLETE:
-                in_progress.add(algo)
+        ended, walls = _pace_sample(sweep.run(cell), state == RUNNING)
+        if not walls or (state != COMPLETE and len(walls) < PARTIAL_PACE_EPISODES):
+            continue
+        recency = (2, cell.name) if state == RUNNING else ((1, ended) if ended else (0, cell.name))
+        measured.setdefault(algo, []).append((recency, float(np.median(walls))))
+        if state == RUNNING:
+            training.add(algo)
     if not left:
         return "time left: none, every run is complete"
     known = {algo: float(np.median([pace for _, pace in sorted(paces)[-PACE_RUNS:]]))
@@ -295,12 +307,12 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
     every = float(np.median(list(known.values())))
     assumed = sorted(algo for algo in left if algo not in known)
     seconds = sum(n * known.get(algo, every) for algo, n in left.items())
-    paces = ", ".join(f"{algo} {known[algo]:.1f}" + (" (with runs in progress)" if algo in in_progress else "")
+    paces = ", ".join(f"{algo} {known[algo]:.1f}" + (" (with runs training now)" if algo in training else "")
                       for algo in sorted(known))
     note = f"; {', '.join(assumed)}: no run far enough yet, {every:.1f} assumed" if assumed else ""
     return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at each algorithm's "
-            f"pace (s/episode, median of its {PACE_RUNS} latest runs: {paces}{note}); divide by the workers "
-            "running at once")
+            f"pace (s/episode, median of its {PACE_RUNS} latest runs' latest sessions: {paces}{note}); divide by "
+            "the workers running at once")
 
 
 def status_text(folder: Path) -> str:
