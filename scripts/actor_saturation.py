@@ -11,15 +11,19 @@ no longer move there.
 
 from __future__ import annotations
 
-import argparse
-from typing import Any
+from lanefree_sumo.numerics import keep_numpy_portable
 
-import numpy as np
-import torch
-from stable_baselines3.common.callbacks import BaseCallback
+keep_numpy_portable()  # before numpy is imported: the episodes `lanefree` gives (lanefree_sumo/numerics.py)
 
-from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
+import argparse  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
+
+from lanefree_sumo.config import LaneFreeConfig, merge_config  # noqa: E402
+from lanefree_sumo.rl.models import build_model, make_vec_env, training_config  # noqa: E402
 
 
 class Probe(BaseCallback):

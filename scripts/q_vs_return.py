@@ -12,17 +12,21 @@ the policy chases values that are not there.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-from typing import Any
+from lanefree_sumo.numerics import keep_numpy_portable
 
-import numpy as np
-import torch
+keep_numpy_portable()  # before numpy is imported: the episodes `lanefree` gives (lanefree_sumo/numerics.py)
 
-from lanefree_sumo.config import merge_config
-from lanefree_sumo.experiments.evaluate import EVALUATION, load_model
-from lanefree_sumo.experiments.rundir import RunDir
-from lanefree_sumo.rl.env import LaneFreeEnv
+import argparse  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from lanefree_sumo.config import merge_config  # noqa: E402
+from lanefree_sumo.experiments.evaluate import EVALUATION, load_model  # noqa: E402
+from lanefree_sumo.experiments.rundir import RunDir  # noqa: E402
+from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: E402
 
 TAIL_STEPS = 300
 """Steps at an episode's end whose return is cut short by the episode's end (left out)."""
