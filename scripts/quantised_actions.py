@@ -5,7 +5,8 @@ run's seed + 100000 + k) three ways on the same traffic: its own continuous acti
 into one of the 9 discrete actions the DQN family chooses from (ax in {-2, 0, +2} m/s², ay in {-1, 0, +1} m/s²,
 SPEC §6) by
 
-* ``nearest``: the nearest level per component (|ax| < 1 → 0; braking harder than −2 m/s² becomes −2);
+* ``nearest``: the nearest level per component (|ax| ≤ 1 → 0, halves rounding to 0; braking harder than
+  −2 m/s² becomes −2);
 * ``sigma-delta``: the level nearest to the wanted acceleration plus the error carried from the steps before
   (the carried error kept within one level), so the accelerations average out to the wanted ones over a few
   steps, as a bang-bang controller would.
