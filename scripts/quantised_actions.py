@@ -24,7 +24,6 @@ from lanefree_sumo.numerics import keep_numpy_portable
 keep_numpy_portable()  # before numpy is imported: the episodes `lanefree` gives (lanefree_sumo/numerics.py)
 
 import argparse  # noqa: E402
-from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -73,8 +72,6 @@ def drive(run: Path, mode: str, episodes: int) -> list[dict[str, Any]]:
     else:
         env_cfg = merge_config(cfg, {"action": {"kind": "discrete"}})
         quantiser = Quantiser(env_cfg, carry=mode == "sigma-delta")
-    act: Callable[[Any], Any] = (lambda a: a) if quantiser is None else (
-        lambda a: quantiser(np.array(action_to_acceleration(cfg, a, "quantised_actions"))))
     env = LaneFreeEnv(env_cfg)
     rows = []
     base_seed = cfg.seed + EVALUATION.seed_offset  # as lanefree evaluate: episode k drives base_seed + k
@@ -85,7 +82,9 @@ def drive(run: Path, mode: str, episodes: int) -> list[dict[str, Any]]:
         done = False
         while not done:
             action, _ = model.predict(obs, deterministic=True)
-            obs, _, terminated, truncated, _ = env.step(act(action))
+            if quantiser is not None:
+                action = quantiser(np.array(action_to_acceleration(cfg, action, "quantised_actions")))
+            obs, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
         rows.append(env.episode_metrics())
     env.close()

@@ -85,6 +85,19 @@ def fake_run(folder: Path, grid, cell: Cell, episodes: int, collisions: float = 
         record_session(folder, {"episodes_done": episodes, "ended": ended})
 
 
+def walls_from(folder: Path, episode: int, wall: float) -> None:
+    """Rewrite a run's episodes.csv so that its episodes from ``episode`` on took ``wall`` s each."""
+    path = folder / "episodes.csv"
+    rows = list(csv.DictReader(open(path)))
+    for row in rows:
+        if int(row["episode"]) >= episode:
+            row["wall_s"] = str(wall)
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 # -- grids ----------------------------------------------------------------------------------------
 
 def test_builtin_grids_are_the_papers_tables():
@@ -331,16 +344,6 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tm
         sweep.heartbeat(cell.name).parent.mkdir(parents=True, exist_ok=True)
         sweep.heartbeat(cell.name).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
 
-    def walls_from(cell: Cell, episode: int, wall: float) -> None:  # episodes from ``episode`` on took ``wall`` s
-        path = sweep.run(cell) / "episodes.csv"
-        rows = list(csv.DictReader(open(path)))
-        for row in rows:
-            row["wall_s"] = str(wall) if int(row["episode"]) >= episode else row["wall_s"]
-        with open(path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-
     assert time_line().startswith("time left: unknown until a run completes or has 25 episodes")
     fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 24, model=False, checkpoint=20, wall_s=50.0)
     assert time_line().startswith("time left: unknown until a run completes")  # 24 episodes: too few to tell
@@ -370,7 +373,7 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tm
     # a run resumed on another machine: its last session (episodes 31-60) sets its pace, not its 60 episodes
     shutil.rmtree(sweep.run(ddpg[2]))
     fake_run(sweep.run(ddpg[2]), grid, ddpg[2], 60, wall_s=140.0)
-    walls_from(ddpg[2], 31, 110.0)
+    walls_from(sweep.run(ddpg[2]), 31, 110.0)
     record_session(sweep.run(ddpg[2]), {"episodes_done": 60, "first_episode": 31, "ended": "2026-11-25T09:00:00"})
     assert "ddpg 110.0 (with runs training now)" in time_line()  # 120 training, 110, 100 (all its episodes: 125)
     fake_run(sweep.run(dqn[0]), grid, dqn[0], 60, wall_s=40.0)
@@ -393,13 +396,7 @@ def test_a_runs_pace_is_its_latest_sessions(tmp_path):
     assert _pace_sample(run, running=False) == (None, [])  # an unreadable column: no sample
     shutil.rmtree(run)
     fake_run(run, grid, cell, 80, wall_s=50.0)
-    rows = list(csv.DictReader(open(run / "episodes.csv")))
-    for row in rows[50:]:
-        row["wall_s"] = "20.0"
-    with open(run / "episodes.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    walls_from(run, 51, 20.0)
     record_session(run, {"episodes_done": 40, "first_episode": 1, "ended": "2026-11-24T10:00:00+00:00"})
     record_session(run, {"episodes_done": 80, "first_episode": 41, "ended": "2026-11-25T10:00:00+00:00"})
     assert _pace_sample(run, running=False) == ("2026-11-25T10:00:00+00:00", [50.0] * 10 + [20.0] * 30)
