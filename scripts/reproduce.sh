@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Issue 17's long runs, started and stopped the same way every session:
 #
-#   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper, 1 worker by default), the
-#                                                set-encoder sweep of the variable-dimension experiment
-#                                                (results/varobs/set) on another core if one is left (with as
-#                                                many paper workers as cores it is not started; a later `start`
-#                                                with fewer resumes it), and a watcher that runs
+#   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper) on PAPER_WORKERS cores (1 by
+#                                                default; 0 leaves it stopped), the set-encoder sweep of the
+#                                                variable-dimension experiment (results/varobs/set) on the
+#                                                cores left (none left: not started; a later `start` with
+#                                                fewer paper workers resumes it), and a watcher that runs
 #                                                scripts/update-results.sh whenever a run finishes
 #   scripts/reproduce.sh stop                    SIGTERM to both sweep drivers (every run saves a checkpoint) and
 #                                                the watcher; waits until they are gone
@@ -37,8 +37,8 @@ alive() {
 
 start() {
     local workers=${1:-1}
-    if ! [[ $workers =~ ^[1-9][0-9]{0,3}$ ]] || [ "$workers" -gt "$cores" ]; then
-        echo "reproduce.sh: PAPER_WORKERS must be a whole number from 1 to $cores (the cores), got '$workers'" >&2
+    if ! [[ $workers =~ ^[0-9]{1,4}$ ]] || [ "$workers" -gt "$cores" ]; then
+        echo "reproduce.sh: PAPER_WORKERS must be a whole number from 0 to $cores (the cores), got '$workers'" >&2
         exit 2
     fi
     for name in paper varobs watcher; do
@@ -58,25 +58,30 @@ start() {
 sys.exit(main())" "$marker")
     cd "$tree"
     # the paper sweep, every setting of Tables 5-8 with 3 seeds; its pid is the sweep driver's
-    if [ -f "$root/results/paper/sweep.yaml" ]; then
+    local paper="paper sweep ($workers worker(s))"
+    if [ "$workers" -eq 0 ]; then
+        paper="no paper sweep (0 workers asked for)"
+    elif [ -f "$root/results/paper/sweep.yaml" ]; then
         nohup "${cli[@]}" sweep --resume "$root/results/paper" --workers "$workers" --no-progress >>"$logs/paper.log" 2>&1 &
+        echo $! >"$logs/paper.pid"
     else
         nohup "${cli[@]}" sweep paper --seeds 3 --out "$root/results/paper" --workers "$workers" --no-progress \
             >>"$logs/paper.log" 2>&1 &
+        echo $! >"$logs/paper.pid"
     fi
-    echo $! >"$logs/paper.pid"
-    # part 3 on the other core: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells);
+    # part 3 on the cores left: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells);
     # never more runs than cores
-    local varobs="set-encoder sweep"
-    if [ "$workers" -ge "$cores" ]; then
+    local set_workers=$((cores - workers)) varobs
+    if [ "$set_workers" -eq 0 ]; then
         varobs="no set-encoder sweep (no core left)"
     else
+        varobs="set-encoder sweep ($set_workers worker(s))"
         if [ -f "$root/results/varobs/set/sweep.yaml" ]; then
-            nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers 1 --no-progress \
+            nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers "$set_workers" --no-progress \
                 >>"$logs/varobs.log" 2>&1 &
         else
-            nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" --workers 1 \
-                --no-progress >>"$logs/varobs.log" 2>&1 &
+            nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" \
+                --workers "$set_workers" --no-progress >>"$logs/varobs.log" 2>&1 &
         fi
         echo $! >"$logs/varobs.pid"
     fi
@@ -95,7 +100,7 @@ sys.exit(main())" "$marker")
             sleep 300
         done' "$marker" >>"$logs/watcher.log" 2>&1 &
     echo $! >"$logs/watcher.pid"
-    echo "started at $commit (code in $tree): paper sweep ($workers worker(s)), $varobs, watcher; logs in $logs"
+    echo "started at $commit (code in $tree): $paper, $varobs, watcher; logs in $logs"
 }
 
 stop() {

@@ -84,7 +84,7 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
     script = str(tmp_path / "scripts" / "reproduce.sh")
     cores = len(os.sched_getaffinity(0))  # what nproc counts without OMP_NUM_THREADS, which must not count
     env = {**os.environ, "OMP_NUM_THREADS": str(cores + 8)}
-    for bad in ("abc", "0", "-1", str(cores + 1), "9" * 20):  # more paper workers than cores: more runs than cores
+    for bad in ("abc", "-1", "1.5", str(cores + 1), "9" * 20):  # more paper workers than cores: more runs than cores
         refused = subprocess.run(["bash", script, "start", bad], capture_output=True, text=True, timeout=60,
                                  cwd=tmp_path, env=env)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and f"'{bad}'" in refused.stderr
@@ -93,9 +93,9 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
     assert not (tmp_path / ".worktrees" / "logs" / "paper.pid").exists()
 
 
-def test_reproduce_starts_the_set_sweep_only_on_a_core_the_paper_sweep_leaves_and_stops_everything(tmp_path):
-    """``start N``: the paper sweep on N workers, the set-encoder sweep beside it only when N < cores (never
-    more runs than cores), the watcher; ``stop`` ends every one of them. The venv's python is a stand-in that
+def test_reproduce_gives_the_set_sweep_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
+    """``start N``: the paper sweep on N workers (none for 0), the set-encoder sweep on the cores - N left
+    (none when N = cores: never more runs than cores), the watcher; ``stop`` ends every one of them. The venv's python is a stand-in that
     records its arguments and runs until SIGTERM, so no real sweep starts."""
     root = tmp_path / "checkout"
     (root / "scripts").mkdir(parents=True)
@@ -124,7 +124,8 @@ def test_reproduce_starts_the_set_sweep_only_on_a_core_the_paper_sweep_leaves_an
         started = subprocess.run(["bash", script, "start", str(workers)], capture_output=True, text=True, timeout=120)
         assert started.returncode == 0, started.stderr
         drivers = [name for name in ("paper", "varobs") if (logs / f"{name}.pid").exists()]  # written by start
-        assert drivers == (["paper"] if workers >= cores else ["paper", "varobs"]), started.stdout
+        expected = (["paper"] if workers else []) + (["varobs"] if workers < cores else [])
+        assert drivers == expected, started.stdout
         pids = [int((logs / f"{name}.pid").read_text()) for name in (*drivers, "watcher")]
         deadline = time.monotonic() + 120
         while not (calls.exists() and len(calls.read_text().splitlines()) == len(drivers) and watched.exists()):
@@ -143,7 +144,10 @@ def test_reproduce_starts_the_set_sweep_only_on_a_core_the_paper_sweep_leaves_an
             beside, said = start_and_stop(1)
             assert sorted("results/varobs/set" in call for call in beside) == [False, True]
             assert any("--workers 1" in call and "results/paper" in call for call in beside)
-            assert "set-encoder sweep," in said
+            assert f"set-encoder sweep ({cores - 1} worker(s))" in said
+        only_set, said = start_and_stop(0)  # the paper sweep done: every core to the set-encoder sweep
+        assert len(only_set) == 1 and f"--workers {cores}" in only_set[0] and "results/varobs/set" in only_set[0]
+        assert "no paper sweep" in said
     finally:  # a failed assertion leaves no stand-in running
         subprocess.run(["bash", script, "stop"], capture_output=True, timeout=120)
 
