@@ -56,7 +56,7 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not sumo and not gui and not slow"
 
 lint: $(STAMP)
-	$(BIN)/ruff check lanefree_sumo tests
+	$(BIN)/ruff check lanefree_sumo tests scripts
 	$(BIN)/mypy
 
 train: system-deps $(STAMP)

@@ -16,7 +16,7 @@ import pytest
 
 from conftest import ROOT, lanefree
 
-SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh")
+SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py")
 CELL = "ddpg_fields_zones_overtake_collision_d70_s0"  # a paper sweep cell and the vector baseline's seed 0
 EPISODES = 4  # per evaluation (50 in make results)
 
@@ -40,6 +40,7 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     for name in SCRIPTS:
         shutil.copy2(ROOT / "scripts" / name, root / "scripts" / name)
     (root / ".venv").symlink_to(sys.prefix)  # the venv running this suite (its lanefree command)
+    (root / "README.md").write_text("# results\n<!-- results-table -->\nstale\n<!-- /results-table -->\nafter\n")
     grid = tmp_path / "one.yaml"
     grid.write_text("reward_presets: [fields_zones_overtake_collision]\nn_seeds: 1\nepisodes: 2\n"
                     "overrides: {sim: {episode_steps: 40}, train: {checkpoint_every_episodes: 1}}\n")
@@ -65,6 +66,10 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     transfer = (root / "results" / "varobs" / "report_transfer" / "summary.md").read_text()
     assert all(f"| `{name}` |" in transfer for name in ("eval", "eval_d90", "eval_d120", "eval_onramp"))
     assert (root / "results" / "varobs" / "report" / "summary.md").is_file()
+    readme = (root / "README.md").read_text()  # its table rewritten from the summary, the rest kept
+    assert "stale" not in readme and readme.startswith("# results\n") and readme.endswith("-->\nafter\n")
+    assert "| fields_zones_overtake_collision | 1 of 1 |" not in readme  # every planned run: the count alone
+    assert "| fields_zones_overtake_collision | 1 | " in readme and " [n/a] (0.449) |" in readme
 
     # a second pass evaluates nothing again, but an evaluation stopped part-way (it keeps the episodes it
     # finished) is run again whole
@@ -76,6 +81,29 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     assert again.returncode == 0, again.stdout + again.stderr
     assert {p: p.stat().st_mtime_ns for p in evaluations} == evaluations and len(evaluations) == 4
     assert rows(cut) == EPISODES
+
+
+def test_the_readme_results_table_is_the_committed_summary():
+    """README.md's table is what scripts/readme_results.py makes of the committed results/paper/summary.csv:
+    committing a new summary without its README table fails here."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import readme_results
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    expected = readme_results.table(ROOT / "results" / "paper" / "summary.csv")
+    readme = (ROOT / "README.md").read_text()
+    assert f"{readme_results.BEGIN}\n{expected}\n{readme_results.END}" in readme
+    assert expected.count("\n") == 1 + rows(ROOT / "results" / "paper" / "summary.csv") >= 16  # 15 settings
+
+
+def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_leaves_it(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text("# no table here\n")
+    refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--readme", str(readme)],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "results-table" in refused.stderr
+    assert readme.read_text() == "# no table here\n"
 
 
 def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anything(tmp_path):
@@ -95,8 +123,8 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
 
 def test_reproduce_gives_the_set_sweep_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
     """``start N``: the paper sweep on N workers (none for 0), the set-encoder sweep on the cores - N left
-    (none when N = cores: never more runs than cores), the watcher; ``stop`` ends every one of them. The venv's python is a stand-in that
-    records its arguments and runs until SIGTERM, so no real sweep starts."""
+    (none when N = cores: never more runs than cores), the watcher; ``stop`` ends every one of them. The
+    venv's python is a stand-in that records its arguments and runs until SIGTERM, so no real sweep starts."""
     root = tmp_path / "checkout"
     (root / "scripts").mkdir(parents=True)
     shutil.copy2(ROOT / "scripts" / "reproduce.sh", root / "scripts" / "reproduce.sh")

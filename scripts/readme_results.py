@@ -1,0 +1,104 @@
+"""Rewrite the README's results table from a sweep's ``summary.csv`` (issue 17: one source for the numbers).
+
+The table sits between ``<!-- results-table -->`` and ``<!-- /results-table -->`` in README.md; one row per
+setting of the summary, in its order: runs complete, and per metric the mean over runs [95 % bootstrap CI
+over runs] (the paper's value). Everything outside the markers is left as it is; the file is replaced whole
+(written next to it, then renamed), so a reader never sees half a table.
+
+    python scripts/readme_results.py [--summary results/paper/summary.csv] [--readme README.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+BEGIN, END = "<!-- results-table -->", "<!-- /results-table -->"
+ALGORITHM_LABELS = {"ddpg": "", "dqn": "**DQN**", "ddqn": "**DDQN**", "dueling": "**dueling DDQN**",
+                    "per": "**PER** (DDQN, prioritised replay)"}
+HEADER = ("| DDPG unless noted, reward preset (70 veh/km unless noted) | runs | collisions / episode (paper) "
+          "| speed deviation, m/s (paper) |\n|---|---|---|---|")
+
+
+def cell(row: dict[str, str], metric: str, digits: int = 2) -> str:
+    """``mean [low, high] (paper)`` of ``metric``; ``n/a`` for the CI below two runs, ``–`` without runs."""
+    paper = row[f"paper_{metric}"]
+    paper_text = f" ({paper})" if paper else ""
+    if int(row["n_runs"]) == 0 or not row[f"{metric}_mean"]:
+        return f"–{paper_text}"
+    mean = float(row[f"{metric}_mean"])
+    low, high = row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"]
+    if int(row["n_runs"]) < 2 or not low or math.isnan(float(low)):
+        interval = "n/a"
+    else:
+        interval = f"{float(low):.{digits}f}, {float(high):.{digits}f}"
+    return f"{mean:.{digits}f} [{interval}]{paper_text}"
+
+
+def label(row: dict[str, str]) -> str:
+    """The setting as the README names it: algorithm when not DDPG, preset, density when not 70 veh/km."""
+    parts = [ALGORITHM_LABELS.get(row["algorithm"], f"**{row['algorithm']}**"), row["reward_preset"]]
+    density = float(row["density"])
+    if density != 70.0:
+        parts.append(f"**{density:g} veh/km**")
+    return ", ".join(part for part in parts if part)
+
+
+def table(summary: Path) -> str:
+    """The markdown table of every setting in ``summary`` (a sweep's summary.csv)."""
+    with summary.open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    lines = [HEADER]
+    for row in rows:
+        runs = row["n_runs"] if row["n_runs"] == row["runs_planned"] else f"{row['n_runs']} of {row['runs_planned']}"
+        lines.append(f"| {label(row)} | {runs} | {cell(row, 'collisions')} | {cell(row, 'speed_dev_mps')} |")
+    return "\n".join(lines)
+
+
+def rewrite(readme: Path, new_table: str) -> bool:
+    """Put ``new_table`` between the markers of ``readme``; True when the file changed."""
+    text = readme.read_text()
+    if text.count(BEGIN) != 1 or text.count(END) != 1 or text.index(BEGIN) > text.index(END):
+        raise ValueError(f"{readme} needs one '{BEGIN}' line before one '{END}' line around the results table")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    updated = f"{head}{BEGIN}\n{new_table}\n{END}{tail}"
+    if updated == text:
+        return False
+    with tempfile.NamedTemporaryFile("w", dir=readme.parent, prefix=f".{readme.name}.", delete=False) as out:
+        out.write(updated)
+    os.chmod(out.name, readme.stat().st_mode & 0o777)
+    os.replace(out.name, readme)
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--summary", type=Path, default=ROOT / "results" / "paper" / "summary.csv",
+                        help="a sweep's summary.csv (lanefree report writes it)")
+    parser.add_argument("--readme", type=Path, default=ROOT / "README.md", help="the file holding the markers")
+    args = parser.parse_args(argv)
+    for path in (args.summary, args.readme):
+        if not path.is_file():
+            print(f"readme_results: {path} does not exist; run `lanefree report` on the sweep first", file=sys.stderr)
+            return 2
+    try:
+        changed = rewrite(args.readme, table(args.summary))
+    except ValueError as error:
+        print(f"readme_results: {error}", file=sys.stderr)
+        return 2
+    except KeyError as error:
+        print(f"readme_results: {args.summary} has no column {error}; is it a sweep's summary.csv?", file=sys.stderr)
+        return 2
+    print(f"{args.readme}: results table {'rewritten' if changed else 'already up to date'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
