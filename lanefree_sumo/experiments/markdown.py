@@ -17,14 +17,16 @@ TABLE_END = "<!-- /table -->"
 """The line after a result file's table."""
 
 
-def table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+def table(headers: Sequence[str], rows: Sequence[Sequence[str]], fence: str = "table") -> list[str]:
     """The lines of a Markdown table of ``headers`` and ``rows`` (cells already formatted), fenced by
-    :data:`TABLE_BEGIN` and :data:`TABLE_END` with a blank line on either side of the table."""
+    :data:`TABLE_BEGIN` and :data:`TABLE_END` with a blank line on either side of the table (a second
+    table of the same file by ``<!-- fence -->`` and ``<!-- /fence -->``)."""
     width = len(headers)
     if any(len(row) != width for row in rows):
         raise ValueError(f"every row needs {width} cells, one per header")
-    return [TABLE_BEGIN, "",
+    begin, end = (TABLE_BEGIN, TABLE_END) if fence == "table" else (f"<!-- {fence} -->", f"<!-- /{fence} -->")
+    return [begin, "",
             "| " + " | ".join(headers) + " |",
             "|" + "|".join("---" for _ in headers) + "|",
             *("| " + " | ".join(row) + " |" for row in rows),
-            "", TABLE_END]
+            "", end]

@@ -113,7 +113,7 @@ class ReportResult:
     """Things worth knowing that did not stop a run being used (short runs, repeated seeds)."""
 
 
-class _UnusableRunError(Exception):
+class UnusableRunError(Exception):
     """A run folder that must be skipped; the message is the reason."""
 
 
@@ -134,12 +134,12 @@ def variant_of(cfg: LaneFreeConfig) -> str:
 def read_run_config(run: Path) -> tuple[str, str, float, int, str]:
     """(algorithm, reward preset, density veh/km, seed, variant) from ``run/config.yaml``.
 
-    Raises ``_UnusableRunError`` (internal) with the reason when the file is missing or malformed.
+    Raises ``UnusableRunError`` with the reason when the file is missing or malformed.
     """
     try:
         cfg = read_config(run)
     except RunError as exc:
-        raise _UnusableRunError(str(exc)) from None
+        raise UnusableRunError(str(exc)) from None
     return (cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed,
             variant_of(cfg))
 
@@ -150,20 +150,20 @@ def read_episodes(path: Path) -> pd.DataFrame:
 
     Strict: every non-blank row must have as many fields as the header (a last line cut in the
     middle fails here), required values must be finite numbers, episode numbers integral and
-    unique (per agent). Raises ``_UnusableRunError`` (internal) with the reason, naming the line.
+    unique (per agent). Raises ``UnusableRunError`` with the reason, naming the line.
     """
     if not path.is_file():
-        raise _UnusableRunError("no episodes.csv")
+        raise UnusableRunError("no episodes.csv")
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.reader(fh)
             header = next(reader, None)
             if header is None:
-                raise _UnusableRunError("episodes.csv is empty")
+                raise UnusableRunError("episodes.csv is empty")
             header = [h.strip() for h in header]
             missing = [c for c in REQUIRED_COLUMNS if c not in header]
             if missing:
-                raise _UnusableRunError(f"episodes.csv lacks column(s) {', '.join(missing)}")
+                raise UnusableRunError(f"episodes.csv lacks column(s) {', '.join(missing)}")
             index = {c: header.index(c) for c in REQUIRED_COLUMNS}
             agent_at = header.index("agent") if "agent" in header else None
             agents: list[str] = []
@@ -174,7 +174,7 @@ def read_episodes(path: Path) -> pd.DataFrame:
                 line = reader.line_num
                 if len(fields) != len(header):
                     cut = " (file cut mid-row?)" if len(fields) < len(header) else ""
-                    raise _UnusableRunError(
+                    raise UnusableRunError(
                         f"episodes.csv line {line} has {len(fields)} fields, header has {len(header)}{cut}")
                 row = []
                 for col in REQUIRED_COLUMNS:
@@ -184,29 +184,29 @@ def read_episodes(path: Path) -> pd.DataFrame:
                     except ValueError:
                         value = math.nan
                     if not math.isfinite(value):
-                        raise _UnusableRunError(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
+                        raise UnusableRunError(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
                     row.append(value)
                 rows.append(row)
                 if agent_at is not None:
                     agents.append(fields[agent_at].strip())
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise _UnusableRunError(f"episodes.csv unreadable ({_one_line(exc)})") from None
+        raise UnusableRunError(f"episodes.csv unreadable ({_one_line(exc)})") from None
     return _episode_frame(rows, agents)
 
 
 def _episode_frame(rows: list[list[float]], agents: list[str]) -> pd.DataFrame:
     """:func:`read_episodes`' frame of the rows read (``agents``: each row's agent, or empty)."""
     if not rows:
-        raise _UnusableRunError("episodes.csv has no episodes")
+        raise UnusableRunError("episodes.csv has no episodes")
     frame = pd.DataFrame(rows, columns=list(REQUIRED_COLUMNS))
     if not np.all(frame["episode"] == np.round(frame["episode"])):
-        raise _UnusableRunError("episodes.csv has a non-integer episode number")
+        raise UnusableRunError("episodes.csv has a non-integer episode number")
     frame["episode"] = frame["episode"].astype(int)
     keys = frame[["episode"]].assign(agent=agents) if agents else frame[["episode"]]
     repeated = frame["episode"][keys.duplicated()]
     if len(repeated):
         who = " for one agent" if agents else ""
-        raise _UnusableRunError(f"episodes.csv has episode {int(repeated.iloc[0])} more than once{who}")
+        raise UnusableRunError(f"episodes.csv has episode {int(repeated.iloc[0])} more than once{who}")
     if agents:
         return frame.groupby("episode").mean().sort_index()
     return frame.set_index("episode").sort_index()
@@ -225,15 +225,15 @@ def _evaluated_density(path: Path, trained: float) -> float:
 def read_run(run: Path, source: str = "") -> RunData:
     """Read one run folder — its training ``episodes.csv``, or with ``source`` the one of its
     evaluation folder ``run/<source>/`` (e.g. ``eval``, ``eval_d120_shield``); raises
-    ``_UnusableRunError`` (internal) with the reason to skip it."""
+    ``UnusableRunError`` with the reason to skip it."""
     if not run.is_dir():
-        raise _UnusableRunError("not a folder" if run.exists() else "folder does not exist")
+        raise UnusableRunError("not a folder" if run.exists() else "folder does not exist")
     algo, preset, density, seed, variant = read_run_config(run)
     if not source:
         return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES), variant)
     path = run / source / EPISODES
     if not path.is_file():
-        raise _UnusableRunError(f"no {source}/{EPISODES} (run 'lanefree evaluate' first)")
+        raise UnusableRunError(f"no {source}/{EPISODES} (run 'lanefree evaluate' first)")
     return RunData(run, algo, preset, _evaluated_density(path, density), seed, read_episodes(path), variant)
 
 
@@ -372,7 +372,7 @@ def _read_usable(runs: Sequence[Path], source: str) -> tuple[list[RunData], list
         seen.add(resolved)
         try:
             usable.append(read_run(run, source))
-        except _UnusableRunError as exc:
+        except UnusableRunError as exc:
             skipped.append((run, _one_line(str(exc))))
     return usable, skipped, notes
 

@@ -33,12 +33,12 @@ import yaml
 from lanefree_sumo.cli import main
 from lanefree_sumo.config import merge_config
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
-from lanefree_sumo.experiments.rundir import record_session, write_config
+from lanefree_sumo.experiments.rundir import RunDir, record_session, write_config
 from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
 from lanefree_sumo.experiments.sweep.grid import Cell, builtin_grid, load_grid, parse_grid
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
-from lanefree_sumo.experiments.sweep.summary import COLUMNS, bootstrap_ci, summarize
+from lanefree_sumo.experiments.sweep.summary import COLUMNS, RUN_COLUMNS, bootstrap_ci, summarize
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
 from conftest import CLI_ENV, fenced_rows, lanefree, lanefree_popen
@@ -304,6 +304,15 @@ def test_summary_and_status_from_run_folders(tmp_path):
         fake_run(sweep.run(cell), grid, cell, 60, collisions=collisions)
     shutil.rmtree(sweep.run(cells[-1]))
     fake_run(sweep.run(cells[-1]), grid, cells[-1], 30, model=False, checkpoint=25)  # not complete: left out
+    evaluated = RunDir(sweep.run(cells[0])).eval_dir()  # fields_collision seed 0: 2 deterministic episodes
+    evaluated.mkdir()
+    with open(evaluated / "episodes.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=EPISODE_COLUMNS, extrasaction="ignore", restval="0")
+        writer.writeheader()
+        writer.writerows({"episode": e, "collisions": c, "speed_dev_mps": 0.75} for e, c in ((1, 0.0), (2, 0.5)))
+    shielded = RunDir(sweep.run(cells[1])).eval_dir(shield=True)  # collision seed 0: a broken shielded one
+    shielded.mkdir()
+    (shielded / "episodes.csv").write_text("episode,return\n1,2\n")
     result = summarize(tmp_path)
     table = result.table
     assert tuple(table.columns) == COLUMNS
@@ -322,6 +331,19 @@ def test_summary_and_status_from_run_folders(tmp_path):
     assert [(c["a"], c["b"], c["n_a"], c["n_b"], c["verdict"]) for c in claims] == \
         [("ddpg/collision/70", "ddpg/fields_collision/70", "2", "3", "no data")]
     assert f"runs/{cells[-1].name}" in md and "2/3" in md
+    per_run = list(csv.DictReader(open(tmp_path / "runs.csv")))  # every complete run, grouped as the table
+    assert tuple(per_run[0]) == RUN_COLUMNS and len(per_run) == 5
+    assert [(r["reward_preset"], r["seed"]) for r in per_run] == [
+        ("fields_collision", "0"), ("fields_collision", "1"), ("fields_collision", "2"),
+        ("collision", "0"), ("collision", "1")]
+    first = per_run[0]
+    assert (float(first["collisions"]), first["eval_episodes"], float(first["eval_collisions"]),
+            float(first["eval_speed_dev_mps"]), first["eval_shield_episodes"]) == \
+        (pytest.approx(0.4), "2", 0.25, 0.75, "0")
+    assert per_run[3]["eval_shield_episodes"] == "0" and per_run[3]["eval_shield_collisions"] == ""  # unreadable
+    runs_table = md[md.index("<!-- runs -->"):md.index("<!-- /runs -->")]
+    assert "| ddpg | fields_collision | 70 | 0 | 0.40 | 0.20 | 0 | 0.25 / 0.75 (2) | – |" in runs_table
+    assert "| ddpg | collision | 70 | 1 | 1.30 | 0.65 | 0 | – | – |" in runs_table
     assert {p.name for p in (tmp_path / "curves").iterdir()} == {"table5_collisions.png", "table5_return.png",
                                                                  "table5_speed_dev.png"}
     status = status_text(tmp_path)
@@ -422,7 +444,7 @@ def test_a_setting_in_several_tables_is_drawn_once(tmp_path):
     result = summarize(tmp_path)
     assert sorted(p.name for p in (tmp_path / "curves").iterdir()) == \
         ["table6_collisions.png", "table6_return.png", "table6_speed_dev.png"]
-    assert [p.name for p in result.files[3:]] == ["summary.csv", "summary.md"]  # no claim compares one setting
+    assert [p.name for p in result.files[3:]] == ["summary.csv", "runs.csv", "summary.md"]  # no claim: one setting
     assert not (tmp_path / "claims.csv").exists() and not (tmp_path / "claims.md").exists()
     md = (tmp_path / "summary.md").read_text()
     assert "- Table 6, Table 7, Table 8: [return](curves/table6_return.png)" in md

@@ -34,6 +34,7 @@ SUMMARY_CSV = "summary.csv"
 SUMMARY_MD = "summary.md"
 CLAIMS_CSV = "claims.csv"
 CLAIMS_MD = "claims.md"
+RUNS_CSV = "runs.csv"
 CURVES = "curves"
 FORMAT = 1
 """Version of the manifest layout."""
@@ -89,6 +90,10 @@ class SweepDir:
     @property
     def summary_md(self) -> Path:
         return self.path / SUMMARY_MD
+
+    @property
+    def runs_csv(self) -> Path:
+        return self.path / RUNS_CSV
 
     @property
     def claims_csv(self) -> Path:

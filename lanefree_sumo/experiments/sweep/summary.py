@@ -12,6 +12,9 @@ Definitions (SPEC §8, §10):
   random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
   very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
 * **Paper values**: SPEC §10 where the paper has the setting.
+* **Every run**: ``runs.csv`` and the second table of ``summary.md``, one row per complete run: its
+  last-``last`` means, and the means over all episodes of its deterministic (``eval/``) and shielded
+  (``eval_shield/``) evaluations where it has them (``lanefree evaluate``; empty where it has none).
 * **Claims**: ``claims.csv``/``claims.md``, the paper's claims that compare two of the grid's
   settings, checked on the complete runs (:mod:`lanefree_sumo.experiments.claims`); neither file
   when no claim does (a grid of one setting).
@@ -24,6 +27,11 @@ episode), speed_dev_mps_mean, speed_dev_mps_ci95_low, speed_dev_mps_ci95_high (m
 paper_collisions, paper_speed_dev_mps, collisions_ratio, speed_dev_mps_ratio (ours / the paper's), then
 runs_planned, seeds, episode_steps, last_episodes,
 reduced_budget, paper_source.
+
+Columns of ``runs.csv``: run (folder name), algorithm, reward_preset, density (veh/km), seed, episodes,
+collisions, speed_dev_mps (m/s), overtakes, return (means over the last ``last`` episodes), then per
+evaluation (``eval``, ``eval_shield``) ``<evaluation>_episodes`` (how many), ``<evaluation>_collisions``
+and ``<evaluation>_speed_dev_mps`` (means over them).
 """
 
 from __future__ import annotations
@@ -43,8 +51,8 @@ from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.report import RunData, group_runs, read_run
-from lanefree_sumo.experiments.rundir import RunDir
+from lanefree_sumo.experiments.report import RunData, UnusableRunError, group_runs, read_episodes, read_run
+from lanefree_sumo.experiments.rundir import EPISODES, RunDir
 from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
 from lanefree_sumo.experiments.sweep.grid import Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
@@ -57,6 +65,14 @@ COLUMNS = (
     "speed_dev_mps_mean", "speed_dev_mps_ci95_low", "speed_dev_mps_ci95_high",
     "paper_collisions", "paper_speed_dev_mps", "collisions_ratio", "speed_dev_mps_ratio",
     "runs_planned", "seeds", "episode_steps", "last_episodes", "reduced_budget", "paper_source",
+)
+
+RUN_METRICS = ("collisions", "speed_dev_mps", "overtakes", "return")
+EVALUATIONS = (("eval", None), ("eval_shield", True))
+"""(column prefix, ``shield`` of :meth:`RunDir.eval_dir`): the deterministic and the shielded evaluation."""
+RUN_COLUMNS = (
+    "run", "algorithm", "reward_preset", "density", "seed", "episodes", *RUN_METRICS,
+    *(f"{name}_{column}" for name, _ in EVALUATIONS for column in ("episodes", "collisions", "speed_dev_mps")),
 )
 
 
@@ -97,6 +113,49 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
     return pd.DataFrame.from_records(records, columns=list(COLUMNS))
 
 
+def _run_rows(runs: Sequence[RunData], last: int) -> pd.DataFrame:
+    """``runs.csv``: one row per run (see the module's docstring)."""
+    records = []
+    for run in runs:
+        rec: dict[str, Any] = {"run": run.path.name, "algorithm": run.algorithm, "reward_preset": run.preset,
+                               "density": run.density, "seed": run.seed, "episodes": len(run.episodes)}
+        rec.update({metric: float(run.episodes[metric].tail(last).mean()) for metric in RUN_METRICS})
+        for name, shield in EVALUATIONS:
+            try:
+                episodes = read_episodes(RunDir(run.path).eval_dir(shield=shield) / EPISODES)
+            except UnusableRunError:  # not evaluated (yet), or an evaluation cut short mid-row
+                episodes = pd.DataFrame(columns=["collisions", "speed_dev_mps"])
+            rec[f"{name}_episodes"] = len(episodes)
+            for metric in ("collisions", "speed_dev_mps"):
+                rec[f"{name}_{metric}"] = float(episodes[metric].mean()) if len(episodes) else math.nan
+        records.append(rec)
+    return pd.DataFrame.from_records(records, columns=list(RUN_COLUMNS))
+
+
+def _runs_markdown(runs: pd.DataFrame, last: int) -> list[str]:
+    """The "every run" section of ``summary.md``, fenced by ``<!-- runs -->``."""
+    def value(row: pd.Series, column: str, fmt: str) -> str:
+        return "–" if pd.isna(row[column]) else f"{row[column]:{fmt}}"
+
+    def evaluation(row: pd.Series, name: str) -> str:
+        if not row[f"{name}_episodes"]:
+            return "–"
+        return (f"{row[f'{name}_collisions']:.2f} / {row[f'{name}_speed_dev_mps']:.2f} "
+                f"({row[f'{name}_episodes']:d})")
+
+    headers = ["algorithm", "reward preset", "density (veh/km)", "seed", f"collisions, last {last}",
+               f"speed deviation (m/s), last {last}", f"overtakes, last {last}",
+               "deterministic: collisions / speed deviation (episodes)", "shielded: the same"]
+    rows = [[str(row["algorithm"]), str(row["reward_preset"]), f"{row['density']:g}", str(row["seed"]),
+             value(row, "collisions", ".2f"), value(row, "speed_dev_mps", ".2f"), value(row, "overtakes", ".0f"),
+             evaluation(row, "eval"), evaluation(row, "eval_shield")] for _, row in runs.iterrows()]
+    return ["", "## Every run", "",
+            f"Training: the mean over a run's last {last} episodes (with exploration noise). Deterministic "
+            "(`eval/`) and shielded (`eval_shield/`): the mean over the evaluation's episodes, their number "
+            "in brackets (`lanefree evaluate`; – where the run has none). Also in `runs.csv`.", "",
+            *markdown.table(headers, rows, fence="runs")]
+
+
 def _cell(row: pd.Series, metric: str, paper_col: str) -> str:
     mean, low, high, paper = (row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"],
                               row[paper_col])
@@ -113,7 +172,8 @@ def _cell(row: pd.Series, metric: str, paper_col: str) -> str:
 
 
 def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Path]], out: Path,
-                     incomplete: Sequence[tuple[str, str]], notes: Sequence[str], last: int) -> str:
+                     incomplete: Sequence[tuple[str, str]], notes: Sequence[str], last: int,
+                     runs: pd.DataFrame | None = None) -> str:
     budget = grid.budget()
     lines = [f"# Sweep `{grid.name}`: summary", ""]
     if budget["reduced"]:
@@ -143,6 +203,8 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
         for shared, groups in titles.items():
             links = ", ".join(f"[{p.stem.split('_', 1)[1]}]({p.relative_to(out)})" for p in shared)
             lines.append(f"- {', '.join(groups)}: {links}")
+    if runs is not None and len(runs):
+        lines += _runs_markdown(runs, last)
     if incomplete:
         lines += ["", f"## Runs not (yet) in the table ({len(incomplete)})", ""]
         lines += [f"- `runs/{name}`: {state}" for name, state in incomplete]
@@ -205,13 +267,17 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
         notes.append(f"runs have {grid.episodes} episodes (< {last}); each run's mean uses all of them")
     groups = {key[:3]: members for key, members in group_runs(runs).items()}  # one variant: the grid's overrides
     table = _rows(grid, groups, last)
+    order = {_key(setting): position for position, setting in enumerate(grid.settings)}  # the table's rows
+    per_run = _run_rows(sorted(runs, key=lambda r: (order[(r.algorithm, r.preset, round(r.density, 6))], r.seed)),
+                        last)
     try:
         curves, plot_notes = _plot(grid, groups, sweep.curves, smooth)
         table.to_csv(sweep.summary_csv, index=False)
+        per_run.to_csv(sweep.runs_csv, index=False)
         write_atomic(sweep.summary_md, summary_markdown(grid, table, curves, folder, incomplete,
-                                                        notes + plot_notes, last))
+                                                        notes + plot_notes, last, per_run))
         files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [
-            sweep.summary_csv, sweep.summary_md]
+            sweep.summary_csv, sweep.runs_csv, sweep.summary_md]
         comparisons = decidable((s.algorithm, s.preset, s.density) for s in grid.settings)
         if comparisons:
             claims = check_claims(groups, last, comparisons)
