@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Issue 17: bring the committed result files up to date after runs finish. Evaluates every finished run of
 # the paper sweep that still has its model (deterministic and shielded, 50 episodes each), rewrites the
-# sweep's summary, claims and curves, both evaluation tables and README.md's results table
-# (scripts/readme_results.py) from the committed episodes.csv files, then
-# runs the variable-dimension evaluations and reports (scripts/varobs-transfer.sh). Resumable: it only
-# evaluates what is missing. Usage: scripts/update-results.sh [EPISODES]   (make results; EPISODES per
+# sweep's summary, claims and curves, both evaluation tables, the collisions-against-overtakes figure and
+# README.md's results table (scripts/collisions_vs_overtakes.py, readme_results.py) from the committed
+# episodes.csv files, then runs the variable-dimension evaluations and reports (scripts/varobs-transfer.sh).
+# Resumable: it only evaluates what is missing. Usage: scripts/update-results.sh [EPISODES]   (make results; EPISODES per
 # evaluation, default 50)
 set -euo pipefail
 cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., on any machine
@@ -26,6 +26,7 @@ for eval in eval eval_shield; do
         "$bin" report "${finished[@]}" --eval "$eval" --out "$paper/${eval}_report" >/dev/null
     fi
 done
+.venv/bin/python scripts/collisions_vs_overtakes.py "$paper" >/dev/null
 if [ -f README.md ] && [ -f "$paper/summary.csv" ]; then .venv/bin/python scripts/readme_results.py >/dev/null; fi
 scripts/varobs-transfer.sh "$episodes" >/dev/null
-echo "results updated: $paper (summary.md, claims.md, eval_report/, eval_shield_report/), README.md's table, results/varobs/report*/"
+echo "results updated: $paper (summary.md, runs.csv, claims.md, eval_report/, eval_shield_report/, collisions_vs_overtakes.png), README.md's table, results/varobs/report*/"

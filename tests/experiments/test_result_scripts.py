@@ -16,7 +16,8 @@ import pytest
 
 from conftest import ROOT, lanefree
 
-SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py")
+SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py",
+           "collisions_vs_overtakes.py")
 CELL = "ddpg_fields_zones_overtake_collision_d70_s0"  # a paper sweep cell and the vector baseline's seed 0
 EPISODES = 4  # per evaluation (50 in make results)
 
@@ -60,6 +61,7 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
         assert rows(run / folder / "episodes.csv") == EPISODES, folder
     assert {r["density"] for r in csv.DictReader(open(run / "eval_d90" / "episodes.csv"))} == {"90.0"}
     assert (paper / "summary.md").is_file() and not (paper / "claims.md").exists()  # one setting: no claim
+    assert rows(paper / "runs.csv") == 1 and (paper / "collisions_vs_overtakes.png").stat().st_size > 0
     for report in ("eval_report", "eval_shield_report"):
         text = (paper / report / "summary.md").read_text()
         assert "| ddpg | fields_zones_overtake_collision | 70 |" in text and "Skipped runs" not in text
@@ -104,6 +106,17 @@ def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_lea
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "results-table" in refused.stderr
     assert readme.read_text() == "# no table here\n"
+
+
+def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):
+    refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "collisions_vs_overtakes.py"), str(tmp_path)],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "lanefree report" in refused.stderr
+    (tmp_path / "runs.csv").write_text("run,seed\nx,0\n")
+    refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "collisions_vs_overtakes.py"), str(tmp_path)],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "lacks column(s)" in refused.stderr
+    assert not (tmp_path / "collisions_vs_overtakes.png").exists()
 
 
 def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anything(tmp_path):

@@ -30,8 +30,8 @@ reduced_budget, paper_source.
 
 Columns of ``runs.csv``: run (folder name), algorithm, reward_preset, density (veh/km), seed, episodes,
 collisions, speed_dev_mps (m/s), overtakes, return (means over the last ``last`` episodes), then per
-evaluation (``eval``, ``eval_shield``) ``<evaluation>_episodes`` (how many), ``<evaluation>_collisions``
-and ``<evaluation>_speed_dev_mps`` (means over them).
+evaluation (``eval``, ``eval_shield``) ``<evaluation>_episodes`` (how many), ``<evaluation>_collisions``,
+``<evaluation>_speed_dev_mps`` and ``<evaluation>_overtakes`` (means over them).
 """
 
 from __future__ import annotations
@@ -68,11 +68,12 @@ COLUMNS = (
 )
 
 RUN_METRICS = ("collisions", "speed_dev_mps", "overtakes", "return")
+EVALUATION_METRICS = ("collisions", "speed_dev_mps", "overtakes")
 EVALUATIONS = (("eval", None), ("eval_shield", True))
 """(column prefix, ``shield`` of :meth:`RunDir.eval_dir`): the deterministic and the shielded evaluation."""
 RUN_COLUMNS = (
     "run", "algorithm", "reward_preset", "density", "seed", "episodes", *RUN_METRICS,
-    *(f"{name}_{column}" for name, _ in EVALUATIONS for column in ("episodes", "collisions", "speed_dev_mps")),
+    *(f"{name}_{column}" for name, _ in EVALUATIONS for column in ("episodes", *EVALUATION_METRICS)),
 )
 
 
@@ -124,9 +125,9 @@ def _run_rows(runs: Sequence[RunData], last: int) -> pd.DataFrame:
             try:
                 episodes = read_episodes(RunDir(run.path).eval_dir(shield=shield) / EPISODES)
             except UnusableRunError:  # not evaluated (yet), or an evaluation cut short mid-row
-                episodes = pd.DataFrame(columns=["collisions", "speed_dev_mps"])
+                episodes = pd.DataFrame(columns=list(EVALUATION_METRICS))
             rec[f"{name}_episodes"] = len(episodes)
-            for metric in ("collisions", "speed_dev_mps"):
+            for metric in EVALUATION_METRICS:
                 rec[f"{name}_{metric}"] = float(episodes[metric].mean()) if len(episodes) else math.nan
         records.append(rec)
     return pd.DataFrame.from_records(records, columns=list(RUN_COLUMNS))
