@@ -24,7 +24,7 @@ import pandas as pd  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 MARKERS = {"ddpg": "o", "dqn": "s", "ddqn": "D", "dueling": "^", "per": "v"}
 FLOOR = 0.1
-"""Drawn in place of a mean of 0 (per episode), which a log axis cannot show."""
+"""Means below it (per episode; 0 collisions with the shield, say) are drawn at it: a log axis cannot show 0."""
 
 
 def panels(runs: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
@@ -57,7 +57,8 @@ def draw(runs: pd.DataFrame, path: Path) -> None:
                        marker=MARKERS.get(algorithm, "x"), color=colours[setting], s=42, alpha=0.85,
                        edgecolors="black", linewidths=0.4, label=f"{algorithm}, {setting}")
         rho = frame["overtakes"].corr(frame["collisions"], method="spearman")
-        ax.set(xscale="log", yscale="log", xlabel="overtakes per episode", ylabel="collisions per episode",
+        ax.set(xscale="log", yscale="log", xlabel=f"overtakes per episode (below {FLOOR:g}: at {FLOOR:g})",
+               ylabel=f"collisions per episode (below {FLOOR:g}: at {FLOOR:g})",
                title=f"{title}: {len(frame)} runs, Spearman ρ = {rho:.2f}")
         ax.grid(True, which="both", alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
@@ -79,11 +80,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     runs = pd.read_csv(source)
     missing = {"algorithm", "reward_preset", "density", "overtakes", "collisions"} - set(runs)
-    if missing or runs.empty:
-        what = f"lacks column(s) {', '.join(sorted(missing))}" if missing else "has no runs"
-        print(f"collisions_vs_overtakes: {source} {what}; is it a sweep's runs.csv?", file=sys.stderr)
+    if missing:
+        print(f"collisions_vs_overtakes: {source} lacks column(s) {', '.join(sorted(missing))}; is it a sweep's "
+              "runs.csv?", file=sys.stderr)
         return 2
     out = args.sweep / "collisions_vs_overtakes.png"
+    if runs.empty:  # no complete run yet: nothing to draw, and no figure of runs that are gone
+        out.unlink(missing_ok=True)
+        print(f"{source}: no complete run yet, no figure")
+        return 0
     draw(runs, out)
     print(f"{out}: {len(runs)} runs")
     return 0

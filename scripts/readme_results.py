@@ -71,10 +71,16 @@ def rewrite(readme: Path, new_table: str) -> bool:
     updated = f"{head}{BEGIN}\n{new_table}\n{END}{tail}"
     if updated == text:
         return False
-    with tempfile.NamedTemporaryFile("w", dir=readme.parent, prefix=f".{readme.name}.", delete=False) as out:
-        out.write(updated)
-    os.chmod(out.name, readme.stat().st_mode & 0o777)
-    os.replace(out.name, readme)
+    temporary: Path | None = None
+    try:
+        with tempfile.NamedTemporaryFile("w", dir=readme.parent, prefix=f".{readme.name}.", delete=False) as out:
+            temporary = Path(out.name)
+            out.write(updated)
+        os.chmod(temporary, readme.stat().st_mode & 0o777)
+        os.replace(temporary, readme)
+    finally:
+        if temporary is not None:
+            temporary.unlink(missing_ok=True)  # gone after the rename; left only when writing failed
     return True
 
 
@@ -84,14 +90,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="a sweep's summary.csv (lanefree report writes it)")
     parser.add_argument("--readme", type=Path, default=ROOT / "README.md", help="the file holding the markers")
     args = parser.parse_args(argv)
-    for path in (args.summary, args.readme):
-        if not path.is_file():
-            print(f"readme_results: {path} does not exist; run `lanefree report` on the sweep first", file=sys.stderr)
-            return 2
+    if not args.summary.is_file():
+        print(f"readme_results: {args.summary} does not exist; run `lanefree report` on the sweep first",
+              file=sys.stderr)
+        return 2
+    if not args.readme.is_file():
+        print(f"readme_results: {args.readme} does not exist; name the file holding the markers with --readme",
+              file=sys.stderr)
+        return 2
     try:
         changed = rewrite(args.readme, table(args.summary))
     except ValueError as error:
         print(f"readme_results: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"readme_results: cannot update {args.readme} from {args.summary}: {error.strerror or error}; "
+              "the README is unchanged", file=sys.stderr)
         return 2
     except KeyError as error:
         print(f"readme_results: {args.summary} has no column {error}; is it a sweep's summary.csv?", file=sys.stderr)

@@ -37,7 +37,7 @@ alive() {
 
 start() {
     local workers=${1:-1}
-    if ! [[ $workers =~ ^[0-9]{1,4}$ ]] || [ "$workers" -gt "$cores" ]; then
+    if ! [[ $workers =~ ^(0|[1-9][0-9]{0,3})$ ]] || [ "$workers" -gt "$cores" ]; then  # no leading 0: octal in $((…))
         echo "reproduce.sh: PAPER_WORKERS must be a whole number from 0 to $cores (the cores), got '$workers'" >&2
         exit 2
     fi

@@ -117,6 +117,30 @@ def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tm
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "lacks column(s)" in refused.stderr
     assert not (tmp_path / "collisions_vs_overtakes.png").exists()
+    (tmp_path / "collisions_vs_overtakes.png").write_bytes(b"a figure of runs since removed")
+    (tmp_path / "runs.csv").write_text("run,algorithm,reward_preset,density,seed,overtakes,collisions\n")
+    empty = subprocess.run([sys.executable, str(ROOT / "scripts" / "collisions_vs_overtakes.py"), str(tmp_path)],
+                           capture_output=True, text=True, timeout=120)
+    assert empty.returncode == 0 and "no complete run" in empty.stdout  # no run yet is no error: no figure
+    assert not (tmp_path / "collisions_vs_overtakes.png").exists()
+
+
+def test_collisions_vs_overtakes_draws_the_deterministic_panel_from_evaluated_runs_only():
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import collisions_vs_overtakes as figure
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    import pandas as pd
+    runs = pd.DataFrame({"algorithm": ["ddpg", "dqn"], "reward_preset": ["collision"] * 2, "density": [70.0, 90.0],
+                         "overtakes": [5.0, 140.0], "collisions": [0.4, 20.0], "eval_episodes": [50, 0],
+                         "eval_overtakes": [4.0, float("nan")], "eval_collisions": [0.3, float("nan")]})
+    (training, all_runs), (deterministic, evaluated) = figure.panels(runs)
+    assert training.startswith("training") and list(all_runs["setting"]) == ["collision 70 veh/km",
+                                                                            "collision 90 veh/km"]
+    assert deterministic.startswith("deterministic") and evaluated[["overtakes", "collisions"]].values.tolist() == \
+        [[4.0, 0.3]]
+    assert [title for title, _ in figure.panels(runs.drop(columns=["eval_overtakes"]))] == [training]
 
 
 def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anything(tmp_path):
@@ -125,7 +149,8 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
     script = str(tmp_path / "scripts" / "reproduce.sh")
     cores = len(os.sched_getaffinity(0))  # what nproc counts without OMP_NUM_THREADS, which must not count
     env = {**os.environ, "OMP_NUM_THREADS": str(cores + 8)}
-    for bad in ("abc", "-1", "1.5", str(cores + 1), "9" * 20):  # more paper workers than cores: more runs than cores
+    # more paper workers than cores: more runs than cores; a leading 0 would be octal in bash arithmetic
+    for bad in ("abc", "-1", "1.5", str(cores + 1), "9" * 20, "00", "01", "08"):
         refused = subprocess.run(["bash", script, "start", bad], capture_output=True, text=True, timeout=60,
                                  cwd=tmp_path, env=env)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and f"'{bad}'" in refused.stderr

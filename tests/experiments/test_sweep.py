@@ -340,7 +340,8 @@ def test_summary_and_status_from_run_folders(tmp_path):
     assert (float(first["collisions"]), first["eval_episodes"], float(first["eval_collisions"]),
             float(first["eval_speed_dev_mps"]), first["eval_shield_episodes"]) == \
         (pytest.approx(0.4), "2", 0.25, 0.75, "0")
-    assert per_run[3]["eval_shield_episodes"] == "0" and per_run[3]["eval_shield_collisions"] == ""  # unreadable
+    assert per_run[3]["eval_shield_episodes"] == "0" and per_run[3]["eval_shield_collisions"] == ""  # unreadable,
+    assert f"`runs/{cells[1].name}/eval_shield/` left out of the every-run table: episodes.csv lacks" in md  # said
     runs_table = md[md.index("<!-- runs -->"):md.index("<!-- /runs -->")]
     assert "| ddpg | fields_collision | 70 | 0 | 0.40 | 0.20 | 0 | 0.25 / 0.75 (2) | – |" in runs_table
     assert "| ddpg | collision | 70 | 1 | 1.30 | 0.65 | 0 | – | – |" in runs_table

@@ -114,23 +114,27 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
     return pd.DataFrame.from_records(records, columns=list(COLUMNS))
 
 
-def _run_rows(runs: Sequence[RunData], last: int) -> pd.DataFrame:
-    """``runs.csv``: one row per run (see the module's docstring)."""
-    records = []
+def _run_rows(runs: Sequence[RunData], last: int) -> tuple[pd.DataFrame, list[str]]:
+    """``runs.csv``: one row per run (see the module's docstring), and a note for each evaluation that
+    exists but cannot be read (shown like a missing one)."""
+    records, notes = [], []
     for run in runs:
         rec: dict[str, Any] = {"run": run.path.name, "algorithm": run.algorithm, "reward_preset": run.preset,
                                "density": run.density, "seed": run.seed, "episodes": len(run.episodes)}
         rec.update({metric: float(run.episodes[metric].tail(last).mean()) for metric in RUN_METRICS})
         for name, shield in EVALUATIONS:
-            try:
-                episodes = read_episodes(RunDir(run.path).eval_dir(shield=shield) / EPISODES)
-            except UnusableRunError:  # not evaluated (yet), or an evaluation cut short mid-row
-                episodes = pd.DataFrame(columns=list(EVALUATION_METRICS))
+            path = RunDir(run.path).eval_dir(shield=shield) / EPISODES
+            episodes = pd.DataFrame(columns=list(EVALUATION_METRICS))  # not evaluated (yet)
+            if path.exists():
+                try:
+                    episodes = read_episodes(path)
+                except UnusableRunError as exc:
+                    notes.append(f"`runs/{run.path.name}/{name}/` left out of the every-run table: {exc}")
             rec[f"{name}_episodes"] = len(episodes)
             for metric in EVALUATION_METRICS:
                 rec[f"{name}_{metric}"] = float(episodes[metric].mean()) if len(episodes) else math.nan
         records.append(rec)
-    return pd.DataFrame.from_records(records, columns=list(RUN_COLUMNS))
+    return pd.DataFrame.from_records(records, columns=list(RUN_COLUMNS)), notes
 
 
 def _runs_markdown(runs: pd.DataFrame, last: int) -> list[str]:
@@ -244,8 +248,9 @@ def _plot(grid: Grid, groups: dict[Any, list[RunData]], folder: Path, smooth: in
 
 
 def summarize(folder: Path, last: int | None = None, smooth: int | None = None) -> SweepSummary:
-    """Write ``summary.csv``, ``summary.md`` and ``curves/`` of sweep folder ``folder`` from its
-    complete runs (any time: during, after or without a driver)."""
+    """Write ``summary.csv``, ``runs.csv``, ``summary.md``, ``curves/`` and (when a claim compares two of
+    the grid's settings) ``claims.csv``/``claims.md`` of sweep folder ``folder`` from its complete runs
+    (any time: during, after or without a driver)."""
     defaults = ReportConfig()
     last = defaults.last_episodes if last is None else last
     smooth = defaults.smooth_episodes if smooth is None else smooth
@@ -269,8 +274,9 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
     groups = {key[:3]: members for key, members in group_runs(runs).items()}  # one variant: the grid's overrides
     table = _rows(grid, groups, last)
     order = {_key(setting): position for position, setting in enumerate(grid.settings)}  # the table's rows
-    per_run = _run_rows(sorted(runs, key=lambda r: (order[(r.algorithm, r.preset, round(r.density, 6))], r.seed)),
-                        last)
+    per_run, run_notes = _run_rows(sorted(runs, key=lambda r: (
+        order.get((r.algorithm, r.preset, round(r.density, 6)), len(order)), r.seed)), last)
+    notes += run_notes
     try:
         curves, plot_notes = _plot(grid, groups, sweep.curves, smooth)
         table.to_csv(sweep.summary_csv, index=False)
