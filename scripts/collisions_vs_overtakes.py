@@ -27,6 +27,11 @@ FLOOR = 0.1
 """Means below it (per episode; 0 collisions with the shield, say) are drawn at it: a log axis cannot show 0."""
 
 
+def settings(runs: pd.DataFrame) -> pd.Series:
+    """Each run's reward preset and density, as the legend names it."""
+    return runs["reward_preset"] + " " + runs["density"].map("{:g} veh/km".format)
+
+
 def panels(runs: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
     """(title, frame with columns setting, algorithm, overtakes, collisions) of each panel with runs."""
     out = []
@@ -35,7 +40,7 @@ def panels(runs: pd.DataFrame) -> list[tuple[str, pd.DataFrame]]:
             continue  # a runs.csv without evaluation columns
         chosen = runs[runs[f"{prefix}episodes"] > 0] if prefix else runs
         frame = pd.DataFrame({
-            "setting": chosen["reward_preset"] + " " + chosen["density"].map("{:g} veh/km".format),
+            "setting": settings(chosen),
             "algorithm": chosen["algorithm"],
             "overtakes": chosen[f"{prefix}overtakes"].astype(float),
             "collisions": chosen[f"{prefix}collisions"].astype(float),
@@ -49,8 +54,7 @@ def draw(runs: pd.DataFrame, path: Path) -> None:
     """The figure of :func:`panels` into ``path`` (PNG)."""
     shown = panels(runs)
     figure, axes = plt.subplots(1, len(shown), figsize=(6.5 * len(shown), 5.5), squeeze=False)
-    settings = sorted(set(runs["reward_preset"] + " " + runs["density"].map("{:g} veh/km".format)))
-    colours = {s: plt.get_cmap("tab20")(k % 20) for k, s in enumerate(settings)}
+    colours = {s: plt.get_cmap("tab20")(k % 20) for k, s in enumerate(sorted(set(settings(runs))))}
     for ax, (title, frame) in zip(axes[0], shown):
         for (setting, algorithm), group in frame.groupby(["setting", "algorithm"]):
             ax.scatter(group["overtakes"].clip(lower=FLOOR), group["collisions"].clip(lower=FLOOR),

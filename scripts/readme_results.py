@@ -3,7 +3,7 @@
 The table sits between ``<!-- results-table -->`` and ``<!-- /results-table -->`` in README.md; one row per
 setting of the summary, in its order: runs complete, and per metric the mean over runs [95 % bootstrap CI
 over runs] (the paper's value). Everything outside the markers is left as it is; the file is replaced whole
-(written next to it, then renamed), so a reader never sees half a table.
+(``write_atomic``: written next to it, then renamed), so a reader never sees half a table.
 
     python scripts/readme_results.py [--summary results/paper/summary.csv] [--readme README.md]
 """
@@ -11,12 +11,13 @@ over runs] (the paper's value). Everything outside the markers is left as it is;
 from __future__ import annotations
 
 import argparse
-import csv
-import math
-import os
 import sys
-import tempfile
 from pathlib import Path
+
+import pandas as pd
+
+from lanefree_sumo.experiments.sweep.manifest import write_atomic
+from lanefree_sumo.experiments.sweep.summary import interval_text
 
 ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- results-table -->", "<!-- /results-table -->"
@@ -26,37 +27,27 @@ HEADER = ("| DDPG unless noted, reward preset (70 veh/km unless noted) | runs | 
           "| speed deviation, m/s (paper) |\n|---|---|---|---|")
 
 
-def cell(row: dict[str, str], metric: str, digits: int = 2) -> str:
-    """``mean [low, high] (paper)`` of ``metric``; ``n/a`` for the CI below two runs, ``–`` without runs."""
+def cell(row: pd.Series, metric: str) -> str:
+    """``mean [low, high] (paper)`` of ``metric`` to 2 decimals (the summary's own format, shorter)."""
+    text = interval_text(row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"], digits=2)
     paper = row[f"paper_{metric}"]
-    paper_text = f" ({paper})" if paper else ""
-    if int(row["n_runs"]) == 0 or not row[f"{metric}_mean"]:
-        return f"–{paper_text}"
-    mean = float(row[f"{metric}_mean"])
-    low, high = row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"]
-    if int(row["n_runs"]) < 2 or not low or math.isnan(float(low)):
-        interval = "n/a"
-    else:
-        interval = f"{float(low):.{digits}f}, {float(high):.{digits}f}"
-    return f"{mean:.{digits}f} [{interval}]{paper_text}"
+    return text if pd.isna(paper) else f"{text} ({paper:g})"
 
 
-def label(row: dict[str, str]) -> str:
+def label(row: pd.Series) -> str:
     """The setting as the README names it: algorithm when not DDPG, preset, density when not 70 veh/km."""
     parts = [ALGORITHM_LABELS.get(row["algorithm"], f"**{row['algorithm']}**"), row["reward_preset"]]
-    density = float(row["density"])
-    if density != 70.0:
-        parts.append(f"**{density:g} veh/km**")
+    if row["density"] != 70.0:
+        parts.append(f"**{row['density']:g} veh/km**")
     return ", ".join(part for part in parts if part)
 
 
 def table(summary: Path) -> str:
     """The markdown table of every setting in ``summary`` (a sweep's summary.csv)."""
-    with summary.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
     lines = [HEADER]
-    for row in rows:
-        runs = row["n_runs"] if row["n_runs"] == row["runs_planned"] else f"{row['n_runs']} of {row['runs_planned']}"
+    for _, row in pd.read_csv(summary).iterrows():
+        complete, planned = int(row["n_runs"]), int(row["runs_planned"])
+        runs = str(complete) if complete == planned else f"{complete} of {planned}"
         lines.append(f"| {label(row)} | {runs} | {cell(row, 'collisions')} | {cell(row, 'speed_dev_mps')} |")
     return "\n".join(lines)
 
@@ -71,16 +62,7 @@ def rewrite(readme: Path, new_table: str) -> bool:
     updated = f"{head}{BEGIN}\n{new_table}\n{END}{tail}"
     if updated == text:
         return False
-    temporary: Path | None = None
-    try:
-        with tempfile.NamedTemporaryFile("w", dir=readme.parent, prefix=f".{readme.name}.", delete=False) as out:
-            temporary = Path(out.name)
-            out.write(updated)
-        os.chmod(temporary, readme.stat().st_mode & 0o777)
-        os.replace(temporary, readme)
-    finally:
-        if temporary is not None:
-            temporary.unlink(missing_ok=True)  # gone after the rename; left only when writing failed
+    write_atomic(readme, updated)
     return True
 
 

@@ -5,12 +5,14 @@ table; a second pass evaluates only what a stopped evaluation left unfinished.""
 from __future__ import annotations
 
 import csv
+import importlib
 import os
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -25,6 +27,15 @@ EPISODES = 4  # per evaluation (50 in make results)
 def rows(path: Path) -> int:
     with open(path, newline="") as fh:
         return sum(1 for _ in csv.DictReader(fh))
+
+
+def script(name: str) -> ModuleType:
+    """The module ``scripts/<name>.py`` of this checkout, imported."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
 
 
 def make_results(root: Path) -> subprocess.CompletedProcess:
@@ -88,11 +99,7 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
 def test_the_readme_results_table_is_the_committed_summary():
     """README.md's table is what scripts/readme_results.py makes of the committed results/paper/summary.csv:
     committing a new summary without its README table fails here."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import readme_results
-    finally:
-        sys.path.remove(str(ROOT / "scripts"))
+    readme_results = script("readme_results")
     expected = readme_results.table(ROOT / "results" / "paper" / "summary.csv")
     readme = (ROOT / "README.md").read_text()
     assert f"{readme_results.BEGIN}\n{expected}\n{readme_results.END}" in readme
@@ -126,11 +133,7 @@ def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tm
 
 
 def test_collisions_vs_overtakes_draws_the_deterministic_panel_from_evaluated_runs_only():
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        import collisions_vs_overtakes as figure
-    finally:
-        sys.path.remove(str(ROOT / "scripts"))
+    figure = script("collisions_vs_overtakes")
     import pandas as pd
     runs = pd.DataFrame({"algorithm": ["ddpg", "dqn"], "reward_preset": ["collision"] * 2, "density": [70.0, 90.0],
                          "overtakes": [5.0, 140.0], "collisions": [0.4, 20.0], "eval_episodes": [50, 0],

@@ -90,6 +90,21 @@ def _key(setting: Setting) -> tuple[str, str, float]:
     return (setting.algorithm, setting.preset, round(float(setting.density), 6))
 
 
+def last_mean(run: RunData, metric: str, last: int) -> float:
+    """A run's mean of ``metric`` over its last ``last`` episodes (all of them when it has fewer)."""
+    return float(run.episodes[metric].tail(last).mean())
+
+
+def interval_text(mean: float, low: float, high: float, digits: int = 3) -> str:
+    """``mean [low, high]`` to ``digits`` decimals; ``mean [n/a]`` without an interval (below 2 runs), ``–``
+    without a mean (no run)."""
+    if pd.isna(mean):
+        return "–"
+    if pd.isna(low):
+        return f"{mean:.{digits}f} [n/a]"
+    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
 def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFrame:
     budget = grid.budget()
     records = []
@@ -98,7 +113,7 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
         rec: dict[str, Any] = {"algorithm": setting.algorithm, "reward_preset": setting.preset,
                                "density": setting.density, "episodes": grid.episodes, "n_runs": len(runs)}
         for metric in METRICS:
-            per_run = [float(r.episodes[metric].tail(last).mean()) for r in runs]
+            per_run = [last_mean(r, metric, last) for r in runs]
             low, high = bootstrap_ci(per_run)
             rec[f"{metric}_mean"] = float(np.mean(per_run)) if per_run else math.nan
             rec[f"{metric}_ci95_low"], rec[f"{metric}_ci95_high"] = low, high
@@ -121,7 +136,7 @@ def _run_rows(runs: Sequence[RunData], last: int) -> tuple[pd.DataFrame, list[st
     for run in runs:
         rec: dict[str, Any] = {"run": run.path.name, "algorithm": run.algorithm, "reward_preset": run.preset,
                                "density": run.density, "seed": run.seed, "episodes": len(run.episodes)}
-        rec.update({metric: float(run.episodes[metric].tail(last).mean()) for metric in RUN_METRICS})
+        rec.update({metric: last_mean(run, metric, last) for metric in RUN_METRICS})
         for name, shield in EVALUATIONS:
             path = RunDir(run.path).eval_dir(shield=shield) / EPISODES
             episodes = pd.DataFrame(columns=list(EVALUATION_METRICS))  # not evaluated (yet)
@@ -162,14 +177,8 @@ def _runs_markdown(runs: pd.DataFrame, last: int) -> list[str]:
 
 
 def _cell(row: pd.Series, metric: str, paper_col: str) -> str:
-    mean, low, high, paper = (row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"],
-                              row[paper_col])
-    if pd.isna(mean):
-        text = "–"
-    elif pd.isna(low):
-        text = f"{mean:.3f} [n/a]"
-    else:
-        text = f"{mean:.3f} [{low:.3f}, {high:.3f}]"
+    text = interval_text(row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"])
+    paper = row[paper_col]
     if not pd.isna(paper):
         ratio = row[f"{metric}_ratio"]
         text += f" (paper {paper:g}" + ("" if pd.isna(ratio) else f", {ratio:.1f}×") + ")"
