@@ -44,8 +44,12 @@ def label(row: pd.Series) -> str:
 
 def table(summary: Path) -> str:
     """The markdown table of every setting in ``summary`` (a sweep's summary.csv)."""
+    try:
+        rows = pd.read_csv(summary)
+    except (pd.errors.EmptyDataError, pd.errors.ParserError) as error:
+        raise ValueError(f"{summary} is not a sweep's summary.csv ({error})") from None
     lines = [HEADER]
-    for _, row in pd.read_csv(summary).iterrows():
+    for _, row in rows.iterrows():
         complete, planned = int(row["n_runs"]), int(row["runs_planned"])
         runs = str(complete) if complete == planned else f"{complete} of {planned}"
         lines.append(f"| {label(row)} | {runs} | {cell(row, 'collisions')} | {cell(row, 'speed_dev_mps')} |")

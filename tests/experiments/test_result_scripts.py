@@ -113,6 +113,10 @@ def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_lea
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "results-table" in refused.stderr
     assert readme.read_text() == "# no table here\n"
+    (tmp_path / "empty.csv").write_text("")  # not a summary: refused the same way, naming it
+    refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--readme", str(readme),
+                              "--summary", str(tmp_path / "empty.csv")], capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "empty.csv" in refused.stderr
 
 
 def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):
