@@ -2,12 +2,14 @@
 # Issue 17's long runs, started and stopped the same way every session:
 #
 #   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper) on PAPER_WORKERS cores (1 by
-#                                                default; 0 leaves it stopped), the set-encoder sweep of the
-#                                                variable-dimension experiment (results/varobs/set) on the
-#                                                cores left (none left: not started; a later `start` with
-#                                                fewer paper workers resumes it), and a watcher that runs
-#                                                scripts/update-results.sh whenever a run finishes
-#   scripts/reproduce.sh stop                    SIGTERM to both sweep drivers (every run saves a checkpoint) and
+#                                                default; 0 leaves it stopped), then, on the cores left, the
+#                                                set-encoder sweeps of the variable-dimension experiment in
+#                                                turn: DDPG (results/varobs/set) and DQN (results/varobs/set_dqn,
+#                                                Liu et al.'s own Q-network), each on as many cores as it has
+#                                                runs left to do (none left: not started; a later `start`
+#                                                resumes it), and a watcher that runs scripts/update-results.sh
+#                                                whenever a run finishes
+#   scripts/reproduce.sh stop                    SIGTERM to every sweep driver (every run saves a checkpoint) and
 #                                                the watcher; waits until they are gone
 #   scripts/reproduce.sh status                  lanefree sweep --status of each sweep (with the time left)
 #
@@ -24,6 +26,7 @@ logs=$state/logs
 python=$root/.venv/bin/python
 marker="lanefree-reproduce $state"  # in the command line of every process started here
 cores=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)  # the cores this process may use (nproc obeys OMP_*)
+processes="paper varobs varobs_dqn watcher"  # the names of $logs/NAME.pid, .log
 mkdir -p "$logs"
 
 # alive NAME: the process in $logs/NAME.pid runs and is ours (its command line names this checkout's pinned
@@ -35,13 +38,19 @@ alive() {
     kill -0 "$pid" 2>/dev/null && tr '\0' ' ' <"/proc/$pid/cmdline" 2>/dev/null | grep -q -- "$marker"
 }
 
+# runs_to_do FOLDER: the runs of the sweep in FOLDER not complete yet, from its status (needs $cli)
+runs_to_do() {
+    "${cli[@]}" sweep --status "$1" | awk 'NR == 1 && match($0, /: [0-9]+ runs /) { total = substr($0, RSTART + 2) + 0 }
+        /^runs: [0-9]+ complete/ { complete = $2 } END { print (total > complete ? total - complete : 0) }'
+}
+
 start() {
     local workers=${1:-1}
     if ! [[ $workers =~ ^(0|[1-9][0-9]{0,3})$ ]] || [ "$workers" -gt "$cores" ]; then  # no leading 0: octal in $((…))
         echo "reproduce.sh: PAPER_WORKERS must be a whole number from 0 to $cores (the cores), got '$workers'" >&2
         exit 2
     fi
-    for name in paper varobs watcher; do
+    for name in $processes; do
         if alive "$name"; then echo "already running: $name (pid $(cat "$logs/$name.pid")); stop first"; exit 2; fi
         rm -f "$logs/$name.pid" "$logs/stopping"
     done
@@ -69,22 +78,30 @@ sys.exit(main())" "$marker")
             >>"$logs/paper.log" 2>&1 &
         echo $! >"$logs/paper.pid"
     fi
-    # part 3 on the cores left: the set-encoder runs (the vector baseline is the paper sweep's fzoc/70 cells);
-    # never more runs than cores
-    local set_workers=$((cores - workers)) varobs
-    if [ "$set_workers" -eq 0 ]; then
-        varobs="no set-encoder sweep (no core left)"
-    else
-        varobs="set-encoder sweep ($set_workers worker(s))"
-        if [ -f "$root/results/varobs/set/sweep.yaml" ]; then
-            nohup "${cli[@]}" sweep --resume "$root/results/varobs/set" --workers "$set_workers" --no-progress \
-                >>"$logs/varobs.log" 2>&1 &
-        else
-            nohup "${cli[@]}" sweep "$root/results/varobs/set_paper.yaml" --out "$root/results/varobs/set" \
-                --workers "$set_workers" --no-progress >>"$logs/varobs.log" 2>&1 &
+    # part 3 on the cores left, never more runs than cores: the set-encoder sweeps in turn (their vector
+    # baselines are the paper sweep's own fzoc/70 cells), each on as many cores as it has runs left
+    local left=$((cores - workers)) varobs="" name folder grid label todo n
+    for sweep in "varobs results/varobs/set set_paper.yaml set-encoder sweep" \
+                 "varobs_dqn results/varobs/set_dqn set_dqn_paper.yaml DQN set-encoder sweep"; do
+        read -r name folder grid label <<<"$sweep"
+        todo=$cores  # a sweep not begun: as many cores as are left
+        if [ -f "$root/$folder/sweep.yaml" ]; then todo=$(runs_to_do "$root/$folder") || todo=$cores; fi
+        n=$((todo < left ? todo : left))
+        if [ "$n" -eq 0 ]; then
+            if [ "$todo" -eq 0 ]; then varobs+="no $label (every run is complete), "; else varobs+="no $label (no core left), "; fi
+            continue
         fi
-        echo $! >"$logs/varobs.pid"
-    fi
+        varobs+="$label ($n worker(s)), "
+        left=$((left - n))
+        if [ -f "$root/$folder/sweep.yaml" ]; then
+            nohup "${cli[@]}" sweep --resume "$root/$folder" --workers "$n" --no-progress >>"$logs/$name.log" 2>&1 &
+        else
+            nohup "${cli[@]}" sweep "$root/results/varobs/$grid" --out "$root/$folder" --workers "$n" --no-progress \
+                >>"$logs/$name.log" 2>&1 &
+        fi
+        echo $! >"$logs/$name.pid"
+    done
+    varobs=${varobs%, }
     cd "$root"
     # the watcher (its own process group, the pinned code too): evaluations and tables whenever the set of
     # finished models changes
@@ -108,12 +125,13 @@ stop() {
     # signal each driver once (a second `stop` only waits), never their workers
     if [ ! -e "$logs/stopping" ]; then
         touch "$logs/stopping"
-        if alive paper; then kill -TERM "$(cat "$logs/paper.pid")" || true; fi
-        if alive varobs; then kill -TERM "$(cat "$logs/varobs.pid")" || true; fi
+        for name in paper varobs varobs_dqn; do
+            if alive "$name"; then kill -TERM "$(cat "$logs/$name.pid")" || true; fi
+        done
         # the watcher's whole group; an evaluation stopped part-way is run again whole next time
         if alive watcher; then kill -TERM -- "-$(cat "$logs/watcher.pid")" || true; fi
     fi
-    for name in paper varobs watcher; do
+    for name in $processes; do
         if alive "$name"; then echo "waiting for $name (pid $(cat "$logs/$name.pid")) to save its checkpoints and stop"; fi
         while alive "$name"; do sleep 2; done
         rm -f "$logs/$name.pid"
@@ -123,11 +141,11 @@ stop() {
 }
 
 status() {
-    for folder in results/paper results/varobs/set; do
+    for folder in results/paper results/varobs/set results/varobs/set_dqn; do
         if [ -f "$folder/sweep.yaml" ]; then .venv/bin/lanefree sweep --status "$folder" | sed -n '1,5p' || true; fi
         echo
     done
-    for name in paper varobs watcher; do
+    for name in $processes; do
         if alive "$name"; then echo "$name: running (pid $(cat "$logs/$name.pid"))"; else echo "$name: not running"; fi
     done
 }

@@ -166,39 +166,38 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
     assert not (tmp_path / ".worktrees" / "logs" / "paper.pid").exists()
 
 
-def test_reproduce_gives_the_set_sweep_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
-    """``start N``: the paper sweep on N workers (none for 0), the set-encoder sweep on the cores - N left
-    (none when N = cores: never more runs than cores), the watcher; ``stop`` ends every one of them. The
-    venv's python is a stand-in that records its arguments and runs until SIGTERM, so no real sweep starts."""
+def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
+    """``start N``: the paper sweep on N workers (none for 0); on the cores - N left, the DDPG set-encoder sweep
+    and then the DQN one, each on as many cores as it has runs left (never more runs than cores); the watcher;
+    ``stop`` ends every one of them. The venv's python is a stand-in that records its arguments and runs until
+    SIGTERM (or prints the set sweep's status from a file), so no real sweep starts."""
     root = tmp_path / "checkout"
     (root / "scripts").mkdir(parents=True)
     shutil.copy2(ROOT / "scripts" / "reproduce.sh", root / "scripts" / "reproduce.sh")
     watched = root / "watcher-ran"
     (root / "scripts" / "update-results.sh").write_text(f"#!/usr/bin/env bash\ntouch {watched}\n")
-    calls = root / "calls"
+    calls, status = root / "calls", tmp_path / "status"
     (root / ".venv" / "bin").mkdir(parents=True)
     python = root / ".venv" / "bin" / "python"
-    python.write_text(f"#!/usr/bin/env bash\necho \"$*\" >> {calls}\ntrap 'exit 0' TERM\n"
-                      "while true; do sleep 0.05; done\n")
+    python.write_text(f"#!/usr/bin/env bash\ncase \"$*\" in *--status*) cat {status}; exit 0;; esac\n"
+                      f"echo \"$*\" >> {calls}\ntrap 'exit 0' TERM\nwhile true; do sleep 0.05; done\n")
     python.chmod(0o755)
     (root / "scripts" / "update-results.sh").chmod(0o755)
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(root)]
     subprocess.run(["git", "init", "-q", str(root)], check=True)
-    (root / ".gitignore").write_text(".worktrees/\n.venv/\ncalls\nwatcher-ran\n")
+    (root / ".gitignore").write_text(".worktrees/\n.venv/\ncalls\nwatcher-ran\nresults/\n")
     subprocess.run([*git, "add", "."], check=True)
     subprocess.run([*git, "commit", "-qm", "scripts"], check=True)
     script, logs = str(root / "scripts" / "reproduce.sh"), root / ".worktrees" / "logs"
     cores = len(os.sched_getaffinity(0))
 
-    def start_and_stop(workers: int) -> tuple[list[str], str]:
-        """The sweep drivers' command lines, and what ``start`` said."""
+    def start_and_stop(workers: int) -> tuple[dict[str, str], str]:
+        """Each sweep driver's command line by the folder it sweeps, and what ``start`` said."""
         calls.unlink(missing_ok=True)
         watched.unlink(missing_ok=True)
         started = subprocess.run(["bash", script, "start", str(workers)], capture_output=True, text=True, timeout=120)
         assert started.returncode == 0, started.stderr
-        drivers = [name for name in ("paper", "varobs") if (logs / f"{name}.pid").exists()]  # written by start
-        expected = (["paper"] if workers else []) + (["varobs"] if workers < cores else [])
-        assert drivers == expected, started.stdout
+        drivers = [name for name in ("paper", "varobs", "varobs_dqn") if (logs / f"{name}.pid").exists()]
         pids = [int((logs / f"{name}.pid").read_text()) for name in (*drivers, "watcher")]
         deadline = time.monotonic() + 120
         while not (calls.exists() and len(calls.read_text().splitlines()) == len(drivers) and watched.exists()):
@@ -207,20 +206,38 @@ def test_reproduce_gives_the_set_sweep_the_cores_the_paper_sweep_leaves_and_stop
         stopped = subprocess.run(["bash", script, "stop"], capture_output=True, text=True, timeout=120)
         assert stopped.returncode == 0 and "stopped" in stopped.stdout, stopped.stderr
         assert not [pid for pid in pids if running(pid)]  # stop waits until they are gone
-        return calls.read_text().splitlines(), started.stdout
+        swept = {}
+        for call in calls.read_text().splitlines():
+            folder = next(f for f in ("results/varobs/set_dqn", "results/varobs/set", "results/paper") if f in call)
+            swept[folder] = call.split("--workers ")[1].split()[0]  # the workers it was given
+        return swept, started.stdout
 
     try:
         alone, said = start_and_stop(cores)  # every core to the paper sweep: no set-encoder sweep
-        assert len(alone) == 1 and f"--workers {cores}" in alone[0] and "results/paper" in alone[0]
-        assert "no set-encoder sweep (no core left)" in said
-        if cores > 1:  # one paper worker: the set-encoder sweep on a core of its own
+        assert alone == {"results/paper": str(cores)}
+        assert "no set-encoder sweep (no core left), no DQN set-encoder sweep (no core left)" in said
+        # neither set sweep begun: the DDPG one takes every core left
+        only_set, said = start_and_stop(0)
+        assert only_set == {"results/varobs/set": str(cores)} and "no paper sweep" in said
+        if cores > 1:  # one paper worker: the set-encoder sweep on the cores left
             beside, said = start_and_stop(1)
-            assert sorted("results/varobs/set" in call for call in beside) == [False, True]
-            assert any("--workers 1" in call and "results/paper" in call for call in beside)
+            assert beside == {"results/paper": "1", "results/varobs/set": str(cores - 1)}
             assert f"set-encoder sweep ({cores - 1} worker(s))" in said
-        only_set, said = start_and_stop(0)  # the paper sweep done: every core to the set-encoder sweep
-        assert len(only_set) == 1 and f"--workers {cores}" in only_set[0] and "results/varobs/set" in only_set[0]
-        assert "no paper sweep" in said
+            # the DDPG set sweep begun, 1 of its 3 runs left: one core to it, the rest to the DQN sweep
+            (root / "results" / "varobs" / "set").mkdir(parents=True)
+            (root / "results" / "varobs" / "set" / "sweep.yaml").write_text("runs: 3\n")
+            status.write_text("sweep set_paper in x: 3 runs × 625 episodes of 800 steps\ndriver: not running\n"
+                              "runs: 2 complete, 0 running, 1 partial, 0 stale, 0 pending, 0 failed\n")
+            shared, said = start_and_stop(0)
+            assert shared == {"results/varobs/set": "1", "results/varobs/set_dqn": str(cores - 1)}, said
+            assert "results/varobs/set_dqn_paper.yaml" in calls.read_text()  # begun from its grid
+        # every DDPG set run complete: every core left to the DQN sweep
+        (root / "results" / "varobs" / "set").mkdir(parents=True, exist_ok=True)
+        (root / "results" / "varobs" / "set" / "sweep.yaml").write_text("runs: 3\n")
+        status.write_text("sweep set_paper in x: 3 runs × 625 episodes of 800 steps\nruns: 3 complete, 0 running\n")
+        dqn, said = start_and_stop(0)
+        assert dqn == {"results/varobs/set_dqn": str(cores)}
+        assert "no set-encoder sweep (every run is complete)" in said
     finally:  # a failed assertion leaves no stand-in running
         subprocess.run(["bash", script, "stop"], capture_output=True, timeout=120)
 
