@@ -7,7 +7,9 @@
 #     results/varobs/set/runs/*; training report (curves of both observations overlaid) in
 #     results/varobs/report/, the four evaluations side by side (table, bar charts) in results/varobs/report_transfer/;
 #   DQN (Liu et al.'s own setting, a Q-network): the paper sweep's DQN runs against results/varobs/set_dqn/runs/*;
-#     results/varobs/report_dqn/ and results/varobs/report_dqn_transfer/.
+#     results/varobs/report_dqn/ and results/varobs/report_dqn_transfer/;
+# then both comparisons' verdicts on Liu et al.'s claim, set - vector with bootstrap CIs, in
+# results/varobs/verdict.md (scripts/varobs_verdict.py).
 # A run is evaluated where its model.zip is (the machine that trained it) and reported wherever its evaluations
 # are committed. Resumable: rerun it and it evaluates only what is missing. Usage: scripts/varobs-transfer.sh [EPISODES]
 set -euo pipefail
@@ -37,3 +39,4 @@ compare() {
 
 compare ddpg "$base/set" "$base/report"
 compare dqn "$base/set_dqn" "$base/report_dqn"
+.venv/bin/python scripts/varobs_verdict.py >/dev/null

@@ -14,12 +14,13 @@ import time
 from pathlib import Path
 from types import ModuleType
 
+import pandas as pd
 import pytest
 
 from conftest import ROOT, lanefree
 
 SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py",
-           "collisions_vs_overtakes.py")
+           "collisions_vs_overtakes.py", "varobs_verdict.py")
 CELL = "ddpg_fields_zones_overtake_collision_d70_s0"  # a paper sweep cell and the vector baseline's seed 0
 EPISODES = 4  # per evaluation (50 in make results)
 
@@ -79,6 +80,8 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     transfer = (root / "results" / "varobs" / "report_transfer" / "summary.md").read_text()
     assert all(f"| `{name}` |" in transfer for name in ("eval", "eval_d90", "eval_d120", "eval_onramp"))
     assert (root / "results" / "varobs" / "report" / "summary.md").is_file()
+    verdict = (root / "results" / "varobs" / "verdict.md").read_text()  # one vector run, no set run: no verdict
+    assert "| DDPG | training, last 50 episodes | return | 0, 1 | – |" in verdict and "| set worse |" not in verdict
     readme = (root / "README.md").read_text()  # its table rewritten from the summary, the rest kept
     assert "stale" not in readme and readme.startswith("# results\n") and readme.endswith("-->\nafter\n")
     assert "| fields_zones_overtake_collision | 1 of 1 |" not in readme  # every planned run: the count alone
@@ -117,6 +120,58 @@ def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_lea
     refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "readme_results.py"), "--readme", str(readme),
                               "--summary", str(tmp_path / "empty.csv")], capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "empty.csv" in refused.stderr
+
+
+def test_the_committed_varobs_verdict_is_the_committed_runs():
+    """results/varobs/verdict.md is what scripts/varobs_verdict.py makes of the committed run folders."""
+    made = script("varobs_verdict").verdict_markdown(ROOT)
+    assert (ROOT / "results" / "varobs" / "verdict.md").read_text() == made
+    assert made.count("| DDPG |") == made.count("| DQN |") == 15  # 5 sources x 3 metrics each
+
+
+def copy_run(run: Path, to: Path) -> None:
+    """A run folder's committed files: config, training episodes and every evaluation's episodes."""
+    to.mkdir(parents=True)
+    for name in ("config.yaml", "episodes.csv"):
+        shutil.copy2(run / name, to / name)
+    for evaluation in run.glob("eval*/episodes.csv"):
+        (to / evaluation.parent.name).mkdir()
+        shutil.copy2(evaluation, to / evaluation.parent.name / "episodes.csv")
+
+
+def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
+    """With 3 finished runs a side the DDPG set encoder (standing still) is decided worse in return and speed
+    deviation, each side's column the mean of its runs' last 50 episodes; a set run without ``eval/`` (still
+    training) and a vector run without an evaluation count nowhere and n says so."""
+    verdict = script("varobs_verdict")
+    committed = ROOT / "results"
+    for seed in range(3):
+        name = f"ddpg_fields_zones_overtake_collision_d70_s{seed}"
+        copy_run(committed / "paper" / "runs" / name, tmp_path / "results" / "paper" / "runs" / name)
+    finished = [run for run in sorted((committed / "varobs" / "set" / "runs").glob("*")) if (run / "eval").is_dir()]
+    assert len(finished) >= 2
+    for k, run in enumerate([*finished, finished[0]]):  # at least 3 set runs: a copy of the first one more
+        copy_run(run, tmp_path / "results" / "varobs" / "set" / "runs" / f"set_{k}")
+    training = tmp_path / "results" / "varobs" / "set" / "runs" / "training"
+    copy_run(finished[0], training)
+    shutil.rmtree(training / "eval")
+    shutil.rmtree(tmp_path / "results" / "paper" / "runs" / "ddpg_fields_zones_overtake_collision_d70_s2" / "eval_d90")
+    assert verdict.main([str(tmp_path)]) == 0
+    table = {tuple(cells[1:4]): cells[4:] for line in (tmp_path / "results" / "varobs" / "verdict.md").read_text()
+             .splitlines() if line.startswith("| DDPG") for cells in [[c.strip() for c in line.strip("|").split("|")]]}
+    n_set = len(finished) + 1
+    ret = table[("training, last 50 episodes", "return", f"{n_set}, 3")]
+    assert ret[-1] == "set worse" and ret[3].startswith(f"0/{n_set * 3}, p = ")  # every set run below every vector
+    runs = [tmp_path / "results" / "varobs" / "set" / "runs" / f"set_{k}" for k in range(n_set)]
+    expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[-50:].mean() for run in runs) / n_set
+    assert ret[0] == f"{expected:.2f}"
+    assert table[("deterministic, 70 veh/km", "speed deviation (m/s)", f"{n_set}, 3")][-1] == "set worse"
+    assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == "no data"  # 2 vector runs
+    assert verdict.reading(1, -3.0, -1.0) == verdict.reading(-1, 1.0, 3.0) == "set worse"
+    assert verdict.reading(-1, -3.0, -1.0) == "set better" and verdict.reading(1, -1.0, 2.0) == "no difference detected"
+    refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "varobs_verdict.py"), str(tmp_path / "none")],
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "none" in refused.stderr
 
 
 def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):

@@ -1,0 +1,123 @@
+"""Liu et al.'s claim, decided run by run: the set encoder loses nothing against the fixed vector (issue 17, part 3).
+
+For each comparison — DDPG (the issue's) and DQN (Liu et al.'s own Q-network), fields_zones_overtake_collision
+at 70 veh/km — and each source (the last 50 training episodes, the deterministic evaluation at 70 veh/km,
+zero-shot at 90 and 120 veh/km and on the on-ramp), the difference set − vector of the per-run means of the
+return, collisions per episode and speed deviation (m/s), with the 95 % percentile-bootstrap CI over runs and
+the two-sided rank test of ``lanefree_sumo.experiments.claims`` (the same statistics as the first paper's
+claims). A run counts once it has finished (its deterministic evaluation ``eval/`` exists). Verdicts: *set
+worse* / *set better* when the CI excludes 0 (worse: a lower return, more collisions, a larger speed
+deviation), *no difference detected* when it contains 0 (with 3 runs per side: low power, not equivalence),
+*no data* below 3 runs on a side. Writes ``results/varobs/verdict.md``.
+
+    python scripts/varobs_verdict.py [ROOT]   (default: this checkout)
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from lanefree_sumo.experiments import markdown
+from lanefree_sumo.experiments.claims import difference_ci, per_run, rank_test
+from lanefree_sumo.experiments.report import UnusableRunError, read_run
+from lanefree_sumo.experiments.rundata import RunData
+from lanefree_sumo.experiments.sweep.manifest import write_atomic
+
+ROOT = Path(__file__).resolve().parent.parent
+
+CELL = "fields_zones_overtake_collision_d70"
+COMPARISONS = (("ddpg", "set"), ("dqn", "set_dqn"))
+"""(algorithm, the set-encoder sweep's folder under results/varobs): its vector runs are the paper sweep's."""
+SOURCES = (("", "training, last 50 episodes"), ("eval", "deterministic, 70 veh/km"),
+           ("eval_d90", "zero-shot, 90 veh/km"), ("eval_d120", "zero-shot, 120 veh/km"),
+           ("eval_onramp", "zero-shot, on-ramp"))
+METRICS = (("return", "return", 1), ("collisions", "collisions / episode", -1),
+           ("speed_dev_mps", "speed deviation (m/s)", -1))
+"""(column, label, +1 when higher is better)."""
+LAST = 50
+
+
+def finished_runs(root: Path, algorithm: str, sweep: str) -> dict[str, list[Path]]:
+    """The finished vector and set runs of one comparison (a finished run has its ``eval/``)."""
+    vector = [root / "results" / "paper" / "runs" / f"{algorithm}_{CELL}_s{seed}" for seed in range(3)]
+    sets = sorted((root / "results" / "varobs" / sweep / "runs").glob("*"))
+    return {side: [run for run in runs if (run / "eval" / "episodes.csv").is_file()]
+            for side, runs in (("set", sets), ("vector", vector))}
+
+
+def readable(runs: list[Path], source: str) -> list[RunData]:
+    """The runs that have ``source`` (an evaluation a machine without the model could not run is absent)."""
+    out = []
+    for run in runs:
+        try:
+            out.append(read_run(run, source))
+        except UnusableRunError:
+            continue
+    return out
+
+
+def reading(better: int, low: float, high: float) -> str:
+    """The verdict of a set − vector difference whose CI is [low, high]."""
+    if math.isnan(low):
+        return "no data"
+    if low <= 0 <= high:
+        return "no difference detected"
+    return "set better" if (low > 0) == (better > 0) else "set worse"
+
+
+def mean_text(values: list[float]) -> str:
+    return f"{sum(values) / len(values):.2f}" if values else "–"
+
+
+def rows(root: Path) -> list[list[str]]:
+    """One table row per comparison, source and metric."""
+    out = []
+    for algorithm, sweep in COMPARISONS:
+        runs = finished_runs(root, algorithm, sweep)
+        for source, label in SOURCES:
+            data = {side: readable(paths, source) for side, paths in runs.items()}
+            for column, name, better in METRICS:
+                a = per_run(data["set"], column, LAST, None)
+                b = per_run(data["vector"], column, LAST, None)
+                diff, low, high = difference_ci(a, b)
+                above, p = rank_test(a, b, 0)
+                ci = "" if math.isnan(low) else f" [{low:+.2f}, {high:+.2f}]"
+                rank = "–" if math.isnan(p) else f"{above:g}/{len(a) * len(b)}, p = {p:.2f}"
+                out.append([algorithm.upper(), label, name, f"{len(a)}, {len(b)}", mean_text(a), mean_text(b),
+                             ("–" if math.isnan(diff) else f"{diff:+.2f}") + ci, rank, reading(better, low, high)])
+    return out
+
+
+def verdict_markdown(root: Path) -> str:
+    """The page: how to read it, then the table."""
+    lines = ["# Liu et al.'s claim: the set encoder against the fixed vector", "",
+             "fields_zones_overtake_collision, trained at 70 veh/km; per-run means over the last 50 episodes of "
+             "each source, then set − vector with a 95 % percentile-bootstrap CI over runs and the two-sided rank "
+             "test (pairs of runs with set above vector, ties ½; exact permutation p). Verdict: *set worse* or "
+             "*set better* when the CI excludes 0 (worse: lower return, more collisions, larger speed deviation), "
+             "*no difference detected* when it contains 0 (3 runs a side: low power, not equivalence), *no data* "
+             "below 3 runs on a side. Written by `scripts/varobs_verdict.py` from the committed run folders.", ""]
+    lines += markdown.table(["algorithm", "source", "metric", "n (set, vector)", "set", "vector",
+                             "set − vector [95 % CI]", "rank: set > vector, p", "verdict"], rows(root))
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("root", nargs="?", type=Path, default=ROOT,
+                        help="checkout holding results/ (default: this one)")
+    args = parser.parse_args(argv)
+    out = args.root / "results" / "varobs"
+    if not out.is_dir():
+        print(f"varobs_verdict: no folder {out} (run the variable-dimension experiment first)", file=sys.stderr)
+        return 2
+    write_atomic(out / "verdict.md", verdict_markdown(args.root))
+    print(f"wrote {out / 'verdict.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
