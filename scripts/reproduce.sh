@@ -2,13 +2,13 @@
 # Issue 17's long runs, started and stopped the same way every session:
 #
 #   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper) on PAPER_WORKERS cores (1 by
-#                                                default; 0 leaves it stopped), then, on the cores left, the
-#                                                set-encoder sweeps of the variable-dimension experiment in
-#                                                turn: DDPG (results/varobs/set) and DQN (results/varobs/set_dqn,
-#                                                Liu et al.'s own Q-network), each on as many cores as it has
-#                                                runs left to do (none left: not started; a later `start`
-#                                                resumes it), and a watcher that runs scripts/update-results.sh
-#                                                whenever a run finishes
+#                                                default; 0 leaves it stopped), the set-encoder sweeps of the
+#                                                variable-dimension experiment at the same time on the cores
+#                                                left, in order of priority, each on as many as it has runs to
+#                                                train: DDPG (results/varobs/set), then DQN (results/varobs/set_dqn,
+#                                                Liu et al.'s own Q-network) (no core left: not started; a later
+#                                                `start` resumes it), and a watcher that runs
+#                                                scripts/update-results.sh whenever a run finishes
 #   scripts/reproduce.sh stop                    SIGTERM to every sweep driver (every run saves a checkpoint) and
 #                                                the watcher; waits until they are gone
 #   scripts/reproduce.sh status                  lanefree sweep --status of each sweep (with the time left)
@@ -26,7 +26,8 @@ logs=$state/logs
 python=$root/.venv/bin/python
 marker="lanefree-reproduce $state"  # in the command line of every process started here
 cores=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)  # the cores this process may use (nproc obeys OMP_*)
-processes="paper varobs varobs_dqn watcher"  # the names of $logs/NAME.pid, .log
+drivers="paper varobs varobs_dqn"  # the sweep drivers' names in $logs/NAME.pid, NAME.log
+processes="$drivers watcher"
 mkdir -p "$logs"
 
 # alive NAME: the process in $logs/NAME.pid runs and is ours (its command line names this checkout's pinned
@@ -38,10 +39,18 @@ alive() {
     kill -0 "$pid" 2>/dev/null && tr '\0' ' ' <"/proc/$pid/cmdline" 2>/dev/null | grep -q -- "$marker"
 }
 
-# runs_to_do FOLDER: the runs of the sweep in FOLDER not complete yet, from its status (needs $cli)
+# runs_to_do FOLDER GRID: the runs of the sweep in FOLDER that a resume would train (running, partial, stale,
+# pending or failed; not complete, busy elsewhere or damaged), from its status; before it begins, every run of
+# GRID. Fails when neither can be read. Needs $cli and $python (the pinned code).
 runs_to_do() {
-    "${cli[@]}" sweep --status "$1" | awk 'NR == 1 && match($0, /: [0-9]+ runs /) { total = substr($0, RSTART + 2) + 0 }
-        /^runs: [0-9]+ complete/ { complete = $2 } END { print (total > complete ? total - complete : 0) }'
+    if [ -f "$1/sweep.yaml" ]; then
+        "${cli[@]}" sweep --status "$1" | awk '/^runs: [0-9]+ complete/ { seen = 1
+            for (i = 2; i < NF; i += 2) if ($(i + 1) ~ /^(running|partial|stale|pending|failed),?$/) todo += $i }
+            END { if (!seen) exit 1; print todo + 0 }'
+    else
+        PYTHONPATH=$tree "$python" -c "import sys; from lanefree_sumo.experiments.sweep.grid import load_grid; \
+print(len(load_grid(sys.argv[1]).cells()))" "$2"
+    fi
 }
 
 start() {
@@ -54,7 +63,7 @@ start() {
         if alive "$name"; then echo "already running: $name (pid $(cat "$logs/$name.pid")); stop first"; exit 2; fi
         rm -f "$logs/$name.pid" "$logs/stopping"
     done
-    local commit tree
+    local commit tree old
     commit=$(git rev-parse --short HEAD)
     tree=$state/$commit
     for old in "$state"/*/; do  # nothing runs: earlier pinned trees can go
@@ -78,17 +87,20 @@ sys.exit(main())" "$marker")
             >>"$logs/paper.log" 2>&1 &
         echo $! >"$logs/paper.pid"
     fi
-    # part 3 on the cores left, never more runs than cores: the set-encoder sweeps in turn (their vector
-    # baselines are the paper sweep's own fzoc/70 cells), each on as many cores as it has runs left
-    local left=$((cores - workers)) varobs="" name folder grid label todo n
+    # part 3 on the cores left, never more runs than cores: the set-encoder sweeps in order of priority, at the
+    # same time, each on as many of the cores left as it has runs to do (their vector baselines are the paper
+    # sweep's own fzoc/70 cells)
+    local left=$((cores - workers)) varobs="" sweep name folder grid label todo n
     for sweep in "varobs results/varobs/set set_paper.yaml set-encoder sweep" \
                  "varobs_dqn results/varobs/set_dqn set_dqn_paper.yaml DQN set-encoder sweep"; do
         read -r name folder grid label <<<"$sweep"
-        todo=$cores  # a sweep not begun: as many cores as are left
-        if [ -f "$root/$folder/sweep.yaml" ]; then todo=$(runs_to_do "$root/$folder") || todo=$cores; fi
+        if ! todo=$(runs_to_do "$root/$folder" "$root/results/varobs/$grid"); then
+            echo "reproduce.sh: cannot count the runs left in $folder; giving it every core left" >&2
+            todo=$cores
+        fi
         n=$((todo < left ? todo : left))
         if [ "$n" -eq 0 ]; then
-            if [ "$todo" -eq 0 ]; then varobs+="no $label (every run is complete), "; else varobs+="no $label (no core left), "; fi
+            if [ "$todo" -eq 0 ]; then varobs+="no $label (no run left to train), "; else varobs+="no $label (no core left), "; fi
             continue
         fi
         varobs+="$label ($n worker(s)), "
@@ -125,7 +137,7 @@ stop() {
     # signal each driver once (a second `stop` only waits), never their workers
     if [ ! -e "$logs/stopping" ]; then
         touch "$logs/stopping"
-        for name in paper varobs varobs_dqn; do
+        for name in $drivers; do
             if alive "$name"; then kill -TERM "$(cat "$logs/$name.pid")" || true; fi
         done
         # the watcher's whole group; an evaluation stopped part-way is run again whole next time

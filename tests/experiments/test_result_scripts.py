@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import importlib
+import math
 import os
 import shutil
 import subprocess
@@ -122,8 +123,9 @@ def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_lea
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "empty.csv" in refused.stderr
 
 
-def test_the_committed_varobs_verdict_is_the_committed_runs():
-    """results/varobs/verdict.md is what scripts/varobs_verdict.py makes of the committed run folders."""
+def test_the_varobs_verdict_page_is_what_the_run_folders_make():
+    """results/varobs/verdict.md is what scripts/varobs_verdict.py makes of the run folders (on a clean checkout:
+    the committed ones), so committing new runs without their verdict fails here."""
     made = script("varobs_verdict").verdict_markdown(ROOT)
     assert (ROOT / "results" / "varobs" / "verdict.md").read_text() == made
     assert made.count("| DDPG |") == made.count("| DQN |") == 15  # 5 sources x 3 metrics each
@@ -141,8 +143,9 @@ def copy_run(run: Path, to: Path) -> None:
 
 def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
     """With 3 finished runs a side the DDPG set encoder (standing still) is decided worse in return and speed
-    deviation, each side's column the mean of its runs' last 50 episodes; a set run without ``eval/`` (still
-    training) and a vector run without an evaluation count nowhere and n says so."""
+    deviation, each side's column the mean of its runs' last 50 episodes, with the two-sided rank test; a set
+    run without ``eval/`` (still training) counts nowhere, a vector run without one evaluation is missing from
+    that one only, and a run of another cell (here a DQN run among the DDPG set runs) from every row."""
     verdict = script("varobs_verdict")
     committed = ROOT / "results"
     for seed in range(3):
@@ -155,20 +158,24 @@ def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
     training = tmp_path / "results" / "varobs" / "set" / "runs" / "training"
     copy_run(finished[0], training)
     shutil.rmtree(training / "eval")
+    copy_run(committed / "paper" / "runs" / "dqn_fields_zones_overtake_collision_d70_s1",
+             tmp_path / "results" / "varobs" / "set" / "runs" / "other_cell")
     shutil.rmtree(tmp_path / "results" / "paper" / "runs" / "ddpg_fields_zones_overtake_collision_d70_s2" / "eval_d90")
     assert verdict.main([str(tmp_path)]) == 0
     table = {tuple(cells[1:4]): cells[4:] for line in (tmp_path / "results" / "varobs" / "verdict.md").read_text()
              .splitlines() if line.startswith("| DDPG") for cells in [[c.strip() for c in line.strip("|").split("|")]]}
     n_set = len(finished) + 1
     ret = table[("training, last 50 episodes", "return", f"{n_set}, 3")]
-    assert ret[-1] == "set worse" and ret[3].startswith(f"0/{n_set * 3}, p = ")  # every set run below every vector
+    # every set run below every vector run: two-sided, twice the share of the splits as extreme
+    assert ret[-1] == "set worse" and ret[3] == f"0/{n_set * 3}, p = {2 / math.comb(n_set + 3, 3):.2f}"
     runs = [tmp_path / "results" / "varobs" / "set" / "runs" / f"set_{k}" for k in range(n_set)]
     expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[-50:].mean() for run in runs) / n_set
     assert ret[0] == f"{expected:.2f}"
     assert table[("deterministic, 70 veh/km", "speed deviation (m/s)", f"{n_set}, 3")][-1] == "set worse"
-    assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == "no data"  # 2 vector runs
+    assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == verdict.TOO_FEW
     assert verdict.reading(1, -3.0, -1.0) == verdict.reading(-1, 1.0, 3.0) == "set worse"
-    assert verdict.reading(-1, -3.0, -1.0) == "set better" and verdict.reading(1, -1.0, 2.0) == "no difference detected"
+    assert verdict.reading(-1, -3.0, -1.0) == verdict.reading(1, 1.0, 3.0) == "set better"
+    assert verdict.reading(1, -1.0, 2.0) == "no difference detected"
     refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "varobs_verdict.py"), str(tmp_path / "none")],
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "none" in refused.stderr
@@ -223,31 +230,36 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
 
 def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
     """``start N``: the paper sweep on N workers (none for 0); on the cores - N left, the DDPG set-encoder sweep
-    and then the DQN one, each on as many cores as it has runs left (never more runs than cores); the watcher;
-    ``stop`` ends every one of them. The venv's python is a stand-in that records its arguments and runs until
-    SIGTERM (or prints the set sweep's status from a file), so no real sweep starts."""
+    and then the DQN one, each on as many cores as it has runs to train, counted by the real ``lanefree sweep
+    --status`` (or, before a sweep begins, from its grid); the watcher; ``stop`` ends every one of them. The
+    venv's python is a stand-in that records its arguments and runs until SIGTERM (it passes the counting on to
+    the real python), so no sweep trains."""
     root = tmp_path / "checkout"
     (root / "scripts").mkdir(parents=True)
     shutil.copy2(ROOT / "scripts" / "reproduce.sh", root / "scripts" / "reproduce.sh")
+    (root / "results" / "varobs").mkdir(parents=True)
+    for grid in ("set_paper.yaml", "set_dqn_paper.yaml"):
+        shutil.copy2(ROOT / "results" / "varobs" / grid, root / "results" / "varobs" / grid)
     watched = root / "watcher-ran"
     (root / "scripts" / "update-results.sh").write_text(f"#!/usr/bin/env bash\ntouch {watched}\n")
-    calls, status = root / "calls", tmp_path / "status"
+    calls = root / "calls"
     (root / ".venv" / "bin").mkdir(parents=True)
     python = root / ".venv" / "bin" / "python"
-    python.write_text(f"#!/usr/bin/env bash\ncase \"$*\" in *--status*) cat {status}; exit 0;; esac\n"
+    python.write_text("#!/usr/bin/env bash\n"
+                      f"case \"$*\" in *--status*|*load_grid*) exec {sys.executable} \"$@\";; esac\n"
                       f"echo \"$*\" >> {calls}\ntrap 'exit 0' TERM\nwhile true; do sleep 0.05; done\n")
     python.chmod(0o755)
     (root / "scripts" / "update-results.sh").chmod(0o755)
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(root)]
     subprocess.run(["git", "init", "-q", str(root)], check=True)
-    (root / ".gitignore").write_text(".worktrees/\n.venv/\ncalls\nwatcher-ran\nresults/\n")
+    (root / ".gitignore").write_text(".worktrees/\n.venv/\ncalls\nwatcher-ran\nresults/*/*/\n")
     subprocess.run([*git, "add", "."], check=True)
     subprocess.run([*git, "commit", "-qm", "scripts"], check=True)
     script, logs = str(root / "scripts" / "reproduce.sh"), root / ".worktrees" / "logs"
     cores = len(os.sched_getaffinity(0))
 
     def start_and_stop(workers: int) -> tuple[dict[str, str], str]:
-        """Each sweep driver's command line by the folder it sweeps, and what ``start`` said."""
+        """Each sweep driver's workers by the folder it sweeps, and what ``start`` said (stdout and stderr)."""
         calls.unlink(missing_ok=True)
         watched.unlink(missing_ok=True)
         started = subprocess.run(["bash", script, "start", str(workers)], capture_output=True, text=True, timeout=120)
@@ -264,35 +276,38 @@ def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_sto
         swept = {}
         for call in calls.read_text().splitlines():
             folder = next(f for f in ("results/varobs/set_dqn", "results/varobs/set", "results/paper") if f in call)
-            swept[folder] = call.split("--workers ")[1].split()[0]  # the workers it was given
-        return swept, started.stdout
+            swept[folder] = call.split("--workers ")[1].split()[0]
+        return swept, started.stdout + started.stderr
 
     try:
         alone, said = start_and_stop(cores)  # every core to the paper sweep: no set-encoder sweep
         assert alone == {"results/paper": str(cores)}
         assert "no set-encoder sweep (no core left), no DQN set-encoder sweep (no core left)" in said
-        # neither set sweep begun: the DDPG one takes every core left
-        only_set, said = start_and_stop(0)
-        assert only_set == {"results/varobs/set": str(cores)} and "no paper sweep" in said
-        if cores > 1:  # one paper worker: the set-encoder sweep on the cores left
+        # neither set sweep begun: the DDPG one takes as many cores as its grid has runs (3), the DQN one the rest
+        fresh, said = start_and_stop(0)
+        assert fresh == {"results/varobs/set": str(min(cores, 3)), **({"results/varobs/set_dqn": str(min(cores - 3, 3))}
+                                                                    if cores > 3 else {})}
+        assert "no paper sweep" in said and "results/varobs/set_paper.yaml" in calls.read_text()  # begun from its grid
+        # the DDPG sweep begun (its manifest and seed 0 complete, seeds 1-2 to train): 2 cores to it
+        sweep = root / "results" / "varobs" / "set"
+        sweep.mkdir()
+        shutil.copy2(ROOT / "results" / "varobs" / "set" / "sweep.yaml", sweep / "sweep.yaml")
+        run = "ddpg_fields_zones_overtake_collision_d70_s0"
+        (sweep / "runs" / run).mkdir(parents=True)
+        for name in ("config.yaml", "episodes.csv", "last_session.json"):
+            shutil.copy2(ROOT / "results" / "varobs" / "set" / "runs" / run / name, sweep / "runs" / run / name)
+        begun, said = start_and_stop(0)
+        assert begun == {"results/varobs/set": str(min(cores, 2)), **({"results/varobs/set_dqn": str(min(cores - 2, 3))}
+                                                                    if cores > 2 else {})}
+        assert "--resume" in calls.read_text()
+        if cores > 1:  # one paper worker: the DDPG set sweep on the cores left
             beside, said = start_and_stop(1)
-            assert beside == {"results/paper": "1", "results/varobs/set": str(cores - 1)}
-            assert f"set-encoder sweep ({cores - 1} worker(s))" in said
-            # the DDPG set sweep begun, 1 of its 3 runs left: one core to it, the rest to the DQN sweep
-            (root / "results" / "varobs" / "set").mkdir(parents=True)
-            (root / "results" / "varobs" / "set" / "sweep.yaml").write_text("runs: 3\n")
-            status.write_text("sweep set_paper in x: 3 runs × 625 episodes of 800 steps\ndriver: not running\n"
-                              "runs: 2 complete, 0 running, 1 partial, 0 stale, 0 pending, 0 failed\n")
-            shared, said = start_and_stop(0)
-            assert shared == {"results/varobs/set": "1", "results/varobs/set_dqn": str(cores - 1)}, said
-            assert "results/varobs/set_dqn_paper.yaml" in calls.read_text()  # begun from its grid
-        # every DDPG set run complete: every core left to the DQN sweep
-        (root / "results" / "varobs" / "set").mkdir(parents=True, exist_ok=True)
-        (root / "results" / "varobs" / "set" / "sweep.yaml").write_text("runs: 3\n")
-        status.write_text("sweep set_paper in x: 3 runs × 625 episodes of 800 steps\nruns: 3 complete, 0 running\n")
-        dqn, said = start_and_stop(0)
-        assert dqn == {"results/varobs/set_dqn": str(cores)}
-        assert "no set-encoder sweep (every run is complete)" in said
+            assert beside["results/paper"] == "1" and beside["results/varobs/set"] == str(min(cores - 1, 2))
+        # a manifest the status cannot read: said in one line, and every core left to that sweep
+        (sweep / "sweep.yaml").write_text("not a manifest\n")
+        unreadable, said = start_and_stop(0)
+        assert unreadable == {"results/varobs/set": str(cores)}
+        assert "cannot count the runs left in results/varobs/set" in said
     finally:  # a failed assertion leaves no stand-in running
         subprocess.run(["bash", script, "stop"], capture_output=True, timeout=120)
 

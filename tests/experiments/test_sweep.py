@@ -186,6 +186,12 @@ def test_manifest_roundtrip_and_another_grid_is_refused(tmp_path):
     (tmp_path / "sweep.yaml").write_text("grid: [1\n")
     with pytest.raises(RunError, match="sweep.yaml is unusable"):
         read_manifest(tmp_path)
+    # the folder's own path becomes <sweep folder>; a file beside it whose name starts the same stays itself
+    here = tmp_path.resolve()
+    moved = Manifest(grid, sessions=[{"command": f"lanefree sweep {here}_paper.yaml --out {here} --resume {here}/"}])
+    write_manifest(tmp_path, moved)
+    assert read_manifest(tmp_path).sessions[0]["command"] == \
+        f"lanefree sweep {here}_paper.yaml --out <sweep folder> --resume <sweep folder>/"
 
 
 def test_run_states_and_adoption_of_existing_run_folders(tmp_path):

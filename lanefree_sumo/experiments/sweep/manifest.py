@@ -13,6 +13,7 @@ import contextlib
 import fcntl
 import json
 import os
+import re
 import socket
 import tempfile
 from collections.abc import Iterator
@@ -148,9 +149,9 @@ def write_manifest(folder: Path, manifest: Manifest) -> None:
     the recorded commands is written ``<sweep folder>``: the manifest is committed and moved between
     machines, and the folder may sit elsewhere there."""
     path = SweepDir(folder).manifest
-    here = str(folder.resolve())
+    here = re.compile(re.escape(str(folder.resolve())) + r"(?=/|\s|$)")  # the folder, not a longer name it starts
     data = manifest.to_dict()
-    data["sessions"] = [{**s, "command": str(s.get("command", "")).replace(here, SELF)} if isinstance(s, dict) else s
+    data["sessions"] = [{**s, "command": here.sub(SELF, str(s.get("command", "")))} if isinstance(s, dict) else s
                         for s in data["sessions"]]
     text = ("# lanefree sweep manifest: the grid of this sweep folder. Resume with 'lanefree sweep --resume "
             f"{SELF}'.\n" + yaml.safe_dump(data, sort_keys=False))
