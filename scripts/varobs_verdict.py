@@ -38,8 +38,8 @@ METRICS = (("return", "return", 1), ("collisions", "collisions / episode", -1),
            ("speed_dev_mps", "speed deviation (m/s)", -1))
 """(column, label, +1 when higher is better)."""
 LAST = 50
-SET_VARIANT = "observation.kind=set, observation.encoder=paper"
-"""How a set run's config differs from the defaults (``lanefree report``'s variant)."""
+SET_OBSERVATION = "observation.kind=set"
+"""In the variant (``lanefree report``: how a run's config differs from the defaults) of a set run."""
 TOO_FEW = "too few runs (< 3 a side)"
 
 
@@ -51,10 +51,10 @@ def finished_runs(root: Path, algorithm: str, sweep: str) -> dict[str, list[Path
             for side, runs in (("set", sets), ("vector", vector))}
 
 
-def readable(runs: list[Path], source: str, algorithm: str, variant: str) -> list[RunData]:
+def readable(runs: list[Path], source: str, algorithm: str, observation_set: bool) -> list[RunData]:
     """The runs that have ``source`` (an evaluation a machine without the model could not run is absent) and
     are of the comparison's cell: ``algorithm``, fields_zones_overtake_collision, trained at 70 veh/km, with the
-    config ``variant`` (the set side's observation, none for the vector side)."""
+    set observation or not (``observation_set``)."""
     out = []
     for run in runs:
         try:
@@ -62,7 +62,8 @@ def readable(runs: list[Path], source: str, algorithm: str, variant: str) -> lis
             trained = read_run_config(run)
         except UnusableRunError:
             continue
-        if trained[:3] == (algorithm, "fields_zones_overtake_collision", 70.0) and trained[4] == variant:
+        if trained[:3] == (algorithm, "fields_zones_overtake_collision", 70.0) and \
+                (SET_OBSERVATION in trained[4]) == observation_set:
             out.append(data)
     return out
 
@@ -86,8 +87,7 @@ def rows(root: Path) -> list[list[str]]:
     for algorithm, sweep in COMPARISONS:
         runs = finished_runs(root, algorithm, sweep)
         for source, label in SOURCES:
-            data = {side: readable(paths, source, algorithm, SET_VARIANT if side == "set" else "")
-                    for side, paths in runs.items()}
+            data = {side: readable(paths, source, algorithm, side == "set") for side, paths in runs.items()}
             for column, name, better in METRICS:
                 a = per_run(data["set"], column, LAST, None)
                 b = per_run(data["vector"], column, LAST, None)
