@@ -1,14 +1,15 @@
 """Liu et al.'s claim, decided run by run: the set encoder loses nothing against the fixed vector (issue 17, part 3).
 
-For each comparison — DDPG (the issue's) and DQN (Liu et al.'s own Q-network), fields_zones_overtake_collision
-at 70 veh/km — and each source (the last 50 training episodes, the deterministic evaluation at 70 veh/km,
-zero-shot at 90 and 120 veh/km and on the on-ramp), the difference set − vector of the per-run means of the
-return, collisions per episode and speed deviation (m/s), with the 95 % percentile-bootstrap CI over runs and
-the two-sided rank test of ``lanefree_sumo.experiments.claims`` (the same statistics as the first paper's
-claims). A run counts once it has finished (its deterministic evaluation ``eval/`` exists). Verdicts: *set
+For each comparison (DDPG, the issue's; DQN, Liu et al.'s own Q-network; fields_zones_overtake_collision at
+70 veh/km) and each source (training over episodes 1–12, about the 10 000 steps over which Liu et al. compare
+training rewards, over all 625 and over the last 50; the last 50 episodes of the deterministic evaluation at
+70 veh/km, zero-shot at 90 and 120 veh/km and on the on-ramp): the difference set − vector of the per-run means
+of the return, collisions per episode and speed deviation (m/s), with the 95 % percentile-bootstrap CI over
+runs and the two-sided rank test of ``lanefree_sumo.experiments.claims`` (the first paper's claims use the
+same). A run counts once it has finished (its deterministic evaluation ``eval/`` exists). Verdicts: *set
 worse* / *set better* when the CI excludes 0 (worse: a lower return, more collisions, a larger speed
-deviation), *no difference detected* when it contains 0 (with 3 runs per side: low power, not equivalence),
-*too few runs* below 3 runs on a side. Writes ``results/varobs/verdict.md``.
+deviation), *no difference detected* when it contains 0 (3 runs a side: low power, not equivalence), *too few
+runs* below 3 runs on a side. Writes ``results/varobs/verdict.md``.
 
     python scripts/varobs_verdict.py [ROOT]   (default: this checkout)
 """
@@ -31,9 +32,17 @@ ROOT = Path(__file__).resolve().parent.parent
 CELL = "fields_zones_overtake_collision_d70"
 COMPARISONS = (("ddpg", "set"), ("dqn", "set_dqn"))
 """(algorithm, the set-encoder sweep's folder under results/varobs): its vector runs are the paper sweep's."""
-SOURCES = (("", "training, last 50 episodes"), ("eval", "deterministic, 70 veh/km"),
-           ("eval_d90", "zero-shot, 90 veh/km"), ("eval_d120", "zero-shot, 120 veh/km"),
-           ("eval_onramp", "zero-shot, on-ramp"))
+LIU_EPISODES = (1, 12)
+"""Liu et al. compare rewards over 10 000 training steps: our episodes 1-12 (800 steps each; 9600 steps)."""
+SOURCES: tuple[tuple[str, str, tuple[int, int] | None], ...] = (
+    ("", "training, episodes 1–12 (Liu et al.'s 10 000 steps)", LIU_EPISODES),
+    ("", "training, all 625 episodes", (1, 625)),
+    ("", "training, last 50 episodes", None),
+    ("eval", "deterministic, 70 veh/km", None),
+    ("eval_d90", "zero-shot, 90 veh/km", None),
+    ("eval_d120", "zero-shot, 120 veh/km", None),
+    ("eval_onramp", "zero-shot, on-ramp", None))
+"""(evaluation folder, "" for training; label; episodes averaged per run, None for the last 50)."""
 METRICS = (("return", "return", 1), ("collisions", "collisions / episode", -1),
            ("speed_dev_mps", "speed deviation (m/s)", -1))
 """(column, label, +1 when higher is better)."""
@@ -86,11 +95,11 @@ def rows(root: Path) -> list[list[str]]:
     out = []
     for algorithm, sweep in COMPARISONS:
         runs = finished_runs(root, algorithm, sweep)
-        for source, label in SOURCES:
+        for source, label, window in SOURCES:
             data = {side: readable(paths, source, algorithm, side == "set") for side, paths in runs.items()}
             for column, name, better in METRICS:
-                a = per_run(data["set"], column, LAST, None)
-                b = per_run(data["vector"], column, LAST, None)
+                a = per_run(data["set"], column, LAST, window)
+                b = per_run(data["vector"], column, LAST, window)
                 diff, low, high = difference_ci(a, b)
                 above, p = rank_test(a, b, 0)
                 ci = "" if math.isnan(low) else f" [{low:+.2f}, {high:+.2f}]"
@@ -104,8 +113,10 @@ def verdict_markdown(root: Path) -> str:
     """The page: how to read it, then the table."""
     lines = ["# Liu et al.'s claim: the set encoder against the fixed vector", "",
              "fields_zones_overtake_collision, trained at 70 veh/km; per-run means over the last 50 episodes of "
-             "each source, then set − vector with a 95 % percentile-bootstrap CI over runs and the two-sided rank "
-             "test (pairs of runs with set above vector, ties ½; exact permutation p). Verdict: *set worse* or "
+             "each source (training also over its first 12 episodes, about the 10 000 steps over which Liu et al. "
+             "compare training rewards, and over all 625), then set − vector with a 95 % percentile-bootstrap CI over "
+             "runs and the two-sided rank test (pairs of runs with set above vector, ties ½; exact permutation p). "
+             "Verdict: *set worse* or "
              "*set better* when the CI excludes 0 (worse: lower return, more collisions, larger speed deviation), "
              "*no difference detected* when it contains 0 (3 runs a side: low power, not equivalence), *too few runs* "
              "below 3 runs on a side. With 3 runs against 3 the percentile bootstrap resamples few distinct means "

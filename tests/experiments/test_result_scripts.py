@@ -128,7 +128,7 @@ def test_the_varobs_verdict_page_is_what_the_run_folders_make():
     the committed ones), so committing new runs without their verdict fails here."""
     made = script("varobs_verdict").verdict_markdown(ROOT)
     assert (ROOT / "results" / "varobs" / "verdict.md").read_text() == made
-    assert made.count("| DDPG |") == made.count("| DQN |") == 15  # 5 sources x 3 metrics each
+    assert made.count("| DDPG |") == made.count("| DQN |") == 21  # 7 sources x 3 metrics each
 
 
 def copy_run(run: Path, to: Path) -> None:
@@ -171,6 +171,9 @@ def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
     runs = [tmp_path / "results" / "varobs" / "set" / "runs" / f"set_{k}" for k in range(n_set)]
     expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[-50:].mean() for run in runs) / n_set
     assert ret[0] == f"{expected:.2f}"
+    early = table[("training, episodes 1–12 (Liu et al.'s 10 000 steps)", "return", f"{n_set}, 3")]
+    expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[:12].mean() for run in runs) / n_set
+    assert early[0] == f"{expected:.2f}"
     assert table[("deterministic, 70 veh/km", "speed deviation (m/s)", f"{n_set}, 3")][-1] == "set worse"
     assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == verdict.TOO_FEW
     assert verdict.reading(1, -3.0, -1.0) == verdict.reading(-1, 1.0, 3.0) == "set worse"
