@@ -32,6 +32,8 @@ compare() {
         fi
         if [ -s "$run/eval/episodes.csv" ]; then runs+=("$run"); fi
     done
+    # the set sweep's own summary and runs.csv, with the evaluations made since its driver wrote them
+    if [ -f "$sets/sweep.yaml" ]; then "$bin" report "$sets" >/dev/null; fi
     [ ${#runs[@]} -gt 0 ] || { echo "$algo: no finished, evaluated run of the variable-dimension experiment"; return 0; }
     "$bin" report "${runs[@]}" --out "$report"
     "$bin" report "${runs[@]}" --eval eval eval_d90 eval_d120 eval_onramp --out "${report}_transfer"
