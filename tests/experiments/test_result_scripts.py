@@ -62,6 +62,10 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     done = lanefree("sweep", str(grid), "--out", str(paper), "--workers", "1", "--no-progress", timeout=600)
     assert done.returncode == 0, done.stderr
     run = paper / "runs" / CELL
+    # a set sweep stand-in (a copy of this sweep: its summary written before any evaluation existed)
+    set_sweep = root / "results" / "varobs" / "set"
+    shutil.copytree(paper, set_sweep)
+    assert next(csv.DictReader(open(set_sweep / "runs.csv")))["eval_episodes"] in ("", "0")
     for bad in ("abc", "0", "-3"):  # refused in one line before anything is evaluated
         refused = subprocess.run(["bash", str(root / "scripts" / "update-results.sh"), bad], capture_output=True,
                                  text=True, timeout=60)
@@ -81,6 +85,8 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     transfer = (root / "results" / "varobs" / "report_transfer" / "summary.md").read_text()
     assert all(f"| `{name}` |" in transfer for name in ("eval", "eval_d90", "eval_d120", "eval_onramp"))
     assert (root / "results" / "varobs" / "report" / "summary.md").is_file()
+    # the set sweep's summary rewritten with the evaluations made since
+    assert next(csv.DictReader(open(set_sweep / "runs.csv")))["eval_episodes"] == str(EPISODES)
     verdict = (root / "results" / "varobs" / "verdict.md").read_text()  # one vector run, no set run: no verdict
     assert "| DDPG | training, last 50 episodes | return | 0, 1 | – |" in verdict and "| set worse |" not in verdict
     readme = (root / "README.md").read_text()  # its table rewritten from the summary, the rest kept
