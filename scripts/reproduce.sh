@@ -49,7 +49,7 @@ runs_to_do() {
             END { if (!seen) exit 1; print todo + 0 }'
     else
         PYTHONPATH=$tree "$python" -c "import sys; from lanefree_sumo.experiments.sweep.grid import load_grid; \
-print(len(load_grid(sys.argv[1]).cells()))" "$2"
+print(len(load_grid(sys.argv[1]).cells()))" "$2" 2>/dev/null  # unreadable: the caller says so in one line
     fi
 }
 
