@@ -148,7 +148,7 @@ def copy_run(run: Path, to: Path) -> None:
 
 
 def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
-    """With 3 finished runs a side the DDPG set encoder (standing still) is decided worse in return and speed
+    """With 3 finished runs a side the DDPG set encoder (standing still or racing) is decided worse in return and speed
     deviation, each side's column the mean of its runs' last 50 episodes, with the two-sided rank test; a set
     run without ``eval/`` (still training) counts nowhere, a vector run without one evaluation is missing from
     that one only, and a run of another cell (here a DQN run among the DDPG set runs) from every row."""
