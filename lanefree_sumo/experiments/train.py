@@ -71,9 +71,20 @@ def numpy_simd() -> str:
     return " ".join([*__cpu_baseline__, *(f for f in __cpu_dispatch__ if __cpu_features__.get(f))])
 
 
+def cpu_model() -> str:
+    """The processor's model name (``/proc/cpuinfo``; elsewhere what :mod:`platform` says), e.g. ``AMD EPYC 9B14``:
+    torch's BLAS picks its code paths per CPU model and vendor, so a run's later episodes repeat bit for bit only
+    on a like CPU (docs/training.md)."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine() or "unknown"
+
+
 def versions() -> dict[str, str]:
     """Versions of everything that shapes a result, with the SIMD kernels numpy and torch run on (they round
-    differently from one CPU generation to the next: :mod:`lanefree_sumo.numerics`)."""
+    differently from one CPU generation to the next: :mod:`lanefree_sumo.numerics`) and the CPU's model."""
     import gymnasium
     import stable_baselines3
     import torch
@@ -97,6 +108,7 @@ def versions() -> dict[str, str]:
         "numpy": np.__version__,
         "numpy_simd": numpy_simd(),
         "torch_cpu": torch.backends.cpu.get_cpu_capability(),
+        "cpu": cpu_model(),
         "sumo": sumo_version(),
         "lanefree_sumo": version("lanefree_sumo"),
         "git_commit": commit or "unknown",
