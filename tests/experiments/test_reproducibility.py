@@ -94,7 +94,7 @@ def _stopped_run(out: Path, algo: str, episodes: int, *options: str) -> list[dic
 @pytest.mark.parametrize("algo", ["ddpg", "dqn"])
 def test_a_new_runs_first_episode_repeats_the_committed_run_of_another_machine(algo: str, tmp_path: Path) -> None:
     """The first episode (the random warm-up: traffic, rewards and forces, no network) equals, in every column but
-    wall time, that of the committed paper run another machine trained (DDPG's on an AVX2 machine, DQN's on another
+    wall time, that of the committed paper run another machine trained (DDPG's on an AVX2 machine, DQN's on an earlier
     one): numpy's portable kernels make the environment repeat across machines (with numpy's AVX-512 kernels
     DDPG's episode 1 has 4 collisions against 5). versions.json names the kernels."""
     out = tmp_path / "run"
