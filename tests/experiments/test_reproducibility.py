@@ -18,7 +18,7 @@ import pytest
 
 from lanefree_sumo.numerics import PORTABLE_NUMPY_DISPATCH, VARIABLE
 
-from conftest import ROOT, lanefree, lanefree_popen, wait_for
+from conftest import ROOT, lanefree_popen, wait_for
 
 pytestmark = pytest.mark.slow
 # what the cross-machine tests hold to (numpy's x86-64 kernel tiers, episodes trained on an x86-64 machine) has no
@@ -98,12 +98,8 @@ def test_a_new_runs_first_episode_repeats_the_committed_run_of_another_machine(a
     one): numpy's portable kernels make the environment repeat across machines (with numpy's AVX-512 kernels
     DDPG's episode 1 has 4 collisions against 5). versions.json names the kernels."""
     out = tmp_path / "run"
-    done = lanefree("train", "--algo", algo, "--reward", "fields_zones_overtake_collision", "--density", "70",
-                    "--seed", "0", "--episodes", "1", "--out", str(out))
-    assert done.returncode == 0, done.stderr
-
     committed = ROOT / f"results/paper/runs/{algo}_fields_zones_overtake_collision_d70_s0/episodes.csv"
-    assert _rows(out / "episodes.csv", 1) == _rows(committed, 1)
+    assert _stopped_run(out, algo, 1) == _rows(committed, 1)
     versions = json.loads((out / "versions.json").read_text())
     assert "X86_V3" in versions["numpy_simd"].split() and "X86_V4" not in versions["numpy_simd"].split()
     assert versions["torch_cpu"] and versions["cpu"]
