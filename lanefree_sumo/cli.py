@@ -120,16 +120,16 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser(
         "train",
         help="train an agent; writes a run folder under runs/",
-        description="Train an agent on LaneFree-v0 with the paper's hyperparameters (SPEC §9) and write a run "
-        "folder runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/ (config.yaml, command.txt, versions.json, "
-        "episodes.csv, TensorBoard logs in tb/, checkpoints/, model.zip). Ctrl-C or SIGTERM saves a checkpoint; "
-        "--resume RUN continues from the newest one.",
+        description="Train an agent on LaneFree-v0 with the paper's hyperparameters (docs/specification.md "
+        "§9) and write a run folder runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/ (config.yaml, "
+        "command.txt, versions.json, episodes.csv, TensorBoard logs in tb/, checkpoints/, model.zip). Ctrl-C or "
+        "SIGTERM saves a checkpoint; --resume RUN continues from the newest one.",
     )
     t = DEFAULTS.train
     tr.add_argument("--algo", choices=ALGORITHM_NAMES, default=t.algo,
                     help=f"algorithm (default {t.algo}): {algorithms_help()}")
     tr.add_argument("--reward", choices=tuple(PRESETS), default=DEFAULTS.reward.preset,
-                    help=f"reward preset of SPEC §7 (default {DEFAULTS.reward.preset})")
+                    help=f"reward preset of docs/specification.md §7 (default {DEFAULTS.reward.preset})")
     tr.add_argument("--density", type=argtypes.density, default=density,
                     help=f"background density in veh/km (default {density:g})")
     tr.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=t.episodes,
@@ -247,9 +247,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Group run folders by (algorithm, reward preset, density, variant: every other setting in "
         "which a run's config differs from the defaults, e.g. shield.enabled=True), average the seeds, and write "
         "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
-        "and a table of last-50-episode means ± std with the paper's numbers (SPEC §10) as summary.csv and "
-        "summary.md. Unusable runs are named and skipped. Given a sweep folder (one with sweep.yaml), writes the "
-        "sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over seeds, as 'lanefree sweep'.",
+        "and a table of last-50-episode means ± std with the paper's numbers (docs/specification.md §10) as "
+        "summary.csv and summary.md. Unusable runs are named and skipped. Given a sweep folder (one with "
+        "sweep.yaml), writes the sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over "
+        "seeds, as 'lanefree sweep'.",
     )
     rep.add_argument("runs", type=Path, nargs="*", metavar="RUN",
                      help="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep' "

@@ -1,7 +1,7 @@
 """The configuration's schema: every default, unit and allowed value of the platform.
 
 Every number the simulation, the driver model, the rewards, the observations and the algorithms
-use lives here, with its unit, and nowhere else (SPEC §1–§9). Allowed values are ``Literal``
+use lives here, with its unit, and nowhere else (specification §1–§9). Allowed values are ``Literal``
 types or a field's ``range`` metadata; :mod:`.validation` checks them.
 """
 
@@ -41,7 +41,7 @@ class OnRampConfig:
     """Speed of a vehicle entering the ramp (m/s; its desired speed if that is lower)."""
     merge_lateral_speed_mps: float = field(default=0.5, metadata={"range": (0.0, 5.0)})
     """The lateral speed an unmerged ramp vehicle's target-speed force aims at in the merge zone (m/s;
-    elsewhere, and for every other vehicle, 0 as in SPEC §3): the merge rule's intention to merge."""
+    elsewhere, and for every other vehicle, 0 as in specification §3): the merge rule's intention to merge."""
     agent_start: Literal["ramp", "main"] = "ramp"
     """Where a learning vehicle starts: at the ramp's start (the merge task) or on the main road at
     ``agent_main_start_m`` (pass the merge area)."""
@@ -134,7 +134,7 @@ class AccelerationBounds:
 
 @dataclass
 class DriverConfig:
-    """The force-based lane-free background driver (SPEC §3, Papageorgiou et al. 2021)."""
+    """The force-based lane-free background driver (specification §3, Papageorgiou et al. 2021)."""
 
     neighbour_range_m: float = 100.0
     """Neighbours j with |dx_j| ≤ this contribute forces (m)."""
@@ -147,7 +147,7 @@ class DriverConfig:
     gain_x: float = 3.0
     """k_x = c_x with nudging off (the paper's setting): the gain on Σf_x (m/s² per unit force)
     and the braking deceleration c_x in D_x = ux²/(2·c_x) + len (m/s²). The reference uses one
-    parameter for both (SPEC §3, Revision 2)."""
+    parameter for both (specification §3)."""
     gain_x_nudging: float = 5.0
     """k_x = c_x with nudging on (the reference's nudging configuration)."""
     longitudinal_margin_m: float = 2.5
@@ -182,7 +182,7 @@ class DriverConfig:
     """|vy| ≤ this × vx after the step (–)."""
     bounds: AccelerationBounds = field(default_factory=lambda: AccelerationBounds(-4.0, 2.0, -1.0, 1.0))
     """Hard bounds of the background accelerations: the reference declares them as integers, so
-    its effective bounds are F_x ∈ [−4, 2], F_y ∈ [−1, 1] m/s² (SPEC §3, Revision 2)."""
+    its effective bounds are F_x ∈ [−4, 2], F_y ∈ [−1, 1] m/s² (specification §3)."""
 
     @property
     def effective_gain_x(self) -> float:
@@ -192,7 +192,7 @@ class DriverConfig:
 
 @dataclass
 class SpawnConfig:
-    """Initial placement of vehicles at a density (SPEC §1).
+    """Initial placement of vehicles at a density (specification §1).
 
     The road is cut into cells of (vehicle length + ``gap_x_m``) × (vehicle width + ``gap_y_m``);
     vehicles go to distinct random cells with a random offset inside their cell, so positions
@@ -213,7 +213,7 @@ ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
 RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
                        "zones_overtake_collision", "fields_zones_overtake_collision"]
-"""The reward presets of SPEC §7; their weights are :data:`lanefree_sumo.rl.rewards.PRESETS` (a test keeps the
+"""The reward presets of specification §7; their weights are :data:`lanefree_sumo.rl.rewards.PRESETS` (a test keeps the
 two in step)."""
 AlgorithmName = Literal["ddpg", "td3", "sac", "ppo", "dqn", "ddqn", "dueling", "per"]
 """The algorithms; their classes are :data:`lanefree_sumo.rl.algorithms.ALGORITHMS` (a test keeps the two in
@@ -241,7 +241,7 @@ class ScenarioConfig:
     the background vehicles of ``density_veh_per_km``."""
     agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
     agent_max_speed_mps: float = 30.0
-    """The agent's top speed (m/s); SPEC §2 bounds only its accelerations, but without a top
+    """The agent's top speed (m/s); specification §2 bounds only its accelerations, but without a top
     speed a policy learns to lap the ring at hundreds of m/s and farm overtake bonuses."""
     driver: DriverConfig = field(default_factory=DriverConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
@@ -249,10 +249,10 @@ class ScenarioConfig:
 
 @dataclass
 class RewardConfig:
-    """Reward components (SPEC §7, paper Tables 3–4). Weights are set by the preset."""
+    """Reward components (specification §7, paper Tables 3–4). Weights are set by the preset."""
 
     preset: RewardPreset = "fields_zones_overtake_collision"
-    """One of the presets of SPEC §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
+    """One of the presets of specification §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
     epsilon_r: float = 0.1
     """ε_r of the reciprocal reward (–)."""
     collision_reward: float = -2.5
@@ -283,7 +283,7 @@ class RewardConfig:
 
 @dataclass
 class ObservationConfig:
-    """Agent observation (SPEC §5)."""
+    """Agent observation (specification §5)."""
 
     kind: ObservationKind = "vector"
     """``vector`` (the paper's n nearest) or ``set`` (all in range, padded)."""
@@ -310,7 +310,7 @@ class ObservationConfig:
 
 @dataclass
 class ActionConfig:
-    """Agent actions (SPEC §6)."""
+    """Agent actions (specification §6)."""
 
     kind: ActionKind = "continuous"
     """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
@@ -398,7 +398,7 @@ class DQNConfig:
 
 @dataclass
 class TrainConfig:
-    """A training run (SPEC §9)."""
+    """A training run (specification §9)."""
 
     algo: AlgorithmName = "ddpg"
     """A name of the algorithm registry (:data:`lanefree_sumo.rl.algorithms.ALGORITHMS`)."""

@@ -3,7 +3,7 @@
 Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at another density than
 trained; ``eval_shield/`` or ``eval_noshield/``, after the density, when the safety shield is
 switched on or off against the run's config; ``eval_onramp…`` first for a ring-trained policy on the
-on-ramp, :func:`on_another_road`), one row per episode with the SPEC §8 columns, and
+on-ramp, :func:`on_another_road`), one row per episode with the specification §8 columns, and
 with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
 vehicle on the road at every step including the initial state (on the on-ramp vehicles come and
 go: see :mod:`lanefree_sumo.experiments.trajectory`), in the format of

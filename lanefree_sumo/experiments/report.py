@@ -10,7 +10,7 @@ writes into ``out``::
     summary.csv             one row per group: last-``last``-episode means, std over seeds, paper values
     summary.md              the same as a Markdown table, cells ``0.520 ± 0.100 (paper 0.449)``
 
-Definitions (SPEC §8, §10):
+Definitions (specification §8, §10):
 
 * **Grouping.** The group key is read from each run's ``config.yaml``: ``train.algo``,
   ``reward.preset``, ``scenario.density_veh_per_km`` (veh/km) and the *variant*: every other
@@ -31,7 +31,7 @@ Definitions (SPEC §8, §10):
   ± the sample std over runs (``ddof=1``) as a shaded band, at every episode that at least one
   run reached. Where the paper has a reference value, it is drawn as a dashed horizontal line in
   the group's colour.
-* **Paper values.** :data:`PAPER_REFERENCE` holds SPEC §10 (paper Tables 5–8): collisions per
+* **Paper values.** :data:`PAPER_REFERENCE` holds specification §10 (paper Tables 5–8): collisions per
   episode and speed deviation (m/s), keyed by (algorithm, preset, density).
 
 Damaged runs never crash a report. A run folder is *skipped* — listed in
@@ -263,7 +263,7 @@ def summary_table(groups: dict[RunKey, list[RunData]], last: int = 50) -> pd.Dat
 
     ``<m>_mean`` is the mean over runs of each run's mean over its last ``last`` episodes,
     ``<m>_std`` the sample std over runs (ddof=1, NaN for one run). ``episodes_min`` is the
-    fewest episodes any run of the group has. Paper columns are NaN / "" where SPEC §10 has no
+    fewest episodes any run of the group has. Paper columns are NaN / "" where specification §10 has no
     value. Units: collisions and overtakes per episode, speed deviation m/s.
     """
     records = []
@@ -300,7 +300,7 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
         "# lanefree_sumo training report",
         "",
         (f"Means over the last {last} episodes of each run, then mean ± sample std (ddof=1) over runs "
-         "(seeds); paper values from SPEC §10 in parentheses." if not source else
+         "(seeds); paper values from docs/specification.md §10 in parentheses." if not source else
          f"**Evaluation** (`RUN/{source}/episodes.csv`, the deterministic policy; density = the evaluated one): "
          f"means over the last {last} evaluation episodes of each run, then mean ± sample std (ddof=1) over "
          "runs; paper values (training, last 50 episodes) in parentheses."),

@@ -7,7 +7,7 @@ with the safety shield) holds::
     command.txt          every command that worked on the run, one per line
     versions.json        python, torch, SB3, gymnasium, numpy (and the SIMD kernels numpy and torch run on),
                          SUMO, lanefree_sumo, git commit
-    episodes.csv         one row per finished episode (SPEC §8 + algorithm, timesteps), flushed each time
+    episodes.csv         one row per finished episode (specification §8 + algorithm, timesteps), flushed each time
     tb/                  TensorBoard logs
     checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json (written last)
     model.zip            the final model

@@ -1,11 +1,11 @@
-"""Reward components of the lane-free agent (SPEC §7; Karalakou et al., Systems 2023, Eq. 16).
+"""Reward components of the lane-free agent (specification §7; Karalakou et al., Systems 2023, Eq. 16).
 
-Pure numpy: no SUMO, no gym.  Units are SI throughout (m, s, m/s).  Coordinates follow SPEC §1:
+Pure numpy: no SUMO, no gym.  Units are SI throughout (m, s, m/s).  Coordinates follow specification §1:
 ``dx_j = wrap(x_j − x_agent)`` in [−L/2, L/2) on the ring, ``dy_j = y_j − y_agent`` with ``y``
 measured from the right road edge (0 ≤ y ≤ W).
 
 Every default comes from :class:`lanefree_sumo.config.RewardConfig` (``_DEFAULTS`` below); the
-preset weights are the paper's Table 4 (SPEC §7 table).
+preset weights are the paper's Table 4 (specification §7 table).
 
 Conventions shared by the functions taking neighbour arrays (``field_cost``, ``zone_target``,
 ``agent_overlaps``): arrays are aligned by vehicle and broadcast against each other (so ``lens``
@@ -136,7 +136,7 @@ def agent_overlaps(
     lens: ArrayLike,
     wids: ArrayLike,
 ) -> bool:
-    """Whether the agent's rectangle overlaps any vehicle's (SPEC §4).
+    """Whether the agent's rectangle overlaps any vehicle's (specification §4).
 
     Overlap: ``|dx| < (agent_len + len_j)/2`` and ``|dy| < (agent_wid + wid_j)/2`` (m); touching
     edges do not overlap.
@@ -168,7 +168,7 @@ class RewardWeights:
         return self.w_y > 0.0
 
 
-# w_x = 0.35 when zones are on (w_y = 0.65), else 0.65 (SPEC §7 table).
+# w_x = 0.35 when zones are on (w_y = 0.65), else 0.65 (specification §7 table).
 PRESETS: dict[str, RewardWeights] = {
     "collision": RewardWeights(0.65, 0.0, 0.0, True, False),
     "overtake_collision": RewardWeights(0.65, 0.0, 0.0, True, True),

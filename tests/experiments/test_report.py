@@ -256,7 +256,7 @@ def test_paper_numbers_beside_matching_cells_only(two_seed_runs: list[Path], tmp
 
 
 def test_paper_reference_table_matches_spec() -> None:
-    assert len(PAPER_REFERENCE) == 15  # distinct settings of SPEC §10 Tables 5–8
+    assert len(PAPER_REFERENCE) == 15  # distinct settings of specification §10 Tables 5–8
     assert PAPER_REFERENCE[("ddpg", "collision", 70.0)][:2] == (2.256, 0.135)
     assert PAPER_REFERENCE[("ddpg", "fields_overtake_collision", 120.0)][:2] == (1.066, 1.715)
     assert PAPER_REFERENCE[("per", FZOC, 70.0)][:2] == (0.792, 0.617)

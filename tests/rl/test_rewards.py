@@ -1,4 +1,4 @@
-"""Reward components (SPEC §7) against values computed by hand from the formulas."""
+"""Reward components (specification §7) against values computed by hand from the formulas."""
 
 from __future__ import annotations
 
@@ -423,7 +423,7 @@ def test_compute_reward_observed_subset_and_config():
 # ------------------------------------------------------------------ presets
 
 
-SPEC_TABLE = {
+PAPER_TABLE_4 = {
     # name: (w_x, w_y, w_f, r_c on, r_o on)
     "collision": (0.65, 0.0, 0.0, True, False),
     "overtake_collision": (0.65, 0.0, 0.0, True, True),
@@ -435,15 +435,15 @@ SPEC_TABLE = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(SPEC_TABLE))
-def test_presets_match_spec_table(name):
+@pytest.mark.parametrize("name", sorted(PAPER_TABLE_4))
+def test_presets_match_paper_table_4(name):
     p = get_preset(name)
     assert isinstance(p, RewardWeights)
-    assert (p.w_x, p.w_y, p.w_f, p.use_collision, p.use_overtake) == SPEC_TABLE[name]
+    assert (p.w_x, p.w_y, p.w_f, p.use_collision, p.use_overtake) == PAPER_TABLE_4[name]
 
 
 def test_preset_set_is_exactly_the_table():
-    assert set(PRESETS) == set(SPEC_TABLE)
+    assert set(PRESETS) == set(PAPER_TABLE_4)
     assert RewardConfig().preset in PRESETS
 
 
@@ -452,7 +452,7 @@ def test_unknown_preset_lists_names():
         get_preset("fieldz")
     msg = str(err.value)
     assert "fieldz" in msg and "\n" not in msg
-    for name in SPEC_TABLE:
+    for name in PAPER_TABLE_4:
         assert name in msg
     with pytest.raises(ValueError):
         compute_reward(np.array([]), np.array([]), np.array([]), np.array([]), np.array([]),
@@ -463,13 +463,6 @@ def test_presets_are_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         get_preset("fields").w_f = 2.0  # type: ignore[misc]
     assert math.isclose(get_preset("fields").w_f, 1.0)
-
-
-def test_spec_module_path_lanefree_sumo_rewards_is_the_rewards_module():
-    import lanefree_sumo.rewards as spec_path
-    from lanefree_sumo.rl import rewards as module
-
-    assert spec_path is module and spec_path.ellipsoid(0.0, 0.0, 1.0, 1.0, 4, 4, 1, 0.5) == 0.5
 
 
 def test_the_configs_preset_and_algorithm_names_are_the_registries():

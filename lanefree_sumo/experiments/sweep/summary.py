@@ -1,6 +1,6 @@
 """A sweep's results: ``summary.csv``, ``summary.md`` and learning curves grouped per paper table.
 
-Definitions (SPEC §8, §10):
+Definitions (specification §8, §10):
 
 * **Per run**: the mean of a metric over its last ``last`` episodes (50, the paper's; all of them
   when a run has fewer), as :mod:`lanefree_sumo.experiments.report` computes it. Only *complete*
@@ -11,7 +11,7 @@ Definitions (SPEC §8, §10):
   interval over runs (:func:`bootstrap_ci`: 10 000 resamples of the runs with replacement, fixed
   random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
   very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
-* **Paper values**: SPEC §10 where the paper has the setting.
+* **Paper values**: specification §10 where the paper has the setting.
 * **Every run**: ``runs.csv`` and the second table of ``summary.md``, one row per complete run: its
   last-``last`` means, and the means over all episodes of its deterministic (``eval/``) and shielded
   (``eval_shield/``) evaluations where it has them (``lanefree evaluate``; empty where it has none).
@@ -199,7 +199,7 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
     lines += [
         f"Per run: the mean over its last {last} episodes (all of them when it has fewer); only complete runs "
         f"count. Cell: mean over runs [{CI_LEVEL:.0%} percentile-bootstrap CI over runs, {BOOTSTRAP_RESAMPLES} "
-        "resamples; n/a below 2 runs, too narrow with very few] (paper value, SPEC §10).",
+        "resamples; n/a below 2 runs, too narrow with very few] (paper value, docs/specification.md §10).",
         "",
     ]
     headers = ["algorithm", "reward preset", "density (veh/km)", "episodes", "runs", "collisions / episode",
