@@ -1,4 +1,4 @@
-"""Can the DQN family's 9 discrete actions drive as calmly as DDPG? (issue 17: why the DQN family races)
+"""Can the DQN family's 9 discrete actions drive as calmly as DDPG? (why the DQN family races)
 
 Drives a trained DDPG policy deterministically (numpy backend, the traffic seeds of `lanefree evaluate`: the
 run's seed + 100000 + k) three ways on the same traffic: its own continuous actions, and each action turned

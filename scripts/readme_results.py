@@ -1,4 +1,4 @@
-"""Rewrite the README's results table from a sweep's ``summary.csv`` (issue 17: one source for the numbers).
+"""Rewrite the README's results table from a sweep's ``summary.csv`` (one source for the numbers).
 
 The table sits between ``<!-- results-table -->`` and ``<!-- /results-table -->`` in README.md; one row per
 setting of the summary, in its order: runs complete, and per metric the mean over runs [95 % bootstrap CI

@@ -272,7 +272,7 @@ class RewardConfig:
     broad_stretch: Literal["closing", "absolute"] = "closing"
     """What stretches the broad region: ``closing`` (default) the closing speeds only (a receding
     neighbour does not stretch it), ``absolute`` any speed difference |Δvx|, |Δvy| — the other
-    reading of the paper's undefined k_r, e_v (issue 9's controlled runs compare the two)."""
+    reading of the paper's undefined k_r, e_v (docs/results.md's controlled runs compare the two)."""
     zone_time_gap_s: float = 0.7
     """t_g: zones scan d_o = vx · t_g ahead (s)."""
     zone_margin_m: float = 0.1
@@ -330,7 +330,7 @@ class EpisodeConfig:
 
 @dataclass
 class ShieldConfig:
-    """The agent's safety shield (:mod:`lanefree_sumo.rl.shield`, issue 12); off by default."""
+    """The agent's safety shield (:mod:`lanefree_sumo.rl.shield`); off by default."""
 
     enabled: bool = False
     """Pass every agent action through the shield (``lanefree train/evaluate/rollout --shield``)."""
@@ -392,7 +392,7 @@ class DQNConfig:
     """Hard target-network update interval (steps; one gradient update per step, so also updates). The paper
     does not give it. 10 000 is the Nature DQN's convention (Mnih et al. 2015: every 10 000 parameter
     updates), which the paper's double-DQN reference [19] takes over (its tuned double DQN uses 30 000),
-    and SB3's default (there counted in environment steps). Until session 8: 1000 (docs/interpretation.md)."""
+    and SB3's default (there counted in environment steps). See docs/interpretation.md."""
     learning_starts_steps: int = 800
 
 

@@ -1,5 +1,5 @@
 """A safety shield for the agent: the closest action it can certify, by worst-case reasoning on
-the double integrator (issue 12). Pure numpy on the state arrays: no SUMO, no gym.
+the double integrator. Pure numpy on the state arrays: no SUMO, no gym.
 
 **Model.** Every vehicle moves by the ballistic update of specification §2 with step T and vx ≥ 0. The
 agent's command is clipped to its bounds and top speed (``clip_acceleration``) and its lateral
