@@ -315,7 +315,7 @@ def summary_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple[Pat
             cells.append(_cell(row[f"{col}_mean"], row[f"{col}_std"], fmt,
                                None if paper is None or pd.isna(paper) else float(paper)))
         rows.append(cells)
-    lines += markdown.table(headers, rows)
+    lines += markdown.table(headers, rows, drop_constant=True)
     return "\n".join(lines + _skipped_and_notes(skipped, notes)) + "\n"
 
 
@@ -334,7 +334,7 @@ def evaluations_markdown(table: pd.DataFrame, last: int, skipped: Sequence[tuple
              f"Each evaluation (`RUN/<evaluation>/episodes.csv`, the policy without exploration noise; density = "
              f"the evaluated one): means over the last {last} evaluation episodes of each run, then mean ± sample "
              "std (ddof=1) over runs. Figures: `evaluations_collisions.png`, `evaluations_speed_dev.png`.", "",
-             *markdown.table(headers, rows)]
+             *markdown.table(headers, rows, drop_constant=True)]
     return "\n".join(lines + _skipped_and_notes(skipped, notes)) + "\n"
 
 

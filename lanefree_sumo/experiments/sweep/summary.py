@@ -208,7 +208,7 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
         [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density']:g}", str(row["episodes"]),
          f"{row['n_runs']}/{row['runs_planned']}", _cell(row, "collisions", "paper_collisions"),
          _cell(row, "speed_dev_mps", "paper_speed_dev_mps")]
-        for _, row in table.iterrows()])
+        for _, row in table.iterrows()], drop_constant=True)
     if curves:
         lines += ["", "## Learning curves", ""]
         titles: dict[tuple[Path, ...], list[str]] = {}  # tables drawn by the same files share a line
