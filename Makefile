@@ -63,12 +63,12 @@ train: system-deps $(STAMP)
 	$(BIN)/lanefree train $(TRAIN_OPTS)
 
 evaluate: system-deps $(STAMP)
-	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
-	$(BIN)/lanefree evaluate $(RUN) --record
+	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder> [OVERWRITE=1]"; exit 2; }
+	$(BIN)/lanefree evaluate $(RUN) --record $(if $(OVERWRITE),--overwrite)
 
 replay: system-deps $(STAMP)
-	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1]"; exit 2; }
-	$(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
+	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1] (under xvfb-run without a DISPLAY)"; exit 2; }
+	$(if $(DISPLAY),,xvfb-run -a) $(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
 
 report: $(STAMP)
 	$(BIN)/lanefree report $(RUNS) $(call opt,OUT,--out)

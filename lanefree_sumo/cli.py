@@ -100,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=DEFAULTS.seed,
                      help=f"random seed of the initial traffic (default {DEFAULTS.seed})")
     sim.add_argument("--out", type=Path, default=None,
-                     help="output folder (default runs/sim-d<density>-s<seed>); refused if it exists")
+                     help="output folder (default runs/sim-d<density>-s<seed>, on the on-ramp "
+                     "runs/sim-onramp-d<density>-s<seed>); refused if it exists")
     sim.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     sim.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
                      help=f"libsumo (SUMO in-process), traci (SUMO over a socket) or numpy (no SUMO); "
@@ -255,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("runs", type=Path, nargs="*", metavar="RUN",
                      help="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep' "
                      "(at least one)")
-    rep.add_argument("--out", type=Path, default=Path("runs/report"), help="output folder (default runs/report)")
+    rep.add_argument("--out", type=Path, default=Path("report"),
+                     help="output folder (default report/: outside runs/, which holds run folders only)")
     rep.add_argument("--last", type=argtypes.positive(int, "episodes"), default=REPORT.last_episodes,
                      help=f"episodes at the end of each run averaged in the table (default {REPORT.last_episodes}, "
                      "as the paper)")
@@ -310,7 +312,8 @@ def _simulate(args: argparse.Namespace) -> int:
     cfg = _build_config(args, options, {"gui": True, "backend": "traci"} if args.gui else None)
     from lanefree_sumo.experiments.simulate import simulate
 
-    out = args.out or Path("runs") / f"sim-d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"
+    road = "" if cfg.road.kind == "ring" else f"{cfg.road.kind}-"  # a ring and an on-ramp run do not collide
+    out = args.out or Path("runs") / f"sim-{road}d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"
     summary = simulate(cfg, args.seconds, out, _command(), overwrite=args.overwrite,
                        write_trajectory=not args.no_trajectory, progress=not args.json)
     if args.json:
@@ -365,7 +368,12 @@ def _train(args: argparse.Namespace) -> int:
         print(f"stopped after {done}/{target} episodes; checkpoint saved. Resume with: lanefree train --resume {run}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"trained {done} episodes -> {run}")
+    from lanefree_sumo.experiments.markdown import count
+    from lanefree_sumo.experiments.rundir import read_sessions
+
+    sessions = read_sessions(run)  # this session's first episode: a resume trains the rest only
+    now = done - int(sessions[-1].get("first_episode", 1)) + 1 if sessions else done
+    print(f"trained {count(now, 'episode')}" + (f" ({done} of {target} in all)" if now != done else "") + f" -> {run}")
     return 0
 
 
@@ -381,7 +389,7 @@ def _command() -> str:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.evaluate import evaluate
+    from lanefree_sumo.experiments.evaluate import evaluate, summary_line
 
     result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
                       out=args.out, overwrite=args.overwrite, shield=args.shield,
@@ -393,7 +401,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if result.interrupted:
         print(f"lanefree: interrupted; kept {result.episodes} complete episode(s) in {result.out}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"evaluated {result.episodes} episodes -> {result.out / 'episodes.csv'}")
+    print(summary_line(result))
     return 0
 
 

@@ -16,6 +16,7 @@ recording has a ``shielded`` column (1 in an agent's row on the steps the shield
 
 from __future__ import annotations
 
+import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ from typing import Any
 
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config, validate_density
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.markdown import count
 from lanefree_sumo.experiments.rundir import (
     EPISODES,
     RECORDING,
@@ -54,6 +56,25 @@ class EvaluationResult:
     kept_earlier: bool = False
     """Interrupted while replacing an earlier evaluation (``overwrite``): the earlier one is kept whole and
     the new, incomplete one discarded."""
+
+
+def summary_line(result: EvaluationResult) -> str:
+    """One line on what an evaluation measured: its episodes, the means over its rows (one per episode, or
+    per agent and episode with several agents) of collisions, speed deviation (m/s), mean speed (m/s) and
+    return, and where they are."""
+    path = result.out / EPISODES
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return f"evaluated 0 episodes -> {path}"
+
+    def mean(key: str) -> float:
+        return sum(float(row[key]) for row in rows) / len(rows)
+
+    per = "per agent and episode" if len(rows) > result.episodes else "per episode"
+    return (f"evaluated {count(result.episodes, 'episode')}: {mean('collisions'):.2f} agent collisions {per}, "
+            f"speed deviation {mean('speed_dev_mps'):.2f} m/s, mean speed {mean('mean_speed_mps'):.2f} m/s, "
+            f"return {mean('return'):.1f} -> {path}")
 
 
 class _IncompleteError(Exception):

@@ -9,12 +9,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-__all__ = ["TABLE_BEGIN", "TABLE_END", "table"]
+__all__ = ["TABLE_BEGIN", "TABLE_END", "count", "table"]
 
 TABLE_BEGIN = "<!-- table -->"
 """The line before a result file's table."""
 TABLE_END = "<!-- /table -->"
 """The line after a result file's table."""
+
+
+def count(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural unless ``n`` is 1: "1 episode", "3 episodes" (for tables and messages)."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[str]], fence: str = "table",

@@ -213,7 +213,8 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
         def __init__(self) -> None:
             super().__init__()
             self.episodes = done
-            self.bar = tqdm(total=target, initial=done, unit="ep", desc=f"{algo}", disable=not progress,
+            desc = f"{algo}, {cfg.scenario.agents} agents" if shared else algo
+            self.bar = tqdm(total=target, initial=done, unit="ep", desc=desc, disable=not progress,
                             dynamic_ncols=True)
 
         def _on_step(self) -> bool:
@@ -231,9 +232,11 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
                     self.logger.record(f"episode/{key}", float(np.mean([m[key] for m in group])))
                 self.logger.dump(self.num_timesteps)
                 self.bar.update(1)
-                self.bar.set_postfix(collisions=sum(m["collisions"] for m in group),
-                                     speed_dev=f"{np.mean([m['speed_dev_mps'] for m in group]):.2f}",
-                                     ret=f"{np.mean([m['return'] for m in group]):.1f}")
+                # several agents: collisions summed over them, speed deviation and return their means
+                summed, mean = (" (sum)", " (mean)") if shared else ("", "")
+                self.bar.set_postfix({f"collisions{summed}": sum(m["collisions"] for m in group),
+                                      f"speed_dev{mean}": f"{np.mean([m['speed_dev_mps'] for m in group]):.2f}",
+                                      f"ret{mean}": f"{np.mean([m['return'] for m in group]):.1f}"})
                 if self.episodes % cfg.train.checkpoint_every_episodes == 0 and self.episodes < target:
                     save_checkpoint(self.model, run, self.episodes, algo)
             return not stop.requested and self.episodes < target

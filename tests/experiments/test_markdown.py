@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from lanefree_sumo.experiments.markdown import table
+from lanefree_sumo.experiments.markdown import count, table
 
 from conftest import fenced_rows
 
@@ -23,3 +23,7 @@ def test_columns_the_same_in_every_row_are_named_once_above_the_table() -> None:
                                              "| ddpg | 2.5 |", "| dqn | 19.9 |"]
     one_row = table(["a", "b"], [["1", "2"]], drop_constant=True)  # one row: nothing is "the same in every row"
     assert fenced_rows("\n".join(one_row)) == ["| a | b |", "|---|---|", "| 1 | 2 |"]
+
+
+def test_a_count_is_plural_unless_it_is_one() -> None:
+    assert [count(n, "episode") for n in (0, 1, 2)] == ["0 episodes", "1 episode", "2 episodes"]
