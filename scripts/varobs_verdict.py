@@ -23,9 +23,8 @@ from pathlib import Path
 
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import difference_ci, per_run, rank_test
-from lanefree_sumo.experiments.report import UnusableRunError, read_run, read_run_config
-from lanefree_sumo.experiments.rundata import RunData
-from lanefree_sumo.experiments.sweep.manifest import write_atomic
+from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_run, read_run_config
+from lanefree_sumo.experiments.rundir import write_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -213,8 +213,8 @@ ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
 RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
                        "zones_overtake_collision", "fields_zones_overtake_collision"]
-"""The reward presets of specification §7; their weights are :data:`lanefree_sumo.rl.rewards.PRESETS` (a test keeps the
-two in step)."""
+"""The reward presets of specification §7, the one list of their names; each name lists its components, from
+which :data:`lanefree_sumo.rl.rewards.PRESETS` derives the weights."""
 AlgorithmName = Literal["ddpg", "td3", "sac", "ppo", "dqn", "ddqn", "dueling", "per"]
 """The algorithms; their classes are :data:`lanefree_sumo.rl.algorithms.ALGORITHMS` (a test keeps the two in
 step). The config owns every name it validates: the config room imports nothing from the RL room."""

@@ -24,6 +24,7 @@ from typing import Any
 
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config, validate_density
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.markdown import count
 from lanefree_sumo.experiments.rundir import (
     EPISODES,
@@ -37,7 +38,6 @@ from lanefree_sumo.experiments.rundir import (
     write_config,
 )
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
-from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.spawn import agent_id
@@ -182,7 +182,6 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     requested: the episode in progress is dropped with its recording)."""
     from tqdm import tqdm
 
-    from lanefree_sumo.experiments.train import episode_columns
     from lanefree_sumo.experiments.trajectory import TrajectoryWriter
     from lanefree_sumo.rl.multi_agent import PolicyDriver
 

@@ -160,6 +160,24 @@ def new_file(path: Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
+def write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all: into a file beside it, then renamed over it (a reader
+    never sees half a file; an interrupted write leaves ``path`` as it was)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # mkstemp makes it private; these are ordinary files
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
 @contextlib.contextmanager
 def fresh_output(out: Path, overwrite: bool, verb: str) -> Iterator[Path]:
     """Write a verb's output safely: yields a new folder beside ``out``; when the block ends

@@ -15,7 +15,6 @@ bit-identical replay of an uninterrupted one.
 from __future__ import annotations
 
 import contextlib
-import csv
 import itertools
 import json
 import platform
@@ -33,27 +32,11 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import spawn
-
-EPISODE_COLUMNS = (
-    "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
-    "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
-    "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s", "shield_interventions",
-)
-MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
-"""Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
-ONRAMP_COLUMNS = ("merged", "time_to_merge_s", "left_road")
-"""Added to ``EPISODE_COLUMNS`` in runs on the on-ramp."""
-
-
-def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
-    """The columns of a run's ``episodes.csv``."""
-    return (EPISODE_COLUMNS + (MULTI_AGENT_COLUMNS if cfg.scenario.agents > 1 else ())
-            + (ONRAMP_COLUMNS if cfg.road.kind == "onramp" else ()))
-
 
 # -- provenance ----------------------------------------------------------------------------------
 
@@ -116,54 +99,6 @@ def versions() -> dict[str, str]:
 
 
 # -- episode log and checkpoints ------------------------------------------------------------------
-
-class EpisodeLog:
-    """``episodes.csv``: one row per finished episode (and agent), appended and flushed at once."""
-
-    def __init__(self, path: Path, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
-        self.path = path
-        new = not path.exists() or path.stat().st_size == 0
-        self._fh = open(path, "a", newline="")
-        self._writer = csv.DictWriter(self._fh, fieldnames=columns, extrasaction="ignore")
-        if new:
-            self._writer.writeheader()
-            self._fh.flush()
-
-    def append(self, row: dict[str, Any]) -> None:
-        self._writer.writerow(row)
-        self._fh.flush()
-
-    def close(self) -> None:
-        self._fh.close()
-
-    @staticmethod
-    def missing(path: Path, episodes: int, rows_per_episode: int = 1) -> list[int]:
-        """Episodes among 1..``episodes`` that ``path`` lacks, holds a wrong number of times (each has
-        ``rows_per_episode`` rows: one per agent) or holds in a half-written row (fewer fields than the header)."""
-        counts: dict[int, int] = {}
-        if path.exists():
-            with open(path, newline="") as fh:
-                for row in csv.DictReader(fh):
-                    text = (row.get("episode") or "").strip()
-                    whole = None not in row.values() and None not in row
-                    if text.isdigit() and whole:
-                        counts[int(text)] = counts.get(int(text), 0) + 1
-        return [k for k in range(1, episodes + 1) if counts.get(k, 0) != rows_per_episode]
-
-    @staticmethod
-    def truncate(path: Path, episodes: int, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
-        """Keep the header and the rows of episodes 1..``episodes`` (drops rows a crash left
-        beyond the checkpoint, so a resumed run has no duplicates)."""
-        if not path.exists():
-            return
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-        kept = [r for r in rows if r.get("episode", "").isdigit() and int(r["episode"]) <= episodes]
-        with open(path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(kept)
-
 
 KEEP_REPLAY_BUFFERS = 2
 """Checkpoints whose replay buffer is kept (the newest ones; older checkpoints keep their model):

@@ -51,11 +51,12 @@ from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.report import RunData, UnusableRunError, group_runs, read_episodes, read_run
-from lanefree_sumo.experiments.rundir import EPISODES, RunDir
+from lanefree_sumo.experiments.report import group_runs
+from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_episodes, read_run
+from lanefree_sumo.experiments.rundir import EPISODES, RunDir, write_atomic
 from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
 from lanefree_sumo.experiments.sweep.grid import Grid, Setting
-from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
+from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
 
 METRICS = ("collisions", "speed_dev_mps")
