@@ -8,7 +8,7 @@ types or a field's ``range`` metadata; :mod:`.validation` checks them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 RoadKind = Literal["ring", "onramp"]
 
@@ -211,6 +211,8 @@ Backend = Literal["libsumo", "traci", "numpy"]
 ROAD_KINDS: tuple[str, ...] = get_args(RoadKind)
 ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
+OvertakeBonus = Literal["every_pass", "once_per_vehicle", "net_passes"]
+LearnerProfile = Literal["sb3", "kerasrl"]
 RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
                        "zones_overtake_collision", "fields_zones_overtake_collision"]
 """The reward presets of SPEC §7; their weights are :data:`lanefree_sumo.rl.rewards.PRESETS` (a test keeps the
@@ -240,9 +242,14 @@ class ScenarioConfig:
     (:mod:`lanefree_sumo.rl.multi_agent`, ``lanefree train --agents K``) any number; they come on top of
     the background vehicles of ``density_veh_per_km``."""
     agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
-    agent_max_speed_mps: float = 30.0
+    agent_max_speed_mps: float = field(default=30.0, metadata={
+        "range": (1.0, 1000.0), "paper": "none: only the agent's accelerations are bounded"})
     """The agent's top speed (m/s); SPEC §2 bounds only its accelerations, but without a top
     speed a policy learns to lap the ring at hundreds of m/s and farm overtake bonuses."""
+    agent_lateral_speed_ratio: float | None = field(default=None, metadata={
+        "range": (0.0, 100.0), "paper": "none for the agent; the background keeps |v_y| <= 0.5 v_x"})
+    """The agent's |vy| ≤ this × vx at the end of every step, as ``driver.lateral_speed_ratio`` bounds the
+    background's (–); null (the default): no bound."""
     driver: DriverConfig = field(default_factory=DriverConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
 
@@ -259,6 +266,11 @@ class RewardConfig:
     """r_c, added on every step the agent overlaps a vehicle."""
     overtake_reward: float = 2.0
     """r_o, added on a step the agent overtakes and does not collide."""
+    overtake_bonus: OvertakeBonus = field(default="every_pass", metadata={
+        "paper": "r_o when the agent overtakes a vehicle (which passes count is not said)"})
+    """Which passes earn r_o: ``every_pass`` (the default) any pass, the same vehicle again on a later lap too;
+    ``once_per_vehicle`` only the first pass of each vehicle in an episode; ``net_passes`` a pass that takes the
+    agent's passes minus being passed, for that vehicle, above its highest so far in the episode."""
     field_magnitude: float = 0.5
     """m_f, peak of each ellipsoid field (–)."""
     critical_exponents: tuple[float, float, float] = (4.0, 4.0, 1.0)
@@ -314,9 +326,11 @@ class ActionConfig:
 
     kind: ActionKind = "continuous"
     """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
-    discrete_ax_mps2: float = field(default=2.0, metadata={"range": (0.0, 100.0)})
+    discrete_ax_mps2: float = field(default=2.0, metadata={
+        "range": (0.0, 100.0), "paper": "9 actions: accelerate, brake, left, right, their combinations, none"})
     """|ax| of the discrete accelerate/brake actions (m/s²)."""
-    discrete_ay_mps2: float = field(default=1.0, metadata={"range": (0.0, 100.0)})
+    discrete_ay_mps2: float = field(default=1.0, metadata={
+        "range": (0.0, 100.0), "paper": "9 actions (their sizes are not given)"})
     """|ay| of the discrete left/right actions (m/s²)."""
 
 
@@ -364,7 +378,11 @@ class ActorCriticConfig:
     tau: float = 0.001
     """Soft target update rate (DDPG/TD3/SAC)."""
     learning_starts_steps: int = 800
-    """Random steps before the first update (one episode)."""
+    """Steps before the first update (one episode)."""
+    warmup_actions: Literal["uniform", "policy"] = field(default="uniform", metadata={
+        "paper": "not said (Keras-RL's DDPG acts with its actor and noise from the first step)"})
+    """What DDPG does before ``learning_starts_steps``: ``uniform`` random actions (SB3) or ``policy`` (its
+    untrained actor with the exploration noise, as Keras-RL's DDPG)."""
     ou_sigma: float = 0.2
     """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
     ou_theta: float = 0.15
@@ -394,6 +412,14 @@ class DQNConfig:
     updates), which the paper's double-DQN reference [19] takes over (its tuned double DQN uses 30 000),
     and SB3's default (there counted in environment steps). Until session 8: 1000 (docs/interpretation.md)."""
     learning_starts_steps: int = 800
+    """Steps before the first update (ε-greedy from ``epsilon_start`` meanwhile)."""
+    loss: Literal["huber", "squared"] = field(default="huber", metadata={
+        "paper": "not said (Keras-RL's default: the squared error)"})
+    """TD loss: ``huber`` (SB3's smooth L1, β = 1) or ``squared`` (½·δ², Keras-RL's with ``delta_clip = inf``);
+    the two agree for |δ| < 1."""
+    max_grad_norm: float | None = field(default=10.0, metadata={
+        "range": (1e-9, 1e9), "paper": "not said (Keras-RL clips no gradient)"})
+    """Clip the gradient's global norm at this (SB3's default 10); null: no clip."""
 
 
 @dataclass
@@ -402,6 +428,9 @@ class TrainConfig:
 
     algo: AlgorithmName = "ddpg"
     """A name of the algorithm registry (:data:`lanefree_sumo.rl.algorithms.ALGORITHMS`)."""
+    profile: LearnerProfile = field(default="sb3", metadata={"paper": "the agents were built with Keras-RL"})
+    """The learner choices the paper leaves open, set together (:data:`LEARNER_PROFILES`): ``sb3`` (SB3's
+    defaults) or ``kerasrl`` (Keras-RL's DQNAgent and DDPGAgent defaults); keys given beside it win."""
     episodes: int = 625
     envs: int = 1
     """Parallel environments, one process each (libsumo runs one simulation per process)."""
@@ -429,6 +458,18 @@ class TrainConfig:
     Evaluation, rollout and replay of the run can use any backend."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
+
+
+LEARNER_PROFILES: dict[str, dict[str, Any]] = {
+    "sb3": {"train": {"dqn": {"loss": "huber", "max_grad_norm": 10.0, "learning_starts_steps": 800},
+                      "actor_critic": {"warmup_actions": "uniform", "learning_starts_steps": 800}}},
+    "kerasrl": {"train": {"dqn": {"loss": "squared", "max_grad_norm": None, "learning_starts_steps": 1000},
+                          "actor_critic": {"warmup_actions": "policy", "learning_starts_steps": 1000}}},
+}
+"""What each ``train.profile`` sets: SB3's defaults, or Keras-RL's (``DQNAgent``: ``delta_clip = inf``, so the
+loss is ½·δ², no gradient clip, ``nb_steps_warmup = 1000``; ``DDPGAgent``: the actor with its random process
+from the first step, ``nb_steps_warmup_critic = nb_steps_warmup_actor = 1000``). The paper's own values (γ,
+batch size, learning rate, layers, ε schedule) are not part of a profile."""
 
 
 @dataclass

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, is_dataclass
@@ -27,6 +28,9 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
     """
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"config{path or ''} must be a mapping, got {type(overrides).__name__}")
+    profile = _profile_of(overrides) if not path else None
+    if profile is not None:  # the profile's keys first, so the keys given beside it win
+        base = merge_config(base, _profile_overrides(profile))
     valid = {f.name: f for f in fields(base)}
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
@@ -50,9 +54,26 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
     return dataclasses.replace(base, **changes)
 
 
+def _profile_of(overrides: Mapping[str, Any]) -> Any:
+    """The ``train.profile`` a top-level override mapping sets, or None."""
+    train = overrides.get("train")
+    return train.get("profile") if isinstance(train, Mapping) else None
+
+
+def _profile_overrides(name: Any) -> dict[str, Any]:
+    """The overrides of learner profile ``name`` (:data:`~.schema.LEARNER_PROFILES`)."""
+    from lanefree_sumo.config.schema import LEARNER_PROFILES
+
+    if not isinstance(name, str) or name not in LEARNER_PROFILES:
+        raise ConfigError(f"config 'train.profile' = {name!r} is not allowed; valid: {', '.join(LEARNER_PROFILES)}")
+    return LEARNER_PROFILES[name]
+
+
 ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner", "reward.broad_stretch",
                                "train.backend", "train.lean_loop", "train.overlap", "scenario.agents", "road.kind",
-                               "road.onramp", "observation.road_features")
+                               "road.onramp", "observation.road_features",
+                               "reward.overtake_bonus", "scenario.agent_lateral_speed_ratio", "train.profile",
+                               "train.dqn.loss", "train.dqn.max_grad_norm", "train.actor_critic.warmup_actions")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 
@@ -107,7 +128,7 @@ def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, fl
     within the field's ``range`` metadata, flags, names, tuples); returns the value, ints widened to
     float where a float is expected. Raises ConfigError naming the key and what is allowed."""
     value = _check_type(where, annotation, value)
-    if bounds is not None and not bounds[0] <= value <= bounds[1]:
+    if bounds is not None and value is not None and not bounds[0] <= value <= bounds[1]:
         low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
         raise ConfigError(f"config '{where}' = {value!r} is out of range; allowed {low} … {high}")
     return value
@@ -115,6 +136,8 @@ def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, fl
 
 def _check_type(where: str, annotation: Any, value: Any) -> Any:
     origin = get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):  # ``X | None``: null, or a value of X
+        return _check_optional(where, annotation, value)
     if origin is Literal:
         allowed = get_args(annotation)
         if value not in allowed:
@@ -145,6 +168,17 @@ def _check_type(where: str, annotation: Any, value: Any) -> Any:
             raise ConfigError(f"config '{where}' must have {len(item_types)} entries, got {len(value)}")
         return tuple(check_value(f"{where}[{i}]", t, v) for i, (t, v) in enumerate(zip(item_types, value)))
     return value
+
+
+def _check_optional(where: str, annotation: Any, value: Any) -> Any:
+    """A value of ``X | None``: null, or a value of X."""
+    if value is None:
+        return None
+    kinds = [a for a in get_args(annotation) if a is not type(None)]
+    try:
+        return _check_type(where, kinds[0], value)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (or null)") from None
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:

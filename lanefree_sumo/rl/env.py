@@ -30,7 +30,7 @@ import numpy as np
 from gymnasium import spaces
 
 from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_config
-from lanefree_sumo.rl.rewards import compute_reward, detect_overtakes, get_preset
+from lanefree_sumo.rl.rewards import OvertakeLedger, compute_reward, get_preset, pass_events
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.simulation import Simulation, StepResult
 
@@ -80,9 +80,11 @@ class LearningVehicle:
         """Begin an episode as row ``index`` of the freshly reset simulation; returns the first observation."""
         self.index = index
         self.vid = self.sim.current()[0].ids[index]
+        self.ledger = OvertakeLedger(self.cfg.reward.overtake_bonus)
         self.books = {
             "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
-            "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
+            "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "speed_error_sum": 0.0, "overtakes": 0,
+            "boundary_contacts": 0, "return_bonus": 0.0, "return_collision": 0.0,
             "shield_interventions": 0, "shield_fallbacks": 0, "merged_at_step": -1,
             **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
         }
@@ -137,7 +139,9 @@ class LearningVehicle:
         with_agents = int(np.count_nonzero(mine & others_agents.all(axis=1))) if len(new_pairs) else 0
         background_only = int(np.count_nonzero(~others_agents.any(axis=1))) if len(new_pairs) else 0
         collided = bool(result.overlap[a].any())
-        passes = detect_overtakes(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
+        passed, passed_by = pass_events(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
+        passes = int(np.count_nonzero(passed))
+        earned = self.ledger.record([state.ids[i] for i in idx[passed]], [state.ids[i] for i in idx[passed_by]])
         self.prev_dx = dx_row.copy()
 
         # the zones and the lateral cost live within this vehicle's boundaries: [lo, hi] as [0, hi − lo]
@@ -145,7 +149,7 @@ class LearningVehicle:
             dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
             state.width[idx], float(state.y[a]) - lo, float(state.vx[a]), float(state.vy[a]),
             float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), hi - lo,
-            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
+            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=earned > 0,
             config=cfg.reward,
         )
 
@@ -160,7 +164,12 @@ class LearningVehicle:
         b["background_collisions"] += background_only
         b["agent_collisions"] += with_agents
         b["speed_dev_sum"] += abs(vx_a - float(state.v_desired[a]))
+        b["speed_error_sum"] += vx_a - float(state.v_desired[a])
         b["speed_sum"] += vx_a
+        if self.weights.use_collision and collided:
+            b["return_collision"] += cfg.reward.collision_reward
+        if self.weights.use_overtake and terms.overtook and not collided:
+            b["return_bonus"] += cfg.reward.overtake_reward
         b["overtakes"] += passes
         b["boundary_contacts"] += contact
         b["sum_c_x"] += terms.c_x
@@ -247,10 +256,15 @@ class LearningVehicle:
             "episode": episode,
             "steps": self.sim.steps,
             "return": b["return"],
+            "return_bonus": b["return_bonus"],
+            "return_collision": b["return_collision"],
+            "return_reciprocal": b["return"] - b["return_bonus"] - b["return_collision"],
             "collisions": b["collisions"],
             "collision_steps": b["collision_steps"],
             "background_collisions": b["background_collisions"],
             "speed_dev_mps": b["speed_dev_sum"] / steps,
+            "speed_dev_episode_mps": abs(b["speed_error_sum"]) / steps,
+            "speed_error_mps": b["speed_error_sum"] / steps,
             "mean_speed_mps": b["speed_sum"] / steps,
             "overtakes": b["overtakes"],
             "boundary_contacts": b["boundary_contacts"],
