@@ -774,6 +774,9 @@ def test_variants_are_settings_of_their_own_with_their_own_runs_and_rows(tmp_pat
     assert "| variant |" in md and "| cap25 |" in md and "per episode" in md
     claims = list(csv.DictReader(open(tmp_path / "claims.csv")))  # on the default variant's runs only
     assert [(c["n_a"], c["n_b"]) for c in claims] == [("2", "2")]
+    effects = (tmp_path / "effects.md").read_text()  # each variant against default, per cell: 2 runs a side
+    assert "| cap25 | 2, 2 | too few runs |" in effects and "| keras | 2, 2 | too few runs |" in effects
+    assert {r["variant"] for r in csv.DictReader(open(tmp_path / "effects.csv"))} == {"cap25", "keras"}
 
 
 @pytest.mark.parametrize(("variants", "named"), [

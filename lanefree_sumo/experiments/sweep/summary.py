@@ -50,6 +50,7 @@ from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
+from lanefree_sumo.experiments.effects import effect_table, effects_markdown
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.report import RunData, UnusableRunError, read_episodes, read_run
 from lanefree_sumo.experiments.rundir import EPISODES, RunDir
@@ -326,6 +327,11 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
         else:  # no claim compares two of this grid's settings (one written by an earlier version goes)
             sweep.claims_csv.unlink(missing_ok=True)
             sweep.claims_md.unlink(missing_ok=True)
+        if DEFAULT_VARIANT in grid.variants:
+            effects = effect_table(groups, last)
+            effects.to_csv(sweep.effects_csv, index=False)
+            write_atomic(sweep.effects_md, effects_markdown(effects, last))
+            files += [sweep.effects_csv, sweep.effects_md]
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
     return SweepSummary(table, files, incomplete, notes + plot_notes)
