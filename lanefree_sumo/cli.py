@@ -421,7 +421,7 @@ def _export(args: argparse.Namespace) -> int:
         (out / OUTPUT_MARKER).write_text("export\n")
     result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out, overwrite=args.overwrite,
                     verb="export")
-    with new_file(csv_out) as tmp:
+    with new_file(csv_out, "export") as tmp:
         shutil.copyfile(source, tmp)
     print(f"exported {result.steps} steps -> {csv_out} and {fcd_out}")
     return 0
