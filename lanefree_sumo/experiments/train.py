@@ -305,10 +305,12 @@ def _check_episode_rows(folder: RunDir, done: int, agents: int) -> None:
                        "has learned (once each); restore the file, or start the run again")
 
 
-def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any) -> Any:
-    """The model (and replay buffer) of a checkpoint; RunError naming it when unusable."""
+def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any, folder: RunDir) -> Any:
+    """The model (and replay buffer) of a checkpoint of ``folder``; RunError naming it when unusable. Its
+    TensorBoard folder is ``folder``'s, never the path the checkpoint saved: a moved, renamed or copied run, or
+    one resumed from another directory, writes into itself."""
     try:
-        model = spec.cls.load(ckpt.model, env=env, device="cpu")
+        model = spec.cls.load(ckpt.model, env=env, device="cpu", tensorboard_log=str(folder.tensorboard))
         if spec.off_policy:
             if not ckpt.replay_buffer.is_file():
                 raise RunError(f"checkpoint {ckpt.path} lacks {ckpt.replay_buffer.name}; it is incomplete")
@@ -384,7 +386,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     log: EpisodeLog | None = None
     try:
         if ckpt is not None:
-            model = _load_checkpoint(spec, ckpt, env)  # validated before anything changes
+            model = _load_checkpoint(spec, ckpt, env, folder)  # validated before anything changes
             _check_episode_rows(folder, done, cfg.scenario.agents)
             EpisodeLog.truncate(folder.episodes, done, episode_columns(cfg))
             if target != cfg.train.episodes:

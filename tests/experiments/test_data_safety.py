@@ -340,3 +340,25 @@ def test_an_earlier_output_a_dead_writer_left_aside_is_put_back(tmp_path):
             pass
     assert (out / "episodes.csv").read_text() == "episode\n1\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eval"]
+
+
+# -- 10. a resumed run's paths follow its folder ----------------------------------------------------
+
+def tb_files(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.mark.slow
+def test_a_resumed_copy_writes_its_tensorboard_logs_into_itself(tmp_path, finished_run, monkeypatch):
+    """A run copied (or renamed, or resumed from another directory by a relative path) writes its TensorBoard
+    events into its own ``tb/``: not into the original's, whose path the checkpoint holds, nor into a folder of
+    the old name under the current directory (the sweep's workers resume runs the same way)."""
+    original = tb_files(finished_run / "tb")
+    assert original
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(finished_run, tmp_path / "copy")
+    _, done = train(LaneFreeConfig(), run=Path("copy"), resume=True, progress=False, episodes=3)
+    assert done == 3
+    assert tb_files(finished_run / "tb") == original
+    assert len(tb_files(tmp_path / "copy" / "tb")) > len(original)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]
