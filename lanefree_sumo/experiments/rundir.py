@@ -450,8 +450,37 @@ class RunDir:
                     return Checkpoint(folder, int(state["episodes"]), int(state["timesteps"]))
             except (OSError, ValueError, KeyError, TypeError):
                 continue
-        raise RunError(f"{self.path} has no usable checkpoint under {CHECKPOINTS}/; "
-                       "start a new run instead of resuming")
+        raise RunError(f"{self.path} has no usable checkpoint under {CHECKPOINTS}/ (it never reached its first); "
+                       f"start it afresh with 'lanefree train … --out {self.path}' (no --resume)")
+
+    def has_checkpoint(self) -> bool:
+        """Whether the run holds a complete checkpoint (:meth:`newest_checkpoint` finds one)."""
+        try:
+            self.newest_checkpoint()
+        except RunError:
+            return False
+        return True
+
+    def never_checkpointed(self) -> bool:
+        """A new run that ended (killed outright, or failed) before its first checkpoint: it holds only what
+        training writes (:data:`RUN_OWNED`), no final model and no complete checkpoint, so nothing in it can be
+        resumed. Its lock file, the first thing a training writes, tells it from a folder of the user's. A new
+        start into its folder begins afresh (:meth:`clear`)."""
+        try:
+            names = {entry.name for entry in self.path.iterdir()}
+        except OSError:
+            return False
+        return LOCK in names and names <= set(RUN_OWNED) and MODEL not in names and not self.has_checkpoint()
+
+    def clear(self) -> None:
+        """Remove everything in the folder but its lock file (call holding :meth:`writer_lock`)."""
+        for entry in self.path.iterdir():
+            if entry.name == LOCK:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
 
     def prune_replay_buffers(self, keep: int) -> None:
         """Delete the replay buffers of all but the ``keep`` newest checkpoints (models stay)."""

@@ -362,3 +362,50 @@ def test_a_resumed_copy_writes_its_tensorboard_logs_into_itself(tmp_path, finish
     assert tb_files(finished_run / "tb") == original
     assert len(tb_files(tmp_path / "copy" / "tb")) > len(original)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]
+
+
+# -- 11. a new run ended before its first checkpoint is no dead end ---------------------------------
+
+@pytest.mark.slow
+def test_a_new_run_killed_before_its_first_checkpoint_is_started_afresh(tmp_path):
+    """SIGKILL leaves the folder of a run that never checkpointed (nothing to resume): a new start into it
+    begins afresh, and --resume says so. A user's folder of like-named files is still refused."""
+    run = tmp_path / "run"
+    proc = lanefree_popen("train", "--backend", "numpy", "--episodes", "1", "--set", "sim.episode_steps=100000",
+                          "--out", str(run))
+    wait_for(lambda: (run / "versions.json").is_file(), proc, "the run folder set up")
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert (run / ".lock").exists() and not (run / "checkpoints").exists()
+    res = lanefree("train", "--resume", str(run))
+    assert res.returncode == 2 and "never reached its first" in res.stderr and "no --resume" in res.stderr
+    _, done = train(tiny(episodes=1), run=run, progress=False)
+    assert done == 1 and (run / "model.zip").is_file() and read_config(run).sim.episode_steps == 100
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "config.yaml").write_text("my notes\n")
+    with pytest.raises(RunError, match="exists; resume it"):
+        train(tiny(episodes=1), run=mine, progress=False)
+    assert (mine / "config.yaml").read_text() == "my notes\n"
+
+
+@pytest.mark.slow
+def test_a_new_run_whose_first_checkpoint_fails_leaves_nothing(tmp_path, monkeypatch):
+    """A full disk at the first checkpoint: the error, and no folder that blocks the same command once space is
+    freed (nothing in it could be resumed)."""
+    import lanefree_sumo.experiments.train as train_module
+
+    def full_disk(_model, folder: RunDir, episodes: int, _algo: str):
+        folder.checkpoint(episodes).mkdir(parents=True)
+        (folder.checkpoint(episodes) / "model.zip").write_bytes(b"PK")  # cut short: the disk filled up
+        raise OSError(28, "No space left on device")
+
+    real = train_module.save_checkpoint
+    monkeypatch.setattr(train_module, "save_checkpoint", full_disk)
+    run = tmp_path / "run"
+    with pytest.raises(OSError, match="No space left"):
+        train(tiny(episodes=1), run=run, progress=False)
+    assert not run.exists()
+    monkeypatch.setattr(train_module, "save_checkpoint", real)
+    _, done = train(tiny(episodes=1), run=run, progress=False)
+    assert done == 1
