@@ -125,12 +125,17 @@ def _field_types(cls: Any) -> dict[str, Any]:
 
 def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, float] | None = None) -> Any:
     """THE validation of one config value against its field's type (``Literal`` values, numbers
-    within the field's ``range`` metadata, flags, names, tuples); returns the value, ints widened to
-    float where a float is expected. Raises ConfigError naming the key and what is allowed."""
+    within the field's ``range`` metadata — each entry's, for a list —, flags, names, tuples); returns the
+    value, ints widened to float where a float is expected. Raises ConfigError naming the key and what is
+    allowed."""
     value = _check_type(where, annotation, value)
-    if bounds is not None and value is not None and not bounds[0] <= value <= bounds[1]:
-        low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
-        raise ConfigError(f"config '{where}' = {value!r} is out of range; allowed {low} … {high}")
+    if bounds is None or value is None:
+        return value
+    for key, item in ([(f"{where}[{i}]", v) for i, v in enumerate(value)] if isinstance(value, tuple)
+                      else [(where, value)]):
+        if not bounds[0] <= item <= bounds[1]:
+            low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
+            raise ConfigError(f"config '{key}' = {item!r} is out of range; allowed {low} … {high}")
     return value
 
 
