@@ -498,6 +498,21 @@ def _net(args: argparse.Namespace) -> int:
     return 0
 
 
+def _end_progress_bars() -> None:
+    """Close every progress bar a failed verb left open: each ends its line now (not later, when it is
+    collected), so that the error line that follows comes last on stderr, on a line of its own."""
+    tqdm_module = sys.modules.get("tqdm")
+    if tqdm_module is not None:
+        for bar in list(getattr(tqdm_module.tqdm, "_instances", ())):
+            bar.close()
+
+
+def _error(line: str) -> None:
+    """Print ``lanefree: LINE`` as the last line of stderr (after any progress bar), whitespace folded."""
+    _end_progress_bars()
+    print(f"lanefree: {' '.join(line.split())}", file=sys.stderr, flush=True)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``lanefree`` console script."""
     parser = build_parser()
@@ -514,21 +529,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         with sigterm_as_interrupt():  # `kill PID` stops every verb as Ctrl-C does
             return handler(args)
     except LaneFreeError as exc:  # the user's to fix: one line, no traceback
-        print(f"lanefree: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        _error(f"error: {exc}")
         return exc.exit_code
     except KeyboardInterrupt:
-        print("lanefree: interrupted", file=sys.stderr)
+        _error("interrupted")
         return EXIT_INTERRUPTED
     except MemoryError:
-        print("lanefree: error: out of memory; use fewer processes (--envs, --workers) or a smaller buffer",
-              file=sys.stderr)
+        _error("error: out of memory; use fewer processes (--envs, --workers) or a smaller buffer")
         return OperatingSystemError.exit_code
     except OSError as exc:  # the operating system's limit, not a bug: one line, named
-        print(f"lanefree: error: {' '.join(os_error_message(exc).split())}", file=sys.stderr)
+        _error(f"error: {os_error_message(exc)}")
         return OperatingSystemError.exit_code
     except Exception as exc:  # a bug in lanefree_sumo, not a user mistake
-        print(f"lanefree: internal error {type(exc).__name__}: {exc} (a bug; please report it with the command "
-              "line)", file=sys.stderr)
+        _error(f"internal error {type(exc).__name__}: {exc} (a bug; please report it with the command line)")
         return EXIT_BUG
 
 

@@ -243,12 +243,34 @@ def nested_overrides(settings: Sequence[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def load_yaml(text: str, source: str) -> Any:
+    """``text`` (of file ``source``) parsed as YAML, safe types only; a key repeated in one mapping is a
+    ConfigError naming it and both lines: YAML would keep the last silently, so a section given twice would
+    drop the first block."""
+    import yaml
+
+    class UniqueKeys(yaml.SafeLoader):
+        def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+            lines: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                line = key_node.start_mark.line + 1
+                if isinstance(key, typing.Hashable) and key in lines:
+                    raise ConfigError(f"{source}: key '{key}' is given twice (lines {lines[key]} and {line}); "
+                                      "give each key once")
+                lines[key] = line
+            return super().construct_mapping(node, deep)
+
+    return yaml.load(text, Loader=UniqueKeys)  # noqa: S506 (a SafeLoader)
+
+
 def read_config_file(path: Path) -> dict[str, Any]:
-    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``)."""
+    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``); a key given twice
+    is refused."""
     import yaml
 
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text(), str(path))
     except OSError as exc:
         raise ConfigError(f"cannot read the config file {path}: {exc.strerror or exc}") from None
     except UnicodeDecodeError:

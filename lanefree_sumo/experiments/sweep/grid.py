@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_density
+from lanefree_sumo.config.validation import load_yaml
 from lanefree_sumo.errors import ConfigError, UsageError
 from lanefree_sumo.experiments.paper import PAPER_ROWS
 
@@ -235,7 +236,7 @@ def load_grid(spec: str | Path) -> Grid:
         raise ConfigError(f"unknown grid '{text}': neither a built-in grid ({', '.join(BUILTIN_GRIDS)}) "
                           "nor a YAML file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = load_yaml(path.read_text(encoding="utf-8"), f"grid {path}")
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         reason = " ".join(str(exc).split())[:200]
         raise ConfigError(f"grid {path}: unreadable ({reason})") from None

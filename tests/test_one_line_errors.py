@@ -1,0 +1,44 @@
+"""One line, the last on stderr, for every mistake; options and keys that mean something (issue: data safety)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from lanefree_sumo.config import read_config_file
+from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.experiments.sweep.grid import load_grid
+
+from conftest import lanefree
+
+
+def last_line_is_the_error(stderr: str) -> str:
+    """The error line: stderr's last, on a line of its own (a progress bar's ``\\r`` updates end before it)."""
+    assert stderr.endswith("\n"), repr(stderr[-300:])
+    last = stderr.split("\n")[-2]
+    assert last.startswith("lanefree: error: "), repr(stderr[-300:])
+    assert "lanefree: error" not in stderr[: -len(last) - 1], repr(stderr[-300:])
+    return last
+
+
+def test_an_error_inside_a_progress_bar_ends_up_last_on_its_own_line(tmp_path):
+    res = lanefree("train", "--scenario", "onramp", "--agents", "64", "--episodes", "1", "--out", str(tmp_path / "r"))
+    assert res.returncode == 2
+    assert "do not fit" in last_line_is_the_error(res.stderr)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_key_given_twice_in_a_yaml_file_is_refused(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text("train:\n  episodes: 3\nsim:\n  step_s: 0.25\ntrain:\n  algo: dqn\n")
+    with pytest.raises(ConfigError, match=r"key 'train' is given twice \(lines 1 and 5\)"):
+        read_config_file(config)
+    config.write_text("train:\n  episodes: 3\n  episodes: 4\n")
+    res = lanefree("config", "--config", str(config))
+    assert res.returncode == 2 and "key 'episodes' is given twice (lines 2 and 3)" in last_line_is_the_error(
+        res.stderr)
+    grid = tmp_path / "g.yaml"
+    grid.write_text("reward_presets: [collision]\nepisodes: 2\nepisodes: 3\n")
+    with pytest.raises(ConfigError, match=rf"grid {grid}: key 'episodes' is given twice"):
+        load_grid(Path(grid))
