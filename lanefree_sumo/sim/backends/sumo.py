@@ -299,6 +299,7 @@ class SumoBackend:
         places = [self._placement(float(x), float(y)) for x, y in zip(state.x, state.y)]
         try:
             for vid in v.getIDList():
+                v.unsubscribe(vid)  # libsumo keeps a removed vehicle's subscription: the next step would fail on it
                 v.remove(vid)
             for i, (vid, (route, lane, pos, _)) in enumerate(zip(state.ids, places)):
                 self._insert(vid, route, lane, pos, float(state.vx[i]), float(state.v_desired[i]))
