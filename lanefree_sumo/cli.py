@@ -293,6 +293,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+ROAD_OPTIONS: dict[str, tuple[str, ...]] = {"ring": ("--length",), "onramp": ("--main-flow", "--ramp-flow")}
+"""``simulate``'s options that size or feed one road only."""
+
+
+def _check_road_options(args: argparse.Namespace, cfg: LaneFreeConfig) -> None:
+    """Refuse an option of another road than ``cfg``'s: it would be ignored."""
+    for road, names in ROAD_OPTIONS.items():
+        given = sorted(args.given & set(names))
+        if road != cfg.road.kind and given:
+            lengths = ("; the on-ramp's lengths are road.onramp.upstream_m, ramp_m, merge_m and downstream_m "
+                       "(--set)") if road == "ring" else ""
+            raise UsageError(f"{given[0]} applies to --scenario {road} only, not to the {cfg.road.kind}{lengths}")
+
+
 def _simulate(args: argparse.Namespace) -> int:
     options: list[tuple[str, tuple[str, ...], Any]] = [
         ("seed", ("--seed",), args.seed),
@@ -307,6 +321,7 @@ def _simulate(args: argparse.Namespace) -> int:
         ("road.onramp.main_flow_veh_per_h", "--main-flow", args.main_flow),
         ("road.onramp.ramp_flow_veh_per_h", "--ramp-flow", args.ramp_flow)) if value is not None]
     cfg = _build_config(args, options, {"gui": True, "backend": "traci"} if args.gui else None)
+    _check_road_options(args, cfg)
     from lanefree_sumo.experiments.simulate import simulate
 
     out = args.out or Path("runs") / f"sim-d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"

@@ -42,3 +42,16 @@ def test_a_key_given_twice_in_a_yaml_file_is_refused(tmp_path):
     grid.write_text("reward_presets: [collision]\nepisodes: 2\nepisodes: 3\n")
     with pytest.raises(ConfigError, match=rf"grid {grid}: key 'episodes' is given twice"):
         load_grid(Path(grid))
+
+
+@pytest.mark.parametrize("args,needle", [
+    (("--scenario", "ring", "--main-flow", "100"), "--main-flow applies to --scenario onramp only"),
+    (("--scenario", "ring", "--ramp-flow", "100"), "--ramp-flow applies to --scenario onramp only"),
+    (("--scenario", "onramp", "--length", "100"), "--length applies to --scenario ring only"),
+    (("--backend", "numpy", "--set", "net_file=sumo_nets/ring_L500_W10.2.net.xml"),
+     "the numpy backend uses no SUMO network"),
+])
+def test_options_that_do_not_apply_are_refused(tmp_path, args, needle):
+    res = lanefree("simulate", "--seconds", "1", *args, "--out", str(tmp_path / "o"))
+    assert res.returncode == 2 and needle in last_line_is_the_error(res.stderr)
+    assert list(tmp_path.iterdir()) == []

@@ -36,6 +36,9 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
     if cfg.backend == "numpy":
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
+        if cfg.net_file:
+            raise ConfigError(f"the numpy backend uses no SUMO network (net_file {cfg.net_file}); drop it, or use "
+                              "--backend libsumo (or traci)")
         return NumpyBackend(cfg) if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
     from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
 
