@@ -55,3 +55,44 @@ def test_options_that_do_not_apply_are_refused(tmp_path, args, needle):
     res = lanefree("simulate", "--seconds", "1", *args, "--out", str(tmp_path / "o"))
     assert res.returncode == 2 and needle in last_line_is_the_error(res.stderr)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_python_api_takes_numpy_scalars_and_names_a_section_of_another_kind():
+    import gymnasium
+    import numpy as np
+
+    import lanefree_sumo  # noqa: F401 - registers LaneFree-v0
+    from lanefree_sumo.config import LaneFreeConfig, ShieldConfig, merge_config
+
+    cfg = merge_config(LaneFreeConfig(), {"seed": np.int64(3), "scenario": {"density_veh_per_km": np.float32(70.5),
+                                                                             "agents": np.int32(2)}})
+    assert (cfg.seed, cfg.scenario.density_veh_per_km, cfg.scenario.agents) == (3, 70.5, 2)
+    assert type(cfg.seed) is int and type(cfg.scenario.density_veh_per_km) is float
+    env = gymnasium.make("LaneFree-v0", config={"backend": "numpy", "seed": np.int64(3)})
+    try:
+        first, info = env.reset(seed=np.int64(7))
+        assert info["episode_seed"] == 7
+        np.testing.assert_array_equal(first, env.reset(seed=7)[0])
+        with pytest.raises(ValueError, match="seed must be a whole number"):
+            env.reset(seed=1.5)
+    finally:
+        env.close()
+    with pytest.raises(ConfigError, match="config 'road' is a RoadConfig section, not a ShieldConfig"):
+        merge_config(LaneFreeConfig(), {"road": ShieldConfig()})
+    with pytest.raises(ConfigError, match=r"config 'shield.horizon_s' = 0.0 is out of range"):
+        merge_config(LaneFreeConfig(), {"shield": ShieldConfig(horizon_s=0.0)})
+
+
+@pytest.mark.parametrize("actions", [[[0.0, 0.0], [0.0, 0.0]], None])
+def test_a_pettingzoo_step_with_a_list_or_none_is_a_clear_error(actions):
+    import numpy as np
+
+    from lanefree_sumo.rl.multi_agent import parallel_env
+
+    env = parallel_env({"backend": "numpy", "scenario": {"agents": 2}})
+    try:
+        env.reset(seed=np.int64(1))
+        with pytest.raises(TypeError, match=r"step\(\) takes a dict of one action per live agent"):
+            env.step(actions)
+    finally:
+        env.close()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -46,7 +47,10 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
         if is_dataclass(current) and isinstance(value, Mapping):
             changes[key] = merge_config(current, value, where)
         elif is_dataclass(current) and is_dataclass(value):
-            changes[key] = value
+            if type(value) is not type(current):
+                raise ConfigError(f"config '{where}' is a {type(current).__name__} section, not a "
+                                  f"{type(value).__name__}")
+            changes[key] = validate_config(value, where)
         else:
             if isinstance(current, tuple) and isinstance(value, list):
                 value = tuple(value)
@@ -152,12 +156,12 @@ def _check_type(where: str, annotation: Any, value: Any) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"config '{where}' must be true or false, got {value!r}")
         return value
-    if annotation is int:
-        if isinstance(value, bool) or not isinstance(value, int):
+    if annotation is int:  # numpy's integers too (numbers.Integral), kept as Python ints
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
             raise ConfigError(f"config '{where}' must be a whole number, got {value!r}")
-        return value
-    if annotation is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return int(value)
+    if annotation is float:  # numpy's floats too (numbers.Real), kept as Python floats
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
             raise ConfigError(f"config '{where}' must be a finite number, got {value!r}")
         return float(value)
     if annotation is str:

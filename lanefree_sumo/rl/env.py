@@ -21,6 +21,7 @@ every feature is O(1).  With ``scale=False`` the raw SI values are returned.
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -346,6 +347,16 @@ def action_to_acceleration(cfg: LaneFreeConfig, action: Any, where: str) -> tupl
     return (a0 * bounds.ax_max if a0 >= 0.0 else -a0 * bounds.ax_min), a1 * bounds.ay_max
 
 
+def as_seed(seed: Any) -> int | None:
+    """A ``reset`` seed as a Python int (numpy's integers too: gymnasium takes only Python ints), None kept;
+    ValueError saying what a seed is for anything else."""
+    if seed is None:
+        return None
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"seed must be a whole number ≥ 0 (or None), got {seed!r}")
+    return int(seed)
+
+
 class LaneFreeEnv(gym.Env):
     """Gymnasium environment of the paper's MDP on the SUMO ring road.
 
@@ -387,6 +398,7 @@ class LaneFreeEnv(gym.Env):
 
     # -- gymnasium API ---------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
+        seed = as_seed(seed)
         super().reset(seed=seed)
         self._episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31 - 1))
         state = self.sim.reset(self._episode_seed)
