@@ -232,9 +232,15 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
         refused = subprocess.run(["bash", script, "start", bad], capture_output=True, text=True, timeout=60,
                                  cwd=tmp_path, env=env)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and f"'{bad}'" in refused.stderr
-    usage = subprocess.run(["bash", script, "begin"], capture_output=True, text=True, timeout=60)
-    assert usage.returncode == 2 and "usage: scripts/reproduce.sh start" in usage.stdout
+    for verb in (["begin"], []):  # an unknown command, none: one line on stderr, nothing written
+        usage = subprocess.run(["bash", script, *verb], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert usage.returncode == 2 and usage.stdout == "" and usage.stderr.count("\n") == 1, usage
+        assert ("unknown command 'begin'" if verb else "no command given") in usage.stderr
+        assert "usage: scripts/reproduce.sh start" in usage.stderr
     assert not (tmp_path / ".worktrees" / "logs" / "paper.pid").exists()
+    stop = subprocess.run(["bash", script, "stop"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert stop.returncode == 0 and stop.stdout.startswith("nothing to stop"), stop
+    assert sorted(p.name for p in (tmp_path / ".worktrees" / "logs").iterdir()) == []
 
 
 def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
