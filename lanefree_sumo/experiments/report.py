@@ -235,16 +235,17 @@ def read_run(run: Path, source: str = "") -> RunData:
     if not run.is_dir():
         raise UnusableRunError("not a folder" if run.exists() else "folder does not exist")
     algo, preset, density, seed, variant = read_run_config(run)
-    desired = read_config(run).scenario.agent  # read_run_config read it: it reads again
+    cfg = read_config(run)  # read_run_config read it: it reads again
+    desired = cfg.scenario.agent
     v_d = desired.desired_speed_min_mps if desired.desired_speed_min_mps == desired.desired_speed_max_mps else None
     if not source:
         return RunData(run, algo, preset, density, seed, with_speed_readings(read_episodes(run / EPISODES), v_d),
-                       variant)
+                       variant, cfg.road.kind)
     path = run / source / EPISODES
     if not path.is_file():
         raise UnusableRunError(f"no {source}/{EPISODES} (run 'lanefree evaluate' first)")
     return RunData(run, algo, preset, _evaluated_density(path, density), seed,
-                   with_speed_readings(read_episodes(path), v_d), variant)
+                   with_speed_readings(read_episodes(path), v_d), variant, _road(run / source, cfg.road.kind))
 
 
 def with_speed_readings(episodes: pd.DataFrame, v_d: float | None) -> pd.DataFrame:
@@ -256,6 +257,15 @@ def with_speed_readings(episodes: pd.DataFrame, v_d: float | None) -> pd.DataFra
         return episodes
     error = episodes["mean_speed_mps"] - v_d
     return episodes.assign(speed_error_mps=error, speed_dev_episode_mps=error.abs())
+
+
+def _road(folder: Path, default: str) -> str:
+    """The road (``road.kind``) of the evaluation ``folder`` by its config.yaml; ``default`` without a readable
+    one."""
+    try:
+        return read_config(folder).road.kind
+    except RunError:
+        return default
 
 
 # -- tables --------------------------------------------------------------------------------------
@@ -298,7 +308,7 @@ def summary_table(groups: dict[RunKey, list[RunData]], last: int = 50) -> pd.Dat
         for col, _, _ in TABLE_METRICS:
             rec[f"{col}_mean"] = float(per_run[col].mean())
             rec[f"{col}_std"] = float(per_run[col].std(ddof=1)) if len(runs) > 1 else math.nan
-        ref = paper_reference(algo, preset, density)
+        ref = paper_reference(algo, preset, density, runs[0].road)  # a group's runs share their config
         rec["collisions_paper"] = ref.collisions if ref else math.nan
         rec["speed_dev_mps_paper"] = ref.speed_dev_mps if ref else math.nan
         rec["paper_source"] = ref.source if ref else ""

@@ -26,6 +26,8 @@ class RunData:
     """Index ``episode`` (ascending, unique), float columns ``REQUIRED_COLUMNS[1:]``."""
     variant: str = ""
     """How the run's config differs from the defaults beyond the group key (``""`` for none)."""
+    road: str = "ring"
+    """The road its episodes were driven on (``road.kind``; the paper's values are the ring's)."""
 
     @property
     def key(self) -> RunKey:

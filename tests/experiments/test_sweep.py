@@ -790,3 +790,27 @@ def test_variants_are_settings_of_their_own_with_their_own_runs_and_rows(tmp_pat
 def test_bad_variants_are_one_line_errors_naming_the_variant(variants, named):
     with pytest.raises(ConfigError, match=re.escape(named)):
         parse_grid({"reward_presets": ["collision"], "variants": variants}, "bad", "bad.yaml")
+
+
+def test_an_on_ramp_sweep_and_report_are_not_compared_with_the_papers_ring():
+    """The paper's values and claims are the ring's: an on-ramp grid's summary has neither, a ring grid's both;
+    the report's table of on-ramp runs has no paper column values either."""
+    import pandas as pd
+
+    from lanefree_sumo.experiments.report import RunData, summary_table
+    from lanefree_sumo.experiments.sweep.summary import _rows, paper_comparisons
+
+    settings = {"reward_presets": ["fields_overtake_collision", "fields_zones_overtake_collision"],
+                "densities": [90], "n_seeds": 1, "episodes": 2}
+    ring = parse_grid(settings, "ring", "ring.yaml")
+    onramp = parse_grid({**settings, "overrides": {"road": {"kind": "onramp"}}}, "onramp", "onramp.yaml")
+    assert (ring.road(ring.settings[0]), onramp.road(onramp.settings[0])) == ("ring", "onramp")
+    assert paper_comparisons(ring) and paper_comparisons(onramp) == ()
+    assert _rows(ring, {}, 50)["paper_collisions"].notna().all()
+    assert _rows(onramp, {}, 50)["paper_collisions"].isna().all()
+    frame = pd.DataFrame({"return": [1.0], "collisions": [1.0], "speed_dev_mps": [1.0], "overtakes": [1.0]},
+                         index=pd.Index([1], name="episode"))
+    runs = {road: RunData(Path(road), "ddpg", "fields_overtake_collision", 90.0, 0, frame, road=road)
+            for road in ("ring", "onramp")}
+    table = summary_table({("ddpg", "fields_overtake_collision", 90.0, road): [run] for road, run in runs.items()})
+    assert table["collisions_paper"].notna().tolist() == [True, False]

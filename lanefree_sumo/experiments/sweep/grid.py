@@ -133,6 +133,11 @@ class Grid:
         })
         return training_config(cfg)
 
+    def road(self, setting: Setting) -> str:
+        """The road ``setting``'s runs drive on (``road.kind`` after the overrides and its variant's)."""
+        return str(merge_config(merge_config(LaneFreeConfig(), self.overrides), self.variant_overrides(setting))
+                   .road.kind)
+
     @property
     def episode_steps(self) -> int:
         return int(self.overrides.get("sim", {}).get("episode_steps", PAPER_EPISODE_STEPS))

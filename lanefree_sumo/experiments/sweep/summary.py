@@ -48,7 +48,7 @@ import pandas as pd
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
+from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.effects import effect_table, effects_markdown
 from lanefree_sumo.experiments.paper import paper_reference
@@ -126,7 +126,7 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
             low, high = bootstrap_ci(per_run)
             rec[f"{metric}_mean"] = float(np.mean(per_run)) if per_run else math.nan
             rec[f"{metric}_ci95_low"], rec[f"{metric}_ci95_high"] = low, high
-        ref = paper_reference(*_key(setting)[:3])
+        ref = paper_reference(*_key(setting)[:3], grid.road(setting))
         rec["paper_collisions"] = ref.collisions if ref else math.nan
         rec["paper_speed_dev_mps"] = ref.speed_dev_mps if ref else math.nan
         rec["collisions_ratio"] = rec["collisions_mean"] / ref.collisions if ref else math.nan
@@ -275,6 +275,20 @@ def _plot(grid: Grid, groups: dict[Any, list[RunData]], folder: Path, smooth: in
     return curves, []
 
 
+def claimed_variant(grid: Grid) -> str:
+    """The variant whose runs the paper's claims are checked on: :data:`DEFAULT_VARIANT`, or "" (the grid's own
+    runs) in a grid without variants."""
+    return "" if not grid.variants else DEFAULT_VARIANT
+
+
+def paper_comparisons(grid: Grid) -> tuple[Comparison, ...]:
+    """The paper's claims that compare two of the grid's settings of :func:`claimed_variant` on the paper's ring;
+    none on another road."""
+    claimed = claimed_variant(grid)
+    return decidable((s.algorithm, s.preset, s.density) for s in grid.settings
+                     if s.variant == claimed and grid.road(s) == "ring")
+
+
 def summarize(folder: Path, last: int | None = None, smooth: int | None = None) -> SweepSummary:
     """Write ``summary.csv``, ``runs.csv``, ``summary.md``, ``curves/`` and (when a claim compares two of
     the grid's settings) ``claims.csv``/``claims.md`` of sweep folder ``folder`` from its complete runs
@@ -316,8 +330,8 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
                                                         notes + plot_notes, last, per_run))
         files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [
             sweep.summary_csv, sweep.runs_csv, sweep.summary_md]
-        claimed = "" if not grid.variants else DEFAULT_VARIANT  # the claims' runs: the grid's own
-        comparisons = decidable((s.algorithm, s.preset, s.density) for s in grid.settings if s.variant == claimed)
+        claimed = claimed_variant(grid)
+        comparisons = paper_comparisons(grid)
         if comparisons:
             claims = check_claims({key[:3]: members for key, members in groups.items() if key[3] == claimed},
                                   last, comparisons)
