@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVAL.episodes,
                     help=f"episodes (default {EVAL.episodes})")
     ev.add_argument("--density", type=argtypes.density, default=None, help="veh/km (default: the training density)")
-    ev.add_argument("--seed", type=int, default=None,
+    ev.add_argument("--seed", type=argtypes.seed, default=None,
                     help=f"base seed; episode k uses seed+{EVAL.seed_offset}+k (default: the training seed)")
     ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
     ev.add_argument("--out", type=Path, default=None,

@@ -77,3 +77,11 @@ def test_bad_numbers_from_the_command_line_and_a_sweep_grid_write_nothing(tmp_pa
     res = lanefree("simulate", "--scenario", "onramp", "--seconds", "1e300", "--out", str(out))
     assert res.returncode == 2 and "longer than a simulation may run" in res.stderr and res.stderr.count("\n") == 1
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "grid.yaml"]
+
+
+@pytest.mark.parametrize("verb", [("rollout", "--backend", "numpy"), ("evaluate", "no-such-run")])
+def test_a_seed_option_outside_the_configs_range_is_one_line(verb):
+    """rollout's and evaluate's --seed are seeds like the config's: one line, not gymnasium's error."""
+    res = lanefree(*verb, "--episodes", "1", "--seed", "-5")
+    assert res.returncode == 2 and "'seed' = -5 is out of range; allowed 0 … 2147483647" in res.stderr, res.stderr
+    assert res.stderr.count("\n") == 1
