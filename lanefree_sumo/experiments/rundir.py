@@ -176,6 +176,37 @@ def claim_path(path: Path) -> Path:
     return path.parent / f".{path.name}.lock"
 
 
+def _lock(lock: Path, path: Path, verb: str) -> int:
+    """Open and lock ``lock`` (the lock file of output ``path``), write this process's id and ``verb`` into it;
+    its descriptor. RunError naming the holder when another process holds it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except BlockingIOError:
+            holder = os.read(fd, 100).decode(errors="replace").split() or ["?"]
+            os.close(fd)
+            raise RunError(f"{path} is being written by process {holder[0]} (another 'lanefree "
+                           f"{holder[1] if len(holder) > 1 else verb}'); wait for it or choose another "
+                           "output") from None
+        except FileNotFoundError:
+            same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:  # the lock file in place, not one its last holder removed while we opened it
+            try:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()} {verb}\n".encode())
+            except BaseException:
+                os.close(fd)
+                raise
+            return fd
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def claim(path: Path, verb: str) -> Iterator[None]:
     """Hold the claim on output ``path`` for ``lanefree VERB``: an exclusive ``flock`` on :func:`claim_path`,
@@ -184,25 +215,7 @@ def claim(path: Path, verb: str) -> Iterator[None]:
     claim, the temporaries that dead writers of ``path`` left are removed (:func:`_clean_leftovers`)."""
     lock = claim_path(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        while True:
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.read(fd, 100).decode(errors="replace").split() or ["?"]
-                os.close(fd)
-                raise RunError(f"{path} is being written by process {holder[0]} (another 'lanefree "
-                               f"{holder[1] if len(holder) > 1 else verb}'); wait for it or choose another "
-                               "output") from None
-            try:
-                if os.stat(lock).st_ino == os.fstat(fd).st_ino:
-                    break  # the lock file in place, not one its last holder removed while we opened it
-            except FileNotFoundError:
-                pass
-            os.close(fd)
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()} {verb}\n".encode())
+        fd = _lock(lock, path, verb)
     except OSError as exc:
         raise RunError(f"cannot write {path}: {exc.strerror or exc}") from None
     try:
