@@ -285,6 +285,9 @@ def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_sto
         while not (calls.exists() and len(calls.read_text().splitlines()) == len(drivers) and watched.exists()):
             assert time.monotonic() < deadline, "the sweeps and the watcher did not all start"
             time.sleep(0.05)
+        again = subprocess.run(["bash", script, "start", str(workers)], capture_output=True, text=True, timeout=120)
+        assert again.returncode == 2 and again.stdout == "" and again.stderr.count("\n") == 1, again
+        assert "already running" in again.stderr
         stopped = subprocess.run(["bash", script, "stop"], capture_output=True, text=True, timeout=120)
         assert stopped.returncode == 0 and "stopped" in stopped.stdout, stopped.stderr
         assert not [pid for pid in pids if running(pid)]  # stop waits until they are gone
