@@ -17,7 +17,6 @@ from lanefree_sumo.config.schema import LEARNER_PROFILES
 from lanefree_sumo.rl.env import LaneFreeEnv
 from lanefree_sumo.rl.rewards import OvertakeLedger, pass_events
 from lanefree_sumo.sim.simulation import clip_acceleration
-
 from tests.rl.test_fast_dqn import ALGOS, BATCH, _assert_same, _filled, _steps  # noqa: I001
 
 
