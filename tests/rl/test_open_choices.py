@@ -17,7 +17,7 @@ from lanefree_sumo.config.schema import LEARNER_PROFILES
 from lanefree_sumo.rl.env import LaneFreeEnv
 from lanefree_sumo.rl.rewards import OvertakeLedger, pass_events
 from lanefree_sumo.sim.simulation import clip_acceleration
-from tests.rl.test_fast_dqn import ALGOS, BATCH, _assert_same, _filled, _steps  # noqa: I001
+from tests.rl.test_fast_dqn import ALGOS, BATCH, _assert_same, _filled, _steps
 
 
 def test_pass_events_tell_passes_from_being_passed() -> None:
