@@ -6,10 +6,11 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from lanefree_sumo.config import validate_density
+from lanefree_sumo.config import LaneFreeConfig, check_value, validate_density
 from lanefree_sumo.errors import ConfigError
 
 
@@ -17,6 +18,22 @@ def density(text: str) -> float:
     """A background density (veh/km) within the config's allowed range."""
     try:
         return validate_density(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+SEED_RANGE: tuple[int, int] = next(f for f in fields(LaneFreeConfig) if f.name == "seed").metadata["range"]
+"""The config's range of seeds."""
+
+
+def seed(text: str) -> int:
+    """A seed: a whole number within the config's range of ``seed`` (0 … 2³¹ − 1)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    try:
+        return int(check_value("seed", int, value, SEED_RANGE))
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 

@@ -186,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVAL.episodes,
                     help=f"episodes (default {EVAL.episodes})")
     ev.add_argument("--density", type=argtypes.density, default=None, help="veh/km (default: the training density)")
-    ev.add_argument("--seed", type=int, default=None,
+    ev.add_argument("--seed", type=argtypes.seed, default=None,
                     help=f"base seed; episode k uses seed+{EVAL.seed_offset}+k (default: the training seed)")
     ev.add_argument("--record", action="store_true", help="write trajectories/episode_NNNN.csv of every vehicle")
     ev.add_argument("--out", type=Path, default=None,
@@ -296,6 +296,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+ROAD_OPTIONS: dict[str, tuple[str, ...]] = {"ring": ("--length",), "onramp": ("--main-flow", "--ramp-flow")}
+"""``simulate``'s options that size or feed one road only."""
+
+
+def _check_road_options(args: argparse.Namespace, cfg: LaneFreeConfig) -> None:
+    """Refuse an option of another road than ``cfg``'s: it would be ignored."""
+    for road, names in ROAD_OPTIONS.items():
+        given = sorted(args.given & set(names))
+        if road != cfg.road.kind and given:
+            lengths = ("; the on-ramp's lengths are road.onramp.upstream_m, ramp_m, merge_m and downstream_m "
+                       "(--set)") if road == "ring" else ""
+            raise UsageError(f"{given[0]} applies to --scenario {road} only, not to the {cfg.road.kind}{lengths}")
+
+
 def _simulate(args: argparse.Namespace) -> int:
     options: list[tuple[str, tuple[str, ...], Any]] = [
         ("seed", ("--seed",), args.seed),
@@ -310,6 +324,7 @@ def _simulate(args: argparse.Namespace) -> int:
         ("road.onramp.main_flow_veh_per_h", "--main-flow", args.main_flow),
         ("road.onramp.ramp_flow_veh_per_h", "--ramp-flow", args.ramp_flow)) if value is not None]
     cfg = _build_config(args, options, {"gui": True, "backend": "traci"} if args.gui else None)
+    _check_road_options(args, cfg)
     from lanefree_sumo.experiments.simulate import simulate
 
     road = "" if cfg.road.kind == "ring" else f"{cfg.road.kind}-"  # a ring and an on-ramp run do not collide
@@ -430,7 +445,7 @@ def _export(args: argparse.Namespace) -> int:
         (out / OUTPUT_MARKER).write_text("export\n")
     result = replay(args.run, episode=args.episode, gui=False, fcd=fcd_out, overwrite=args.overwrite,
                     verb="export")
-    with new_file(csv_out) as tmp:
+    with new_file(csv_out, "export") as tmp:
         shutil.copyfile(source, tmp)
     print(f"exported {result.steps} steps -> {csv_out} and {fcd_out}")
     return 0
@@ -507,6 +522,21 @@ def _net(args: argparse.Namespace) -> int:
     return 0
 
 
+def _end_progress_bars() -> None:
+    """Close every progress bar a failed verb left open: each ends its line now (not later, when it is
+    collected), so that the error line that follows comes last on stderr, on a line of its own."""
+    tqdm_module = sys.modules.get("tqdm")
+    if tqdm_module is not None:
+        for bar in list(getattr(tqdm_module.tqdm, "_instances", ())):
+            bar.close()
+
+
+def _error(line: str) -> None:
+    """Print ``lanefree: LINE`` as the last line of stderr (after any progress bar), whitespace folded."""
+    _end_progress_bars()
+    print(f"lanefree: {' '.join(line.split())}", file=sys.stderr, flush=True)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``lanefree`` console script."""
     parser = build_parser()
@@ -523,21 +553,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         with sigterm_as_interrupt():  # `kill PID` stops every verb as Ctrl-C does
             return handler(args)
     except LaneFreeError as exc:  # the user's to fix: one line, no traceback
-        print(f"lanefree: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        _error(f"error: {exc}")
         return exc.exit_code
     except KeyboardInterrupt:
-        print("lanefree: interrupted", file=sys.stderr)
+        _error("interrupted")
         return EXIT_INTERRUPTED
     except MemoryError:
-        print("lanefree: error: out of memory; use fewer processes (--envs, --workers) or a smaller buffer",
-              file=sys.stderr)
+        _error("error: out of memory; use fewer processes (--envs, --workers) or a smaller buffer")
         return OperatingSystemError.exit_code
     except OSError as exc:  # the operating system's limit, not a bug: one line, named
-        print(f"lanefree: error: {' '.join(os_error_message(exc).split())}", file=sys.stderr)
+        _error(f"error: {os_error_message(exc)}")
         return OperatingSystemError.exit_code
     except Exception as exc:  # a bug in lanefree_sumo, not a user mistake
-        print(f"lanefree: internal error {type(exc).__name__}: {exc} (a bug; please report it with the command "
-              "line)", file=sys.stderr)
+        _error(f"internal error {type(exc).__name__}: {exc} (a bug; please report it with the command line)")
         return EXIT_BUG
 
 

@@ -28,6 +28,12 @@ marker="lanefree-reproduce $state"  # in the command line of every process start
 cores=$(env -u OMP_NUM_THREADS -u OMP_THREAD_LIMIT nproc)  # the cores this process may use (nproc obeys OMP_*)
 drivers="paper varobs varobs_dqn"  # the sweep drivers' names in $logs/NAME.pid, NAME.log
 processes="$drivers watcher"
+usage="usage: scripts/reproduce.sh start [PAPER_WORKERS] | stop | status"
+case ${1:-} in  # before anything is written
+    start | stop | status) ;;
+    "") echo "reproduce.sh: no command given; $usage" >&2; exit 2 ;;
+    *) echo "reproduce.sh: unknown command '$1'; $usage" >&2; exit 2 ;;
+esac
 mkdir -p "$logs"
 
 # alive NAME: the process in $logs/NAME.pid runs and is ours (its command line names this checkout's pinned
@@ -60,7 +66,7 @@ start() {
         exit 2
     fi
     for name in $processes; do
-        if alive "$name"; then echo "already running: $name (pid $(cat "$logs/$name.pid")); stop first"; exit 2; fi
+        if alive "$name"; then echo "reproduce.sh: already running: $name (pid $(cat "$logs/$name.pid")); stop first" >&2; exit 2; fi
         rm -f "$logs/$name.pid" "$logs/stopping"
     done
     local commit tree old
@@ -133,6 +139,15 @@ sys.exit(main())" "$marker")
 }
 
 stop() {
+    local running="" name
+    for name in $processes; do
+        if alive "$name"; then running+="$name "; fi
+    done
+    if [ -z "$running" ]; then
+        rm -f "$logs/stopping"
+        echo "nothing to stop: no sweep driver and no watcher of this checkout is running"
+        return 0
+    fi
     # a sweep driver stops its runs with a checkpoint on the first SIGTERM and kills them on a second one:
     # signal each driver once (a second `stop` only waits), never their workers
     if [ ! -e "$logs/stopping" ]; then
@@ -166,5 +181,4 @@ case ${1:-} in
     start) start "${2:-1}" ;;
     stop) stop ;;
     status) status ;;
-    *) echo "usage: scripts/reproduce.sh start [PAPER_WORKERS] | stop | status"; exit 2 ;;
 esac

@@ -41,7 +41,8 @@ def _allowed(cls: type, f: dataclasses.Field) -> str:
     if get_origin(kind) is typing.Literal:
         return "one of " + ", ".join(str(v) for v in get_args(kind))
     bounds = f.metadata.get("range")
-    return f"{bounds[0]:g} … {bounds[1]:g}" if bounds else ""
+    optional = type(None) in get_args(kind)
+    return (f"{bounds[0]:g} … {bounds[1]:g}" if bounds else "") + (" or null" if optional and bounds else "")
 
 
 def describe_config(cfg: Any) -> str:
@@ -59,7 +60,9 @@ def describe_config(cfg: Any) -> str:
                 continue
             text = yaml.safe_dump({f.name: config_to_dict_value(value)}, default_flow_style=True,
                                   sort_keys=False).strip()[1:-1]
-            notes = [n for n in (docs.get((type(obj).__name__, f.name), ""), _allowed(type(obj), f)) if n]
+            paper = f.metadata.get("paper", "")
+            notes = [n for n in (docs.get((type(obj).__name__, f.name), ""), _allowed(type(obj), f),
+                                 f"the paper: {paper}" if paper else "") if n]
             lines.append(f"{indent}{text}" + (f"  # {'; '.join(notes)}" if notes else ""))
 
     walk(cfg, "")

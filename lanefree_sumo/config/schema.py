@@ -8,7 +8,7 @@ types or a field's ``range`` metadata; :mod:`.validation` checks them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 RoadKind = Literal["ring", "onramp"]
 
@@ -62,7 +62,7 @@ class RoadConfig:
     """Centre-line length of the closed loop (m); the on-ramp's length comes from ``road.onramp``."""
     width_m: float = field(default=10.2, metadata={"range": (2.5, 100.0)})
     """Road (= lane) width (m): the ring's, and the on-ramp's main road."""
-    speed_limit_mps: float = 50.0
+    speed_limit_mps: float = field(default=50.0, metadata={"range": (1.0, 1000.0)})
     """SUMO lane speed limit (m/s); only needs to exceed every commanded speed."""
     onramp: OnRampConfig = field(default_factory=OnRampConfig)
 
@@ -83,18 +83,18 @@ class SimulationConfig:
     """Simulation step T (s)."""
     episode_steps: int = field(default=800, metadata={"range": (1, 10_000_000)})
     """Steps per episode (800 × 0.25 s = 200 s)."""
-    lateral_resolution_m: float = 0.8
+    lateral_resolution_m: float = field(default=0.8, metadata={"range": (0.01, 10.0)})
     """SUMO ``--lateral-resolution`` (m): switches on the sublane model."""
-    edge_clearance_m: float = 1e-3
+    edge_clearance_m: float = field(default=1e-3, metadata={"range": (0.0, 1.0)})
     """Body edges are clipped this far inside the road edges (m): SUMO rejects a lateral target
     that puts the body at or past the lane border."""
-    edge_contact_tolerance_m: float = 1e-6
+    edge_contact_tolerance_m: float = field(default=1e-6, metadata={"range": (0.0, 0.1)})
     """A lateral overshoot past the clip line smaller than this is rounding: it is clipped but
     not counted as a boundary contact (m)."""
-    sumo_min_lateral_speed_mps: float = 0.001
+    sumo_min_lateral_speed_mps: float = field(default=0.001, metadata={"range": (0.0, 1.0)})
     """SUMO treats lateral speeds below this as zero (its NUMERICAL_EPS) and ignores such a
     ``changeSublane``; smaller moves are set with ``setLateralLanePosition`` instead (m/s)."""
-    route_loops: int = 400
+    route_loops: int = field(default=400, metadata={"range": (1, 100_000)})
     """How many times the looping route repeats the ring; must exceed the laps of any run."""
 
 
@@ -102,11 +102,11 @@ class SimulationConfig:
 class VehicleClassConfig:
     """Dimensions and desired speeds of one vehicle class."""
 
-    length_m: float
-    width_m: float
-    desired_speed_min_mps: float
-    desired_speed_max_mps: float
-    color_rgb: tuple[int, int, int] = (255, 255, 0)
+    length_m: float = field(metadata={"range": (0.5, 50.0)})
+    width_m: float = field(metadata={"range": (0.5, 10.0)})
+    desired_speed_min_mps: float = field(metadata={"range": (0.1, 100.0)})
+    desired_speed_max_mps: float = field(metadata={"range": (0.1, 100.0)})
+    color_rgb: tuple[int, int, int] = field(default=(255, 255, 0), metadata={"range": (0, 255)})
     """Colour in sumo-gui (0–255 each)."""
 
 
@@ -136,49 +136,49 @@ class AccelerationBounds:
 class DriverConfig:
     """The force-based lane-free background driver (specification §3, Papageorgiou et al. 2021)."""
 
-    neighbour_range_m: float = 100.0
+    neighbour_range_m: float = field(default=100.0, metadata={"range": (0.1, 10_000.0)})
     """Neighbours j with |dx_j| ≤ this contribute forces (m)."""
-    speed_share_ahead: float = 0.30
+    speed_share_ahead: float = field(default=0.30, metadata={"range": (0.0, 1.0)})
     """s_x: approach speed to a vehicle ahead is max(0, vx_i − (1 − s_x)·vx_j) (–)."""
-    time_headway_x_s: float = 0.65
+    time_headway_x_s: float = field(default=0.65, metadata={"range": (0.0, 60.0)})
     """τx: longitudinal ramp length L_x = vx_i·τx (s)."""
-    time_headway_y_s: float = 0.25
+    time_headway_y_s: float = field(default=0.25, metadata={"range": (0.0, 60.0)})
     """τy: lateral ramp length L_y = uy·τy + ``lateral_ramp_offset_m`` (s)."""
-    gain_x: float = 3.0
+    gain_x: float = field(default=3.0, metadata={"range": (0.01, 100.0)})
     """k_x = c_x with nudging off (the paper's setting): the gain on Σf_x (m/s² per unit force)
     and the braking deceleration c_x in D_x = ux²/(2·c_x) + len (m/s²). The reference uses one
     parameter for both (specification §3)."""
-    gain_x_nudging: float = 5.0
+    gain_x_nudging: float = field(default=5.0, metadata={"range": (0.01, 100.0)})
     """k_x = c_x with nudging on (the reference's nudging configuration)."""
-    longitudinal_margin_m: float = 2.5
+    longitudinal_margin_m: float = field(default=2.5, metadata={"range": (0.0, 100.0)})
     """Extra flat part of the longitudinal trapezoid (m)."""
-    lateral_ramp_offset_m: float = 0.5
+    lateral_ramp_offset_m: float = field(default=0.5, metadata={"range": (0.0, 100.0)})
     """Constant part of L_y (m)."""
-    lateral_margin_m: float = 0.5
+    lateral_margin_m: float = field(default=0.5, metadata={"range": (0.0, 100.0)})
     """Extra flat part of the lateral trapezoid beyond the half widths (m)."""
-    coef_fy: float = 1.0
+    coef_fy: float = field(default=1.0, metadata={"range": (0.0, 100.0)})
     """Gain on the summed lateral forces Σf_y (m/s² per unit force)."""
-    max_repulsions: int = 6
+    max_repulsions: int = field(default=6, metadata={"range": (1, 1000)})
     """How many repulsions (vehicles ahead) of largest magnitude ``mag`` are summed."""
     nudging: bool = False
     """Whether vehicles behind push forward (nudge). OFF in the paper's training setting."""
-    max_nudges: int = 3
+    max_nudges: int = field(default=3, metadata={"range": (1, 1000)})
     """How many nudges of largest magnitude ``mag`` are summed when nudging is on."""
-    nudge_scale_x: float = 0.9
-    nudge_scale_y: float = 1.0
-    wall_exponent: float = 0.25
+    nudge_scale_x: float = field(default=0.9, metadata={"range": (0.0, 100.0)})
+    nudge_scale_y: float = field(default=1.0, metadata={"range": (0.0, 100.0)})
+    wall_exponent: float = field(default=0.25, metadata={"range": (0.0, 100.0)})
     """x-wall degree δ = |clip(f_x, −1, 1)|^exponent (–)."""
-    wall_time_gap_s: float = 0.25
+    wall_time_gap_s: float = field(default=0.25, metadata={"range": (0.01, 60.0)})
     """x-wall safe speed v_s = min(gap / this, vx_leader − ``wall_speed_margin_mps``) (s)."""
-    wall_speed_margin_mps: float = 0.1
-    edge_decel_mps2: float = -1.0
+    wall_speed_margin_mps: float = field(default=0.1, metadata={"range": (0.0, 100.0)})
+    edge_decel_mps2: float = field(default=-1.0, metadata={"range": (-100.0, -0.01)})
     """ū of the road-edge bound U(v, d, ū): lateral deceleration assumed available (m/s²); the
     reference's effective (integer) value."""
-    edge_speed_factor: float = 1.05
+    edge_speed_factor: float = field(default=1.05, metadata={"range": (0.0, 10.0)})
     """Lateral speed safety factor in the road-edge bound (–)."""
-    overspeed_factor: float = 1.2
+    overspeed_factor: float = field(default=1.2, metadata={"range": (1.0, 10.0)})
     """Longitudinal speed never exceeds this × desired speed (–)."""
-    lateral_speed_ratio: float = 0.5
+    lateral_speed_ratio: float = field(default=0.5, metadata={"range": (0.0, 10.0)})
     """|vy| ≤ this × vx after the step (–)."""
     bounds: AccelerationBounds = field(default_factory=lambda: AccelerationBounds(-4.0, 2.0, -1.0, 1.0))
     """Hard bounds of the background accelerations: the reference declares them as integers, so
@@ -199,11 +199,11 @@ class SpawnConfig:
     never overlap and the largest density that fits is known exactly.
     """
 
-    gap_x_m: float = 6.0
+    gap_x_m: float = field(default=6.0, metadata={"range": (0.0, 1000.0)})
     """Minimum bumper-to-bumper gap between vehicles of one row (m)."""
-    gap_y_m: float = 0.5
+    gap_y_m: float = field(default=0.5, metadata={"range": (0.0, 100.0)})
     """Minimum lateral clearance between rows and to the road edges (m)."""
-    initial_speed_mps: float = 18.0
+    initial_speed_mps: float = field(default=18.0, metadata={"range": (0.0, 100.0)})
     """Every vehicle starts at this vx (m/s), so no pair starts out closing in (vy = 0)."""
 
 
@@ -211,6 +211,8 @@ Backend = Literal["libsumo", "traci", "numpy"]
 ROAD_KINDS: tuple[str, ...] = get_args(RoadKind)
 ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
+OvertakeBonus = Literal["every_pass", "once_per_vehicle", "net_passes"]
+LearnerProfile = Literal["sb3", "kerasrl"]
 RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
                        "zones_overtake_collision", "fields_zones_overtake_collision"]
 """The reward presets of specification §7, the one list of their names; each name lists its components, from
@@ -230,7 +232,7 @@ class ScenarioConfig:
     density_veh_per_km: float = field(default=70.0, metadata={"range": (1e-9, 1e6)})
     """Background vehicles = round(density · L / 1000) (veh/km)."""
     background: VehicleClassConfig = field(default_factory=_background_class)
-    background_fast_color_rgb: tuple[int, int, int] = (255, 150, 40)
+    background_fast_color_rgb: tuple[int, int, int] = field(default=(255, 150, 40), metadata={"range": (0, 255)})
     """sumo-gui colour of background vehicles desiring more than the middle desired speed."""
     agent: VehicleClassConfig = field(default_factory=_agent_class)
     with_agent: bool = False
@@ -240,9 +242,14 @@ class ScenarioConfig:
     (:mod:`lanefree_sumo.rl.multi_agent`, ``lanefree train --agents K``) any number; they come on top of
     the background vehicles of ``density_veh_per_km``."""
     agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
-    agent_max_speed_mps: float = 30.0
+    agent_max_speed_mps: float = field(default=30.0, metadata={
+        "range": (1.0, 1000.0), "paper": "none: only the agent's accelerations are bounded"})
     """The agent's top speed (m/s); specification §2 bounds only its accelerations, but without a top
     speed a policy learns to lap the ring at hundreds of m/s and farm overtake bonuses."""
+    agent_lateral_speed_ratio: float | None = field(default=None, metadata={
+        "range": (0.0, 100.0), "paper": "none for the agent; the background keeps |v_y| <= 0.5 v_x"})
+    """The agent's |vy| ≤ this × vx at the end of every step, as ``driver.lateral_speed_ratio`` bounds the
+    background's (–); null (the default): no bound."""
     driver: DriverConfig = field(default_factory=DriverConfig)
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
 
@@ -253,31 +260,36 @@ class RewardConfig:
 
     preset: RewardPreset = "fields_zones_overtake_collision"
     """One of the presets of specification §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
-    epsilon_r: float = 0.1
+    epsilon_r: float = field(default=0.1, metadata={"range": (1e-9, 1e6)})
     """ε_r of the reciprocal reward (–)."""
-    collision_reward: float = -2.5
+    collision_reward: float = field(default=-2.5, metadata={"range": (-1e6, 0.0)})
     """r_c, added on every step the agent overlaps a vehicle."""
-    overtake_reward: float = 2.0
+    overtake_reward: float = field(default=2.0, metadata={"range": (0.0, 1e6)})
     """r_o, added on a step the agent overtakes and does not collide."""
-    field_magnitude: float = 0.5
+    overtake_bonus: OvertakeBonus = field(default="every_pass", metadata={
+        "paper": "r_o when the agent overtakes a vehicle (which passes count is not said)"})
+    """Which passes earn r_o: ``every_pass`` (the default) any pass, the same vehicle again on a later lap too;
+    ``once_per_vehicle`` only the first pass of each vehicle in an episode; ``net_passes`` a pass that takes the
+    agent's passes minus being passed, for that vehicle, above its highest so far in the episode."""
+    field_magnitude: float = field(default=0.5, metadata={"range": (0.0, 1e6)})
     """m_f, peak of each ellipsoid field (–)."""
-    critical_exponents: tuple[float, float, float] = (4.0, 4.0, 1.0)
+    critical_exponents: tuple[float, float, float] = field(default=(4.0, 4.0, 1.0), metadata={"range": (0.1, 100.0)})
     """(p_x, p_y, p_t) of the critical region."""
-    broad_exponents: tuple[float, float, float] = (2.0, 2.0, 1.0)
+    broad_exponents: tuple[float, float, float] = field(default=(2.0, 2.0, 1.0), metadata={"range": (0.1, 100.0)})
     """(p_x, p_y, p_t) of the broad region."""
-    k_r_s_per_m: float = 0.5
+    k_r_s_per_m: float = field(default=0.5, metadata={"range": (0.0, 100.0)})
     """Broad-region longitudinal stretch per m/s of closing speed (s/m)."""
-    e_v_s_per_m: float = 0.4
+    e_v_s_per_m: float = field(default=0.4, metadata={"range": (0.0, 100.0)})
     """Broad-region lateral stretch per m/s of lateral closing speed (s/m)."""
     broad_stretch: Literal["closing", "absolute"] = "closing"
     """What stretches the broad region: ``closing`` (default) the closing speeds only (a receding
     neighbour does not stretch it), ``absolute`` any speed difference |Δvx|, |Δvy| — the other
     reading of the paper's undefined k_r, e_v (docs/results.md's controlled runs compare the two)."""
-    zone_time_gap_s: float = 0.7
+    zone_time_gap_s: float = field(default=0.7, metadata={"range": (0.0, 60.0)})
     """t_g: zones scan d_o = vx · t_g ahead (s)."""
-    zone_margin_m: float = 0.1
+    zone_margin_m: float = field(default=0.1, metadata={"range": (0.0, 100.0)})
     """A zone must be at least agent width + 2 × this wide (m)."""
-    min_desired_speed_mps: float = 1.0
+    min_desired_speed_mps: float = field(default=1.0, metadata={"range": (0.01, 100.0)})
     """Floor of v_d,eff in c_x (m/s)."""
 
 
@@ -314,9 +326,11 @@ class ActionConfig:
 
     kind: ActionKind = "continuous"
     """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
-    discrete_ax_mps2: float = field(default=2.0, metadata={"range": (0.0, 100.0)})
+    discrete_ax_mps2: float = field(default=2.0, metadata={
+        "range": (0.0, 100.0), "paper": "9 actions: accelerate, brake, left, right, their combinations, none"})
     """|ax| of the discrete accelerate/brake actions (m/s²)."""
-    discrete_ay_mps2: float = field(default=1.0, metadata={"range": (0.0, 100.0)})
+    discrete_ay_mps2: float = field(default=1.0, metadata={
+        "range": (0.0, 100.0), "paper": "9 actions (their sizes are not given)"})
     """|ay| of the discrete left/right actions (m/s²)."""
 
 
@@ -353,24 +367,28 @@ class ShieldConfig:
 class ActorCriticConfig:
     """DDPG (paper Table 1) and the other continuous-action algorithms (TD3, SAC, PPO)."""
 
-    actor_layers: tuple[int, ...] = (256, 128)
+    actor_layers: tuple[int, ...] = field(default=(256, 128), metadata={"range": (1, 100_000)})
     """Hidden layers of the actor; output 2 (tanh)."""
-    critic_layers: tuple[int, ...] = (256, 128)
+    critic_layers: tuple[int, ...] = field(default=(256, 128), metadata={"range": (1, 100_000)})
     """Hidden layers of the critic; output 1."""
-    learning_rate: float = 1e-3
-    batch_size: int = 64
-    gamma: float = 0.98
-    buffer_size: int = 100_000
-    tau: float = 0.001
+    learning_rate: float = field(default=1e-3, metadata={"range": (1e-9, 1.0)})
+    batch_size: int = field(default=64, metadata={"range": (1, 1_000_000)})
+    gamma: float = field(default=0.98, metadata={"range": (0.0, 1.0)})
+    buffer_size: int = field(default=100_000, metadata={"range": (1, 100_000_000)})
+    tau: float = field(default=0.001, metadata={"range": (1e-9, 1.0)})
     """Soft target update rate (DDPG/TD3/SAC)."""
-    learning_starts_steps: int = 800
-    """Random steps before the first update (one episode)."""
-    ou_sigma: float = 0.2
+    learning_starts_steps: int = field(default=800, metadata={"range": (0, 100_000_000)})
+    """Steps before the first update (one episode)."""
+    warmup_actions: Literal["uniform", "policy"] = field(default="uniform", metadata={
+        "paper": "not said (Keras-RL's DDPG acts with its actor and noise from the first step)"})
+    """What DDPG does before ``learning_starts_steps``: ``uniform`` random actions (SB3) or ``policy`` (its
+    untrained actor with the exploration noise, as Keras-RL's DDPG)."""
+    ou_sigma: float = field(default=0.2, metadata={"range": (0.0, 100.0)})
     """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
-    ou_theta: float = 0.15
+    ou_theta: float = field(default=0.15, metadata={"range": (0.0, 100.0)})
     """Ornstein–Uhlenbeck mean reversion θ per unit time (SB3's OU process with its dt = 0.01, so
     0.0015 per step; the paper gives no value)."""
-    ppo_n_steps: int = 800
+    ppo_n_steps: int = field(default=800, metadata={"range": (2, 10_000_000)})
     """PPO rollout length per environment (steps)."""
 
 
@@ -378,22 +396,30 @@ class ActorCriticConfig:
 class DQNConfig:
     """The DQN family (paper Table 1 and §4.1)."""
 
-    layers: tuple[int, ...] = (128, 64)
+    layers: tuple[int, ...] = field(default=(128, 64), metadata={"range": (1, 100_000)})
     """Hidden layers; output 9 Q-values."""
-    learning_rate: float = 1e-3
-    batch_size: int = 64
-    gamma: float = 0.98
-    buffer_size: int = 50_000
-    epsilon_start: float = 1.0
-    epsilon_end: float = 0.1
-    epsilon_decay_episodes: int = 200
+    learning_rate: float = field(default=1e-3, metadata={"range": (1e-9, 1.0)})
+    batch_size: int = field(default=64, metadata={"range": (1, 1_000_000)})
+    gamma: float = field(default=0.98, metadata={"range": (0.0, 1.0)})
+    buffer_size: int = field(default=50_000, metadata={"range": (1, 100_000_000)})
+    epsilon_start: float = field(default=1.0, metadata={"range": (0.0, 1.0)})
+    epsilon_end: float = field(default=0.1, metadata={"range": (0.0, 1.0)})
+    epsilon_decay_episodes: int = field(default=200, metadata={"range": (1, 10_000_000)})
     """ε falls linearly from start to end over this many episodes, then stays."""
-    target_update_steps: int = 10_000
+    target_update_steps: int = field(default=10_000, metadata={"range": (1, 100_000_000)})
     """Hard target-network update interval (steps; one gradient update per step, so also updates). The paper
     does not give it. 10 000 is the Nature DQN's convention (Mnih et al. 2015: every 10 000 parameter
     updates), which the paper's double-DQN reference [19] takes over (its tuned double DQN uses 30 000),
     and SB3's default (there counted in environment steps). See docs/interpretation.md."""
-    learning_starts_steps: int = 800
+    learning_starts_steps: int = field(default=800, metadata={"range": (0, 100_000_000)})
+    """Steps before the first update (ε-greedy from ``epsilon_start`` meanwhile)."""
+    loss: Literal["huber", "squared"] = field(default="huber", metadata={
+        "paper": "not said (Keras-RL's default: the squared error)"})
+    """TD loss: ``huber`` (SB3's smooth L1, β = 1) or ``squared`` (½·δ², Keras-RL's with ``delta_clip = inf``);
+    the two agree for |δ| < 1."""
+    max_grad_norm: float | None = field(default=10.0, metadata={
+        "range": (1e-9, 1e9), "paper": "not said (Keras-RL clips no gradient)"})
+    """Clip the gradient's global norm at this (SB3's default 10); null: no clip."""
 
 
 @dataclass
@@ -402,11 +428,14 @@ class TrainConfig:
 
     algo: AlgorithmName = "ddpg"
     """A name of the algorithm registry (:data:`lanefree_sumo.rl.algorithms.ALGORITHMS`)."""
-    episodes: int = 625
-    envs: int = 1
+    profile: LearnerProfile = field(default="sb3", metadata={"paper": "the agents were built with Keras-RL"})
+    """The learner choices the paper leaves open, set together (:data:`LEARNER_PROFILES`): ``sb3`` (SB3's
+    defaults) or ``kerasrl`` (Keras-RL's DQNAgent and DDPGAgent defaults); keys given beside it win."""
+    episodes: int = field(default=625, metadata={"range": (1, 10_000_000)})
+    envs: int = field(default=1, metadata={"range": (1, 4096)})
     """Parallel environments, one process each (libsumo runs one simulation per process)."""
-    checkpoint_every_episodes: int = 25
-    torch_threads: int = 1
+    checkpoint_every_episodes: int = field(default=25, metadata={"range": (1, 10_000_000)})
+    torch_threads: int = field(default=1, metadata={"range": (1, 1024)})
     """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
     fast_learner: bool = True
     """DDPG and the DQN family: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` /
@@ -429,6 +458,18 @@ class TrainConfig:
     Evaluation, rollout and replay of the run can use any backend."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
+
+
+LEARNER_PROFILES: dict[str, dict[str, Any]] = {
+    "sb3": {"train": {"dqn": {"loss": "huber", "max_grad_norm": 10.0, "learning_starts_steps": 800},
+                      "actor_critic": {"warmup_actions": "uniform", "learning_starts_steps": 800}}},
+    "kerasrl": {"train": {"dqn": {"loss": "squared", "max_grad_norm": None, "learning_starts_steps": 1000},
+                          "actor_critic": {"warmup_actions": "policy", "learning_starts_steps": 1000}}},
+}
+"""What each ``train.profile`` sets: SB3's defaults, or Keras-RL's (``DQNAgent``: ``delta_clip = inf``, so the
+loss is ½·δ², no gradient clip, ``nb_steps_warmup = 1000``; ``DDPGAgent``: the actor with its random process
+from the first step, ``nb_steps_warmup_critic = nb_steps_warmup_actor = 1000``). The paper's own values (γ,
+batch size, learning rate, layers, ε schedule) are not part of a profile."""
 
 
 @dataclass

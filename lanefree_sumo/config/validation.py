@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import types
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, is_dataclass
@@ -27,6 +29,9 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
     """
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"config{path or ''} must be a mapping, got {type(overrides).__name__}")
+    profile = _profile_of(overrides) if not path else None
+    if profile is not None:  # the profile's keys first, so the keys given beside it win
+        base = merge_config(base, _profile_overrides(profile))
     valid = {f.name: f for f in fields(base)}
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
@@ -42,7 +47,10 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
         if is_dataclass(current) and isinstance(value, Mapping):
             changes[key] = merge_config(current, value, where)
         elif is_dataclass(current) and is_dataclass(value):
-            changes[key] = value
+            if type(value) is not type(current):
+                raise ConfigError(f"config '{where}' is a {type(current).__name__} section, not a "
+                                  f"{type(value).__name__}")
+            changes[key] = validate_config(value, where)
         else:
             if isinstance(current, tuple) and isinstance(value, list):
                 value = tuple(value)
@@ -50,9 +58,26 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
     return dataclasses.replace(base, **changes)
 
 
+def _profile_of(overrides: Mapping[str, Any]) -> Any:
+    """The ``train.profile`` a top-level override mapping sets, or None."""
+    train = overrides.get("train")
+    return train.get("profile") if isinstance(train, Mapping) else None
+
+
+def _profile_overrides(name: Any) -> dict[str, Any]:
+    """The overrides of learner profile ``name`` (:data:`~.schema.LEARNER_PROFILES`)."""
+    from lanefree_sumo.config.schema import LEARNER_PROFILES
+
+    if not isinstance(name, str) or name not in LEARNER_PROFILES:
+        raise ConfigError(f"config 'train.profile' = {name!r} is not allowed; valid: {', '.join(LEARNER_PROFILES)}")
+    return LEARNER_PROFILES[name]
+
+
 ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner", "reward.broad_stretch",
                                "train.backend", "train.lean_loop", "train.overlap", "scenario.agents", "road.kind",
-                               "road.onramp", "observation.road_features")
+                               "road.onramp", "observation.road_features",
+                               "reward.overtake_bonus", "scenario.agent_lateral_speed_ratio", "train.profile",
+                               "train.dqn.loss", "train.dqn.max_grad_norm", "train.actor_critic.warmup_actions")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 
@@ -104,17 +129,24 @@ def _field_types(cls: Any) -> dict[str, Any]:
 
 def check_value(where: str, annotation: Any, value: Any, bounds: tuple[float, float] | None = None) -> Any:
     """THE validation of one config value against its field's type (``Literal`` values, numbers
-    within the field's ``range`` metadata, flags, names, tuples); returns the value, ints widened to
-    float where a float is expected. Raises ConfigError naming the key and what is allowed."""
+    within the field's ``range`` metadata — each entry's, for a list —, flags, names, tuples); returns the
+    value, ints widened to float where a float is expected. Raises ConfigError naming the key and what is
+    allowed."""
     value = _check_type(where, annotation, value)
-    if bounds is not None and not bounds[0] <= value <= bounds[1]:
-        low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
-        raise ConfigError(f"config '{where}' = {value!r} is out of range; allowed {low} … {high}")
+    if bounds is None or value is None:
+        return value
+    for key, item in ([(f"{where}[{i}]", v) for i, v in enumerate(value)] if isinstance(value, tuple)
+                      else [(where, value)]):
+        if not bounds[0] <= item <= bounds[1]:
+            low, high = (f"{v:d}" if isinstance(v, int) else f"{v:g}" for v in bounds)
+            raise ConfigError(f"config '{key}' = {item!r} is out of range; allowed {low} … {high}")
     return value
 
 
 def _check_type(where: str, annotation: Any, value: Any) -> Any:
     origin = get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):  # ``X | None``: null, or a value of X
+        return _check_optional(where, annotation, value)
     if origin is Literal:
         allowed = get_args(annotation)
         if value not in allowed:
@@ -124,12 +156,12 @@ def _check_type(where: str, annotation: Any, value: Any) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"config '{where}' must be true or false, got {value!r}")
         return value
-    if annotation is int:
-        if isinstance(value, bool) or not isinstance(value, int):
+    if annotation is int:  # numpy's integers too (numbers.Integral), kept as Python ints
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
             raise ConfigError(f"config '{where}' must be a whole number, got {value!r}")
-        return value
-    if annotation is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return int(value)
+    if annotation is float:  # numpy's floats too (numbers.Real), kept as Python floats
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
             raise ConfigError(f"config '{where}' must be a finite number, got {value!r}")
         return float(value)
     if annotation is str:
@@ -145,6 +177,17 @@ def _check_type(where: str, annotation: Any, value: Any) -> Any:
             raise ConfigError(f"config '{where}' must have {len(item_types)} entries, got {len(value)}")
         return tuple(check_value(f"{where}[{i}]", t, v) for i, (t, v) in enumerate(zip(item_types, value)))
     return value
+
+
+def _check_optional(where: str, annotation: Any, value: Any) -> Any:
+    """A value of ``X | None``: null, or a value of X."""
+    if value is None:
+        return None
+    kinds = [a for a in get_args(annotation) if a is not type(None)]
+    try:
+        return _check_type(where, kinds[0], value)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (or null)") from None
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:
@@ -204,12 +247,34 @@ def nested_overrides(settings: Sequence[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def load_yaml(text: str, source: str) -> Any:
+    """``text`` (of file ``source``) parsed as YAML, safe types only; a key repeated in one mapping is a
+    ConfigError naming it and both lines: YAML would keep the last silently, so a section given twice would
+    drop the first block."""
+    import yaml
+
+    class UniqueKeys(yaml.SafeLoader):
+        def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+            lines: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=deep)
+                line = key_node.start_mark.line + 1
+                if isinstance(key, typing.Hashable) and key in lines:
+                    raise ConfigError(f"{source}: key '{key}' is given twice (lines {lines[key]} and {line}); "
+                                      "give each key once")
+                lines[key] = line
+            return super().construct_mapping(node, deep)
+
+    return yaml.load(text, Loader=UniqueKeys)  # noqa: S506 (a SafeLoader)
+
+
 def read_config_file(path: Path) -> dict[str, Any]:
-    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``)."""
+    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``); a key given twice
+    is refused."""
     import yaml
 
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text(), str(path))
     except OSError as exc:
         raise ConfigError(f"cannot read the config file {path}: {exc.strerror or exc}") from None
     except UnicodeDecodeError:

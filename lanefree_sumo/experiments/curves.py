@@ -68,7 +68,7 @@ def plot_curves(groups: dict[Any, list[RunData]], column: str, ylabel: str, path
         if band.any():
             ax.fill_between(x, mean - np.where(band, std, 0), mean + np.where(band, std, 0),
                             where=band, color=colour, alpha=0.2, lw=0)
-        ref = paper_reference(*key[:3])
+        ref = paper_reference(key[0], key[1], key[2], runs[0].road)
         if ref is not None and column in ("collisions", "speed_dev_mps"):
             ax.axhline(getattr(ref, column), color=colour, ls="--", lw=1.0)
             any_paper = True

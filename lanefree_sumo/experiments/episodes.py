@@ -16,6 +16,7 @@ EPISODE_COLUMNS = (
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
     "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s", "shield_interventions",
+    "speed_dev_episode_mps", "speed_error_mps", "return_reciprocal", "return_bonus", "return_collision",
 )
 MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
 """Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
@@ -35,6 +36,10 @@ class EpisodeLog:
     def __init__(self, path: Path, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
         self.path = path
         new = not path.exists() or path.stat().st_size == 0
+        if not new:  # a resumed run keeps its file's columns (one written before columns were added has fewer)
+            with open(path, newline="") as fh:
+                header = next(csv.reader(fh), None)
+            columns = tuple(header) if header else columns
         self._fh = open(path, "a", newline="")
         self._writer = csv.DictWriter(self._fh, fieldnames=columns, extrasaction="ignore")
         if new:

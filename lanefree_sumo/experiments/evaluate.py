@@ -119,19 +119,19 @@ def evaluate(
     model_path = folder.find_model()
     model = load_model(folder, cfg)
     base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
-    replacing = out.is_dir() and any(out.iterdir())
     try:
-        return _evaluate_into(out, overwrite, cfg, model, model_path, base_seed, episodes, record, progress, replacing)
+        return _evaluate_into(out, overwrite, cfg, model, model_path, base_seed, episodes, record, progress)
     except _IncompleteError:
         return EvaluationResult(out, 0, True, kept_earlier=True)
 
 
 def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, model_path: Path, base_seed: int,
-                   episodes: int, record: bool, progress: bool, replacing: bool) -> EvaluationResult:
+                   episodes: int, record: bool, progress: bool) -> EvaluationResult:
     """The episodes into a new output folder swapped in at the end; an interrupted replacement of an
     earlier output raises :class:`_IncompleteError` (the new folder is dropped, the earlier one stays)."""
     d = cfg.scenario.density_veh_per_km
     with fresh_output(out, overwrite, "evaluate") as tmp, stop_requested() as stop:
+        replacing = out.is_dir() and any(out.iterdir())  # under the claim: no other writer changes it now
         write_config(tmp, cfg)
         if record:
             (tmp / TRAJECTORIES).mkdir()

@@ -77,6 +77,9 @@ PAPER_REFERENCE: dict[GroupKey, PaperReference] = _build_paper_reference()
 """specification §10 reference numbers keyed by (algorithm, reward preset, density veh/km)."""
 
 
-def paper_reference(algorithm: str, preset: str, density: float) -> PaperReference | None:
-    """The paper's result for a setting, or None if the paper has none (density in veh/km)."""
+def paper_reference(algorithm: str, preset: str, density: float, road: str = "ring") -> PaperReference | None:
+    """The paper's result for a setting driven on ``road`` (``road.kind``), or None if the paper has none: a
+    setting it did not run, or another road than its ring (density in veh/km)."""
+    if road != "ring":
+        return None
     return PAPER_REFERENCE.get((algorithm, preset, round(float(density), 6)))

@@ -221,7 +221,7 @@ def replay(
         check_writable(frames, folder=True)
     if fcd is None:
         return _replay(run, episode, gui, delay_s, screenshot, screenshot_step, frames, every, gif, None, size, zoom)
-    with new_file(fcd) as fcd_tmp:
+    with new_file(fcd, verb) as fcd_tmp:
         return _replay(run, episode, gui, delay_s, screenshot, screenshot_step, frames, every, gif, fcd_tmp, size,
                        zoom)
 

@@ -142,7 +142,7 @@ def summary_table(groups: dict[RunKey, list[RunData]], last: int = 50) -> pd.Dat
         for col, _, _ in TABLE_METRICS:
             rec[f"{col}_mean"] = float(per_run[col].mean())
             rec[f"{col}_std"] = float(per_run[col].std(ddof=1)) if len(runs) > 1 else math.nan
-        ref = paper_reference(algo, preset, density)
+        ref = paper_reference(algo, preset, density, runs[0].road)  # a group's runs share their config
         rec["collisions_paper"] = ref.collisions if ref else math.nan
         rec["speed_dev_mps_paper"] = ref.speed_dev_mps if ref else math.nan
         rec["paper_source"] = ref.source if ref else ""

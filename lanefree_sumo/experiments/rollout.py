@@ -58,7 +58,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help=f"background density in veh/km (default {density:g}, or RUN's)")
     p.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVALUATION.episodes,
                    help=f"episodes of {DEFAULTS.sim.episode_steps} steps (default {EVALUATION.episodes})")
-    p.add_argument("--seed", type=int, default=None,
+    p.add_argument("--seed", type=argtypes.seed, default=None,
                    help=f"episode k uses traffic seed SEED+k-1 (default {DEFAULTS.seed}; with --run, RUN's seed+"
                    f"{EVALUATION.seed_offset}+1 as 'lanefree evaluate')")
     p.add_argument("--agents", type=argtypes.positive(int, "vehicles"), default=None,

@@ -35,6 +35,8 @@ class RunData:
     """Index ``episode`` (ascending, unique), float columns ``REQUIRED_COLUMNS[1:]``."""
     variant: str = ""
     """How the run's config differs from the defaults beyond the group key (``""`` for none)."""
+    road: str = "ring"
+    """The road its episodes were driven on (``road.kind``; the paper's values are the ring's)."""
 
     @property
     def key(self) -> RunKey:
@@ -42,7 +44,12 @@ class RunData:
 
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("episode", "return", "collisions", "speed_dev_mps", "overtakes")
-"""Columns of ``episodes.csv`` the report needs; the others of :data:`.episodes.EPISODE_COLUMNS` are ignored."""
+"""Columns of ``episodes.csv`` the report needs; the others of :data:`.episodes.EPISODE_COLUMNS` are ignored but for
+:data:`OPTIONAL_COLUMNS`."""
+OPTIONAL_COLUMNS: tuple[str, ...] = ("mean_speed_mps", "speed_dev_episode_mps", "speed_error_mps",
+                                     "return_reciprocal", "return_bonus", "return_collision")
+"""Columns read where a file has them (older runs lack the last five; :func:`read_run` derives the two speed
+readings from ``mean_speed_mps``); a value that is not a number reads as NaN."""
 
 NOT_VARIANT: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
                                  "scenario.with_agent", "action.kind", *SAME_RESULTS)
@@ -104,7 +111,8 @@ def read_episodes(path: Path) -> pd.DataFrame:
             missing = [c for c in REQUIRED_COLUMNS if c not in header]
             if missing:
                 raise UnusableRunError(f"episodes.csv lacks column(s) {', '.join(missing)}")
-            index = {c: header.index(c) for c in REQUIRED_COLUMNS}
+            columns = [*REQUIRED_COLUMNS, *(c for c in OPTIONAL_COLUMNS if c in header)]
+            index = {c: header.index(c) for c in columns}
             agent_at = header.index("agent") if "agent" in header else None
             agents: list[str] = []
             rows: list[list[float]] = []
@@ -117,13 +125,13 @@ def read_episodes(path: Path) -> pd.DataFrame:
                     raise UnusableRunError(
                         f"episodes.csv line {line} has {len(fields)} fields, header has {len(header)}{cut}")
                 row = []
-                for col in REQUIRED_COLUMNS:
+                for col in columns:
                     text = fields[index[col]].strip()
                     try:
                         value = float(text)
                     except ValueError:
                         value = math.nan
-                    if not math.isfinite(value):
+                    if not math.isfinite(value) and col in REQUIRED_COLUMNS:
                         raise UnusableRunError(f"episodes.csv line {line}: {col} = {text!r} is not a finite number")
                     row.append(value)
                 rows.append(row)
@@ -131,14 +139,14 @@ def read_episodes(path: Path) -> pd.DataFrame:
                     agents.append(fields[agent_at].strip())
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise UnusableRunError(f"episodes.csv unreadable ({_one_line(exc)})") from None
-    return _episode_frame(rows, agents)
+    return _episode_frame(rows, agents, columns)
 
 
-def _episode_frame(rows: list[list[float]], agents: list[str]) -> pd.DataFrame:
+def _episode_frame(rows: list[list[float]], agents: list[str], columns: list[str]) -> pd.DataFrame:
     """:func:`read_episodes`' frame of the rows read (``agents``: each row's agent, or empty)."""
     if not rows:
         raise UnusableRunError("episodes.csv has no episodes")
-    frame = pd.DataFrame(rows, columns=list(REQUIRED_COLUMNS))
+    frame = pd.DataFrame(rows, columns=columns)
     if not np.all(frame["episode"] == np.round(frame["episode"])):
         raise UnusableRunError("episodes.csv has a non-integer episode number")
     frame["episode"] = frame["episode"].astype(int)
@@ -169,9 +177,34 @@ def read_run(run: Path, source: str = "") -> RunData:
     if not run.is_dir():
         raise UnusableRunError("not a folder" if run.exists() else "folder does not exist")
     algo, preset, density, seed, variant = read_run_config(run)
+    cfg = read_config(run)  # read_run_config read it: it reads again
+    desired = cfg.scenario.agent
+    v_d = desired.desired_speed_min_mps if desired.desired_speed_min_mps == desired.desired_speed_max_mps else None
     if not source:
-        return RunData(run, algo, preset, density, seed, read_episodes(run / EPISODES), variant)
+        return RunData(run, algo, preset, density, seed, with_speed_readings(read_episodes(run / EPISODES), v_d),
+                       variant, cfg.road.kind)
     path = run / source / EPISODES
     if not path.is_file():
         raise UnusableRunError(f"no {source}/{EPISODES} (run 'lanefree evaluate' first)")
-    return RunData(run, algo, preset, _evaluated_density(path, density), seed, read_episodes(path), variant)
+    return RunData(run, algo, preset, _evaluated_density(path, density), seed,
+                   with_speed_readings(read_episodes(path), v_d), variant, _road(run / source, cfg.road.kind))
+
+
+def with_speed_readings(episodes: pd.DataFrame, v_d: float | None) -> pd.DataFrame:
+    """``episodes`` with the per-episode speed readings (``speed_error_mps`` = mean vx − v_d, signed, and
+    ``speed_dev_episode_mps`` = its absolute value, m/s) derived from ``mean_speed_mps`` where a file written
+    before they were recorded lacks them (the agent's desired speed ``v_d`` is one number; None: not
+    derivable)."""
+    if "speed_error_mps" in episodes or "mean_speed_mps" not in episodes or v_d is None:
+        return episodes
+    error = episodes["mean_speed_mps"] - v_d
+    return episodes.assign(speed_error_mps=error, speed_dev_episode_mps=error.abs())
+
+
+def _road(folder: Path, default: str) -> str:
+    """The road (``road.kind``) of the evaluation ``folder`` by its config.yaml; ``default`` without a readable
+    one."""
+    try:
+        return read_config(folder).road.kind
+    except RunError:
+        return default

@@ -27,8 +27,10 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import itertools
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -142,22 +144,115 @@ def check_new_file(path: Path, overwrite: bool, verb: str, marker_folder: bool =
     check_writable(path)
 
 
+def _leftover(path: Path) -> re.Pattern[str]:
+    """Names of the temporaries a writer of ``path`` makes beside it: ``.<name>.new-XXXXXXXX`` (the output being
+    written) and ``.<name>.old-XXXXXXXX`` (an earlier output on its way out), as :mod:`tempfile` names them."""
+    return re.compile(rf"\.{re.escape(path.name)}\.(new|old)-[a-z0-9_]{{8}}")
+
+
+def _clean_leftovers(path: Path) -> None:
+    """Remove what writers of ``path`` that died left beside it (called under the claim, so no live writer
+    owns one): their ``.new-`` temporaries, and their ``.old-`` folders — put back first when the writer died
+    between moving the earlier output aside and moving the new one in, so that nothing is lost."""
+    pattern = _leftover(path)
+    with contextlib.suppress(OSError):
+        for entry in path.parent.iterdir():
+            match = pattern.fullmatch(entry.name)
+            if match is None:
+                continue
+            aside = entry / path.name
+            if match.group(1) == "old" and aside.exists() and not path.exists():
+                with contextlib.suppress(OSError):
+                    aside.rename(path)
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    entry.unlink()
+
+
+def claim_path(path: Path) -> Path:
+    """The lock file of output ``path`` (a folder or a file a verb writes): ``.<name>.lock`` beside it."""
+    return path.parent / f".{path.name}.lock"
+
+
+def _lock(lock: Path, path: Path, verb: str) -> int:
+    """Open and lock ``lock`` (the lock file of output ``path``), write this process's id and ``verb`` into it;
+    its descriptor. RunError naming the holder when another process holds it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except BlockingIOError:
+            holder = os.read(fd, 100).decode(errors="replace").split() or ["?"]
+            os.close(fd)
+            raise RunError(f"{path} is being written by process {holder[0]} (another 'lanefree "
+                           f"{holder[1] if len(holder) > 1 else verb}'); wait for it or choose another "
+                           "output") from None
+        except FileNotFoundError:
+            same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:  # the lock file in place, not one its last holder removed while we opened it
+            try:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()} {verb}\n".encode())
+            except BaseException:
+                os.close(fd)
+                raise
+            return fd
+        os.close(fd)
+
+
 @contextlib.contextmanager
-def new_file(path: Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path`` to write one output file into; it replaces ``path`` when the
-    block ends without an exception and is removed otherwise, so ``path`` is never half-written. Check it
-    first with :func:`check_new_file`."""
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.new-", dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o666 & ~umask)  # mkstemp makes it private; an output file is an ordinary one
+def claim(path: Path, verb: str) -> Iterator[None]:
+    """Hold the claim on output ``path`` for ``lanefree VERB``: an exclusive ``flock`` on :func:`claim_path`,
+    released by the kernel when the process ends however it ends, the lock file removed on the way out. One
+    writer per output at a time: RunError naming the holder's process id while another holds it. Under the
+    claim, the temporaries that dead writers of ``path`` left are removed (:func:`_clean_leftovers`)."""
+    lock = claim_path(path)
     try:
-        yield tmp
-        os.replace(tmp, path)
+        fd = _lock(lock, path, verb)
+    except OSError as exc:
+        raise RunError(f"cannot write {path}: {exc.strerror or exc}") from None
+    try:
+        _clean_leftovers(path)
+        yield
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            lock.unlink()
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def new_file(path: Path, verb: str) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` to write one output file of ``lanefree VERB`` into, holding the
+    claim on ``path`` (:func:`claim`); it replaces ``path`` when the block ends without an exception and is
+    removed otherwise, so ``path`` is never half-written. Check it first with :func:`check_new_file`."""
+    with claim(path, verb):
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.new-", dir=path.parent)
+        os.close(fd)
+        tmp = Path(name)
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o666 & ~umask)  # mkstemp makes it private; an output file is an ordinary one
+        try:
+            yield tmp
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """What ``path`` is now (device and inode), None when nothing is there."""
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -180,25 +275,43 @@ def write_atomic(path: Path, text: str) -> None:
 
 @contextlib.contextmanager
 def fresh_output(out: Path, overwrite: bool, verb: str) -> Iterator[Path]:
-    """Write a verb's output safely: yields a new folder beside ``out``; when the block ends
-    without an exception it replaces ``out`` (an old output is removed only then), else it is
-    deleted and ``out`` is untouched."""
-    check_replaceable(out, overwrite, verb)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
-        umask = os.umask(0)
-        os.umask(umask)
-        tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; an output folder is an ordinary one
-    except OSError as exc:
-        raise RunError(f"cannot write {out}: {exc.strerror or exc}") from None
-    (tmp / OUTPUT_MARKER).write_text(verb + "\n")
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out.exists():
+    """Write a verb's output safely. ``out`` is claimed at once (:func:`claim`: a second writer is refused
+    while this one runs) and checked under the claim (:func:`check_replaceable`); the block gets a new folder
+    beside ``out``. When the block ends without an exception the new folder replaces ``out`` — only if ``out``
+    is still what it was when claimed (nothing, or the earlier output ``overwrite`` allowed to replace); else
+    ``out`` is left alone and the new output kept beside it under a name the RunError gives. When the block
+    fails the new folder is deleted and ``out`` is untouched."""
+    check_replaceable(out, overwrite, verb)  # before the claim too: a refusal writes not even a lock file
+    with claim(out, verb):
+        check_replaceable(out, overwrite, verb)
+        before = _identity(out)
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
+            umask = os.umask(0)
+            os.umask(umask)
+            tmp.chmod(0o777 & ~umask)  # mkdtemp makes it private; an output folder is an ordinary one
+            (tmp / OUTPUT_MARKER).write_text(verb + "\n")
+        except OSError as exc:
+            raise RunError(f"cannot write {out}: {exc.strerror or exc}") from None
+        try:
+            yield tmp
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        _swap_in(tmp, out, before, verb)
+
+
+def _swap_in(tmp: Path, out: Path, before: tuple[int, int] | None, verb: str) -> None:
+    """Move the complete output ``tmp`` to ``out``, which was ``before`` when claimed (:func:`fresh_output`)."""
+    if _identity(out) != before:
+        for k in itertools.count(1):
+            kept = out.with_name(f"{out.name}.{verb}-{k}")
+            if not kept.exists():
+                break
+        tmp.rename(kept)
+        raise RunError(f"{out} was made or replaced by another program while 'lanefree {verb}' wrote; it is left as "
+                       f"it is, and this output is in {kept}")
+    if before is not None:
         old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
         out.rename(old / out.name)
         tmp.rename(out)
@@ -368,8 +481,37 @@ class RunDir:
                     return Checkpoint(folder, int(state["episodes"]), int(state["timesteps"]))
             except (OSError, ValueError, KeyError, TypeError):
                 continue
-        raise RunError(f"{self.path} has no usable checkpoint under {CHECKPOINTS}/; "
-                       "start a new run instead of resuming")
+        raise RunError(f"{self.path} has no usable checkpoint under {CHECKPOINTS}/ (it never reached its first); "
+                       f"start it afresh with 'lanefree train … --out {self.path}' (no --resume)")
+
+    def has_checkpoint(self) -> bool:
+        """Whether the run holds a complete checkpoint (:meth:`newest_checkpoint` finds one)."""
+        try:
+            self.newest_checkpoint()
+        except RunError:
+            return False
+        return True
+
+    def never_checkpointed(self) -> bool:
+        """A new run that ended (killed outright, or failed) before its first checkpoint: it holds only what
+        training writes (:data:`RUN_OWNED`), no final model and no complete checkpoint, so nothing in it can be
+        resumed. Its lock file, the first thing a training writes, tells it from a folder of the user's. A new
+        start into its folder begins afresh (:meth:`clear`)."""
+        try:
+            names = {entry.name for entry in self.path.iterdir()}
+        except OSError:
+            return False
+        return LOCK in names and names <= set(RUN_OWNED) and MODEL not in names and not self.has_checkpoint()
+
+    def clear(self) -> None:
+        """Remove everything in the folder but its lock file (call holding :meth:`writer_lock`)."""
+        for entry in self.path.iterdir():
+            if entry.name == LOCK:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
 
     def prune_replay_buffers(self, keep: int) -> None:
         """Delete the replay buffers of all but the ``keep`` newest checkpoints (models stay)."""

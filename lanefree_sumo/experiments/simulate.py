@@ -7,12 +7,13 @@ Writes ``trajectory.csv`` (flushed every simulated second), ``summary.json``, ``
 from __future__ import annotations
 
 import json
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.config import LaneFreeConfig, SimulationConfig
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.experiments.rundir import (
     SIM_SUMMARY,
@@ -24,6 +25,9 @@ from lanefree_sumo.experiments.rundir import (
 from lanefree_sumo.experiments.trajectory import TrajectoryWriter
 from lanefree_sumo.sim.simulation import run_simulation
 from lanefree_sumo.sim.spawn import spawn
+
+MAX_STEPS: int = next(f for f in fields(SimulationConfig) if f.name == "episode_steps").metadata["range"][1]
+"""The most steps one simulation runs: the longest episode the config allows."""
 
 
 def simulate(
@@ -38,6 +42,10 @@ def simulate(
     """Simulate ``seconds`` (s) of traffic into ``out``; return the summary (also in summary.json).
     Ctrl-C (and SIGTERM, which ``lanefree`` turns into Ctrl-C) stops early and keeps what was simulated,
     marked ``interrupted``."""
+    most = MAX_STEPS * cfg.sim.step_s
+    if not seconds <= most:
+        raise ConfigError(f"--seconds {seconds:g} is longer than a simulation may run ({MAX_STEPS} steps of "
+                          f"{cfg.sim.step_s:g} s, {most:g} s)")
     steps = int(round(seconds / cfg.sim.step_s))
     if steps < 1:
         raise ConfigError(f"--seconds {seconds:g} is shorter than one step of {cfg.sim.step_s:g} s")

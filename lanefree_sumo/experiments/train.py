@@ -191,10 +191,11 @@ def run_name(cfg: LaneFreeConfig) -> str:
 
 
 def new_run_folder(cfg: LaneFreeConfig, run: Path | None) -> Path:
-    """Create the run folder atomically: ``run`` (refused if it holds anything), else a fresh
-    ``runs/<date-time>_...`` (``-2``, ``-3``, … when two runs start in the same second)."""
+    """Create the run folder atomically: ``run`` (refused if it holds anything but a new run that never reached
+    its first checkpoint, :meth:`RunDir.never_checkpointed`, which the caller clears under the writer lock), else a
+    fresh ``runs/<date-time>_...`` (``-2``, ``-3``, … when two runs start in the same second)."""
     if run is not None:
-        if run.exists() and (not run.is_dir() or any(run.iterdir())):
+        if run.exists() and (not run.is_dir() or any(run.iterdir())) and not RunDir(run).never_checkpointed():
             raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
         run.mkdir(parents=True, exist_ok=True)
         return run
@@ -238,10 +239,12 @@ def _check_episode_rows(folder: RunDir, done: int, agents: int) -> None:
                        "has learned (once each); restore the file, or start the run again")
 
 
-def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any) -> Any:
-    """The model (and replay buffer) of a checkpoint; RunError naming it when unusable."""
+def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any, folder: RunDir) -> Any:
+    """The model (and replay buffer) of a checkpoint of ``folder``; RunError naming it when unusable. Its
+    TensorBoard folder is ``folder``'s, never the path the checkpoint saved: a moved, renamed or copied run, or
+    one resumed from another directory, writes into itself."""
     try:
-        model = spec.cls.load(ckpt.model, env=env, device="cpu")
+        model = spec.cls.load(ckpt.model, env=env, device="cpu", tensorboard_log=str(folder.tensorboard))
         if spec.off_policy:
             if not ckpt.replay_buffer.is_file():
                 raise RunError(f"checkpoint {ckpt.path} lacks {ckpt.replay_buffer.name}; it is incomplete")
@@ -265,8 +268,9 @@ def train(
     """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
     checkpoint and return early.  ``resume`` with ``episodes`` extends a run (finished or not)
     to that many episodes; a finished run is never resumed without it.  A new run that fails
-    before its first episode (an error, Ctrl-C or SIGTERM) leaves no folder behind, so the same command can
-    simply be run again.  The process holds the run's writer lock
+    before its first checkpoint (an error such as a full disk, Ctrl-C or SIGTERM) leaves no folder behind, and one
+    killed outright there is started afresh by the next start into its folder, so the same command can simply be run
+    again.  The process holds the run's writer lock
     (:meth:`RunDir.writer_lock`) throughout: a second training of the same folder is refused."""
     with contextlib.ExitStack() as stack:
         created = False
@@ -284,6 +288,8 @@ def train(
             run = new_run_folder(cfg, run)
             folder = RunDir(run)
             stack.enter_context(folder.writer_lock())  # another start of the same --out: refused, nothing removed
+            if folder.never_checkpointed():
+                folder.clear()  # what a start killed before its first checkpoint left: nothing to resume
             created = True  # ours from here: removed again if nothing is learned
             timesteps, target = 0, cfg.train.episodes
         try:
@@ -293,7 +299,7 @@ def train(
             return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress,
                                   command or shlex.join(["lanefree", *sys.argv[1:]]))
         except BaseException:
-            if created and not folder.checkpoints.is_dir():  # nothing learned: a retry starts clean
+            if created and not folder.has_checkpoint():  # nothing to resume (also a first checkpoint that failed)
                 shutil.rmtree(run, ignore_errors=True)
             raise
     raise AssertionError("unreachable")
@@ -317,7 +323,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     log: EpisodeLog | None = None
     try:
         if ckpt is not None:
-            model = _load_checkpoint(spec, ckpt, env)  # validated before anything changes
+            model = _load_checkpoint(spec, ckpt, env, folder)  # validated before anything changes
             _check_episode_rows(folder, done, cfg.scenario.agents)
             EpisodeLog.truncate(folder.episodes, done, episode_columns(cfg))
             if target != cfg.train.episodes:

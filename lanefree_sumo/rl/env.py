@@ -21,6 +21,7 @@ every feature is O(1).  With ``scale=False`` the raw SI values are returned.
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -30,7 +31,7 @@ import numpy as np
 from gymnasium import spaces
 
 from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_config
-from lanefree_sumo.rl.rewards import compute_reward, detect_overtakes, get_preset
+from lanefree_sumo.rl.rewards import OvertakeLedger, compute_reward, get_preset, pass_events
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.simulation import Simulation, StepResult
 
@@ -80,9 +81,11 @@ class LearningVehicle:
         """Begin an episode as row ``index`` of the freshly reset simulation; returns the first observation."""
         self.index = index
         self.vid = self.sim.current()[0].ids[index]
+        self.ledger = OvertakeLedger(self.cfg.reward.overtake_bonus)
         self.books = {
             "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
-            "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "overtakes": 0, "boundary_contacts": 0,
+            "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "speed_error_sum": 0.0, "overtakes": 0,
+            "boundary_contacts": 0, "return_bonus": 0.0, "return_collision": 0.0,
             "shield_interventions": 0, "shield_fallbacks": 0, "merged_at_step": -1,
             **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
         }
@@ -137,7 +140,9 @@ class LearningVehicle:
         with_agents = int(np.count_nonzero(mine & others_agents.all(axis=1))) if len(new_pairs) else 0
         background_only = int(np.count_nonzero(~others_agents.any(axis=1))) if len(new_pairs) else 0
         collided = bool(result.overlap[a].any())
-        passes = detect_overtakes(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
+        passed, passed_by = pass_events(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
+        passes = int(np.count_nonzero(passed))
+        earned = self.ledger.record([state.ids[i] for i in idx[passed]], [state.ids[i] for i in idx[passed_by]])
         self.prev_dx = dx_row.copy()
 
         # the zones and the lateral cost live within this vehicle's boundaries: [lo, hi] as [0, hi − lo]
@@ -145,7 +150,7 @@ class LearningVehicle:
             dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
             state.width[idx], float(state.y[a]) - lo, float(state.vx[a]), float(state.vy[a]),
             float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), hi - lo,
-            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=passes > 0,
+            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=earned > 0,
             config=cfg.reward,
         )
 
@@ -160,7 +165,12 @@ class LearningVehicle:
         b["background_collisions"] += background_only
         b["agent_collisions"] += with_agents
         b["speed_dev_sum"] += abs(vx_a - float(state.v_desired[a]))
+        b["speed_error_sum"] += vx_a - float(state.v_desired[a])
         b["speed_sum"] += vx_a
+        if self.weights.use_collision and collided:
+            b["return_collision"] += cfg.reward.collision_reward
+        if self.weights.use_overtake and terms.overtook and not collided:
+            b["return_bonus"] += cfg.reward.overtake_reward
         b["overtakes"] += passes
         b["boundary_contacts"] += contact
         b["sum_c_x"] += terms.c_x
@@ -247,10 +257,15 @@ class LearningVehicle:
             "episode": episode,
             "steps": self.sim.steps,
             "return": b["return"],
+            "return_bonus": b["return_bonus"],
+            "return_collision": b["return_collision"],
+            "return_reciprocal": b["return"] - b["return_bonus"] - b["return_collision"],
             "collisions": b["collisions"],
             "collision_steps": b["collision_steps"],
             "background_collisions": b["background_collisions"],
             "speed_dev_mps": b["speed_dev_sum"] / steps,
+            "speed_dev_episode_mps": abs(b["speed_error_sum"]) / steps,
+            "speed_error_mps": b["speed_error_sum"] / steps,
             "mean_speed_mps": b["speed_sum"] / steps,
             "overtakes": b["overtakes"],
             "boundary_contacts": b["boundary_contacts"],
@@ -332,6 +347,16 @@ def action_to_acceleration(cfg: LaneFreeConfig, action: Any, where: str) -> tupl
     return (a0 * bounds.ax_max if a0 >= 0.0 else -a0 * bounds.ax_min), a1 * bounds.ay_max
 
 
+def as_seed(seed: Any) -> int | None:
+    """A ``reset`` seed as a Python int (numpy's integers too: gymnasium takes only Python ints), None kept;
+    ValueError saying what a seed is for anything else."""
+    if seed is None:
+        return None
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"seed must be a whole number ≥ 0 (or None), got {seed!r}")
+    return int(seed)
+
+
 class LaneFreeEnv(gym.Env):
     """Gymnasium environment of the paper's MDP on the SUMO ring road.
 
@@ -373,6 +398,7 @@ class LaneFreeEnv(gym.Env):
 
     # -- gymnasium API ---------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict]:
+        seed = as_seed(seed)
         super().reset(seed=seed)
         self._episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31 - 1))
         state = self.sim.reset(self._episode_seed)

@@ -8,6 +8,7 @@ simulation per process); ``build_model`` a new model of the registry's class for
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 from collections.abc import Callable
@@ -158,7 +159,11 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
         if spec.fast_learner and own_class:
-            kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop)
+            kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
+                          warmup_actions=ac.warmup_actions)
+        elif ac.warmup_actions != "uniform" and algo != "ppo":
+            raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions} is built for ddpg only; "
+                              f"{algo} takes SB3's uniform warm-up")
         if spec.overlap and own_class:
             kwargs.update(overlap=cfg.train.overlap)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
@@ -167,13 +172,17 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
     dq = cfg.train.dqn
     policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
     decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
-    fast: dict[str, Any] = ({"fast_learner": cfg.train.fast_learner, "lean_loop": cfg.train.lean_loop}
-                            if spec.fast_learner and own_class else {})
+    fast: dict[str, Any] = ({"fast_learner": cfg.train.fast_learner, "lean_loop": cfg.train.lean_loop,
+                             "loss": dq.loss} if spec.fast_learner and own_class else {})
+    if dq.loss != "huber" and not fast:
+        raise ConfigError(f"train.dqn.loss = {dq.loss} needs the project's DQN classes; "
+                          f"{cls.__name__} takes SB3's Huber")
     return cls(
         policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,
         gamma=dq.gamma, learning_starts=dq.learning_starts_steps, target_update_interval=dq.target_update_steps,
         exploration_initial_eps=dq.epsilon_start, exploration_final_eps=dq.epsilon_end,
         exploration_fraction=decay, train_freq=1, gradient_steps=1,
+        max_grad_norm=math.inf if dq.max_grad_norm is None else dq.max_grad_norm,
         policy_kwargs={"net_arch": list(dq.layers), "activation_fn": torch.nn.ReLU, **extractor},
         **common, **fast,
     )

@@ -38,6 +38,7 @@ from lanefree_sumo.rl.env import (
     LearningVehicle,
     action_space,
     action_to_acceleration,
+    as_seed,
     feature_scales,
     observation_space,
     resolve_config,
@@ -80,6 +81,7 @@ class LaneFreeParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict[str, Any], dict[str, dict]]:
         """A new episode; its traffic seed is ``seed``, else drawn from the env's generator (seeded by the
         first ``seed`` given, as gymnasium's ``reset`` does)."""
+        seed = as_seed(seed)
         if seed is not None:
             self._np_random, _ = seeding.np_random(seed)
         elif self._np_random is None:
@@ -105,6 +107,9 @@ class LaneFreeParallelEnv(ParallelEnv):
         """One step of every agent; ``actions`` holds one action per live agent."""
         if not self.agents:
             raise RuntimeError("no live agents: call reset() first")
+        if not isinstance(actions, Mapping):
+            raise TypeError(f"step() takes a dict of one action per live agent {self.agents}, not "
+                            f"{type(actions).__name__}")
         missing = [name for name in self.agents if name not in actions]
         unknown = [name for name in actions if name not in self.agents]
         if missing or unknown:

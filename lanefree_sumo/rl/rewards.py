@@ -33,6 +33,8 @@ __all__ = [
     "longitudinal_cost",
     "lateral_cost",
     "detect_overtakes",
+    "pass_events",
+    "OvertakeLedger",
     "agent_overlaps",
     "RewardWeights",
     "PRESETS",
@@ -103,19 +105,20 @@ def reciprocal_reward(
     return float(r) if np.ndim(r) == 0 else r
 
 
-def detect_overtakes(
+def pass_events(
     prev_dx: ArrayLike,
     dx: ArrayLike,
     range_m: float,
     ring_length: float,
-) -> int:
-    """Number of vehicles the agent passed between two steps.
+) -> tuple[np.ndarray, np.ndarray]:
+    """(passed, passed_by): boolean masks of the vehicles the agent passed, and of those that passed it,
+    between two steps.
 
     prev_dx, dx: wrapped offsets (m) of the same vehicles (aligned by index) at the previous and
     the current step; NaN = not present / not in range.  A pass is ``prev_dx > 0`` and
-    ``dx ≤ 0`` for a vehicle with ``|dx| ≤ range_m`` at both steps and ``|dx| < ring_length/4``
-    at both steps, so a jump across the ring seam (dx ≈ ±L/2) is never a pass, nor is a vehicle
-    entering or leaving range.
+    ``dx ≤ 0`` (being passed: ``prev_dx ≤ 0`` and ``dx > 0``) for a vehicle with ``|dx| ≤ range_m``
+    at both steps and ``|dx| < ring_length/4`` at both steps, so a jump across the ring seam
+    (dx ≈ ±L/2) is never a pass, nor is a vehicle entering or leaving range.
     """
     p, c = _rows(prev_dx, dx)
     quarter = 0.25 * ring_length
@@ -125,8 +128,50 @@ def detect_overtakes(
             & (np.abs(p) <= range_m) & (np.abs(c) <= range_m)
             & (np.abs(p) < quarter) & (np.abs(c) < quarter)
         )
-        passed = valid & (p > 0.0) & (c <= 0.0)
-    return int(np.count_nonzero(passed))
+        return valid & (p > 0.0) & (c <= 0.0), valid & (p <= 0.0) & (c > 0.0)
+
+
+def detect_overtakes(
+    prev_dx: ArrayLike,
+    dx: ArrayLike,
+    range_m: float,
+    ring_length: float,
+) -> int:
+    """Number of vehicles the agent passed between two steps (:func:`pass_events`)."""
+    return int(np.count_nonzero(pass_events(prev_dx, dx, range_m, ring_length)[0]))
+
+
+class OvertakeLedger:
+    """Which passes earn the overtake bonus in one episode (``reward.overtake_bonus``), by vehicle id.
+
+    ``every_pass``: every pass; ``once_per_vehicle``: a vehicle's first pass in the episode only;
+    ``net_passes``: a pass that raises the vehicle's passes minus its passes of the agent above the
+    highest value it had in the episode (passing back a vehicle that just passed the agent earns nothing)."""
+
+    def __init__(self, mode: str) -> None:
+        if mode not in ("every_pass", "once_per_vehicle", "net_passes"):
+            raise ValueError(f"unknown overtake bonus mode {mode!r}")
+        self.mode = mode
+        self.net: dict[str, int] = {}
+        self.best: dict[str, int] = {}
+
+    def record(self, passed: list[str], passed_by: list[str]) -> int:
+        """Book one step's passes (ids of the vehicles passed, and of those that passed the agent); returns
+        how many of the passes earn the bonus."""
+        for vid in passed_by:
+            self.net[vid] = self.net.get(vid, 0) - 1
+        earned = 0
+        for vid in passed:
+            self.net[vid] = self.net.get(vid, 0) + 1
+            if self.mode == "every_pass":
+                earned += 1
+            elif self.mode == "once_per_vehicle":
+                earned += vid not in self.best
+                self.best[vid] = 1
+            elif self.net[vid] > self.best.get(vid, 0):
+                earned += 1
+                self.best[vid] = self.net[vid]
+        return earned
 
 
 def agent_overlaps(

@@ -6,7 +6,8 @@ circumference L with ``spreadType="center"`` so the lane centre line is the ring
 centre-line coordinate x: ``x = edge_index · L / EDGES + lane position``.  Internal junction
 lanes are disabled (``--no-internal-links``), so a vehicle is always on one of the edges.
 
-Files for a ring ``ring_L<L>_W<W>`` under ``sumo_nets/``:
+Files for a ring ``ring_L<L>_W<W>`` under ``sumo_nets/`` (committed; other sizes in a cache folder,
+:func:`nets_cache`):
 ``.nod.xml``/``.edg.xml`` (plain input), ``.net.xml`` (netconvert output), ``.add.xml``
 (vehicle types and the looping route; rewritten from the config at every start).
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -58,10 +60,19 @@ def ring_name(length_m: float, width_m: float) -> str:
     return f"ring_L{length_m:g}_W{width_m:g}"
 
 
+def nets_cache() -> Path:
+    """Where the networks of road sizes without a committed one are generated: ``lanefree_sumo/nets`` in the
+    user's cache folder (``$XDG_CACHE_HOME``, else ``~/.cache``), never the package's ``sumo_nets/``."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "lanefree_sumo" / "nets"
+
+
 def default_net_path(cfg: LaneFreeConfig) -> Path:
-    if cfg.road.kind == "onramp":
-        return NETS_DIR / f"{onramp_name(cfg)}.net.xml"
-    return NETS_DIR / f"{ring_name(cfg.road.length_m, cfg.road.width_m)}.net.xml"
+    """The network of ``cfg``'s road: the committed one under ``sumo_nets/``, else its place in
+    :func:`nets_cache` (built there on first use)."""
+    name = onramp_name(cfg) if cfg.road.kind == "onramp" else ring_name(cfg.road.length_m, cfg.road.width_m)
+    committed = NETS_DIR / f"{name}.net.xml"
+    return committed if committed.is_file() else nets_cache() / committed.name
 
 
 def netconvert_args(nod: Path, edg: Path, net: Path, con: Path | None = None) -> list[str]:

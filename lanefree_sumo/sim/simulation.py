@@ -36,6 +36,9 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
     if cfg.backend == "numpy":
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")
+        if cfg.net_file:
+            raise ConfigError(f"the numpy backend uses no SUMO network (net_file {cfg.net_file}); drop it, or use "
+                              "--backend libsumo (or traci)")
         return NumpyBackend(cfg) if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
     from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
 
@@ -77,15 +80,18 @@ class Departure:
 
 
 def clip_acceleration(
-    ax: float, ay: float, bounds: AccelerationBounds, vx: float, max_speed: float, step_s: float
+    ax: float, ay: float, bounds: AccelerationBounds, vx: float, max_speed: float, step_s: float,
+    vy: float = 0.0, lateral_ratio: float | None = None,
 ) -> tuple[float, float]:
     """Clip an agent's acceleration (m/s²) to its bounds and so that its speed vx (m/s) does
-    not exceed ``max_speed`` (m/s) at the end of the step."""
+    not exceed ``max_speed`` (m/s) at the end of the step; with ``lateral_ratio`` r also so that
+    |vy| ≤ r·vx after the step (vy in m/s), as the driver model bounds the background's."""
     ax_top = min(bounds.ax_max, (max_speed - vx) / step_s)
-    return (
-        float(min(max(ax, bounds.ax_min), ax_top)),
-        float(np.clip(ay, bounds.ay_min, bounds.ay_max)),
-    )
+    ay_clipped = float(np.clip(ay, bounds.ay_min, bounds.ay_max))
+    if lateral_ratio is not None:
+        ay_clipped = max(min(ay_clipped, (lateral_ratio * vx - vy) / step_s), -(lateral_ratio * vx + vy) / step_s)
+        ay_clipped = float(np.clip(ay_clipped, bounds.ay_min, bounds.ay_max))
+    return float(min(max(ax, bounds.ax_min), ax_top)), ay_clipped
 
 
 class Simulation:
@@ -219,7 +225,8 @@ class Simulation:
             for agent, (agent_ax, agent_ay) in zip(agents, commands):
                 ax[agent], ay[agent] = clip_acceleration(
                     float(agent_ax), float(agent_ay), cfg.scenario.agent_bounds, float(state.vx[agent]),
-                    cfg.scenario.agent_max_speed_mps, cfg.sim.step_s,
+                    cfg.scenario.agent_max_speed_mps, cfg.sim.step_s, float(state.vy[agent]),
+                    cfg.scenario.agent_lateral_speed_ratio,
                 )
         if self.traffic is not None:
             ax = self.traffic.end_wall(state, self.on_ramp, ax)  # the ramp's lane ends: for agents too

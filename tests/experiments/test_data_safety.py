@@ -8,6 +8,9 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import subprocess
+import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -17,10 +20,10 @@ import yaml
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import LaneFreeError, RunError
 from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, RunDir, read_config, write_config
+from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, RunDir, fresh_output, read_config, write_config
 from lanefree_sumo.experiments.train import new_run_folder, train
 
-from conftest import TINY_TRAINING, lanefree, lanefree_popen
+from conftest import CLI_ENV, TINY_TRAINING, lanefree, lanefree_popen, wait_for
 
 pytestmark = pytest.mark.sumo
 
@@ -249,3 +252,160 @@ def test_every_committed_run_config_still_loads():
     for path in configs:
         cfg = read_config(path.parent)
         assert cfg.scenario.agents >= 1 and cfg.train.episodes >= 1, path
+
+
+# -- 8. an output is claimed when its verb starts ---------------------------------------------------
+
+def test_a_second_writer_of_the_same_output_is_refused_while_the_first_runs(tmp_path):
+    """Two simulations into one --out: the second is refused at once (with --overwrite too), naming the first's
+    process; the first one's output is what ends up there."""
+    out = tmp_path / "s"
+    first = lanefree_popen("simulate", "--seconds", "400", "--seed", "1", "--backend", "numpy", "--out", str(out))
+    wait_for(lambda: any(tmp_path.glob(".s.new-*/trajectory.csv")), first, "the first simulation writing")
+    for extra in ((), ("--overwrite",)):
+        res = lanefree("simulate", "--seconds", "5", "--seed", "2", "--backend", "numpy", "--out", str(out), *extra)
+        assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+        assert f"being written by process {first.pid}" in res.stderr
+    first.send_signal(signal.SIGTERM)
+    _, err = first.communicate(timeout=120)
+    assert first.returncode == 130, err
+    assert read_config(out).seed == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]  # neither a lock file nor a temporary left
+
+
+def test_evaluate_and_mixed_autonomy_refuse_an_output_another_process_writes(tmp_path, finished_run):
+    """The claim is one mechanism for every verb with an --out: held by another process, evaluate and
+    mixed-autonomy are refused before writing anything."""
+    out = tmp_path / "eval"
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import sys, time
+        from pathlib import Path
+        from lanefree_sumo.experiments.rundir import claim
+        with claim(Path({str(out)!r}), "evaluate"):
+            print("held", flush=True)
+            sys.stdin.read()
+        """)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=CLI_ENV)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        with pytest.raises(RunError, match=f"being written by process {holder.pid}"):
+            evaluate(finished_run, episodes=1, out=out, progress=False)
+        res = lanefree("mixed-autonomy", str(finished_run), "--agents", "0", "--episodes", "1", "--out", str(out))
+        assert res.returncode == 2 and f"being written by process {holder.pid}" in res.stderr, res.stderr
+        assert not out.exists()
+    finally:
+        holder.communicate("", timeout=60)
+    evaluate(finished_run, episodes=1, out=out, progress=False)  # released with its process
+    assert (out / "episodes.csv").is_file()
+
+
+def test_the_final_swap_never_replaces_what_the_verb_did_not_claim(tmp_path):
+    """An output that another program put in place while the verb wrote is left alone; the verb's own output is
+    kept beside it under the name its one-line error gives."""
+    out = tmp_path / "out"
+    with pytest.raises(RunError, match=r"made or replaced by another program.*out\.simulate-1"):
+        with fresh_output(out, overwrite=False, verb="simulate") as tmp:
+            (tmp / "summary.json").write_text("new\n")
+            out.mkdir()
+            (out / "notes.txt").write_text("mine\n")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    assert (tmp_path / "out.simulate-1" / "summary.json").read_text() == "new\n"
+
+
+# -- 9. the leftovers of a killed writer are cleaned by the next one --------------------------------
+
+def test_a_killed_writers_temporaries_are_removed_by_the_next_writer(tmp_path):
+    out = tmp_path / "s"
+    first = lanefree_popen("simulate", "--seconds", "400", "--backend", "numpy", "--out", str(out))
+    wait_for(lambda: any(tmp_path.glob(".s.new-*/trajectory.csv")), first, "the simulation writing")
+    first.kill()
+    first.communicate(timeout=60)
+    assert list(tmp_path.glob(".s.new-*"))  # SIGKILL cleans nothing up
+    res = lanefree("simulate", "--seconds", "2", "--backend", "numpy", "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]
+
+
+def test_an_earlier_output_a_dead_writer_left_aside_is_put_back(tmp_path):
+    """A writer killed between moving the earlier output aside and moving the new one in leaves only the
+    ``.old-`` folder: the next writer puts it back before anything else (its --overwrite then replaces it)."""
+    out = tmp_path / "eval"
+    aside = tmp_path / ".eval.old-abcd1234" / "eval"
+    aside.mkdir(parents=True)
+    (aside / OUTPUT_MARKER).write_text("evaluate\n")
+    (aside / "episodes.csv").write_text("episode\n1\n")
+    (tmp_path / ".eval.new-zyxw9876").mkdir()
+    (tmp_path / ".eval.lock").write_text("999999 evaluate\n")  # its lock file, no longer locked by anyone
+    with pytest.raises(RunError, match="exists; choose another --out"):
+        with fresh_output(out, overwrite=False, verb="evaluate"):
+            pass
+    assert (out / "episodes.csv").read_text() == "episode\n1\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval"]
+
+
+# -- 10. a resumed run's paths follow its folder ----------------------------------------------------
+
+def tb_files(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.mark.slow
+def test_a_resumed_copy_writes_its_tensorboard_logs_into_itself(tmp_path, finished_run, monkeypatch):
+    """A run copied (or renamed, or resumed from another directory by a relative path) writes its TensorBoard
+    events into its own ``tb/``: not into the original's, whose path the checkpoint holds, nor into a folder of
+    the old name under the current directory (the sweep's workers resume runs the same way)."""
+    original = tb_files(finished_run / "tb")
+    assert original
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(finished_run, tmp_path / "copy")
+    _, done = train(LaneFreeConfig(), run=Path("copy"), resume=True, progress=False, episodes=3)
+    assert done == 3
+    assert tb_files(finished_run / "tb") == original
+    assert len(tb_files(tmp_path / "copy" / "tb")) > len(original)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["copy"]
+
+
+# -- 11. a new run ended before its first checkpoint is no dead end ---------------------------------
+
+@pytest.mark.slow
+def test_a_new_run_killed_before_its_first_checkpoint_is_started_afresh(tmp_path):
+    """SIGKILL leaves the folder of a run that never checkpointed (nothing to resume): a new start into it
+    begins afresh, and --resume says so. A user's folder of like-named files is still refused."""
+    run = tmp_path / "run"
+    proc = lanefree_popen("train", "--backend", "numpy", "--episodes", "1", "--set", "sim.episode_steps=100000",
+                          "--out", str(run))
+    wait_for(lambda: (run / "versions.json").is_file(), proc, "the run folder set up")
+    proc.kill()
+    proc.communicate(timeout=60)
+    assert (run / ".lock").exists() and not (run / "checkpoints").exists()
+    res = lanefree("train", "--resume", str(run))
+    assert res.returncode == 2 and "never reached its first" in res.stderr and "no --resume" in res.stderr
+    _, done = train(tiny(episodes=1), run=run, progress=False)
+    assert done == 1 and (run / "model.zip").is_file() and read_config(run).sim.episode_steps == 100
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "config.yaml").write_text("my notes\n")
+    with pytest.raises(RunError, match="exists; resume it"):
+        train(tiny(episodes=1), run=mine, progress=False)
+    assert (mine / "config.yaml").read_text() == "my notes\n"
+
+
+@pytest.mark.slow
+def test_a_new_run_whose_first_checkpoint_fails_leaves_nothing(tmp_path, monkeypatch):
+    """A full disk at the first checkpoint: the error, and no folder that blocks the same command once space is
+    freed (nothing in it could be resumed)."""
+    import lanefree_sumo.experiments.train as train_module
+
+    def full_disk(_model, folder: RunDir, episodes: int, _algo: str):
+        folder.checkpoint(episodes).mkdir(parents=True)
+        (folder.checkpoint(episodes) / "model.zip").write_bytes(b"PK")  # cut short: the disk filled up
+        raise OSError(28, "No space left on device")
+
+    real = train_module.save_checkpoint
+    monkeypatch.setattr(train_module, "save_checkpoint", full_disk)
+    run = tmp_path / "run"
+    with pytest.raises(OSError, match="No space left"):
+        train(tiny(episodes=1), run=run, progress=False)
+    assert not run.exists()
+    monkeypatch.setattr(train_module, "save_checkpoint", real)
+    _, done = train(tiny(episodes=1), run=run, progress=False)
+    assert done == 1

@@ -232,9 +232,15 @@ def test_reproduce_refuses_a_bad_worker_count_in_one_line_before_starting_anythi
         refused = subprocess.run(["bash", script, "start", bad], capture_output=True, text=True, timeout=60,
                                  cwd=tmp_path, env=env)
         assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and f"'{bad}'" in refused.stderr
-    usage = subprocess.run(["bash", script, "begin"], capture_output=True, text=True, timeout=60)
-    assert usage.returncode == 2 and "usage: scripts/reproduce.sh start" in usage.stdout
+    for verb in (["begin"], []):  # an unknown command, none: one line on stderr, nothing written
+        usage = subprocess.run(["bash", script, *verb], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert usage.returncode == 2 and usage.stdout == "" and usage.stderr.count("\n") == 1, usage
+        assert ("unknown command 'begin'" if verb else "no command given") in usage.stderr
+        assert "usage: scripts/reproduce.sh start" in usage.stderr
     assert not (tmp_path / ".worktrees" / "logs" / "paper.pid").exists()
+    stop = subprocess.run(["bash", script, "stop"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert stop.returncode == 0 and stop.stdout.startswith("nothing to stop"), stop
+    assert sorted(p.name for p in (tmp_path / ".worktrees" / "logs").iterdir()) == []
 
 
 def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_stops_everything(tmp_path):
@@ -279,6 +285,9 @@ def test_reproduce_gives_the_set_sweeps_the_cores_the_paper_sweep_leaves_and_sto
         while not (calls.exists() and len(calls.read_text().splitlines()) == len(drivers) and watched.exists()):
             assert time.monotonic() < deadline, "the sweeps and the watcher did not all start"
             time.sleep(0.05)
+        again = subprocess.run(["bash", script, "start", str(workers)], capture_output=True, text=True, timeout=120)
+        assert again.returncode == 2 and again.stdout == "" and again.stderr.count("\n") == 1, again
+        assert "already running" in again.stderr
         stopped = subprocess.run(["bash", script, "stop"], capture_output=True, text=True, timeout=120)
         assert stopped.returncode == 0 and "stopped" in stopped.stdout, stopped.stderr
         assert not [pid for pid in pids if running(pid)]  # stop waits until they are gone

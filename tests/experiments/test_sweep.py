@@ -36,7 +36,7 @@ from lanefree_sumo.errors import ConfigError, RunError, UsageError
 from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.rundir import RunDir, record_session, write_config
 from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
-from lanefree_sumo.experiments.sweep.grid import Cell, builtin_grid, load_grid, parse_grid
+from lanefree_sumo.experiments.sweep.grid import Cell, Grid, builtin_grid, load_grid, parse_grid
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
 from lanefree_sumo.experiments.sweep.summary import COLUMNS, RUN_COLUMNS, bootstrap_ci, summarize
@@ -727,3 +727,90 @@ def test_a_sweep_on_the_on_ramp(tmp_path):
     assert res.returncode == 0, res.stderr
     run = out / "runs" / "ddpg_fields_zones_overtake_collision_d20_s0"
     assert (run / "model.zip").is_file() and "merged" in (run / "episodes.csv").read_text().splitlines()[0]
+
+
+def test_variants_are_settings_of_their_own_with_their_own_runs_and_rows(tmp_path):
+    """A grid's variants: each setting once per variant (dotted keys applied after the overrides), run folders
+    named after the variant, the summary grouped by variant with both speed readings, claims on ``default``."""
+    data = {"reward_presets": ["fields_collision", "collision"], "n_seeds": 2, "episodes": 3,
+            "overrides": {"reward": {"overtake_reward": 3.0}},
+            "variants": {"default": {}, "cap25": {"scenario.agent_max_speed_mps": 25,
+                                                  "reward.overtake_bonus": "once_per_vehicle"},
+                         "keras": {"train.profile": "kerasrl"}}}
+    grid = parse_grid(data, "study", "study.yaml")
+    assert [s.label for s in grid.settings][:3] == ["ddpg / fields_collision / d70 / default",
+                                                    "ddpg / collision / d70 / default",
+                                                    "ddpg / fields_collision / d70 / cap25"]
+    assert len(grid.cells()) == 3 * 2 * 2
+    cap = next(c for c in grid.cells() if c.setting.variant == "cap25")
+    assert cap.name == "ddpg_fields_collision_d70_cap25_s0"
+    cfg = grid.config(cap)
+    assert (cfg.scenario.agent_max_speed_mps, cfg.reward.overtake_bonus, cfg.reward.overtake_reward) == \
+        (25.0, "once_per_vehicle", 3.0)
+    keras = grid.config(next(c for c in grid.cells() if c.setting.variant == "keras"))
+    assert keras.train.actor_critic.warmup_actions == "policy" and keras.train.dqn.loss == "squared"
+    assert grid.config(grid.cells()[0]).scenario.agent_max_speed_mps == 30.0
+    assert Grid.from_dict(grid.to_dict(), "manifest") == grid  # the manifest keeps the variants
+    write_manifest(tmp_path, Manifest(grid))
+    sweep = SweepDir(tmp_path)
+    for k, cell in enumerate(grid.cells()):
+        fake_run(sweep.run(cell), grid, cell, 3, collisions=float(k))
+    table = summarize(tmp_path).table
+    assert list(table["variant"]) == ["default", "default", "cap25", "cap25", "keras", "keras"]
+    # cells are seed-major: seed 0 of the 6 settings (k = 0..5), then seed 1 (k = 6..11)
+    assert list(table["collisions_mean"]) == [3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    assert list(table["speed_error_mps_mean"]) == [0.0] * 6  # as the fake runs recorded them
+    # a run recorded before the per-episode readings existed: derived from its mean speed (v_d = 20 m/s)
+    old = sweep.run(grid.cells()[0]) / "episodes.csv"
+    old.write_text("episode,return,collisions,speed_dev_mps,overtakes,mean_speed_mps\n"
+                   "1,1,0,3,0,23.5\n2,1,0,3,0,17.0\n3,1,0,3,0,20.0\n")
+    table = summarize(tmp_path).table
+    derived = (3.5 - 3.0 + 0.0) / 3  # episode means: +3.5, −3.0, 0.0 m/s
+    assert table["speed_error_mps_mean"][0] == pytest.approx(derived / 2)  # with seed 1's 0.0
+    assert table["speed_dev_episode_mps_mean"][0] == pytest.approx((3.5 + 3.0 + 0.0) / 3 / 2)
+    per_run = list(csv.DictReader(open(tmp_path / "runs.csv")))
+    assert [r["variant"] for r in per_run[:2]] == ["default", "default"] and per_run[4]["variant"] == "cap25"
+    md = (tmp_path / "summary.md").read_text()
+    assert "| variant |" in md and "| cap25 |" in md and "per episode" in md
+    claims = list(csv.DictReader(open(tmp_path / "claims.csv")))  # on the default variant's runs only
+    assert [(c["n_a"], c["n_b"]) for c in claims] == [("2", "2")]
+    effects = (tmp_path / "effects.md").read_text()  # each variant against default, per cell: 2 runs a side
+    assert "| cap25 | 2, 2 | too few runs |" in effects and "| keras | 2, 2 | too few runs |" in effects
+    assert {r["variant"] for r in csv.DictReader(open(tmp_path / "effects.csv"))} == {"cap25", "keras"}
+
+
+@pytest.mark.parametrize(("variants", "named"), [
+    ({"Cap": {}}, "variant name 'Cap'"),
+    ({"cap": {"scenario.agent_max_speed_mps": -1}}, "variants.cap"),
+    ({"cap": {"seed": 3}}, "variants.cap.seed is set by the grid itself"),
+    ({"cap": {"reward.nonsense": 1}}, "unknown config key 'reward.nonsense'"),
+    ({"cap": ["scenario.agent_max_speed_mps"]}, "variants.cap must be a mapping"),
+    ([], "variants must be a mapping"),
+])
+def test_bad_variants_are_one_line_errors_naming_the_variant(variants, named):
+    with pytest.raises(ConfigError, match=re.escape(named)):
+        parse_grid({"reward_presets": ["collision"], "variants": variants}, "bad", "bad.yaml")
+
+
+def test_an_on_ramp_sweep_and_report_are_not_compared_with_the_papers_ring():
+    """The paper's values and claims are the ring's: an on-ramp grid's summary has neither, a ring grid's both;
+    the report's table of on-ramp runs has no paper column values either."""
+    import pandas as pd
+
+    from lanefree_sumo.experiments.report import RunData, summary_table
+    from lanefree_sumo.experiments.sweep.summary import _rows, paper_comparisons
+
+    settings = {"reward_presets": ["fields_overtake_collision", "fields_zones_overtake_collision"],
+                "densities": [90], "n_seeds": 1, "episodes": 2}
+    ring = parse_grid(settings, "ring", "ring.yaml")
+    onramp = parse_grid({**settings, "overrides": {"road": {"kind": "onramp"}}}, "onramp", "onramp.yaml")
+    assert (ring.road(ring.settings[0]), onramp.road(onramp.settings[0])) == ("ring", "onramp")
+    assert paper_comparisons(ring) and paper_comparisons(onramp) == ()
+    assert _rows(ring, {}, 50)["paper_collisions"].notna().all()
+    assert _rows(onramp, {}, 50)["paper_collisions"].isna().all()
+    frame = pd.DataFrame({"return": [1.0], "collisions": [1.0], "speed_dev_mps": [1.0], "overtakes": [1.0]},
+                         index=pd.Index([1], name="episode"))
+    runs = {road: RunData(Path(road), "ddpg", "fields_overtake_collision", 90.0, 0, frame, road=road)
+            for road in ("ring", "onramp")}
+    table = summary_table({("ddpg", "fields_overtake_collision", 90.0, road): [run] for road, run in runs.items()})
+    assert table["collisions_paper"].notna().tolist() == [True, False]

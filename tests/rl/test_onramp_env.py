@@ -19,12 +19,39 @@ from conftest import lanefree
 ONRAMP = {"backend": "numpy", "road": {"kind": "onramp"}, "scenario": {"density_veh_per_km": 20}}
 
 
-@pytest.mark.parametrize("kind", ["vector", "set"])
-def test_gymnasium_and_sb3_checkers_pass(kind):
-    env = LaneFreeEnv({**ONRAMP, "observation": {"kind": kind}})
-    gym_check_env(env, skip_render_check=True)
-    sb3_check_env(env, warn=False)
-    env.close()
+@pytest.mark.parametrize("backend,kind", [
+    ("numpy", "vector"), ("numpy", "set"),
+    pytest.param("libsumo", "vector", marks=pytest.mark.sumo), pytest.param("traci", "set", marks=pytest.mark.sumo),
+])
+def test_gymnasium_and_sb3_checkers_pass(backend, kind):
+    """On every backend: the checkers reset, step and reset again with one seed (vehicles have entered and
+    left between the resets)."""
+    env = LaneFreeEnv({**ONRAMP, "backend": backend, "observation": {"kind": kind}})
+    try:
+        gym_check_env(env, skip_render_check=True)
+        sb3_check_env(env, warn=False)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("libsumo", marks=pytest.mark.sumo),
+                                     pytest.param("traci", marks=pytest.mark.sumo)])
+def test_resets_in_a_row_with_and_without_steps_between_start_the_same_episode(backend):
+    env = LaneFreeEnv({"backend": backend, "road": {"kind": "onramp"}})
+    try:
+        first, _ = env.reset(seed=3)
+        again, _ = env.reset(seed=3)  # no step between
+        np.testing.assert_array_equal(first, again)
+        ids = set(env.sim.state.ids)
+        for _ in range(40):  # long enough for vehicles to enter the road (ids the reset state does not have)
+            env.step(np.zeros(2, dtype=np.float32))
+        assert set(env.sim.state.ids) - ids, "no vehicle entered: the test would not cover the case"
+        after, _ = env.reset(seed=3)
+        np.testing.assert_array_equal(first, after)
+        env.reset()
+        env.step(np.zeros(2, dtype=np.float32))
+    finally:
+        env.close()
 
 
 def _episode(backend: str, start: str, actions: np.ndarray) -> list:

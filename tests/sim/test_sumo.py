@@ -128,3 +128,23 @@ def test_other_ring_sizes_are_built_on_demand(tmp_path):
     finally:
         sim.close()
     assert spawn(cfg, np.random.default_rng(0)).n == 21
+
+
+def test_networks_of_other_sizes_are_built_in_the_cache_never_in_the_package(tmp_path, monkeypatch):
+    """An on-ramp (or ring) of sizes without a committed network gets one built on first use in the user's cache
+    folder; the package's sumo_nets/ is only read."""
+    from lanefree_sumo.sim.backends.sumo import check_onramp_net, resolve_net
+    from lanefree_sumo.sim.network import NETS_DIR
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    committed = sorted(p.name for p in NETS_DIR.iterdir())
+    assert resolve_net(config("libsumo")).parent == NETS_DIR
+    cfg = merge_config(config("libsumo"), {"road": {"kind": "onramp", "width_m": 12.0}})
+    net = resolve_net(cfg)
+    cache = tmp_path / "lanefree_sumo" / "nets"
+    assert net == cache / "onramp_U1000_R480_D500_W12_w3.net.xml"
+    check_onramp_net(net, cfg)
+    assert sorted(p.name for p in cache.iterdir()) == sorted(
+        f"onramp_U1000_R480_D500_W12_w3.{ext}.xml" for ext in ("add", "con", "edg", "net", "nod"))
+    assert resolve_net(cfg) == net  # built once
+    assert sorted(p.name for p in NETS_DIR.iterdir()) == committed

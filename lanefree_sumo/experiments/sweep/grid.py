@@ -12,12 +12,20 @@ A YAML grid::
     seeds: [0, 1, 2]                   # or  n_seeds: 10  (seeds 0 … 9; the default)
     episodes: 625                      # optional budget override, default the paper's
     overrides: {}                      # optional config overrides applied to every run
+    variants:                          # optional: every setting once per variant, each a mapping of
+      default: {}                      #   dotted config keys applied after ``overrides``
+      cap25: {scenario.agent_max_speed_mps: 25}
+      once_per_car: {reward.overtake_bonus: once_per_vehicle}
+
+A variant's runs are named ``<algo>_<preset>_d<density>_<variant>_s<seed>``; summaries, curves and claims
+group by variant (the claims on the variant named ``default``, or on a grid without variants).
 
 Every problem is a :class:`~lanefree_sumo.errors.ConfigError` of one line naming the key.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +34,7 @@ from typing import Any, NamedTuple
 import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_density
+from lanefree_sumo.config.validation import load_yaml
 from lanefree_sumo.errors import ConfigError, UsageError
 from lanefree_sumo.experiments.paper import PAPER_ROWS
 
@@ -39,7 +48,7 @@ PAPER_EPISODE_STEPS = LaneFreeConfig().sim.episode_steps
 TABLES: tuple[int, ...] = tuple(sorted({row[0] for row in PAPER_ROWS}))
 BUILTIN_GRIDS: tuple[str, ...] = (*(f"table{t}" for t in TABLES), "paper")
 GRID_KEYS: tuple[str, ...] = ("algorithms", "reward_presets", "densities", "seeds", "n_seeds", "episodes",
-                              "overrides")
+                              "overrides", "variants")
 """Keys a YAML grid may have."""
 GRID_OWNED: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
                                "train.episodes")
@@ -47,16 +56,23 @@ GRID_OWNED: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.
 MAX_SEEDS = 10_000
 
 
+DEFAULT_VARIANT = "default"
+"""The variant whose runs the paper's claims are checked on (a grid without variants has one, named "")."""
+VARIANT_NAME = re.compile(r"[a-z0-9][a-z0-9_]{0,39}")
+
+
 class Setting(NamedTuple):
-    """One row of a results table: algorithm, reward preset, density (veh/km)."""
+    """One row of a results table: algorithm, reward preset, density (veh/km) and the grid's variant
+    ("" in a grid without variants)."""
 
     algorithm: str
     preset: str
     density: float
+    variant: str = ""
 
     @property
     def label(self) -> str:
-        return f"{self.algorithm} / {self.preset} / d{self.density:g}"
+        return f"{self.algorithm} / {self.preset} / d{self.density:g}" + (f" / {self.variant}" if self.variant else "")
 
     @property
     def tables(self) -> tuple[int, ...]:
@@ -75,11 +91,11 @@ class Cell(NamedTuple):
     def name(self) -> str:
         """The run folder's name: ``<algo>_<preset>_d<density>_s<seed>``."""
         s = self.setting
-        return f"{s.algorithm}_{s.preset}_d{s.density:g}_s{self.seed}"
+        return f"{s.algorithm}_{s.preset}_d{s.density:g}" + (f"_{s.variant}" if s.variant else "") + f"_s{self.seed}"
 
 
-def make_setting(algorithm: str, preset: str, density: float) -> Setting:
-    return Setting(algorithm, preset, round(float(density), 6))
+def make_setting(algorithm: str, preset: str, density: float, variant: str = "") -> Setting:
+    return Setting(algorithm, preset, round(float(density), 6), variant)
 
 
 @dataclass(frozen=True)
@@ -92,6 +108,13 @@ class Grid:
     episodes: int = PAPER_EPISODES
     overrides: dict[str, Any] = field(default_factory=dict)
     """Config overrides (nested mapping) applied to every run before the grid's own keys."""
+    variants: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Variant name → config overrides (nested mapping) applied after ``overrides``; every setting is in the
+    grid once per variant (empty: no variants)."""
+
+    def variant_overrides(self, setting: Setting) -> dict[str, Any]:
+        """The overrides of ``setting``'s variant (none for "")."""
+        return self.variants.get(setting.variant, {}) if setting.variant else {}
 
     def cells(self) -> tuple[Cell, ...]:
         """Every run, seed-major: the first seed of every setting first, so that each setting has
@@ -103,11 +126,17 @@ class Grid:
         from lanefree_sumo.rl.models import training_config
 
         s = cell.setting
-        cfg = merge_config(merge_config(LaneFreeConfig(), self.overrides), {
+        cfg = merge_config(merge_config(merge_config(LaneFreeConfig(), self.overrides),
+                                        self.variant_overrides(s)), {
             "seed": cell.seed, "reward": {"preset": s.preset}, "scenario": {"density_veh_per_km": s.density},
             "train": {"algo": s.algorithm, "episodes": self.episodes},
         })
         return training_config(cfg)
+
+    def road(self, setting: Setting) -> str:
+        """The road ``setting``'s runs drive on (``road.kind`` after the overrides and its variant's)."""
+        return str(merge_config(merge_config(LaneFreeConfig(), self.overrides), self.variant_overrides(setting))
+                   .road.kind)
 
     @property
     def episode_steps(self) -> int:
@@ -132,20 +161,23 @@ class Grid:
         return {
             "name": self.name,
             "settings": [{"algorithm": s.algorithm, "reward_preset": s.preset, "density": s.density,
-                          "tables": list(s.tables)} for s in self.settings],
+                          **({"variant": s.variant} if s.variant else {}), "tables": list(s.tables)}
+                         for s in self.settings],
             "seeds": list(self.seeds),
             "episodes": self.episodes,
             "overrides": self.overrides,
+            **({"variants": self.variants} if self.variants else {}),
         }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], source: str) -> Grid:
         """The grid saved by :meth:`to_dict` (in a manifest); ConfigError naming what is wrong."""
         try:
-            settings = tuple(make_setting(str(s["algorithm"]), str(s["reward_preset"]), float(s["density"]))
-                             for s in data["settings"])
+            settings = tuple(make_setting(str(s["algorithm"]), str(s["reward_preset"]), float(s["density"]),
+                                          str(s.get("variant", ""))) for s in data["settings"])
             grid = cls(str(data["name"]), settings, tuple(int(x) for x in data["seeds"]), int(data["episodes"]),
-                       dict(data.get("overrides") or {}))
+                       dict(data.get("overrides") or {}), {str(k): dict(v) for k, v in
+                                                           (data.get("variants") or {}).items()})
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{source}: the grid is unreadable ({type(exc).__name__}: {exc})") from None
         return validate_grid(grid, source)
@@ -158,7 +190,7 @@ class Grid:
         if episode_steps is not None:
             overrides.setdefault("sim", {})["episode_steps"] = episode_steps
         grid = Grid(self.name, self.settings, tuple(range(seeds)) if seeds is not None else self.seeds,
-                    episodes if episodes is not None else self.episodes, overrides)
+                    episodes if episodes is not None else self.episodes, overrides, self.variants)
         return validate_grid(grid, "command line")
 
     def with_more_seeds(self, count: int, where: str) -> Grid:
@@ -173,7 +205,8 @@ class Grid:
             if candidate not in seeds:
                 seeds.append(candidate)
             candidate += 1
-        return validate_grid(Grid(self.name, self.settings, tuple(seeds), self.episodes, self.overrides), where)
+        return validate_grid(Grid(self.name, self.settings, tuple(seeds), self.episodes, self.overrides,
+                                  self.variants), where)
 
 
 def _merged(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
@@ -208,7 +241,7 @@ def load_grid(spec: str | Path) -> Grid:
         raise ConfigError(f"unknown grid '{text}': neither a built-in grid ({', '.join(BUILTIN_GRIDS)}) "
                           "nor a YAML file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = load_yaml(path.read_text(encoding="utf-8"), f"grid {path}")
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         reason = " ".join(str(exc).split())[:200]
         raise ConfigError(f"grid {path}: unreadable ({reason})") from None
@@ -276,8 +309,31 @@ def parse_grid(data: Any, name: str, source: str) -> Grid:
     if not _whole(episodes) or episodes < 1:
         raise ConfigError(f"{where}: episodes must be a whole number ≥ 1, got {episodes!r}")
     overrides = data.get("overrides") or {}
-    settings = tuple(make_setting(a, p, d) for a in algorithms for p in presets for d in densities)
-    return validate_grid(Grid(name, settings, tuple(seeds), episodes, dict(overrides)), source)
+    variants = _variants(where, data.get("variants"))
+    settings = tuple(make_setting(a, p, d, v) for v in (variants or [""]) for a in algorithms for p in presets
+                     for d in densities)
+    return validate_grid(Grid(name, settings, tuple(seeds), episodes, dict(overrides), variants), source)
+
+
+def _variants(where: str, data: Any) -> dict[str, dict[str, Any]]:
+    """``variants``: name → nested overrides from its mapping of dotted config keys (checked by
+    :func:`validate_grid`)."""
+    from lanefree_sumo.config import nested_overrides
+
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping) or not data:
+        raise ConfigError(f"{where}: variants must be a mapping of variant names to mappings of dotted config keys")
+    out: dict[str, dict[str, Any]] = {}
+    for name, keys in data.items():
+        if not isinstance(name, str) or not VARIANT_NAME.fullmatch(name):
+            raise ConfigError(f"{where}: variant name {name!r} must be 1-40 lower-case letters, digits or _")
+        if keys is None:
+            keys = {}
+        if not isinstance(keys, Mapping) or not all(isinstance(k, str) for k in keys):
+            raise ConfigError(f"{where}: variants.{name} must be a mapping of dotted config keys to values")
+        out[name] = nested_overrides(list(keys.items()))
+    return out
 
 
 def _owned(overrides: Mapping[str, Any], path: str = "") -> list[str]:
@@ -303,10 +359,17 @@ def validate_grid(grid: Grid, source: str) -> Grid:
     if agents != 1:
         raise ConfigError(f"{where}: overrides.scenario.agents = {agents!r}: sweeps train one learning vehicle per run "
                           "in this version (use lanefree train --agents K)")
-    owned = _owned(grid.overrides)
-    if owned:
-        raise ConfigError(f"{where}: overrides.{owned[0]} is set by the grid itself "
-                          "(use algorithms, reward_presets, densities, seeds or episodes)")
+    for label, overrides in (("overrides", grid.overrides),
+                             *((f"variants.{name}", keys) for name, keys in grid.variants.items())):
+        owned = _owned(overrides)
+        if owned:
+            raise ConfigError(f"{where}: {label}.{owned[0]} is set by the grid itself "
+                              "(use algorithms, reward_presets, densities, seeds or episodes)")
+    for name, keys in grid.variants.items():
+        try:
+            merge_config(merge_config(LaneFreeConfig(), grid.overrides), keys)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: variants.{name}: {exc}") from None
     if not grid.settings or not grid.seeds:
         raise ConfigError(f"{where}: the grid has no runs")
     if grid.episodes < 1:
@@ -336,7 +399,9 @@ def validate_grid(grid: Grid, source: str) -> Grid:
             raise ConfigError(f"{where}: {setting.label}: {exc}") from None
     # the overrides as the config normalises them (tuples → lists), so saved and loaded grids compare equal
     normal = config_to_dict(base)
-    return Grid(grid.name, grid.settings, grid.seeds, grid.episodes, _subset(normal, grid.overrides))
+    variants = {name: _subset(config_to_dict(merge_config(LaneFreeConfig(), keys)), keys)
+                for name, keys in grid.variants.items()}
+    return Grid(grid.name, grid.settings, grid.seeds, grid.episodes, _subset(normal, grid.overrides), variants)
 
 
 def _subset(full: Mapping[str, Any], keys: Mapping[str, Any]) -> dict[str, Any]:

@@ -35,6 +35,9 @@ SUMMARY_CSV = "summary.csv"
 SUMMARY_MD = "summary.md"
 CLAIMS_CSV = "claims.csv"
 CLAIMS_MD = "claims.md"
+EFFECTS_CSV = "effects.csv"
+EFFECTS_MD = "effects.md"
+"""Each variant against the grid's ``default`` (:mod:`lanefree_sumo.experiments.effects`), in a grid with variants."""
 RUNS_CSV = "runs.csv"
 CURVES = "curves"
 FORMAT = 1
@@ -103,6 +106,14 @@ class SweepDir:
     @property
     def claims_md(self) -> Path:
         return self.path / CLAIMS_MD
+
+    @property
+    def effects_csv(self) -> Path:
+        return self.path / EFFECTS_CSV
+
+    @property
+    def effects_md(self) -> Path:
+        return self.path / EFFECTS_MD
 
     @property
     def curves(self) -> Path:

@@ -48,32 +48,35 @@ import pandas as pd
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
+from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
+from lanefree_sumo.experiments.effects import effect_table, effects_markdown
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.report import group_runs
 from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_episodes, read_run
 from lanefree_sumo.experiments.rundir import EPISODES, RunDir, write_atomic
 from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
-from lanefree_sumo.experiments.sweep.grid import Grid, Setting
+from lanefree_sumo.experiments.sweep.grid import DEFAULT_VARIANT, Cell, Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
 
-METRICS = ("collisions", "speed_dev_mps")
+METRICS = ("collisions", "speed_dev_mps", "speed_dev_episode_mps", "speed_error_mps")
+"""Per setting, with CIs: collisions per episode; the speed deviation read per step (the mean of |vx − v_d|,
+the paper's tables are compared with it), per episode (|mean vx − v_d|) and signed (mean vx − v_d), m/s."""
 COLUMNS = (
-    "algorithm", "reward_preset", "density", "episodes", "n_runs",
-    "collisions_mean", "collisions_ci95_low", "collisions_ci95_high",
-    "speed_dev_mps_mean", "speed_dev_mps_ci95_low", "speed_dev_mps_ci95_high",
+    "algorithm", "reward_preset", "density", "variant", "episodes", "n_runs",
+    *(f"{metric}_{part}" for metric in METRICS for part in ("mean", "ci95_low", "ci95_high")),
     "paper_collisions", "paper_speed_dev_mps", "collisions_ratio", "speed_dev_mps_ratio",
     "runs_planned", "seeds", "episode_steps", "last_episodes", "reduced_budget", "paper_source",
 )
 
-RUN_METRICS = ("collisions", "speed_dev_mps", "overtakes", "return")
+RUN_METRICS = ("collisions", "speed_dev_mps", "speed_dev_episode_mps", "speed_error_mps", "overtakes", "return",
+               "return_reciprocal", "return_bonus", "return_collision")
+"""Per run (last-``last`` means); the return's three parts are NaN for runs recorded before they were."""
 EVALUATION_METRICS = ("collisions", "speed_dev_mps", "overtakes")
 EVALUATIONS = (("eval", None), ("eval_shield", True))
 """(column prefix, ``shield`` of :meth:`RunDir.eval_dir`): the deterministic and the shielded evaluation."""
 RUN_COLUMNS = (
-    "run", "algorithm", "reward_preset", "density", "seed", "episodes", *RUN_METRICS,
+    "run", "algorithm", "reward_preset", "density", "variant", "seed", "episodes", *RUN_METRICS,
     *(f"{name}_{column}" for name, _ in EVALUATIONS for column in ("episodes", *EVALUATION_METRICS)),
 )
 
@@ -87,12 +90,16 @@ class SweepSummary:
     notes: list[str] = field(default_factory=list)
 
 
-def _key(setting: Setting) -> tuple[str, str, float]:
-    return (setting.algorithm, setting.preset, round(float(setting.density), 6))
+def _key(setting: Setting) -> tuple[str, str, float, str]:
+    """(algorithm, preset, density, variant): a group of runs; ``[:3]`` the paper's cell."""
+    return (setting.algorithm, setting.preset, round(float(setting.density), 6), setting.variant)
 
 
 def last_mean(run: RunData, metric: str, last: int) -> float:
-    """A run's mean of ``metric`` over its last ``last`` episodes (all of them when it has fewer)."""
+    """A run's mean of ``metric`` over its last ``last`` episodes (all of them when it has fewer); NaN where
+    its file has no such column."""
+    if metric not in run.episodes:
+        return math.nan
     return float(run.episodes[metric].tail(last).mean())
 
 
@@ -112,13 +119,14 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
     for setting in grid.settings:
         runs = groups.get(_key(setting), [])
         rec: dict[str, Any] = {"algorithm": setting.algorithm, "reward_preset": setting.preset,
-                               "density": setting.density, "episodes": grid.episodes, "n_runs": len(runs)}
+                               "density": setting.density, "variant": setting.variant, "episodes": grid.episodes,
+                               "n_runs": len(runs)}
         for metric in METRICS:
-            per_run = [last_mean(r, metric, last) for r in runs]
+            per_run = [value for value in (last_mean(r, metric, last) for r in runs) if not math.isnan(value)]
             low, high = bootstrap_ci(per_run)
             rec[f"{metric}_mean"] = float(np.mean(per_run)) if per_run else math.nan
             rec[f"{metric}_ci95_low"], rec[f"{metric}_ci95_high"] = low, high
-        ref = paper_reference(*_key(setting))
+        ref = paper_reference(*_key(setting)[:3], grid.road(setting))
         rec["paper_collisions"] = ref.collisions if ref else math.nan
         rec["paper_speed_dev_mps"] = ref.speed_dev_mps if ref else math.nan
         rec["collisions_ratio"] = rec["collisions_mean"] / ref.collisions if ref else math.nan
@@ -130,13 +138,14 @@ def _rows(grid: Grid, groups: dict[Any, list[RunData]], last: int) -> pd.DataFra
     return pd.DataFrame.from_records(records, columns=list(COLUMNS))
 
 
-def _run_rows(runs: Sequence[RunData], last: int) -> tuple[pd.DataFrame, list[str]]:
-    """``runs.csv``: one row per run (see the module's docstring), and a note for each evaluation that
-    exists but cannot be read (shown like a missing one)."""
+def _run_rows(runs: Sequence[RunData], last: int, variants: dict[str, str]) -> tuple[pd.DataFrame, list[str]]:
+    """``runs.csv``: one row per run (see the module's docstring; ``variants``: run folder name → its grid
+    variant), and a note for each evaluation that exists but cannot be read (shown like a missing one)."""
     records, notes = [], []
     for run in runs:
         rec: dict[str, Any] = {"run": run.path.name, "algorithm": run.algorithm, "reward_preset": run.preset,
-                               "density": run.density, "seed": run.seed, "episodes": len(run.episodes)}
+                               "density": run.density, "variant": variants.get(run.path.name, ""),
+                               "seed": run.seed, "episodes": len(run.episodes)}
         rec.update({metric: last_mean(run, metric, last) for metric in RUN_METRICS})
         for name, shield in EVALUATIONS:
             path = RunDir(run.path).eval_dir(shield=shield) / EPISODES
@@ -203,12 +212,21 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
         "resamples; n/a below 2 runs, too narrow with very few] (paper value, docs/specification.md §10).",
         "",
     ]
-    headers = ["algorithm", "reward preset", "density (veh/km)", "episodes", "runs", "collisions / episode",
-               "speed deviation (m/s)"]
+    lines += ["Speed deviation, three readings (m/s): per step, the mean of |vx − v_d| (the paper's tables are "
+              "compared with it); per episode, |mean vx − v_d|; signed, mean vx − v_d (> 0: faster than desired).",
+              ""]
+    variants = bool(grid.variants)
+    headers = ["algorithm", "reward preset", "density (veh/km)", *(["variant"] if variants else []), "episodes",
+               "runs", "collisions / episode", "speed deviation per step", "per episode", "signed"]
     lines += markdown.table(headers, [
-        [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density']:g}", str(row["episodes"]),
+        [str(row["algorithm"]), str(row["reward_preset"]), f"{row['density']:g}",
+         *([str(row["variant"])] if variants else []), str(row["episodes"]),
          f"{row['n_runs']}/{row['runs_planned']}", _cell(row, "collisions", "paper_collisions"),
-         _cell(row, "speed_dev_mps", "paper_speed_dev_mps")]
+         _cell(row, "speed_dev_mps", "paper_speed_dev_mps"),
+         interval_text(row["speed_dev_episode_mps_mean"], row["speed_dev_episode_mps_ci95_low"],
+                       row["speed_dev_episode_mps_ci95_high"], 2),
+         interval_text(row["speed_error_mps_mean"], row["speed_error_mps_ci95_low"],
+                       row["speed_error_mps_ci95_high"], 2)]
         for _, row in table.iterrows()], drop_constant=True)
     if curves:
         lines += ["", "## Learning curves", ""]
@@ -257,6 +275,20 @@ def _plot(grid: Grid, groups: dict[Any, list[RunData]], folder: Path, smooth: in
     return curves, []
 
 
+def claimed_variant(grid: Grid) -> str:
+    """The variant whose runs the paper's claims are checked on: :data:`DEFAULT_VARIANT`, or "" (the grid's own
+    runs) in a grid without variants."""
+    return "" if not grid.variants else DEFAULT_VARIANT
+
+
+def paper_comparisons(grid: Grid) -> tuple[Comparison, ...]:
+    """The paper's claims that compare two of the grid's settings of :func:`claimed_variant` on the paper's ring;
+    none on another road."""
+    claimed = claimed_variant(grid)
+    return decidable((s.algorithm, s.preset, s.density) for s in grid.settings
+                     if s.variant == claimed and grid.road(s) == "ring")
+
+
 def summarize(folder: Path, last: int | None = None, smooth: int | None = None) -> SweepSummary:
     """Write ``summary.csv``, ``runs.csv``, ``summary.md``, ``curves/`` and (when a claim compares two of
     the grid's settings) ``claims.csv``/``claims.md`` of sweep folder ``folder`` from its complete runs
@@ -266,7 +298,7 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
     smooth = defaults.smooth_episodes if smooth is None else smooth
     sweep = SweepDir(folder)
     grid = read_manifest(folder).grid
-    runs: list[RunData] = []
+    runs: list[tuple[Cell, RunData]] = []
     incomplete: list[tuple[str, str]] = []
     notes: list[str] = []
     for cell in grid.cells():
@@ -276,16 +308,19 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
             incomplete.append((cell.name, f"{info.state}, {info.episodes}/{grid.episodes} episodes"))
             continue
         try:
-            runs.append(read_run(path))
+            runs.append((cell, read_run(path)))
         except Exception as exc:  # report's reader explains why a run is unusable
             incomplete.append((cell.name, f"unusable: {' '.join(str(exc).split())}"))
     if grid.episodes < last:
         notes.append(f"runs have {grid.episodes} episodes (< {last}); each run's mean uses all of them")
-    groups = {key[:3]: members for key, members in group_runs(runs).items()}  # one variant: the grid's overrides
+    groups: dict[Any, list[RunData]] = {}  # by the grid's own settings (its variants by name)
+    for cell, run in runs:
+        groups.setdefault(_key(cell.setting), []).append(run)
     table = _rows(grid, groups, last)
     order = {_key(setting): position for position, setting in enumerate(grid.settings)}  # the table's rows
-    per_run, run_notes = _run_rows(sorted(runs, key=lambda r: (
-        order.get((r.algorithm, r.preset, round(r.density, 6)), len(order)), r.seed)), last)
+    per_run, run_notes = _run_rows([run for _, run in sorted(runs, key=lambda cr: (
+        order.get(_key(cr[0].setting), len(order)), cr[0].seed))], last, {run.path.name: cell.setting.variant
+                                                                        for cell, run in runs})
     notes += run_notes
     try:
         curves, plot_notes = _plot(grid, groups, sweep.curves, smooth)
@@ -295,15 +330,22 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
                                                         notes + plot_notes, last, per_run))
         files = list(dict.fromkeys(p for paths in curves.values() for p in paths)) + [
             sweep.summary_csv, sweep.runs_csv, sweep.summary_md]
-        comparisons = decidable((s.algorithm, s.preset, s.density) for s in grid.settings)
+        claimed = claimed_variant(grid)
+        comparisons = paper_comparisons(grid)
         if comparisons:
-            claims = check_claims(groups, last, comparisons)
+            claims = check_claims({key[:3]: members for key, members in groups.items() if key[3] == claimed},
+                                  last, comparisons)
             claims.to_csv(sweep.claims_csv, index=False)
             write_atomic(sweep.claims_md, claims_markdown(claims))
             files += [sweep.claims_csv, sweep.claims_md]
         else:  # no claim compares two of this grid's settings (one written by an earlier version goes)
             sweep.claims_csv.unlink(missing_ok=True)
             sweep.claims_md.unlink(missing_ok=True)
+        if DEFAULT_VARIANT in grid.variants:
+            effects = effect_table(groups, last)
+            effects.to_csv(sweep.effects_csv, index=False)
+            write_atomic(sweep.effects_md, effects_markdown(effects, last))
+            files += [sweep.effects_csv, sweep.effects_md]
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
     return SweepSummary(table, files, incomplete, notes + plot_notes)

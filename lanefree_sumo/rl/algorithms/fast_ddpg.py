@@ -40,12 +40,14 @@ from gymnasium import spaces
 from stable_baselines3 import DDPG
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy, ContinuousCritic
 from stable_baselines3.common.torch_layers import FlattenExtractor
-from stable_baselines3.common.type_aliases import MaybeCallback, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.td3.policies import Actor, TD3Policy
 from torch.nn import functional as F
 
@@ -62,6 +64,9 @@ from lanefree_sumo.rl.algorithms.lean import (
     mean_of,
     mlp_layers,
 )
+
+WARMUP_ACTIONS: tuple[str, ...] = ("uniform", "policy")
+"""What DDPG does before its first update (``train.actor_critic.warmup_actions``)."""
 
 # -- the update -----------------------------------------------------------------------------------------
 
@@ -182,11 +187,27 @@ class FastDDPG(LeanCollector, DDPG):
     _fast_plan: _Plan | None = None
 
     def __init__(self, *args: Any, fast_learner: bool = True, lean_loop: bool = True, overlap: bool = False,
-                 **kwargs: Any) -> None:
+                 warmup_actions: str = "uniform", **kwargs: Any) -> None:
+        if warmup_actions not in WARMUP_ACTIONS:
+            raise ValueError(f"unknown warm-up {warmup_actions!r}; valid: {', '.join(WARMUP_ACTIONS)}")
         self.fast_learner = fast_learner
         self.lean_loop = lean_loop
         self.overlap = overlap
+        self.warmup_actions = warmup_actions
         super().__init__(*args, **kwargs)
+
+    def _random_steps(self, learning_starts: int) -> int:
+        """Steps that act uniformly at random: SB3's ``learning_starts``, or none with ``warmup_actions =
+        policy`` (the actor and its noise from the first step, as Keras-RL's DDPG; updates still wait)."""
+        return learning_starts if getattr(self, "warmup_actions", "uniform") == "uniform" else 0
+
+    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, train_freq: TrainFreq,
+                         replay_buffer: ReplayBuffer, action_noise: ActionNoise | None = None,
+                         learning_starts: int = 0, log_interval: int | None = None) -> RolloutReturn:
+        """SB3's (or the lean) collection, whose ``learning_starts`` only decides random actions: see
+        :meth:`_random_steps`."""
+        return super().collect_rollouts(env, callback, train_freq, replay_buffer, action_noise,
+                                        self._random_steps(learning_starts), log_interval)
 
     def _excluded_save_params(self) -> list[str]:
         """Never pickled into ``model.zip``: the plan holds the policy, the optimisers and the replay buffer."""
@@ -250,7 +271,8 @@ class FastDDPG(LeanCollector, DDPG):
         while self.num_timesteps < total_timesteps:
             callback.on_rollout_start()
             plan = self._plan() or plan  # rebuilt if a callback replaced the buffer or the policy
-            actions, buffer_actions = self._lean_action(plan, self.learning_starts, action_noise, 1)
+            actions, buffer_actions = self._lean_action(plan, self._random_steps(self.learning_starts),
+                                                        action_noise, 1)
             env.step_async(actions)
             if update_due:  # update t − 1 while the env computes step t
                 self.train(batch_size=self.batch_size, gradient_steps=1)

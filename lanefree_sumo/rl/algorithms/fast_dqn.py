@@ -66,6 +66,25 @@ HUBER_BETA = 1.0
 """``F.smooth_l1_loss``'s default β, which SB3's DQN uses."""
 
 
+LOSSES: tuple[str, ...] = ("huber", "squared")
+"""The TD losses (``train.dqn.loss``): SB3's Huber (smooth L1, β = 1) or Keras-RL's ½·δ²."""
+
+
+def _squared_loss(one: th.Tensor, current_q: th.Tensor, target_q: th.Tensor,
+                  weights: th.Tensor | None) -> tuple[th.Tensor, th.Tensor]:
+    """(loss, its gradient with respect to ``current_q``) of ``0.5 · mse`` — or of ``mean_i(w_i · ½δ_i²)`` with
+    ``weights`` — with the kernels autograd calls for :meth:`FastDQN._compute_loss`'s expression (the
+    product's ``g · 0.5``, then ``mse_loss_backward``)."""
+    if weights is None:
+        loss = 0.5 * F.mse_loss(current_q, target_q)
+        return loss, aten.mse_loss_backward(one * 0.5, current_q, target_q, MEAN)
+    per_sample = 0.5 * F.mse_loss(current_q, target_q, reduction="none")
+    weights = weights.reshape(per_sample.shape)
+    loss = (weights * per_sample).mean()
+    grad_mean = one.expand(per_sample.shape) / per_sample.numel()
+    return loss, aten.mse_loss_backward(grad_mean * weights * 0.5, current_q, target_q, NO_REDUCTION)
+
+
 class _MlpQ:
     """A plain ``Sequential(Linear, ReLU, …, Linear)`` Q-network, written out."""
 
@@ -213,9 +232,13 @@ class FastDQN(LeanCollector, DQN):
     """The TD target's next action: the target network's argmax (False, DQN) or the online network's (True)."""
     _fast_plan: _QPlan | None = None
 
-    def __init__(self, *args: Any, fast_learner: bool = True, lean_loop: bool = True, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, fast_learner: bool = True, lean_loop: bool = True, loss: str = "huber",
+                 **kwargs: Any) -> None:
+        if loss not in LOSSES:
+            raise ValueError(f"unknown TD loss {loss!r}; valid: {', '.join(LOSSES)}")
         self.fast_learner = fast_learner
         self.lean_loop = lean_loop
+        self.loss = loss
         super().__init__(*args, **kwargs)
 
     def _excluded_save_params(self) -> list[str]:
@@ -246,10 +269,17 @@ class FastDQN(LeanCollector, DQN):
 
     def _compute_loss(self, current_q_values: th.Tensor, target_q_values: th.Tensor,
                       weights: th.Tensor | None = None) -> th.Tensor:
-        """Huber loss; with ``weights`` it is ``mean_i(w_i · huber_i)`` (SB3's when None)."""
+        """The TD loss (:attr:`loss`: Huber, or ½·δ²); with ``weights`` it is ``mean_i(w_i · loss_i)`` (SB3's
+        Huber when None)."""
+        squared = getattr(self, "loss", "huber") == "squared"
         if weights is None:
+            if squared:
+                return 0.5 * F.mse_loss(current_q_values, target_q_values)
             return F.smooth_l1_loss(current_q_values, target_q_values)
-        per_sample = F.smooth_l1_loss(current_q_values, target_q_values, reduction="none")
+        if squared:
+            per_sample = 0.5 * F.mse_loss(current_q_values, target_q_values, reduction="none")
+        else:
+            per_sample = F.smooth_l1_loss(current_q_values, target_q_values, reduction="none")
         return (weights.reshape(per_sample.shape) * per_sample).mean()
 
     def _after_gradient_step(self, td_errors: th.Tensor) -> None:
@@ -362,7 +392,9 @@ class FastDQN(LeanCollector, DQN):
             outs, q_values = plan.online.forward(obs)
             index = actions.long()
             current_q = th.gather(q_values, dim=1, index=index)
-            if weights is None:
+            if getattr(self, "loss", "huber") == "squared":
+                loss, grad_current = _squared_loss(plan.one, current_q, target_q, weights)
+            elif weights is None:
                 loss = F.smooth_l1_loss(current_q, target_q)
                 grad_current = aten.smooth_l1_loss_backward(plan.one, current_q, target_q, MEAN, HUBER_BETA)
             else:  # mean_i(w_i · huber_i): the mean's expand / n, the product's g · w

@@ -97,16 +97,20 @@ def _netconvert(cfg: LaneFreeConfig, nod: Path, edg: Path, con: Path | None = No
 
 
 def resolve_net(cfg: LaneFreeConfig) -> Path:
-    """The network file to load: ``cfg.net_file`` if set, else the committed default ring
-    (built on first use for non-default road sizes)."""
+    """The network file to load: ``cfg.net_file`` if set, else the committed one of the road's sizes (built on
+    first use into the cache folder for other sizes, :func:`~lanefree_sumo.sim.network.default_net_path`)."""
     if cfg.net_file:
         path = Path(cfg.net_file)
         if not path.is_file():
             raise SumoError(f"network file {path} does not exist; build one with 'lanefree net'")
         return path
     path = default_net_path(cfg)
-    if not path.is_file():
-        path = (build_onramp_net if cfg.road.kind == "onramp" else build_ring_net)(cfg, path.parent)
+    if not path.is_file():  # built aside and moved in, the network last: a process beside never reads half a file
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=".build-", dir=path.parent) as tmp:
+            built = (build_onramp_net if cfg.road.kind == "onramp" else build_ring_net)(cfg, Path(tmp))
+            for file in sorted(Path(tmp).iterdir(), key=lambda f: f == built):
+                os.replace(file, path.parent / file.name)
     return path
 
 
@@ -299,6 +303,7 @@ class SumoBackend:
         places = [self._placement(float(x), float(y)) for x, y in zip(state.x, state.y)]
         try:
             for vid in v.getIDList():
+                v.unsubscribe(vid)  # libsumo keeps a removed vehicle's subscription: the next step would fail on it
                 v.remove(vid)
             for i, (vid, (route, lane, pos, _)) in enumerate(zip(state.ids, places)):
                 self._insert(vid, route, lane, pos, float(state.vx[i]), float(state.v_desired[i]))

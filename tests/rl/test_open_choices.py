@@ -1,0 +1,163 @@
+"""The open modelling choices as config switches (the interpretation page lists each with the paper's words):
+which passes earn the overtake bonus, the agent's lateral speed bound, the DQN's TD loss and gradient clip,
+DDPG's warm-up actions, the ``kerasrl`` learner profile, and the episode metrics that read each run
+(both speed-deviation readings, the return decomposition)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+import torch as th
+
+from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config
+from lanefree_sumo.config.schema import LEARNER_PROFILES
+from lanefree_sumo.rl.env import LaneFreeEnv
+from lanefree_sumo.rl.rewards import OvertakeLedger, pass_events
+from lanefree_sumo.sim.simulation import clip_acceleration
+from tests.rl.test_fast_dqn import ALGOS, BATCH, _assert_same, _filled, _steps
+
+
+def test_pass_events_tell_passes_from_being_passed() -> None:
+    """Rows: passed (+1 → −1), passed by (−1 → +2), still ahead, a seam jump (never a pass), out of range."""
+    prev = np.array([1.0, -1.0, 5.0, 240.0, 90.0])
+    now = np.array([-1.0, 2.0, 4.0, -245.0, -85.0])
+    passed, passed_by = pass_events(prev, now, 80.0, 500.0)
+    assert passed.tolist() == [True, False, False, False, False]
+    assert passed_by.tolist() == [False, True, False, False, False]
+    # exactly 0 after the step is a pass; exactly 0 before it is not one (dx ≤ 0 is behind)
+    passed, passed_by = pass_events(np.array([0.5, 0.0]), np.array([0.0, -0.5]), 80.0, 500.0)
+    assert passed.tolist() == [True, False] and passed_by.tolist() == [False, False]
+
+
+@pytest.mark.parametrize(("mode", "earned"), [
+    ("every_pass", [2, 1, 1, 1]),        # every pass pays, the re-pass and the next lap too
+    ("once_per_vehicle", [2, 0, 0, 0]),  # a and b once each
+    ("net_passes", [2, 0, 1, 0]),        # a's re-pass after being passed back: no; b lapped again: yes
+])
+def test_the_ledger_pays_the_passes_each_mode_counts(mode: str, earned: list[int]) -> None:
+    ledger = OvertakeLedger(mode)
+    steps = [(["a", "b"], []),   # passes a and b in one step
+             (["a"], ["a"]),     # a passed the agent back ... and the agent passed it again (same step order:
+                                 # being passed is booked first)
+             (["b"], []),        # b again, a lap later, never having passed the agent
+             (["c"], ["c", "c"]) if mode == "every_pass" else (["a"], ["a"])]
+    got = [ledger.record(passed, by) for passed, by in steps]
+    assert got == earned
+    with pytest.raises(ValueError, match="unknown overtake bonus mode"):
+        OvertakeLedger("twice")
+
+
+def test_the_agent_lateral_speed_bound_clips_ay_both_ways() -> None:
+    """|vy + ay·T| ≤ r·vx: vx 10 m/s, r 0.05 → |vy| ≤ 0.5 m/s; T = 0.25 s."""
+    bounds = AccelerationBounds()
+    # vy 0.4 to the left, asking +1.8: at most (0.5 − 0.4)/0.25 = 0.4 m/s²
+    assert clip_acceleration(0.0, 1.8, bounds, 10.0, 30.0, 0.25, 0.4, 0.05)[1] == pytest.approx(0.4)
+    # vy −0.4, asking −1.8: at least −(0.5 − 0.4)/0.25 = −0.4
+    assert clip_acceleration(0.0, -1.8, bounds, 10.0, 30.0, 0.25, -0.4, 0.05)[1] == pytest.approx(-0.4)
+    # vy 0.8 (above the bound): the bound asks −1.2, within the hard bounds
+    assert clip_acceleration(0.0, 0.0, bounds, 10.0, 30.0, 0.25, 0.8, 0.05)[1] == pytest.approx(-1.2)
+    # far above: the hard bound −1.8 wins again
+    assert clip_acceleration(0.0, 0.0, bounds, 10.0, 30.0, 0.25, 3.0, 0.05)[1] == pytest.approx(-1.8)
+    # no bound (the default): only the hard bounds
+    assert clip_acceleration(0.0, 1.8, bounds, 10.0, 30.0, 0.25, 0.4)[1] == 1.8
+
+
+def _full_throttle(overrides: dict[str, Any], steps: int = 400) -> dict[str, Any]:
+    """An episode of ``steps`` steps at full throttle, straight (numpy backend), its metrics."""
+    cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"episode_steps": steps}, **overrides})
+    env = LaneFreeEnv(cfg)
+    env.reset(seed=3)
+    info: dict[str, Any] = {}
+    done = False
+    while not done:
+        _, _, terminated, truncated, info = env.step(np.array([1.0, 0.0], dtype=np.float32))
+        done = terminated or truncated
+    env.close()
+    return info["episode_metrics"]
+
+
+def test_the_bonus_modes_on_a_lapping_agent_and_the_return_decomposition() -> None:
+    """At the 30 m/s cap for 100 s the agent passes cars again on a later lap: every pass pays more than
+    once per vehicle; the net mode pays at least what once per vehicle does. The return splits exactly into
+    the reciprocal term, the bonus and the collision penalty, and the bonus is r_o per paying step."""
+    every = _full_throttle({})
+    once = _full_throttle({"reward": {"overtake_bonus": "once_per_vehicle"}})
+    net = _full_throttle({"reward": {"overtake_bonus": "net_passes"}})
+    assert every["overtakes"] == once["overtakes"] == net["overtakes"] > 40  # the same driving: passes counted alike
+    assert every["return_bonus"] >= net["return_bonus"] >= once["return_bonus"] > 0
+    assert every["return_bonus"] > once["return_bonus"]
+    assert once["return_bonus"] / 2.0 <= 36  # at most one paying step per background vehicle (35) + rounding
+    for m in (every, once, net):
+        assert m["return_reciprocal"] + m["return_bonus"] + m["return_collision"] == pytest.approx(m["return"])
+        assert m["return_bonus"] % 2.0 == 0 and m["return_collision"] % 2.5 == 0
+        assert m["speed_error_mps"] == pytest.approx(m["mean_speed_mps"] - 20.0)
+        assert m["speed_dev_episode_mps"] == pytest.approx(abs(m["mean_speed_mps"] - 20.0))
+        assert m["speed_dev_mps"] >= m["speed_dev_episode_mps"]
+
+
+def test_the_lateral_bound_holds_in_the_env() -> None:
+    cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "scenario": {"agent_lateral_speed_ratio": 0.02}})
+    env = LaneFreeEnv(cfg)
+    env.reset(seed=1)
+    for _ in range(60):
+        env.step(np.array([0.0, 1.0], dtype=np.float32))
+        state = env.sim.current()[0]
+        a = env._agent
+        assert abs(state.vy[a]) <= 0.02 * state.vx[a] + 1e-9 or state.vy[a] == 0.0
+    env.close()
+
+
+def test_the_kerasrl_profile_sets_its_keys_and_keys_beside_it_win() -> None:
+    cfg = merge_config(LaneFreeConfig(), {"train": {"profile": "kerasrl"}})
+    assert (cfg.train.dqn.loss, cfg.train.dqn.max_grad_norm, cfg.train.dqn.learning_starts_steps) == \
+        ("squared", None, 1000)
+    assert (cfg.train.actor_critic.warmup_actions, cfg.train.actor_critic.learning_starts_steps) == ("policy", 1000)
+    assert cfg.train.dqn.gamma == LaneFreeConfig().train.dqn.gamma  # the paper's values are not a profile's
+    mixed = merge_config(LaneFreeConfig(), {"train": {"profile": "kerasrl", "dqn": {"max_grad_norm": 5.0}}})
+    assert mixed.train.dqn.max_grad_norm == 5.0 and mixed.train.dqn.loss == "squared"
+    back = merge_config(cfg, {"train": {"profile": "sb3"}})
+    assert back.train == LaneFreeConfig().train
+    assert set(LEARNER_PROFILES) == {"sb3", "kerasrl"}
+    with pytest.raises(ConfigError, match="train.profile"):
+        merge_config(LaneFreeConfig(), {"train": {"profile": "keras"}})
+    with pytest.raises(ConfigError, match=r"max_grad_norm.*\(or null\)"):
+        merge_config(LaneFreeConfig(), {"train": {"dqn": {"max_grad_norm": "ten"}}})
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+@pytest.mark.parametrize("algo", ["dqn", "per"])
+def test_the_squared_loss_written_out_equals_autograd_and_differs_from_huber(algo: str) -> None:
+    """Keras-RL's ½·δ² with no clip: the written-out step equals the autograd hooks bit for bit (PER: with its
+    importance weights), and it is another update than the Huber one (the toy's TD errors exceed 1)."""
+    cls = ALGOS[algo]
+    reference = _filled(cls, fast_learner=False, loss="squared", max_grad_norm=math.inf)
+    fast = _filled(cls, loss="squared", max_grad_norm=math.inf)
+    huber = _filled(cls, max_grad_norm=math.inf)
+    for model in (reference, fast, huber):
+        _steps(model, 20)
+    _assert_same(reference, fast)
+    assert fast._fast_plan is not None and fast._fast_plan.written_out
+    assert not all(th.equal(a, b) for a, b in zip(fast.q_net.parameters(), huber.q_net.parameters()))
+    assert BATCH == 64
+
+
+def test_ddpg_policy_warmup_acts_with_the_actor_from_the_first_step() -> None:
+    """``warmup_actions: policy``: the first actions are the actor's plus noise (the same for two seeds'
+    runs with the same actor would differ if uniform); updates still wait for learning_starts."""
+    from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
+
+    cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"episode_steps": 50},
+                                          "train": {"episodes": 1, "actor_critic": {"ou_sigma": 0.0}}})
+    seen: dict[str, np.ndarray] = {}
+    for warmup in ("uniform", "policy"):
+        c = training_config(merge_config(cfg, {"train": {"actor_critic": {"warmup_actions": warmup}}}))
+        model = build_model(c, make_vec_env(c), 0, None)
+        model.learn(20)
+        seen[warmup] = model.replay_buffer.actions[:20, 0].copy()
+        assert model._n_updates == 0  # 20 steps < learning_starts (800): no update either way
+    # with σ = 0 and no update, the policy warm-up stores the untrained actor's (nearly constant) action
+    policy, uniform = seen["policy"], seen["uniform"]
+    assert np.ptp(policy, axis=0).max() < 0.2 < np.ptp(uniform, axis=0).max()
