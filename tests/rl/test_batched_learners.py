@@ -21,6 +21,8 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv
 
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner
 from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
@@ -28,6 +30,7 @@ from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
 from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
 from lanefree_sumo.rl.algorithms.fast_dqn import FastDQN
 from lanefree_sumo.rl.algorithms.prioritized import PrioritizedDoubleDQN
+from lanefree_sumo.rl.models import build_batched, build_model
 
 OBS, ACT, ACTIONS, BATCH, UPDATES = 24, 2, 9, 64, 50
 """LaneFree-v0's vector observation, continuous action and discrete action counts; the paper's batch."""
@@ -330,3 +333,41 @@ def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_
 
 def test_dqn_batch_checkpoint_resumes_exactly() -> None:
     _checkpoint_roundtrip(lambda: _batched_dqn("per", total=200, learning_starts=50), True)
+
+
+# -- from the runs' configs -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("algo", ["ddpg", "dqn", "per"])
+def test_build_batched_gives_each_run_build_models_model(algo: str) -> None:
+    """Run k of ``build_batched`` is ``build_model``'s model for config k and seed k: the same class,
+    hyperparameters and initial weights (run 1 with another learning rate and γ)."""
+    section = "actor_critic" if algo == "ddpg" else "dqn"
+    cfgs = [merge_config(LaneFreeConfig(), {"train": {"algo": algo, "episodes": 50, section: {
+        "learning_rate": lr, "gamma": gamma}}}) for lr, gamma in ((1e-3, 0.98), (3e-4, 0.95))]
+    env = ToyEnv(algo != "ddpg")
+    batched = build_batched(cfgs, [5, 6], env.observation_space, env.action_space)
+    keys = ["learning_rate", "gamma", "buffer_size", "batch_size", "learning_starts", "seed"] + (
+        ["tau"] if algo == "ddpg" else ["target_update_interval", "exploration_initial_eps", "exploration_final_eps",
+                                        "exploration_fraction", "max_grad_norm"])
+    for k, seed in enumerate((5, 6)):
+        mine, theirs = batched.sb3_model(k), build_model(cfgs[k], env, seed, None)
+        assert type(mine) is type(theirs)
+        assert {key: getattr(mine, key) for key in keys} == {key: getattr(theirs, key) for key in keys}
+        a, b = (th.cat([p.detach().reshape(-1) for p in m.policy.parameters()]) for m in (mine, theirs))
+        assert th.equal(a, b)
+        if algo == "ddpg":
+            noises = (mine.action_noise, theirs.action_noise)
+            assert all(np.array_equal(getattr(noises[0], n), getattr(noises[1], n)) for n in ("_sigma", "_theta"))
+    assert batched.learning_rate == [1e-3, 3e-4]
+
+
+def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:
+    env = ToyEnv(False)
+    base = merge_config(LaneFreeConfig(), {"train": {"algo": "ddpg"}})
+    wider = merge_config(base, {"train": {"actor_critic": {"actor_layers": [400, 300]}}})
+    with pytest.raises(ConfigError, match="share train.actor_critic.actor_layers"):
+        build_batched([base, wider], [0, 1], env.observation_space, env.action_space)
+    with pytest.raises(ConfigError, match="not td3"):
+        build_batched([merge_config(base, {"train": {"algo": "td3"}})], [0], env.observation_space, env.action_space)
+    with pytest.raises(ConfigError, match="one seed per run"):
+        build_batched([base, base], [0], env.observation_space, env.action_space)
