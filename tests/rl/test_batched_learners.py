@@ -35,8 +35,10 @@ from lanefree_sumo.rl.models import build_batched, build_model
 OBS, ACT, ACTIONS, BATCH, UPDATES = 24, 2, 9, 64, 50
 """LaneFree-v0's vector observation, continuous action and discrete action counts; the paper's batch."""
 SEEDS = (0, 1, 2)
-LR, GAMMA, TAU = (1e-3, 1e-3, 5e-4), (0.98, 0.98, 0.95), (0.001, 0.001, 0.005)
-"""Run 2 differs in learning rate, γ and τ (DDPG) / target interval aside (DQN)."""
+HYPER = {"per-run": ((1e-3, 1e-3, 5e-4), (0.98, 0.98, 0.95), (0.001, 0.001, 0.005)),
+         "shared": ((1e-3,) * 3, (0.98,) * 3, (0.001,) * 3)}
+"""Learning rates, γ and τ of the three runs: run 2 differs (the per-run forms), or all alike (the scalar forms)."""
+LR, GAMMA, TAU = HYPER["per-run"]
 DQN_ALGOS: dict[str, type[FastDQN]] = {"dqn": FastDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN,
                                        "per": PrioritizedDoubleDQN}
 
@@ -71,31 +73,35 @@ class ToyEnv(gym.Env):  # type: ignore[type-arg]
 
 # -- building the two sides ---------------------------------------------------------------------------------
 
-def _ddpg(k: int, learning_starts: int = 100) -> FastDDPG:
-    return FastDDPG("MlpPolicy", ToyEnv(False), learning_rate=LR[k], buffer_size=5000, batch_size=BATCH,
-                    gamma=GAMMA[k], tau=TAU[k], learning_starts=learning_starts, train_freq=1, gradient_steps=1,
+def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run") -> FastDDPG:
+    lr, gamma, tau = (values[k] for values in HYPER[hyper])
+    return FastDDPG("MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
+                    gamma=gamma, tau=tau, learning_starts=learning_starts, train_freq=1, gradient_steps=1,
                     seed=SEEDS[k], device="cpu",
                     action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
                     policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU})
 
 
-def _batched_ddpg(learning_starts: int = 100, total: int = 1) -> BatchedDDPG:
+def _batched_ddpg(learning_starts: int = 100, total: int = 1, hyper: str = "per-run") -> BatchedDDPG:
     env = ToyEnv(False)
-    return BatchedDDPG(env.observation_space, env.action_space, SEEDS, learning_rate=LR, gamma=GAMMA, tau=TAU,
+    lr, gamma, tau = HYPER[hyper]
+    return BatchedDDPG(env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma, tau=tau,
                        batch_size=BATCH, buffer_size=5000, learning_starts=learning_starts, total_timesteps=total)
 
 
-def _dqn(algo: str, k: int, total: int, learning_starts: int = 100) -> FastDQN:
-    return DQN_ALGOS[algo]("MlpPolicy", ToyEnv(True), learning_rate=LR[k], buffer_size=5000, batch_size=BATCH,
-                           gamma=GAMMA[k], learning_starts=learning_starts, target_update_interval=50,
+def _dqn(algo: str, k: int, total: int, learning_starts: int = 100, hyper: str = "per-run") -> FastDQN:
+    lr, gamma, _ = (values[k] for values in HYPER[hyper])
+    return DQN_ALGOS[algo]("MlpPolicy", ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
+                           gamma=gamma, learning_starts=learning_starts, target_update_interval=50,
                            exploration_fraction=0.3, exploration_initial_eps=1.0, exploration_final_eps=0.1,
                            train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
                            policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
 
 
-def _batched_dqn(algo: str, total: int, learning_starts: int = 100) -> BatchedDQN:
+def _batched_dqn(algo: str, total: int, learning_starts: int = 100, hyper: str = "per-run") -> BatchedDQN:
     env = ToyEnv(True)
-    return BatchedDQN(algo, env.observation_space, env.action_space, SEEDS, learning_rate=LR, gamma=GAMMA,
+    lr, gamma, _ = HYPER[hyper]
+    return BatchedDQN(algo, env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma,
                       layers=(128, 64), batch_size=BATCH, buffer_size=5000, learning_starts=learning_starts,
                       target_update_interval=50, exploration_fraction=0.3, exploration_initial_eps=1.0,
                       exploration_final_eps=0.1, total_timesteps=total)
@@ -160,15 +166,16 @@ def test_ddpg_initial_weights_are_the_single_runs() -> None:
     assert not th.equal(batched.actor.flat[0], batched.actor.flat[1])  # seeds differ: weights differ
 
 
-def test_ddpg_updates_equal_the_single_fast_learner_bit_for_bit() -> None:
+@pytest.mark.parametrize("hyper", list(HYPER))
+def test_ddpg_updates_equal_the_single_fast_learner_bit_for_bit(hyper: str) -> None:
     transitions = _transitions(False)
-    batched = _batched_ddpg()
+    batched = _batched_ddpg(hyper=hyper)
     for obs, action, reward, next_obs, done, truncated in transitions:
         batched.store(obs, action, reward, next_obs, done, truncated)
     for _ in range(UPDATES):
         assert batched.update()
     for k in range(len(SEEDS)):
-        single = _ddpg(k)
+        single = _ddpg(k, hyper=hyper)
         _fill(single, k, transitions)
         np.random.seed(SEEDS[k])  # the single run's global stream, as SB3 seeded it
         for _ in range(UPDATES):
@@ -270,19 +277,20 @@ def _per_trees(single: Any, batched: BatchedDQN, k: int) -> None:
         assert np.array_equal(rb.min_tree.tree, mine.min_tree.tree) and rb.max_priority == mine.max_priority
 
 
+@pytest.mark.parametrize("hyper", list(HYPER))
 @pytest.mark.parametrize("algo", list(DQN_ALGOS))
-def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str) -> None:
+def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str, hyper: str) -> None:
     transitions = _transitions(True)
-    batched = _batched_dqn(algo, total=2000)
+    batched = _batched_dqn(algo, total=2000, hyper=hyper)
     for k in range(len(SEEDS)):  # the initial weights are the single run's
-        single = _dqn(algo, k, 2000)
+        single = _dqn(algo, k, 2000, hyper=hyper)
         assert all(th.equal(p.detach(), q) for p, q in zip(single.q_net.parameters(), batched.q_net.stack.row(k)))
     for obs, action, reward, next_obs, done, truncated in transitions:
         batched.store(obs, action, reward, next_obs, done, truncated)
     for _ in range(UPDATES):
         assert batched.update()
     for k in range(len(SEEDS)):
-        single = _dqn(algo, k, 2000)
+        single = _dqn(algo, k, 2000, hyper=hyper)
         _fill(single, k, transitions)
         single._current_progress_remaining = batched.progress_remaining  # PER's β
         np.random.seed(SEEDS[k])

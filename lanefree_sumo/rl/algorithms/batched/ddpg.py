@@ -84,6 +84,7 @@ class BatchedDDPG(BatchedLearner):
         self._gamma = per_run_column(self.gamma, self.device).unsqueeze(2)
         self._tau = per_run_column(self.tau, self.device)
         self._one_minus_tau = per_run_column([1 - t for t in self.tau], self.device)
+        self._shared_tau = self.tau[0] if len(set(self.tau)) == 1 else None
         self.noise = OUNoise(self.ou_sigma, self.ou_theta, n_actions)
         self._one = th.tensor(1.0, device=self.device)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
@@ -145,8 +146,8 @@ class BatchedDDPG(BatchedLearner):
             assert grad_input is not None
             self.actor_adam.step(mlp_backward(mm, actor, actor_outs, grad_input[:, :, self.obs_dim:], True)[0])
 
-            soft_update(self.critic_target, self.critic, self._tau, self._one_minus_tau)
-            soft_update(self.actor_target, self.actor, self._tau, self._one_minus_tau)
+            soft_update(self.critic_target, self.critic, self._tau, self._one_minus_tau, self._shared_tau)
+            soft_update(self.actor_target, self.actor, self._tau, self._one_minus_tau, self._shared_tau)
         self.losses = {"critic_loss": critic_loss, "actor_loss": actor_loss}
 
     # -- checkpoint and export --------------------------------------------------------------------------------

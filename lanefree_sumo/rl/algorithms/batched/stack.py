@@ -13,9 +13,9 @@
   each run with its own learning rate; :func:`soft_update`: ``θ' ← (1 − τ) θ' + τ θ`` in one operation, τ per run.
 
 On CPU every elementwise operation here gives the same bits on a run's row as on the single run's buffer
-(``tests/rl/test_batched_learners.py``); the per-run learning rate and τ enter as ``[K, 1]`` tensors in forms
-measured to round as the single run's scalar forms do (``addcdiv``'s ``value·m / d``; ``add``'s fused
-multiply-add through ``addcmul``).
+(``tests/rl/test_batched_learners.py``). A learning rate or τ all runs share enters as the single run's scalar;
+where they differ they enter as ``[K, 1]`` tensors in forms measured to round as the scalar forms do
+(``addcdiv``'s ``value·m / d``; ``add``'s fused multiply-add through ``addcmul``).
 """
 
 from __future__ import annotations
@@ -167,6 +167,8 @@ class StackedAdam:
     def __init__(self, params: ParamStack, lrs: Sequence[float], betas: tuple[float, float], eps: float) -> None:
         self.params = params
         self.lrs = th.tensor([[float(v)] for v in lrs], dtype=th.float64, device=params.flat.device)
+        self.shared_lr = float(lrs[0]) if len(set(lrs)) == 1 else None
+        """The learning rate when all runs have the same: the single run's scalar form, no [K, P] product."""
         self.beta1, self.beta2 = float(betas[0]), float(betas[1])
         self.eps = float(eps)
         self.exp_avg = th.zeros_like(params.flat)
@@ -182,7 +184,10 @@ class StackedAdam:
         self.exp_avg.lerp_(grad, 1 - self.beta1)
         self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
         denom = self.exp_avg_sq.sqrt().div_((1 - self.beta2**n) ** 0.5).add_(self.eps)
-        # torch: addcdiv_(m, denom, value=(lr / (1 − β1ⁿ)) · −1); the value per run: (value · m) / denom
+        if self.shared_lr is not None:  # torch's addcdiv_(m, denom, value=(lr / (1 − β1ⁿ)) · −1)
+            self.params.flat.addcdiv_(self.exp_avg, denom, value=(self.shared_lr / (1 - self.beta1**n)) * -1)
+            return
+        # the value per run: (value · m) / denom, as addcdiv computes it
         step_size = (self.lrs / (1 - self.beta1**n)).neg_().to(th.float32)
         self.params.flat.addcdiv_(self.exp_avg * step_size, denom)
 
@@ -207,9 +212,14 @@ class StackedAdam:
         return state
 
 
-def soft_update(target: ParamStack, online: ParamStack, tau: th.Tensor, one_minus_tau: th.Tensor) -> None:
-    """SB3's ``polyak_update`` for every run at once: ``θ' · (1 − τ)``, then ``+ τ · θ`` (τ, 1 − τ: ``[K, 1]``)."""
-    target.flat.mul_(one_minus_tau).addcmul_(online.flat, tau)
+def soft_update(target: ParamStack, online: ParamStack, tau: th.Tensor, one_minus_tau: th.Tensor,
+                shared_tau: float | None = None) -> None:
+    """SB3's ``polyak_update`` for every run at once: ``θ' · (1 − τ)``, then ``+ τ · θ`` (τ, 1 − τ: ``[K, 1]``;
+    ``shared_tau``: the τ of all runs when they share one, the single run's scalar form)."""
+    if shared_tau is not None:
+        target.flat.mul_(1 - shared_tau).add_(online.flat, alpha=shared_tau)
+    else:
+        target.flat.mul_(one_minus_tau).addcmul_(online.flat, tau)
 
 
 def hard_update(target: ParamStack, online: ParamStack) -> None:
