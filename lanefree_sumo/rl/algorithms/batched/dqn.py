@@ -58,11 +58,11 @@ class _QNet:
             outs = mlp_forward(mm, layers, x, False)
             return outs, outs[-1]
         outs = [x]
-        for weight, bias in layers[:-2]:
-            x = th.relu(mm.linear(x, weight, bias))
+        for layer in layers[:-2]:
+            x = th.relu(mm.linear(x, layer))
             outs.append(x)
-        value = mm.linear(x, *layers[-2])
-        advantage = mm.linear(x, *layers[-1])
+        value = mm.linear(x, layers[-2])
+        advantage = mm.linear(x, layers[-1])
         return outs, value + advantage - advantage.mean(dim=2, keepdim=True)
 
     def backward(self, mm: Products, outs: list[th.Tensor], grad_q: th.Tensor) -> list[th.Tensor]:

@@ -26,8 +26,9 @@ import torch as th
 
 aten = th.ops.aten
 
-Linear = tuple[th.Tensor, th.Tensor]
-"""A stacked linear layer: weights ``[K, out, in]``, biases ``[K, out]`` (views of a :class:`ParamStack`)."""
+Linear = tuple[th.Tensor, th.Tensor, th.Tensor]
+"""A stacked linear layer: weights W ``[K, out, in]``, the view Wᵀ ``[K, in, out]``, biases ``[K, 1, out]``
+(views of a :class:`ParamStack`'s buffer: its in-place updates show through them)."""
 
 
 class ParamStack:
@@ -42,6 +43,7 @@ class ParamStack:
         rows = [th.cat([p.detach().reshape(-1) for p in params]) for params in per_run]
         self.flat = th.stack(rows).to(device=device, dtype=th.float32).contiguous()
         self.tensors = self._views(self.flat)
+        self._layers = self._linear(self.tensors)
 
     def _views(self, flat: th.Tensor) -> list[th.Tensor]:
         views, at = [], 0
@@ -59,11 +61,17 @@ class ParamStack:
         other.shapes = self.shapes
         other.flat = self.flat.clone()
         other.tensors = other._views(other.flat)
+        other._layers = other._linear(other.tensors)
         return other
 
+    @staticmethod
+    def _linear(tensors: list[th.Tensor]) -> list[Linear]:
+        return [(tensors[i], tensors[i].transpose(1, 2), tensors[i + 1].unsqueeze(1))
+                for i in range(0, len(tensors), 2)]
+
     def layers(self) -> list[Linear]:
-        """The tensors as (weight, bias) pairs, in order."""
-        return [(self.tensors[i], self.tensors[i + 1]) for i in range(0, len(self.tensors), 2)]
+        """The tensors as linear layers (weight, bias, weight, bias, … in order)."""
+        return self._layers
 
     def row(self, k: int) -> list[th.Tensor]:
         """Run k's parameter tensors (views)."""
@@ -105,11 +113,10 @@ class Products:
             return batched(*operands)
         return single(*operands)
 
-    def linear(self, x: th.Tensor, weight: th.Tensor, bias: th.Tensor) -> th.Tensor:
+    def linear(self, x: th.Tensor, layer: Linear) -> th.Tensor:
         """``x Wᵀ + b`` per run: x ``[K, M, in]`` → ``[K, M, out]`` (``nn.Linear``'s ``addmm(b, x, Wᵀ)``)."""
-        return self._run("linear", (x, weight, bias),
-                         lambda x, w, b: th.baddbmm(b.unsqueeze(1), x, w.transpose(1, 2)),
-                         lambda x, w, b: th.stack([th.addmm(b[k], x[k], w[k].t()) for k in range(x.shape[0])]))
+        return self._run("linear", (x, layer[1], layer[2]), lambda x, wt, b: th.baddbmm(b, x, wt),
+                         lambda x, wt, b: th.stack([th.addmm(b[k, 0], x[k], wt[k]) for k in range(x.shape[0])]))
 
     def weight_grad(self, grad: th.Tensor, x: th.Tensor) -> th.Tensor:
         """``gᵀ x`` per run: the weight gradient ``[K, out, in]`` of a layer with input x and output gradient g."""
@@ -127,8 +134,8 @@ def mlp_forward(mm: Products, layers: Sequence[Linear], x: th.Tensor, squash: bo
     x ``[K, M, in]``."""
     outs = [x]
     last = len(layers) - 1
-    for k, (weight, bias) in enumerate(layers):
-        z = mm.linear(x, weight, bias)
+    for k, layer in enumerate(layers):
+        z = mm.linear(x, layer)
         x = th.relu(z) if k < last else (th.tanh(z) if squash else z)
         outs.append(x)
     return outs
