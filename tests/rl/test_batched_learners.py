@@ -241,17 +241,18 @@ def test_ddpg_export_loads_in_sb3_and_predicts_the_batched_action(tmp_path: Path
         assert model.num_timesteps == 40 and model._n_updates == 30
 
 
-def _checkpoint_roundtrip(make: Callable[[], BatchedLearner], discrete: bool) -> None:
-    """A learner resumed from :meth:`state_dict` continues exactly as the one that was not interrupted."""
+def _checkpoint_roundtrip(make: Callable[[], BatchedLearner], discrete: bool, path: Path) -> None:
+    """A learner resumed from its ``state_dict`` (saved, then read with ``weights_only``) continues exactly as
+    the one that was not interrupted."""
     first, second = make(), make()
     transitions = _transitions(discrete, 200)
     for obs, action, reward, next_obs, done, truncated in transitions[:150]:
         for learner in (first, second):
             learner.store(obs, action, reward, next_obs, done, truncated)
             learner.update()
-    state = first.state_dict()
+    th.save(first.state_dict(), path)
     resumed = make()
-    resumed.load_state_dict(state)
+    resumed.load_state_dict(th.load(path, weights_only=True))
     obs = transitions[0][0]
     for learner in (second, resumed):
         for obs, action, reward, next_obs, done, truncated in transitions[150:]:
@@ -264,8 +265,8 @@ def _checkpoint_roundtrip(make: Callable[[], BatchedLearner], discrete: bool) ->
     assert np.array_equal(second.act(obs, explore=True), resumed.act(obs, explore=True))
 
 
-def test_ddpg_batch_checkpoint_resumes_exactly() -> None:
-    _checkpoint_roundtrip(lambda: _batched_ddpg(learning_starts=50, total=200), False)
+def test_ddpg_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
+    _checkpoint_roundtrip(lambda: _batched_ddpg(learning_starts=50, total=200), False, tmp_path / "batch.pt")
 
 
 # -- the DQN family ---------------------------------------------------------------------------------------
@@ -339,8 +340,8 @@ def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_
         assert model.learning_rate == LR[k] and model.gamma == GAMMA[k] and model._n_updates == 30
 
 
-def test_dqn_batch_checkpoint_resumes_exactly() -> None:
-    _checkpoint_roundtrip(lambda: _batched_dqn("per", total=200, learning_starts=50), True)
+def test_dqn_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
+    _checkpoint_roundtrip(lambda: _batched_dqn("per", total=200, learning_starts=50), True, tmp_path / "batch.pt")
 
 
 # -- from the runs' configs -------------------------------------------------------------------------------

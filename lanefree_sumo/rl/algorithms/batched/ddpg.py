@@ -156,7 +156,7 @@ class BatchedDDPG(BatchedLearner):
         return {**super().state_dict(), "actor": self.actor.flat, "critic": self.critic.flat,
                 "actor_target": self.actor_target.flat, "critic_target": self.critic_target.flat,
                 "actor_adam": self.actor_adam.state_dict(), "critic_adam": self.critic_adam.state_dict(),
-                "noise": self.noise.prev.copy()}
+                "noise": th.from_numpy(self.noise.prev.copy())}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
@@ -164,7 +164,7 @@ class BatchedDDPG(BatchedLearner):
             getattr(self, name).flat.copy_(state[name])
         self.actor_adam.load_state_dict(state["actor_adam"])
         self.critic_adam.load_state_dict(state["critic_adam"])
-        self.noise.prev = np.array(state["noise"])
+        self.noise.prev = th.as_tensor(state["noise"], dtype=th.float64).cpu().numpy().copy()
         self._last = None
 
     def sb3_model(self, k: int, cls: Any = None) -> Any:

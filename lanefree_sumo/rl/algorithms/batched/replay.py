@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
@@ -44,12 +44,18 @@ class RunStreams:
         return out
 
     def state(self) -> dict[str, Any]:
-        return {"numpy": [rs.get_state() for rs in self.numpy],
-                "spaces": [space.np_random.bit_generator.state for space in self.spaces]}
+        """The streams' states as tensors and Python numbers (what ``torch.load(weights_only=True)`` reads)."""
+        numpy = []
+        for rs in self.numpy:
+            _, key, pos, has_gauss, cached = cast(tuple[str, np.ndarray, int, int, float], rs.get_state())
+            numpy.append({"key": th.from_numpy(key.astype(np.int64)), "pos": int(pos), "has_gauss": int(has_gauss),
+                          "cached_gaussian": float(cached)})
+        return {"numpy": numpy, "spaces": [space.np_random.bit_generator.state for space in self.spaces]}
 
     def load_state(self, state: dict[str, Any]) -> None:
         for rs, s in zip(self.numpy, state["numpy"]):
-            rs.set_state(s)
+            rs.set_state(("MT19937", np.asarray(s["key"], dtype=np.uint32), s["pos"], s["has_gauss"],
+                          s["cached_gaussian"]))
         for space, s in zip(self.spaces, state["spaces"]):
             space.np_random.bit_generator.state = s
 
@@ -171,9 +177,10 @@ class RunPriorities:
         self.max_priority = max(self.max_priority, float(prio.max()))
 
     def state(self) -> dict[str, Any]:
-        return {"sum": self.sum_tree.tree.copy(), "min": self.min_tree.tree.copy(), "max": self.max_priority}
+        return {"sum": th.from_numpy(self.sum_tree.tree.copy()), "min": th.from_numpy(self.min_tree.tree.copy()),
+                "max": self.max_priority}
 
     def load_state(self, state: dict[str, Any]) -> None:
-        self.sum_tree.tree[:] = state["sum"]
-        self.min_tree.tree[:] = state["min"]
+        self.sum_tree.tree[:] = np.asarray(state["sum"])
+        self.min_tree.tree[:] = np.asarray(state["min"])
         self.max_priority = float(state["max"])
