@@ -60,6 +60,7 @@ class BatchedLearner:
 
     :param observation_space: a flat float32 Box (the vector observation), the same for all runs.
     :param seeds: run k's seed (its initial weights and random streams are the single run's with this seed).
+    :param total_timesteps: the runs' SB3 ``learn`` length in steps (the progress the ε and β schedules read).
     :param device: where the networks and the replay live (CPU: batched run k equals the single run bit for bit).
     :param exact: use the batched products only where they give the single run's bits (default: on CPU)."""
 

@@ -55,15 +55,6 @@ class ParamStack:
             at += n
         return views
 
-    def like(self) -> ParamStack:
-        """A stack of the same layout holding a copy of these values (a target network)."""
-        other = object.__new__(ParamStack)
-        other.shapes = self.shapes
-        other.flat = self.flat.clone()
-        other.tensors = other._views(other.flat)
-        other._layers = other._linear(other.tensors)
-        return other
-
     @staticmethod
     def _linear(tensors: list[th.Tensor]) -> list[Linear]:
         return [(tensors[i], tensors[i].transpose(1, 2), tensors[i + 1].unsqueeze(1))
@@ -166,10 +157,9 @@ def per_run_column(values: Sequence[float], device: th.device) -> th.Tensor:
 
 
 class StackedAdam:
-    """``torch.optim.Adam`` (default options: no weight decay, AMSGrad, maximize; ``betas``, ``eps`` shared)
-    over a :class:`ParamStack`'s buffer, run k with learning rate ``lrs[k]``: the arithmetic of torch's
-    multi-tensor Adam as :class:`~..lean.LeanAdam` runs it, with moments ``[K, P]``. All runs step together
-    (one step count)."""
+    """``torch.optim.Adam`` (no weight decay, AMSGrad or maximize; ``betas`` and ``eps`` the batch's) over a
+    :class:`ParamStack`'s buffer, run k with learning rate ``lrs[k]``: the arithmetic of torch's multi-tensor
+    Adam as :class:`~..lean.LeanAdam` runs it, with moments ``[K, P]``. All runs step together (one step count)."""
 
     def __init__(self, params: ParamStack, lrs: Sequence[float], betas: tuple[float, float], eps: float) -> None:
         self.params = params
