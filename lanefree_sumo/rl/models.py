@@ -195,8 +195,9 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
 
 
 _BATCH_SHARED = {"actor_critic": ("actor_layers", "critic_layers", "batch_size", "buffer_size",
-                                  "learning_starts_steps"),
-                 "dqn": ("layers", "batch_size", "buffer_size", "learning_starts_steps", "target_update_steps")}
+                                  "learning_starts_steps", "warmup_actions"),
+                 "dqn": ("layers", "batch_size", "buffer_size", "learning_starts_steps", "target_update_steps",
+                         "loss", "max_grad_norm")}
 """What the runs of one batch must share (network shapes and replay sizes); the rest may differ per run."""
 
 
@@ -231,7 +232,8 @@ def build_batched(cfgs: list[LaneFreeConfig], seeds: list[int], observation_spac
             gamma=[s.gamma for s in sections], tau=[s.tau for s in sections], ou_sigma=[s.ou_sigma for s in sections],
             ou_theta=[s.ou_theta for s in sections], actor_layers=first.actor_layers,
             critic_layers=first.critic_layers, batch_size=first.batch_size, buffer_size=first.buffer_size,
-            learning_starts=first.learning_starts_steps, total_timesteps=total_timesteps(cfgs[0]), device=device)
+            learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
+            total_timesteps=total_timesteps(cfgs[0]), device=device)
     return BatchedDQN(
         algo, observation_space, action_space, seeds, learning_rate=[s.learning_rate for s in sections],
         gamma=[s.gamma for s in sections], layers=first.layers, batch_size=first.batch_size,
@@ -239,5 +241,6 @@ def build_batched(cfgs: list[LaneFreeConfig], seeds: list[int], observation_spac
         target_update_interval=first.target_update_steps,
         exploration_fraction=[exploration_fraction(c) for c in cfgs],
         exploration_initial_eps=[s.epsilon_start for s in sections],
-        exploration_final_eps=[s.epsilon_end for s in sections], total_timesteps=total_timesteps(cfgs[0]),
-        device=device)
+        exploration_final_eps=[s.epsilon_end for s in sections], loss=first.loss,
+        max_grad_norm=math.inf if first.max_grad_norm is None else first.max_grad_norm,
+        total_timesteps=total_timesteps(cfgs[0]), device=device)

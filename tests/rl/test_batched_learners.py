@@ -7,6 +7,7 @@ from. Three runs (seeds 0, 1, 2), one with another learning rate (and γ, τ); p
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -73,35 +74,42 @@ class ToyEnv(gym.Env):  # type: ignore[type-arg]
 
 # -- building the two sides ---------------------------------------------------------------------------------
 
-def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run") -> FastDDPG:
+def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run", warmup: str = "uniform") -> FastDDPG:
     lr, gamma, tau = (values[k] for values in HYPER[hyper])
     return FastDDPG("MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
                     gamma=gamma, tau=tau, learning_starts=learning_starts, train_freq=1, gradient_steps=1,
+                    warmup_actions=warmup,
                     seed=SEEDS[k], device="cpu",
                     action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
                     policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU})
 
 
-def _batched_ddpg(learning_starts: int = 100, total: int = 1, hyper: str = "per-run") -> BatchedDDPG:
+def _batched_ddpg(learning_starts: int = 100, total: int = 1, hyper: str = "per-run",
+                  warmup: str = "uniform") -> BatchedDDPG:
     env = ToyEnv(False)
     lr, gamma, tau = HYPER[hyper]
     return BatchedDDPG(env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma, tau=tau,
+                       warmup_actions=warmup,
                        batch_size=BATCH, buffer_size=5000, learning_starts=learning_starts, total_timesteps=total)
 
 
-def _dqn(algo: str, k: int, total: int, learning_starts: int = 100, hyper: str = "per-run") -> FastDQN:
+def _dqn(algo: str, k: int, total: int, learning_starts: int = 100, hyper: str = "per-run",
+         loss: str = "huber") -> FastDQN:
     lr, gamma, _ = (values[k] for values in HYPER[hyper])
     return DQN_ALGOS[algo]("MlpPolicy", ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
-                           gamma=gamma, learning_starts=learning_starts, target_update_interval=50,
+                           gamma=gamma, loss=loss, max_grad_norm=math.inf if loss == "squared" else 10.0,
+                           learning_starts=learning_starts, target_update_interval=50,
                            exploration_fraction=0.3, exploration_initial_eps=1.0, exploration_final_eps=0.1,
                            train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
                            policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
 
 
-def _batched_dqn(algo: str, total: int, learning_starts: int = 100, hyper: str = "per-run") -> BatchedDQN:
+def _batched_dqn(algo: str, total: int, learning_starts: int = 100, hyper: str = "per-run",
+                 loss: str = "huber") -> BatchedDQN:
     env = ToyEnv(True)
     lr, gamma, _ = HYPER[hyper]
     return BatchedDQN(algo, env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma,
+                      loss=loss, max_grad_norm=math.inf if loss == "squared" else 10.0,
                       layers=(128, 64), batch_size=BATCH, buffer_size=5000, learning_starts=learning_starts,
                       target_update_interval=50, exploration_fraction=0.3, exploration_initial_eps=1.0,
                       exploration_final_eps=0.1, total_timesteps=total)
@@ -211,14 +219,15 @@ def _drive(batched: BatchedLearner, discrete: bool, steps: int) -> None:
         obs = new_obs
 
 
-def test_ddpg_act_store_update_equals_single_learn() -> None:
-    """The whole cycle (random warm-up actions, OU noise and its resets, terminal observations, timeouts,
-    updates) equals ``FastDDPG.learn`` run by run."""
+@pytest.mark.parametrize("warmup", ["uniform", "policy"])
+def test_ddpg_act_store_update_equals_single_learn(warmup: str) -> None:
+    """The whole cycle (random warm-up actions or the actor's from the first step, OU noise and its resets,
+    terminal observations, timeouts, updates) equals ``FastDDPG.learn`` run by run."""
     steps = 260
-    batched = _batched_ddpg(learning_starts=100, total=steps)
+    batched = _batched_ddpg(learning_starts=100, total=steps, warmup=warmup)
     _drive(batched, False, steps)
     for k in range(len(SEEDS)):
-        single = _ddpg(k)
+        single = _ddpg(k, warmup=warmup)
         single.learn(total_timesteps=steps)
         _assert_same(single, batched, k)
         assert np.array_equal(np.random.get_state()[1], batched.streams.numpy[k].get_state()[1])
@@ -278,20 +287,21 @@ def _per_trees(single: Any, batched: BatchedDQN, k: int) -> None:
         assert np.array_equal(rb.min_tree.tree, mine.min_tree.tree) and rb.max_priority == mine.max_priority
 
 
-@pytest.mark.parametrize("hyper", list(HYPER))
+@pytest.mark.parametrize(("hyper", "loss"), [("per-run", "huber"), ("shared", "huber"), ("per-run", "squared")])
 @pytest.mark.parametrize("algo", list(DQN_ALGOS))
-def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str, hyper: str) -> None:
+def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str, hyper: str, loss: str) -> None:
+    """Huber loss with the gradient clip (SB3's), or ½·δ² without a clip (Keras-RL's profile)."""
     transitions = _transitions(True)
-    batched = _batched_dqn(algo, total=2000, hyper=hyper)
+    batched = _batched_dqn(algo, total=2000, hyper=hyper, loss=loss)
     for k in range(len(SEEDS)):  # the initial weights are the single run's
-        single = _dqn(algo, k, 2000, hyper=hyper)
+        single = _dqn(algo, k, 2000, hyper=hyper, loss=loss)
         assert all(th.equal(p.detach(), q) for p, q in zip(single.q_net.parameters(), batched.q_net.stack.row(k)))
     for obs, action, reward, next_obs, done, truncated in transitions:
         batched.store(obs, action, reward, next_obs, done, truncated)
     for _ in range(UPDATES):
         assert batched.update()
     for k in range(len(SEEDS)):
-        single = _dqn(algo, k, 2000, hyper=hyper)
+        single = _dqn(algo, k, 2000, hyper=hyper, loss=loss)
         _fill(single, k, transitions)
         single._current_progress_remaining = batched.progress_remaining  # PER's β
         np.random.seed(SEEDS[k])
@@ -346,18 +356,20 @@ def test_dqn_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
 
 # -- from the runs' configs -------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn", "per"])
-def test_build_batched_gives_each_run_build_models_model(algo: str) -> None:
+@pytest.mark.parametrize(("algo", "profile"), [("ddpg", "sb3"), ("ddpg", "kerasrl"), ("dqn", "kerasrl"),
+                                               ("per", "sb3")])
+def test_build_batched_gives_each_run_build_models_model(algo: str, profile: str) -> None:
     """Run k of ``build_batched`` is ``build_model``'s model for config k and seed k: the same class,
-    hyperparameters and initial weights (run 1 with another learning rate and γ)."""
+    hyperparameters and initial weights (run 1 with another learning rate and γ), for both learner profiles."""
     section = "actor_critic" if algo == "ddpg" else "dqn"
-    cfgs = [merge_config(LaneFreeConfig(), {"train": {"algo": algo, "episodes": 50, section: {
+    cfgs = [merge_config(LaneFreeConfig(), {"train": {"algo": algo, "profile": profile, "episodes": 50, section: {
         "learning_rate": lr, "gamma": gamma}}}) for lr, gamma in ((1e-3, 0.98), (3e-4, 0.95))]
     env = ToyEnv(algo != "ddpg")
     batched = build_batched(cfgs, [5, 6], env.observation_space, env.action_space)
     keys = ["learning_rate", "gamma", "buffer_size", "batch_size", "learning_starts", "seed"] + (
-        ["tau"] if algo == "ddpg" else ["target_update_interval", "exploration_initial_eps", "exploration_final_eps",
-                                        "exploration_fraction", "max_grad_norm"])
+        ["tau", "warmup_actions"] if algo == "ddpg" else [
+            "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "exploration_fraction",
+            "max_grad_norm", "loss"])
     for k, seed in enumerate((5, 6)):
         mine, theirs = batched.sb3_model(k), build_model(cfgs[k], env, seed, None)
         assert type(mine) is type(theirs)
@@ -368,6 +380,9 @@ def test_build_batched_gives_each_run_build_models_model(algo: str) -> None:
             noises = (mine.action_noise, theirs.action_noise)
             assert all(np.array_equal(getattr(noises[0], n), getattr(noises[1], n)) for n in ("_sigma", "_theta"))
     assert batched.learning_rate == [1e-3, 3e-4]
+    if profile == "kerasrl":  # the profile reached both sides
+        assert (batched.warmup_actions == "policy" if algo == "ddpg"
+                else batched.loss == "squared" and batched.max_grad_norm == math.inf)
 
 
 def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:

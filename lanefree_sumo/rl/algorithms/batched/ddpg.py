@@ -33,6 +33,7 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     per_run_column,
     soft_update,
 )
+from lanefree_sumo.rl.algorithms.fast_ddpg import WARMUP_ACTIONS
 
 
 def sb3_policy(observation_space: spaces.Space, action_space: spaces.Space, seed: int, learning_rate: float,
@@ -50,17 +51,21 @@ class BatchedDDPG(BatchedLearner):
     """DDPG (SB3's, as ``lanefree train`` configures it) for K runs; module docstring.
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``tau``, ``ou_sigma``,
-    ``ou_theta``. The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``."""
+    ``ou_theta``. The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``,
+    ``warmup_actions`` (:class:`~..fast_ddpg.FastDDPG`'s: ``uniform`` random actions before
+    ``learning_starts``, or ``policy``: the actor and its noise from the first step)."""
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  learning_rate: float | Sequence[float] = 1e-3, gamma: float | Sequence[float] = 0.98,
                  tau: float | Sequence[float] = 0.001, ou_sigma: float | Sequence[float] = 0.2,
                  ou_theta: float | Sequence[float] = 0.15, actor_layers: Sequence[int] = (256, 128),
                  critic_layers: Sequence[int] = (256, 128), batch_size: int = 64, buffer_size: int = 100_000,
-                 learning_starts: int = 800, total_timesteps: int = 1, device: str | th.device = "cpu",
-                 exact: bool | None = None) -> None:
+                 learning_starts: int = 800, warmup_actions: str = "uniform", total_timesteps: int = 1,
+                 device: str | th.device = "cpu", exact: bool | None = None) -> None:
         if not isinstance(action_space, spaces.Box) or len(action_space.shape) != 1:
             raise ValueError("batched DDPG takes a flat Box action space")
+        if warmup_actions not in WARMUP_ACTIONS:
+            raise ValueError(f"unknown warm-up {warmup_actions!r}; valid: {', '.join(WARMUP_ACTIONS)}")
         n_actions = int(action_space.shape[0])
         super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
                          learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=n_actions,
@@ -71,6 +76,9 @@ class BatchedDDPG(BatchedLearner):
         self.tau = per_run(tau, k, "tau")
         self.ou_sigma, self.ou_theta = per_run(ou_sigma, k, "ou_sigma"), per_run(ou_theta, k, "ou_theta")
         self.actor_layers, self.critic_layers = tuple(actor_layers), tuple(critic_layers)
+        self.warmup_actions = warmup_actions
+        self.random_steps = self.learning_starts if warmup_actions == "uniform" else 0
+        """Steps that act uniformly at random (:meth:`~..fast_ddpg.FastDDPG._random_steps`)."""
         policies = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers)
                     for seed, lr in zip(self.seeds, self.learning_rate)]
         self._policy = policies[0]  # scale/unscale of actions (the same for all runs)
@@ -97,11 +105,11 @@ class BatchedDDPG(BatchedLearner):
             return mlp_forward(self.mm, self.actor.layers(), self._obs(obs), True)[-1].reshape(self.runs, -1)
 
     def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
-        """Every run's action for the env, ``[K, actions]`` (SB3's ``_sample_action``: random before
-        ``learning_starts``, then μ(s); with ``explore`` plus the run's OU noise, clipped; without, ``predict``'s
+        """Every run's action for the env, ``[K, actions]`` (SB3's ``_sample_action``: random for the first
+        :attr:`random_steps`, then μ(s); with ``explore`` plus the run's OU noise, clipped; without, ``predict``'s
         deterministic action)."""
         policy = self._policy
-        if explore and self.num_timesteps < self.learning_starts:
+        if explore and self.num_timesteps < self.random_steps:
             unscaled = np.stack([space.sample() for space in self.streams.spaces])
         else:
             unscaled = policy.unscale_action(self.actor_output(obs).cpu().numpy())
@@ -182,6 +190,7 @@ class BatchedDDPG(BatchedLearner):
                         learning_rate=self.learning_rate[k], buffer_size=self.buffer_size, batch_size=self.batch_size,
                         gamma=self.gamma[k], tau=self.tau[k], learning_starts=self.learning_starts, train_freq=1,
                         gradient_steps=1, action_noise=noise, seed=self.seeds[k], device="cpu", verbose=0,
+                        warmup_actions=self.warmup_actions,
                         policy_kwargs={"net_arch": {"pi": list(self.actor_layers), "qf": list(self.critic_layers)},
                                        "activation_fn": nn.ReLU})
         with th.no_grad():

@@ -5,7 +5,7 @@
 one :class:`~.replay.RunPriorities` per run). Run k starts from the weights SB3 gives the registry's class with
 seed k, draws its ε-greedy decisions, random actions and replay indices from its own streams in the single run's
 order, and has its own learning rate, γ and ε schedule; the network shape, batch size, buffer size,
-``learning_starts``, target interval and gradient clip are the batch's. On CPU run k equals the single fast
+``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU run k equals the single fast
 learner bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay keeps its trees on the host:
 its TD errors come back from the device once per update.
 """
@@ -36,11 +36,8 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     mlp_forward,
     per_run_column,
 )
+from lanefree_sumo.rl.algorithms.fast_dqn import HUBER_BETA, LOSSES, NO_REDUCTION
 
-NO_REDUCTION = 0
-"""torch's ``Reduction::None`` (``smooth_l1_loss_backward``'s reduction argument)."""
-HUBER_BETA = 1.0
-"""``F.smooth_l1_loss``'s default β, which SB3's DQN uses."""
 FAMILY = ("dqn", "ddqn", "dueling", "per")
 
 
@@ -90,7 +87,8 @@ class BatchedDQN(BatchedLearner):
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``exploration_fraction``,
     ``exploration_initial_eps``, ``exploration_final_eps``. The batch's: the rest, as SB3's DQN names them
-    (``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s)."""
+    (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..fast_dqn.FastDQN`'s, ``huber`` or
+    ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s)."""
 
     def __init__(self, algo: str, observation_space: spaces.Space, action_space: spaces.Space,
                  seeds: Sequence[int], *, learning_rate: float | Sequence[float] = 1e-3,
@@ -99,12 +97,15 @@ class BatchedDQN(BatchedLearner):
                  exploration_fraction: float | Sequence[float] = 0.1,
                  exploration_initial_eps: float | Sequence[float] = 1.0,
                  exploration_final_eps: float | Sequence[float] = 0.05, max_grad_norm: float = 10.0,
-                 total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4, per_eps: float = 1e-6,
+                 loss: str = "huber", total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4,
+                 per_eps: float = 1e-6,
                  device: str | th.device = "cpu", exact: bool | None = None) -> None:
         if algo not in FAMILY:
             raise ValueError(f"unknown DQN variant '{algo}'; choose one of {', '.join(FAMILY)}")
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError("batched DQN takes a Discrete action space")
+        if loss not in LOSSES:
+            raise ValueError(f"unknown TD loss {loss!r}; valid: {', '.join(LOSSES)}")
         super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
                          learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=1,
                          action_dtype=th.int64, device=device, exact=exact)
@@ -120,7 +121,7 @@ class BatchedDQN(BatchedLearner):
             per_run(exploration_final_eps, k, "exploration_final_eps"),
             per_run(exploration_fraction, k, "exploration_fraction"))]
         self.exploration_rate = [0.0] * k  # SB3's value before its first _on_step
-        self.layers, self.max_grad_norm = tuple(layers), float(max_grad_norm)
+        self.layers, self.max_grad_norm, self.loss = tuple(layers), float(max_grad_norm), loss
         self.target_update_interval = int(target_update_interval)
         self.per_alpha, self.per_beta0, self.per_eps = float(per_alpha), float(per_beta0), float(per_eps)
         policy_class = self.cls.policy_aliases["MlpPolicy"]
@@ -212,16 +213,7 @@ class BatchedDQN(BatchedLearner):
             outs, q_values = self.q_net.forward(mm, obs)
             index = actions.long()
             current_q = th.gather(q_values, dim=2, index=index)
-            per_sample = F.smooth_l1_loss(current_q, target_q, reduction="none")
-            if weights is None:  # the mean's 1/n as the gradient of each element (smooth_l1_loss_backward, mean)
-                loss = per_sample.mean(dim=(1, 2))
-                grad_current = aten.smooth_l1_loss_backward(self._mean_grad, current_q, target_q, NO_REDUCTION,
-                                                            HUBER_BETA)
-            else:  # mean_i(w_i · huber_i): the mean's expand / n, the product's g · w
-                loss = (weights * per_sample).mean(dim=(1, 2))
-                grad_mean = self._one.expand(per_sample.shape) / self.batch_size
-                grad_current = aten.smooth_l1_loss_backward(grad_mean * weights, current_q, target_q, NO_REDUCTION,
-                                                            HUBER_BETA)
+            loss, grad_current = self._loss(current_q, target_q, weights)
             grad_q = th.zeros_like(q_values).scatter_add_(2, index, grad_current)  # the gather's backward
             grads = self.q_net.backward(mm, outs, grad_q)
             # clip_grad_norm_(max_grad_norm) per run, as torch computes it
@@ -236,6 +228,28 @@ class BatchedDQN(BatchedLearner):
             td_errors = (target_q - current_q).reshape(self.runs, -1).abs().cpu().numpy()
             for priorities, idx, td in zip(self.priorities, indices, td_errors):
                 priorities.update(idx, td)
+
+    def _loss(self, current_q: th.Tensor, target_q: th.Tensor,
+              weights: th.Tensor | None) -> tuple[th.Tensor, th.Tensor]:
+        """(loss per run ``[K]``, its gradient with respect to ``current_q``) as the single run computes them:
+        the mean over the batch as each element's 1/n (the mean reduction's backward, per run), the weighted
+        mean's expand / n and product g · w; the squared loss's ½ on the gradient (as :mod:`..fast_dqn`'s
+        ``_squared_loss``)."""
+        if self.loss == "squared":
+            per_sample = 0.5 * F.mse_loss(current_q, target_q, reduction="none")
+            if weights is None:  # 2/n · δ · ½ of the mean reduction equals 2 · δ · (½ / n): both scale by powers of 2
+                grad = aten.mse_loss_backward(self._mean_grad * 0.5, current_q, target_q, NO_REDUCTION)
+                return 0.5 * F.mse_loss(current_q, target_q, reduction="none").mean(dim=(1, 2)), grad
+            grad_mean = self._one.expand(per_sample.shape) / self.batch_size
+            grad = aten.mse_loss_backward(grad_mean * weights * 0.5, current_q, target_q, NO_REDUCTION)
+            return (weights * per_sample).mean(dim=(1, 2)), grad
+        per_sample = F.smooth_l1_loss(current_q, target_q, reduction="none")
+        if weights is None:
+            grad = aten.smooth_l1_loss_backward(self._mean_grad, current_q, target_q, NO_REDUCTION, HUBER_BETA)
+            return per_sample.mean(dim=(1, 2)), grad
+        grad_mean = self._one.expand(per_sample.shape) / self.batch_size
+        grad = aten.smooth_l1_loss_backward(grad_mean * weights, current_q, target_q, NO_REDUCTION, HUBER_BETA)
+        return (weights * per_sample).mean(dim=(1, 2)), grad
 
     # -- checkpoint and export --------------------------------------------------------------------------------
 
@@ -266,6 +280,7 @@ class BatchedDQN(BatchedLearner):
                              target_update_interval=self.target_update_interval,
                              exploration_initial_eps=schedule.start, exploration_final_eps=schedule.end,
                              exploration_fraction=schedule.end_fraction, max_grad_norm=self.max_grad_norm,
+                             loss=self.loss,
                              train_freq=1, gradient_steps=1, seed=self.seeds[k], device="cpu", verbose=0,
                              policy_kwargs={"net_arch": list(self.layers), "activation_fn": nn.ReLU},
                              **({"per_alpha": self.per_alpha, "per_beta0": self.per_beta0, "per_eps": self.per_eps}
