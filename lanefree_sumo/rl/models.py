@@ -3,7 +3,8 @@
 ``training_config`` fixes what the algorithm decides (action kind, the agent on the road);
 ``make_vec_env`` builds the environments (one process each when several: libsumo runs one
 simulation per process); ``build_model`` a new model of the registry's class for
-``cfg.train.algo`` with the hyperparameters of ``cfg.train``.
+``cfg.train.algo`` with the hyperparameters of ``cfg.train``; ``build_batched`` the batched learner
+(:mod:`lanefree_sumo.rl.algorithms.batched`) of several runs of one algorithm, each with its config's.
 """
 
 from __future__ import annotations
@@ -122,6 +123,12 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
     return vec
 
 
+def exploration_fraction(cfg: LaneFreeConfig) -> float:
+    """SB3's ``exploration_fraction`` for the DQN family: ε decays over ``epsilon_decay_episodes`` episodes."""
+    dq = cfg.train.dqn
+    return min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
+
+
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
     """A new model for ``cfg.train.algo`` with the paper's hyperparameters (specification §9); ``cls`` another class
     taking SB3's constructor arguments (e.g. SB3's own ``DDPG``, for comparisons)."""
@@ -171,7 +178,6 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
 
     dq = cfg.train.dqn
     policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
-    decay = min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
     fast: dict[str, Any] = ({"fast_learner": cfg.train.fast_learner, "lean_loop": cfg.train.lean_loop,
                              "loss": dq.loss} if spec.fast_learner and own_class else {})
     if dq.loss != "huber" and not fast:
@@ -181,10 +187,60 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
         policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,
         gamma=dq.gamma, learning_starts=dq.learning_starts_steps, target_update_interval=dq.target_update_steps,
         exploration_initial_eps=dq.epsilon_start, exploration_final_eps=dq.epsilon_end,
-        exploration_fraction=decay, train_freq=1, gradient_steps=1,
+        exploration_fraction=exploration_fraction(cfg), train_freq=1, gradient_steps=1,
         max_grad_norm=math.inf if dq.max_grad_norm is None else dq.max_grad_norm,
         policy_kwargs={"net_arch": list(dq.layers), "activation_fn": torch.nn.ReLU, **extractor},
         **common, **fast,
     )
 
 
+_BATCH_SHARED = {"actor_critic": ("actor_layers", "critic_layers", "batch_size", "buffer_size",
+                                  "learning_starts_steps", "warmup_actions"),
+                 "dqn": ("layers", "batch_size", "buffer_size", "learning_starts_steps", "target_update_steps",
+                         "loss", "max_grad_norm")}
+"""What the runs of one batch must share (network shapes and replay sizes); the rest may differ per run."""
+
+
+def build_batched(cfgs: list[LaneFreeConfig], seeds: list[int], observation_space: Any, action_space: Any,
+                  device: str = "cpu") -> Any:
+    """The batched learner of runs ``cfgs`` (run k seeded ``seeds[k]``): for each run the hyperparameters
+    :func:`build_model` gives it; ConfigError when the runs cannot share a batch."""
+    from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN
+    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
+
+    algo = cfgs[0].train.algo
+    spec = get_algorithm(algo)
+    if any(c.train.algo != algo for c in cfgs):
+        raise ConfigError("the runs of one batch must share train.algo")
+    if algo != "ddpg" and algo not in FAMILY:
+        raise ConfigError(f"batched training covers ddpg and {', '.join(FAMILY)}, not {algo}; train it run by run")
+    if len(seeds) != len(cfgs):
+        raise ConfigError(f"{len(cfgs)} configs but {len(seeds)} seeds: give one seed per run")
+    if any(c.observation.kind != "vector" for c in cfgs):
+        raise ConfigError("batched training takes the vector observation; train the set observation run by run")
+    sections = [getattr(c.train, spec.config_section) for c in cfgs]
+    shared = _BATCH_SHARED[spec.config_section] + (("timesteps",) if algo != "ddpg" else ())
+    for key in shared:
+        values = {total_timesteps(c) if key == "timesteps" else getattr(s, key) for c, s in zip(cfgs, sections)}
+        if len(values) > 1:
+            raise ConfigError(f"the runs of one batch must share train.{spec.config_section}.{key} "
+                              f"(got {sorted(values, key=str)}); put runs that differ there in separate batches")
+    first = sections[0]
+    if algo == "ddpg":
+        return BatchedDDPG(
+            observation_space, action_space, seeds, learning_rate=[s.learning_rate for s in sections],
+            gamma=[s.gamma for s in sections], tau=[s.tau for s in sections], ou_sigma=[s.ou_sigma for s in sections],
+            ou_theta=[s.ou_theta for s in sections], actor_layers=first.actor_layers,
+            critic_layers=first.critic_layers, batch_size=first.batch_size, buffer_size=first.buffer_size,
+            learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
+            total_timesteps=total_timesteps(cfgs[0]), device=device)
+    return BatchedDQN(
+        algo, observation_space, action_space, seeds, learning_rate=[s.learning_rate for s in sections],
+        gamma=[s.gamma for s in sections], layers=first.layers, batch_size=first.batch_size,
+        buffer_size=first.buffer_size, learning_starts=first.learning_starts_steps,
+        target_update_interval=first.target_update_steps,
+        exploration_fraction=[exploration_fraction(c) for c in cfgs],
+        exploration_initial_eps=[s.epsilon_start for s in sections],
+        exploration_final_eps=[s.epsilon_end for s in sections], loss=first.loss,
+        max_grad_norm=math.inf if first.max_grad_norm is None else first.max_grad_norm,
+        total_timesteps=total_timesteps(cfgs[0]), device=device)

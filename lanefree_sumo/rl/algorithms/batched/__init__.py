@@ -1,0 +1,15 @@
+"""Off-policy learners for K runs of one algorithm in one process: weights stacked ``[K, …]``, one batched
+product per layer for all runs, one Adam buffer ``[K, P]``, per-run replay ``[K, capacity, …]`` and per-run
+random streams.
+
+:class:`BatchedDDPG` and :class:`BatchedDQN` (DQN, double, dueling, prioritised) take every run's
+observation and give every run's action (:meth:`~.learner.BatchedLearner.act`), store every run's transition
+(``store``), and make one gradient step per run (``update``); ``state_dict``/``load_state_dict`` checkpoint the
+batch and ``export(k, path)`` writes run k as an ordinary SB3 ``model.zip``. On CPU run k computes exactly what
+the single fast learner (:mod:`..fast_ddpg`, :mod:`..fast_dqn`) with seed k computes.
+"""
+
+from lanefree_sumo.rl.algorithms.batched.ddpg import BatchedDDPG
+from lanefree_sumo.rl.algorithms.batched.dqn import BatchedDQN
+
+__all__ = ["BatchedDDPG", "BatchedDQN"]

@@ -1,0 +1,211 @@
+"""DDPG for K runs at once: :class:`~..fast_ddpg.FastDDPG`'s update with a leading run axis.
+
+Run k starts from the weights SB3's DDPG gets with seed k (its policy built under ``torch.manual_seed(k)``,
+as ``DDPG._setup_model`` builds it), draws its replay indices and Ornstein-Uhlenbeck noise from its own
+stream (:class:`~.replay.RunStreams`) in the single run's order, and has its own learning rate, γ, τ, σ and θ;
+the network shapes, batch size, buffer size and ``learning_starts`` are the batch's. On CPU run k's
+parameters, targets and Adam moments equal the single :class:`~..fast_ddpg.FastDDPG` run's bit for bit
+(``tests/rl/test_batched_learners.py``). SB3 also draws DDPG's target-policy noise, which DDPG clips to
+zero; it changes no number (only a −0.0 action to +0.0), so it is not drawn here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+from stable_baselines3.td3.policies import TD3Policy
+from torch import nn
+from torch.nn import functional as F
+
+from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner, SpacesEnv, kept_random_state, per_run
+from lanefree_sumo.rl.algorithms.batched.replay import OUNoise
+from lanefree_sumo.rl.algorithms.batched.stack import (
+    ParamStack,
+    StackedAdam,
+    mlp_backward,
+    mlp_forward,
+    per_run_column,
+    soft_update,
+)
+from lanefree_sumo.rl.algorithms.fast_ddpg import WARMUP_ACTIONS
+
+
+def sb3_policy(observation_space: spaces.Space, action_space: spaces.Space, seed: int, learning_rate: float,
+               actor_layers: Sequence[int], critic_layers: Sequence[int]) -> TD3Policy:
+    """The policy SB3's DDPG builds with ``seed`` (``build_model``'s network settings), built on the CPU
+    under ``torch.manual_seed(seed)`` without touching the caller's torch random state."""
+    with th.random.fork_rng(devices=[]):
+        th.manual_seed(seed)
+        return TD3Policy(observation_space, action_space, lambda _: learning_rate,  # type: ignore[arg-type]
+                         net_arch={"pi": list(actor_layers), "qf": list(critic_layers)},
+                         activation_fn=nn.ReLU, n_critics=1)
+
+
+class BatchedDDPG(BatchedLearner):
+    """DDPG (SB3's, as ``lanefree train`` configures it) for K runs; module docstring.
+
+    Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``tau``, ``ou_sigma``,
+    ``ou_theta``. The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``,
+    ``warmup_actions`` (:class:`~..fast_ddpg.FastDDPG`'s: ``uniform`` random actions before
+    ``learning_starts``, or ``policy``: the actor and its noise from the first step)."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
+                 learning_rate: float | Sequence[float] = 1e-3, gamma: float | Sequence[float] = 0.98,
+                 tau: float | Sequence[float] = 0.001, ou_sigma: float | Sequence[float] = 0.2,
+                 ou_theta: float | Sequence[float] = 0.15, actor_layers: Sequence[int] = (256, 128),
+                 critic_layers: Sequence[int] = (256, 128), batch_size: int = 64, buffer_size: int = 100_000,
+                 learning_starts: int = 800, warmup_actions: str = "uniform", total_timesteps: int = 1,
+                 device: str | th.device = "cpu", exact: bool | None = None) -> None:
+        if not isinstance(action_space, spaces.Box) or len(action_space.shape) != 1:
+            raise ValueError("batched DDPG takes a flat Box action space")
+        if warmup_actions not in WARMUP_ACTIONS:
+            raise ValueError(f"unknown warm-up {warmup_actions!r}; valid: {', '.join(WARMUP_ACTIONS)}")
+        n_actions = int(action_space.shape[0])
+        super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
+                         learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=n_actions,
+                         action_dtype=th.float32, device=device, exact=exact)
+        k = self.runs
+        self.learning_rate = per_run(learning_rate, k, "learning_rate")
+        self.gamma = per_run(gamma, k, "gamma")
+        self.tau = per_run(tau, k, "tau")
+        self.ou_sigma, self.ou_theta = per_run(ou_sigma, k, "ou_sigma"), per_run(ou_theta, k, "ou_theta")
+        self.actor_layers, self.critic_layers = tuple(actor_layers), tuple(critic_layers)
+        self.warmup_actions = warmup_actions
+        self.random_steps = self.learning_starts if warmup_actions == "uniform" else 0
+        """Steps that act uniformly at random (:meth:`~..fast_ddpg.FastDDPG._random_steps`)."""
+        policies = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers)
+                    for seed, lr in zip(self.seeds, self.learning_rate)]
+        self._policy = policies[0]  # scale/unscale of actions (the same for all runs)
+        self.actor = ParamStack([list(p.actor.parameters()) for p in policies], self.device)
+        self.critic = ParamStack([list(p.critic.parameters()) for p in policies], self.device)
+        self.actor_target = ParamStack([list(p.actor_target.parameters()) for p in policies], self.device)
+        self.critic_target = ParamStack([list(p.critic_target.parameters()) for p in policies], self.device)
+        group = policies[0].actor.optimizer.param_groups[0]
+        self.actor_adam = StackedAdam(self.actor, self.learning_rate, group["betas"], group["eps"])
+        self.critic_adam = StackedAdam(self.critic, self.learning_rate, group["betas"], group["eps"])
+        self._gamma = per_run_column(self.gamma, self.device).unsqueeze(2)
+        self._tau = per_run_column(self.tau, self.device)
+        self._one_minus_tau = per_run_column([1 - t for t in self.tau], self.device)
+        self._shared_tau = self.tau[0] if len(set(self.tau)) == 1 else None
+        self.noise = OUNoise(self.ou_sigma, self.ou_theta, n_actions)
+        self._one = th.tensor(1.0, device=self.device)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- acting -----------------------------------------------------------------------------------------------
+
+    def actor_output(self, obs: np.ndarray) -> th.Tensor:
+        """μ(s) of every run, ``[K, actions]`` in [−1, 1] (obs ``[K, obs]``)."""
+        with th.no_grad():
+            return mlp_forward(self.mm, self.actor.layers(), self._obs(obs), True)[-1].reshape(self.runs, -1)
+
+    def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
+        """Every run's action for the env, ``[K, actions]`` (SB3's ``_sample_action``: random for the first
+        :attr:`random_steps`, then μ(s); with ``explore`` plus the run's OU noise, clipped; without, ``predict``'s
+        deterministic action)."""
+        policy = self._policy
+        if explore and self.num_timesteps < self.random_steps:
+            unscaled = np.stack([space.sample() for space in self.streams.spaces])
+        else:
+            unscaled = policy.unscale_action(self.actor_output(obs).cpu().numpy())
+            if not explore:
+                return unscaled
+        scaled = np.clip(policy.scale_action(unscaled) + self.noise(self.streams), -1, 1)
+        actions = policy.unscale_action(scaled)
+        self._last = (actions, scaled)
+        return actions
+
+    def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
+        """The scaled action SB3 stores: the one :meth:`act` computed for ``action``, else ``action`` scaled."""
+        if self._last is not None and action is self._last[0]:
+            return self._last[1]
+        return self._policy.scale_action(np.asarray(action).reshape(self.runs, -1))
+
+    def _episodes_ended(self, done: np.ndarray) -> None:
+        self.noise.reset(done)
+
+    # -- the update -------------------------------------------------------------------------------------------
+
+    def _update(self) -> None:
+        mm = self.mm
+        indices = self.streams.sample_indices(self.replay.size(), self.batch_size)
+        obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
+        actor, critic = self.actor.layers(), self.critic.layers()
+        with th.no_grad():
+            next_actions = mlp_forward(mm, self.actor_target.layers(), next_obs, True)[-1]
+            next_q = mlp_forward(mm, self.critic_target.layers(), th.cat([next_obs, next_actions], dim=2), False)[-1]
+            target_q = rewards + (1 - dones) * self._gamma * next_q
+
+            q_outs = mlp_forward(mm, critic, th.cat([obs, actions], dim=2), False)
+            critic_loss = F.mse_loss(q_outs[-1], target_q, reduction="none").mean(dim=(1, 2))
+            grad_q = (q_outs[-1] - target_q).mul_(2.0 / self.batch_size)  # mse_loss_backward (mean)
+            self.critic_adam.step(mlp_backward(mm, critic, q_outs, grad_q, False)[0])
+
+            actor_outs = mlp_forward(mm, actor, obs, True)
+            q = mlp_forward(mm, critic, th.cat([obs, actor_outs[-1]], dim=2), False)
+            actor_loss = -q[-1].mean(dim=(1, 2))
+            grad_mean = (-self._one).expand(q[-1].shape) / self.batch_size  # autograd's d(−mean)/dq
+            grad_input = mlp_backward(mm, critic, q, grad_mean, False, weights=False, to_input=True)[1]
+            assert grad_input is not None
+            self.actor_adam.step(mlp_backward(mm, actor, actor_outs, grad_input[:, :, self.obs_dim:], True)[0])
+
+            soft_update(self.critic_target, self.critic, self._tau, self._one_minus_tau, self._shared_tau)
+            soft_update(self.actor_target, self.actor, self._tau, self._one_minus_tau, self._shared_tau)
+        self.losses = {"critic_loss": critic_loss, "actor_loss": actor_loss}
+
+    # -- checkpoint and export --------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "actor": self.actor.flat, "critic": self.critic.flat,
+                "actor_target": self.actor_target.flat, "critic_target": self.critic_target.flat,
+                "actor_adam": self.actor_adam.state_dict(), "critic_adam": self.critic_adam.state_dict(),
+                "noise": th.from_numpy(self.noise.prev.copy())}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        for name in ("actor", "critic", "actor_target", "critic_target"):
+            getattr(self, name).flat.copy_(state[name])
+        self.actor_adam.load_state_dict(state["actor_adam"])
+        self.critic_adam.load_state_dict(state["critic_adam"])
+        self.noise.prev = th.as_tensor(state["noise"], dtype=th.float64).cpu().numpy().copy()
+        self._last = None
+
+    def sb3_model(self, k: int, cls: Any = None) -> Any:
+        """Run k as an SB3 model of ``cls`` (the registry's DDPG class by default): its hyperparameters, its
+        networks, Adam states and step counts."""
+        if cls is None:
+            from lanefree_sumo.rl.algorithms import get_algorithm
+
+            cls = get_algorithm("ddpg").cls
+        n_actions = int(self.action_space.shape[0])  # type: ignore[index]
+        noise = OrnsteinUhlenbeckActionNoise(np.zeros(n_actions), self.ou_sigma[k] * np.ones(n_actions),
+                                             theta=self.ou_theta[k])
+        with kept_random_state():
+            model = cls("MlpPolicy", SpacesEnv(self.observation_space, self.action_space),
+                        learning_rate=self.learning_rate[k], buffer_size=self.buffer_size, batch_size=self.batch_size,
+                        gamma=self.gamma[k], tau=self.tau[k], learning_starts=self.learning_starts, train_freq=1,
+                        gradient_steps=1, action_noise=noise, seed=self.seeds[k], device="cpu", verbose=0,
+                        warmup_actions=self.warmup_actions,
+                        policy_kwargs={"net_arch": {"pi": list(self.actor_layers), "qf": list(self.critic_layers)},
+                                       "activation_fn": nn.ReLU})
+        with th.no_grad():
+            for net, stack in ((model.actor, self.actor), (model.critic, self.critic),
+                               (model.actor_target, self.actor_target), (model.critic_target, self.critic_target)):
+                for p, value in zip(net.parameters(), stack.row(k)):
+                    p.copy_(value)
+        for net, adam in ((model.actor, self.actor_adam), (model.critic, self.critic_adam)):
+            if adam.steps:
+                state = net.optimizer.state_dict()
+                state["state"] = adam.sb3_state(k, list(net.parameters()))
+                net.optimizer.load_state_dict(state)
+        model.num_timesteps, model._n_updates = self.num_timesteps, self.n_updates
+        return model
+
+    def export(self, k: int, path: str | Path) -> None:
+        """Write run k as an ordinary ``model.zip`` (``stable_baselines3.DDPG.load`` loads it)."""
+        self.sb3_model(k).save(path)

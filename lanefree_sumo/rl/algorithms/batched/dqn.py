@@ -1,0 +1,302 @@
+"""The DQN family for K runs at once: :class:`~..fast_dqn.FastDQN`'s written-out update with a leading run axis.
+
+``algo`` is a registry name: ``dqn`` (the target network's argmax), ``ddqn`` (the online network's),
+``dueling`` (double DQN with the dueling head), ``per`` (double DQN with proportional prioritised replay,
+one :class:`~.replay.RunPriorities` per run). Run k starts from the weights SB3 gives the registry's class with
+seed k, draws its ε-greedy decisions, random actions and replay indices from its own streams in the single run's
+order, and has its own learning rate, γ and ε schedule; the network shape, batch size, buffer size,
+``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU run k equals the single fast
+learner bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay keeps its trees on the host:
+its TD errors come back from the device once per update.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.utils import LinearSchedule
+from torch import nn
+from torch.nn import functional as F
+
+from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner, SpacesEnv, kept_random_state, per_run
+from lanefree_sumo.rl.algorithms.batched.replay import RunPriorities
+from lanefree_sumo.rl.algorithms.batched.stack import (
+    Linear,
+    ParamStack,
+    Products,
+    StackedAdam,
+    aten,
+    hard_update,
+    mlp_backward,
+    mlp_forward,
+    per_run_column,
+)
+from lanefree_sumo.rl.algorithms.fast_dqn import HUBER_BETA, LOSSES, NO_REDUCTION
+
+FAMILY = ("dqn", "ddqn", "dueling", "per")
+
+
+class _QNet:
+    """K Q-networks on a :class:`ParamStack`: a plain MLP, or the dueling head (ReLU trunk, then
+    ``V + A − mean_a A``), written out as :mod:`..fast_dqn` writes them."""
+
+    def __init__(self, stack: ParamStack, dueling: bool) -> None:
+        self.stack, self.dueling = stack, dueling
+
+    def forward(self, mm: Products, x: th.Tensor) -> tuple[list[th.Tensor], th.Tensor]:
+        """(what :meth:`backward` needs, Q-values ``[K, M, actions]``)."""
+        layers = self.stack.layers()
+        if not self.dueling:
+            outs = mlp_forward(mm, layers, x, False)
+            return outs, outs[-1]
+        outs = [x]
+        for layer in layers[:-2]:
+            x = th.relu(mm.linear(x, layer))
+            outs.append(x)
+        value = mm.linear(x, layers[-2])
+        advantage = mm.linear(x, layers[-1])
+        return outs, value + advantage - advantage.mean(dim=2, keepdim=True)
+
+    def backward(self, mm: Products, outs: list[th.Tensor], grad_q: th.Tensor) -> list[th.Tensor]:
+        """Gradients of the stack's tensors (in order) given the Q-values' gradient."""
+        layers: list[Linear] = self.stack.layers()
+        if not self.dueling:
+            return mlp_backward(mm, layers, outs, grad_q, False)[0]
+        hidden = outs[-1]
+        value, advantage = layers[-2], layers[-1]
+        grad_mean = (-grad_q).sum(dim=2, keepdim=True)
+        grad_value = grad_q.sum(dim=2, keepdim=True)
+        grad_advantage = grad_q + grad_mean.expand(grad_q.shape) / grad_q.shape[2]
+        grads_value = [mm.weight_grad(grad_value, hidden), grad_value.sum(1)]
+        grads_advantage = [mm.weight_grad(grad_advantage, hidden), grad_advantage.sum(1)]
+        grad_hidden = mm.input_grad(grad_value, value[0]) + mm.input_grad(grad_advantage, advantage[0])
+        grads_trunk: list[th.Tensor] = []
+        if len(layers) > 2:
+            grad_hidden = aten.threshold_backward(grad_hidden, hidden, 0)
+            grads_trunk = mlp_backward(mm, layers[:-2], outs, grad_hidden, False)[0]
+        return [*grads_trunk, *grads_value, *grads_advantage]
+
+
+class BatchedDQN(BatchedLearner):
+    """DQN, double DQN, dueling double DQN or PER double DQN (``algo``) for K runs; module docstring.
+
+    Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``exploration_fraction``,
+    ``exploration_initial_eps``, ``exploration_final_eps``. The batch's: the rest, as SB3's DQN names them
+    (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..fast_dqn.FastDQN`'s, ``huber`` or
+    ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s)."""
+
+    def __init__(self, algo: str, observation_space: spaces.Space, action_space: spaces.Space,
+                 seeds: Sequence[int], *, learning_rate: float | Sequence[float] = 1e-3,
+                 gamma: float | Sequence[float] = 0.98, layers: Sequence[int] = (128, 64), batch_size: int = 64,
+                 buffer_size: int = 50_000, learning_starts: int = 800, target_update_interval: int = 10_000,
+                 exploration_fraction: float | Sequence[float] = 0.1,
+                 exploration_initial_eps: float | Sequence[float] = 1.0,
+                 exploration_final_eps: float | Sequence[float] = 0.05, max_grad_norm: float = 10.0,
+                 loss: str = "huber", total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4,
+                 per_eps: float = 1e-6,
+                 device: str | th.device = "cpu", exact: bool | None = None) -> None:
+        if algo not in FAMILY:
+            raise ValueError(f"unknown DQN variant '{algo}'; choose one of {', '.join(FAMILY)}")
+        if not isinstance(action_space, spaces.Discrete):
+            raise ValueError("batched DQN takes a Discrete action space")
+        if loss not in LOSSES:
+            raise ValueError(f"unknown TD loss {loss!r}; valid: {', '.join(LOSSES)}")
+        super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
+                         learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=1,
+                         action_dtype=th.int64, device=device, exact=exact)
+        from lanefree_sumo.rl.algorithms import get_algorithm
+
+        k = self.runs
+        self.algo = algo
+        self.cls = get_algorithm(algo).cls
+        self.double_q = bool(self.cls.double_q)
+        self.learning_rate, self.gamma = per_run(learning_rate, k, "learning_rate"), per_run(gamma, k, "gamma")
+        self.exploration = [LinearSchedule(start, end, fraction) for start, end, fraction in zip(
+            per_run(exploration_initial_eps, k, "exploration_initial_eps"),
+            per_run(exploration_final_eps, k, "exploration_final_eps"),
+            per_run(exploration_fraction, k, "exploration_fraction"))]
+        self.exploration_rate = [0.0] * k  # SB3's value before its first _on_step
+        self.layers, self.max_grad_norm, self.loss = tuple(layers), float(max_grad_norm), loss
+        self.target_update_interval = int(target_update_interval)
+        self.per_alpha, self.per_beta0, self.per_eps = float(per_alpha), float(per_beta0), float(per_eps)
+        policy_class = self.cls.policy_aliases["MlpPolicy"]
+        policies = []
+        for seed, lr in zip(self.seeds, self.learning_rate):
+            with th.random.fork_rng(devices=[]):  # as DQN._setup_model builds it after set_random_seed(seed)
+                th.manual_seed(seed)
+                policies.append(policy_class(observation_space, action_space, lambda _, lr=lr: lr,
+                                             net_arch=list(self.layers), activation_fn=nn.ReLU))
+        self.dueling = type(policies[0].q_net.q_net) is not nn.Sequential
+        self.q_net = _QNet(ParamStack([list(p.q_net.parameters()) for p in policies], self.device), self.dueling)
+        self.q_net_target = _QNet(ParamStack([list(p.q_net_target.parameters()) for p in policies], self.device),
+                                  self.dueling)
+        group = policies[0].optimizer.param_groups[0]
+        self.adam = StackedAdam(self.q_net.stack, self.learning_rate, group["betas"], group["eps"])
+        self._gamma = per_run_column(self.gamma, self.device).unsqueeze(2)
+        self._mean_grad = th.full((k, self.batch_size, 1), 1.0 / self.batch_size, device=self.device)
+        self._one = th.tensor(1.0, device=self.device)
+        self._n_calls = 0
+        self.priorities = ([RunPriorities(self.buffer_size, per_alpha, per_eps) for _ in range(k)]
+                           if algo == "per" else [])
+
+    # -- acting -----------------------------------------------------------------------------------------------
+
+    def q_values(self, obs: np.ndarray) -> th.Tensor:
+        """Q(s, ·) of every run, ``[K, actions]`` (obs ``[K, obs]``)."""
+        with th.no_grad():
+            return self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.runs, -1)
+
+    def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
+        """Every run's action ``[K]`` (SB3's ``_sample_action``: random before ``learning_starts``, then
+        ε-greedy with the run's ε; without ``explore`` the greedy action)."""
+        actions = np.zeros(self.runs, dtype=np.int64)
+        greedy = np.ones(self.runs, dtype=bool)
+        if explore:
+            warm_up = self.num_timesteps < self.learning_starts
+            for k, (rs, space) in enumerate(zip(self.streams.numpy, self.streams.spaces)):
+                if warm_up or rs.rand() < self.exploration_rate[k]:
+                    actions[k] = space.sample()
+                    greedy[k] = False
+        if greedy.any():
+            best = self.q_values(obs).argmax(dim=1).cpu().numpy()
+            actions[greedy] = best[greedy]
+        return actions
+
+    def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
+        return np.asarray(action).reshape(self.runs, 1)
+
+    def _stored(self, pos: int) -> None:
+        for priorities in self.priorities:
+            priorities.added(pos)
+
+    def _on_step(self) -> None:
+        """SB3's DQN ``_on_step``: the target copied every ``target_update_interval`` steps, ε from the schedule."""
+        self._n_calls += 1
+        if self._n_calls % max(self.target_update_interval, 1) == 0:
+            hard_update(self.q_net_target.stack, self.q_net.stack)
+        self.exploration_rate = [schedule(self.progress_remaining) for schedule in self.exploration]
+
+    def per_beta(self) -> float:
+        """The importance-sampling exponent now: β0 → 1 linearly over training (:mod:`..prioritized`)."""
+        fraction = min(max(1.0 - float(self.progress_remaining), 0.0), 1.0)
+        return self.per_beta0 + (1.0 - self.per_beta0) * fraction
+
+    # -- the update -------------------------------------------------------------------------------------------
+
+    def _sample(self) -> tuple[np.ndarray, th.Tensor | None]:
+        """Every run's minibatch positions ``[K, batch]`` and, with prioritised replay, loss weights."""
+        if not self.priorities:
+            return self.streams.sample_indices(self.replay.size(), self.batch_size), None
+        beta = self.per_beta()
+        drawn = [p.sample(rs, self.batch_size, beta) for p, rs in zip(self.priorities, self.streams.numpy)]
+        indices = np.stack([d[0] for d in drawn])
+        weights = th.from_numpy(np.stack([d[1] for d in drawn])).to(self.device).unsqueeze(2)
+        return indices, weights
+
+    def _update(self) -> None:
+        mm = self.mm
+        indices, weights = self._sample()
+        obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
+        with th.no_grad():
+            if self.double_q:
+                next_actions = self.q_net.forward(mm, next_obs)[1].argmax(dim=2, keepdim=True)
+                next_q = th.gather(self.q_net_target.forward(mm, next_obs)[1], dim=2, index=next_actions)
+            else:
+                next_q = self.q_net_target.forward(mm, next_obs)[1].max(dim=2, keepdim=True)[0]
+            target_q = rewards + (1 - dones) * self._gamma * next_q
+
+            outs, q_values = self.q_net.forward(mm, obs)
+            index = actions.long()
+            current_q = th.gather(q_values, dim=2, index=index)
+            loss, grad_current = self._loss(current_q, target_q, weights)
+            grad_q = th.zeros_like(q_values).scatter_add_(2, index, grad_current)  # the gather's backward
+            grads = self.q_net.backward(mm, outs, grad_q)
+            # clip_grad_norm_(max_grad_norm) per run, as torch computes it
+            norms = th.stack([th.linalg.vector_norm(g.reshape(self.runs, -1), 2.0, dim=1) for g in grads], dim=1)
+            total_norm = th.linalg.vector_norm(norms, 2.0, dim=1)
+            scale = th.clamp(self.max_grad_norm / (total_norm + 1e-6), max=1.0)
+            for g in grads:
+                g.mul_(scale.view(self.runs, *([1] * (g.dim() - 1))))
+            self.adam.step(grads)
+        self.losses = {"loss": loss}
+        if self.priorities:
+            td_errors = (target_q - current_q).reshape(self.runs, -1).abs().cpu().numpy()
+            for priorities, idx, td in zip(self.priorities, indices, td_errors):
+                priorities.update(idx, td)
+
+    def _loss(self, current_q: th.Tensor, target_q: th.Tensor,
+              weights: th.Tensor | None) -> tuple[th.Tensor, th.Tensor]:
+        """(loss per run ``[K]``, its gradient with respect to ``current_q``) as the single run computes them:
+        the mean over the batch as each element's 1/n (the mean reduction's backward, per run), the weighted
+        mean's expand / n and product g · w; the squared loss's ½ on the gradient (as :mod:`..fast_dqn`'s
+        ``_squared_loss``)."""
+        if self.loss == "squared":
+            per_sample = 0.5 * F.mse_loss(current_q, target_q, reduction="none")
+            if weights is None:  # 2/n · δ · ½ of the mean reduction equals 2 · δ · (½ / n): both scale by powers of 2
+                grad = aten.mse_loss_backward(self._mean_grad * 0.5, current_q, target_q, NO_REDUCTION)
+                return 0.5 * F.mse_loss(current_q, target_q, reduction="none").mean(dim=(1, 2)), grad
+            grad_mean = self._one.expand(per_sample.shape) / self.batch_size
+            grad = aten.mse_loss_backward(grad_mean * weights * 0.5, current_q, target_q, NO_REDUCTION)
+            return (weights * per_sample).mean(dim=(1, 2)), grad
+        per_sample = F.smooth_l1_loss(current_q, target_q, reduction="none")
+        if weights is None:
+            grad = aten.smooth_l1_loss_backward(self._mean_grad, current_q, target_q, NO_REDUCTION, HUBER_BETA)
+            return per_sample.mean(dim=(1, 2)), grad
+        grad_mean = self._one.expand(per_sample.shape) / self.batch_size
+        grad = aten.smooth_l1_loss_backward(grad_mean * weights, current_q, target_q, NO_REDUCTION, HUBER_BETA)
+        return (weights * per_sample).mean(dim=(1, 2)), grad
+
+    # -- checkpoint and export --------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "q_net": self.q_net.stack.flat, "q_net_target": self.q_net_target.stack.flat,
+                "adam": self.adam.state_dict(), "n_calls": self._n_calls,
+                "exploration_rate": list(self.exploration_rate),
+                "priorities": [p.state() for p in self.priorities]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        self.q_net.stack.flat.copy_(state["q_net"])
+        self.q_net_target.stack.flat.copy_(state["q_net_target"])
+        self.adam.load_state_dict(state["adam"])
+        self._n_calls = int(state["n_calls"])
+        self.exploration_rate = [float(e) for e in state["exploration_rate"]]
+        for priorities, saved in zip(self.priorities, state["priorities"]):
+            priorities.load_state(saved)
+
+    def sb3_model(self, k: int) -> Any:
+        """Run k as a model of the registry's class for ``algo``: its hyperparameters, networks, Adam state,
+        step counts and ε."""
+        schedule = self.exploration[k]
+        with kept_random_state():
+            model = self.cls("MlpPolicy", SpacesEnv(self.observation_space, self.action_space),
+                             learning_rate=self.learning_rate[k], buffer_size=self.buffer_size,
+                             batch_size=self.batch_size, gamma=self.gamma[k], learning_starts=self.learning_starts,
+                             target_update_interval=self.target_update_interval,
+                             exploration_initial_eps=schedule.start, exploration_final_eps=schedule.end,
+                             exploration_fraction=schedule.end_fraction, max_grad_norm=self.max_grad_norm,
+                             loss=self.loss,
+                             train_freq=1, gradient_steps=1, seed=self.seeds[k], device="cpu", verbose=0,
+                             policy_kwargs={"net_arch": list(self.layers), "activation_fn": nn.ReLU},
+                             **({"per_alpha": self.per_alpha, "per_beta0": self.per_beta0, "per_eps": self.per_eps}
+                                if self.algo == "per" else {}))
+        with th.no_grad():
+            for net, stack in ((model.q_net, self.q_net.stack), (model.q_net_target, self.q_net_target.stack)):
+                for p, value in zip(net.parameters(), stack.row(k)):
+                    p.copy_(value)
+        if self.adam.steps:
+            state = model.policy.optimizer.state_dict()
+            state["state"] = self.adam.sb3_state(k, list(model.q_net.parameters()))
+            model.policy.optimizer.load_state_dict(state)
+        model.num_timesteps, model._n_updates = self.num_timesteps, self.n_updates
+        model.exploration_rate = self.exploration_rate[k]
+        return model
+
+    def export(self, k: int, path: str | Path) -> None:
+        """Write run k as an ordinary ``model.zip`` (``stable_baselines3.DQN.load`` loads it)."""
+        self.sb3_model(k).save(path)

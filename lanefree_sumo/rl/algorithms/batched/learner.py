@@ -1,0 +1,155 @@
+"""What the batched learners share: K runs' seeds, streams, replay, step counts and the store/update cycle.
+
+The cycle per environment step is SB3's (``collect_rollouts`` then ``train``): :meth:`act` for every run,
+the env steps, :meth:`store` (the step count, the transition, the per-step schedule: SB3's ``_on_step``), then
+:meth:`update` (one gradient step per run once the step count is past ``learning_starts``).
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+from lanefree_sumo.rl.algorithms.batched.replay import BatchedReplay, RunStreams
+from lanefree_sumo.rl.algorithms.batched.stack import Products
+
+
+def per_run(value: float | Sequence[float], runs: int, name: str) -> list[float]:
+    """``value`` for each of ``runs`` runs: one number for all, or one per run."""
+    if isinstance(value, (int, float)):
+        return [float(value)] * runs
+    values = [float(v) for v in value]
+    if len(values) != runs:
+        raise ValueError(f"{name}: {len(values)} values for {runs} runs; give one value or one per run")
+    return values
+
+
+@contextmanager
+def kept_random_state() -> Iterator[None]:
+    """Python's, numpy's and torch's global random states as they were before the block (building an SB3
+    model reseeds them all)."""
+    python, numpy = random.getstate(), np.random.get_state()
+    with th.random.fork_rng(devices=[]):
+        yield
+    random.setstate(python)
+    np.random.set_state(numpy)
+
+
+class SpacesEnv(gym.Env):
+    """An environment that only declares its spaces: what SB3 needs to build a model to export weights into."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space) -> None:
+        self.observation_space, self.action_space = observation_space, action_space
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        raise NotImplementedError("an export-only environment does not run")
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        raise NotImplementedError("an export-only environment does not run")
+
+
+class BatchedLearner:
+    """K runs of one off-policy algorithm: per-run seeds and random streams, replay ``[K, capacity, …]``.
+
+    :param observation_space: a flat float32 Box (the vector observation), the same for all runs.
+    :param seeds: run k's seed (its initial weights and random streams are the single run's with this seed).
+    :param total_timesteps: the runs' SB3 ``learn`` length in steps (the progress the ε and β schedules read).
+    :param device: where the networks and the replay live (CPU: batched run k equals the single run bit for bit).
+    :param exact: use the batched products only where they give the single run's bits (default: on CPU)."""
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
+                 batch_size: int, buffer_size: int, learning_starts: int, total_timesteps: int,
+                 action_dim: int, action_dtype: th.dtype, device: str | th.device = "cpu",
+                 exact: bool | None = None) -> None:
+        if not (isinstance(observation_space, spaces.Box) and len(observation_space.shape) == 1
+                and observation_space.dtype == np.float32):
+            raise ValueError("batched learners take a flat float32 Box observation (the vector observation)")
+        if not seeds:
+            raise ValueError("a batch needs at least one run")
+        self.observation_space, self.action_space = observation_space, action_space
+        self.seeds = [int(s) for s in seeds]
+        self.runs = len(self.seeds)
+        self.device = th.device(device)
+        self.mm = Products(self.device.type == "cpu" if exact is None else exact)
+        self.batch_size, self.buffer_size = int(batch_size), int(buffer_size)
+        self.learning_starts, self.total_timesteps = int(learning_starts), int(total_timesteps)
+        self.obs_dim = int(observation_space.shape[0])
+        self.streams = RunStreams(self.seeds, action_space)
+        self.replay = BatchedReplay(self.runs, self.buffer_size, self.obs_dim, action_dim, action_dtype, self.device)
+        self.num_timesteps = 0
+        self.n_updates = 0
+        self.progress_remaining = 1.0
+        self.losses: dict[str, th.Tensor] = {}
+        """The last update's losses per run (``[K]`` tensors on the device; read them when logging)."""
+
+    # -- the cycle ------------------------------------------------------------------------------------------
+
+    def _obs(self, obs: np.ndarray) -> th.Tensor:
+        """Observations ``[K, obs]`` as the networks take them: ``[K, 1, obs]`` float32 on the device."""
+        return th.as_tensor(np.asarray(obs)).float().reshape(self.runs, 1, self.obs_dim).to(self.device)
+
+    def store(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
+              done: np.ndarray, truncated: np.ndarray | None = None) -> None:
+        """Store every run's transition and advance the step count (SB3's ``_store_transition`` and
+        ``_on_step``). ``action``: what :meth:`act` returned; ``done``: the episode ended (terminated or
+        truncated); ``truncated``: it ended by the time limit (SB3's ``TimeLimit.truncated``: no terminal
+        value cut); ``next_obs``: the observation after the action (the terminal one where ``done``)."""
+        done = np.asarray(done, dtype=bool).reshape(self.runs)
+        timeouts = np.zeros(self.runs, dtype=bool) if truncated is None else np.asarray(truncated, dtype=bool)
+        self.num_timesteps += 1
+        pos = self.replay.add(obs, next_obs, self._buffer_actions(action), np.asarray(reward), done, timeouts)
+        self._stored(pos)
+        self.progress_remaining = 1.0 - float(self.num_timesteps) / float(self.total_timesteps)
+        self._on_step()
+        if done.any():
+            self._episodes_ended(done)
+
+    def update(self) -> bool:
+        """One gradient step for every run once the step count is past ``learning_starts`` (SB3's ``learn``:
+        ``train_freq = gradient_steps = 1``); returns whether it stepped."""
+        if not (self.num_timesteps > 0 and self.num_timesteps > self.learning_starts):
+            return False
+        self.n_updates += 1
+        self._update()
+        return True
+
+    # -- what each algorithm supplies -------------------------------------------------------------------------
+
+    def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _stored(self, pos: int) -> None:
+        """A transition was stored at ``pos`` for every run."""
+
+    def _on_step(self) -> None:
+        """SB3's ``_on_step`` (after the step count and the progress moved)."""
+
+    def _episodes_ended(self, done: np.ndarray) -> None:
+        """Runs ``done`` (bool ``[K]``) ended an episode."""
+
+    def _update(self) -> None:
+        raise NotImplementedError
+
+    # -- checkpoint -------------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a resumed batch needs (networks, optimisers, replay, random streams, counters); the
+        tensors are the learner's own (``torch.save`` it, or copy it before the learner goes on)."""
+        return {"seeds": list(self.seeds), "num_timesteps": self.num_timesteps, "n_updates": self.n_updates,
+                "progress_remaining": self.progress_remaining, "streams": self.streams.state(),
+                "replay": self.replay.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if list(state["seeds"]) != self.seeds:
+            raise ValueError(f"the checkpoint holds runs with seeds {state['seeds']}, this batch {self.seeds}")
+        self.num_timesteps, self.n_updates = int(state["num_timesteps"]), int(state["n_updates"])
+        self.progress_remaining = float(state["progress_remaining"])
+        self.streams.load_state(state["streams"])
+        self.replay.load_state_dict(state["replay"])
