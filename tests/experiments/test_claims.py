@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from lanefree_sumo.experiments.claims import (
     COMPARISONS,
@@ -14,10 +15,12 @@ from lanefree_sumo.experiments.claims import (
     claims_markdown,
     decidable,
     difference_ci,
+    per_run,
     rank_test,
     verdict,
 )
 from lanefree_sumo.experiments.report import RunData
+from lanefree_sumo.experiments.statistics import bootstrap_ci, bootstrap_difference_ci
 
 from conftest import fenced_rows
 
@@ -120,3 +123,77 @@ def test_a_grid_decides_only_the_claims_that_compare_two_of_its_settings():
                           ("dqn", "fields_zones_overtake_collision", 70)])) == 3  # zones at 70, DQN vs DDPG twice
     table = check_claims({}, comparisons=decidable(table5))
     assert list(table["claim"]) == claims and (table["verdict"] == "no data").all()
+
+
+# -- exact boundaries: a CI bound of exactly 0, the run counts, the episode window --------------------
+
+def test_a_ci_bound_of_exactly_zero_is_inconclusive_on_either_side():
+    assert verdict(1, 0.0, 0.5) == "inconclusive" and verdict(-1, 0.0, 0.5) == "inconclusive"
+    assert verdict(-1, -0.5, 0.0) == "inconclusive" and verdict(1, -0.5, 0.0) == "inconclusive"
+    assert verdict(0, 0.0, 0.5) == verdict(0, -0.5, 0.0) == "no difference detected (low power)"
+    assert verdict(1, 1e-12, 0.5) == "reproduced" and verdict(-1, 1e-12, 0.5) == "opposite"
+    assert verdict(-1, -0.5, -1e-12) == "reproduced" and verdict(1, -0.5, -1e-12) == "opposite"
+    assert verdict(0, 1e-12, 0.5) == verdict(0, -0.5, -1e-12) == "not reproduced (a difference)"
+    assert verdict(1, 0.0, 0.0) == "inconclusive"
+
+
+def test_a_bootstrap_whose_low_bound_is_exactly_zero():
+    # a = [1, 1, 1] always averages 1; b = [0, 0, 1] resampled averages 0, 1/3, 2/3 or 1. The difference
+    # is 0 only when all three draws of b are the 1: probability (1/3)^3 = 1/27 ≈ 3.7 % > 2.5 %, so the
+    # 2.5 % quantile is exactly 0; the difference is 1 with probability (2/3)^3 ≈ 30 % > 2.5 %: high = 1
+    diff, low, high = difference_ci([1.0, 1.0, 1.0], [0.0, 0.0, 1.0])
+    assert (diff, low, high) == (pytest.approx(2 / 3), 0.0, 1.0)
+    assert verdict(1, low, high) == "inconclusive"
+    diff, low, high = difference_ci([0.0, 0.0, 1.0], [1.0, 1.0, 1.0])  # mirrored: high is exactly 0
+    assert (diff, low, high) == (pytest.approx(-2 / 3), -1.0, 0.0)
+    assert verdict(-1, low, high) == "inconclusive"
+    # the claims table reads the same CI: three runs each, one value per run
+    groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [1.0] * 4) for s in range(3)],
+              ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [c] * 4)
+                                                   for s, c in enumerate([0.0, 0.0, 1.0])]}
+    row = check_claims(groups, last=2, comparisons=COMPARISONS[:1]).iloc[0]
+    assert (row["n_a"], row["n_b"], row["ci95_low"], row["ci95_high"]) == (3, 3, 0.0, 1.0)
+    assert row["verdict"] == "inconclusive" and row["difference"] == pytest.approx(2 / 3)
+
+
+def test_the_bootstrap_intervals_at_their_boundaries():
+    # two values: the resampled mean is 0, 0.5 or 1 with probabilities 1/4, 1/2, 1/4 (10 000 draws:
+    # about 2 500 ± 45 zeros and ones): the 95 % interval is [0, 1], the 20 % one (quantiles 0.4, 0.6) [0.5, 0.5]
+    assert bootstrap_ci([0.0, 1.0]) == (0.0, 1.0)
+    assert bootstrap_ci([0.0, 1.0], level=0.2) == (0.5, 0.5)
+    assert all(np.isnan(bootstrap_ci([1.0])))  # fewer than 2 values
+    assert bootstrap_ci([3.0, 3.0]) == (3.0, 3.0)
+    # one resample is one mean: both bounds are that mean, one of 0, 0.5, 1
+    low, high = bootstrap_ci([0.0, 1.0], resamples=1)
+    assert low == high and low in (0.0, 0.5, 1.0)
+    # the difference: one value per group is enough (its CI is the point), an empty group is not
+    assert bootstrap_difference_ci([2.0], [0.5]) == (1.5, 1.5)
+    assert all(np.isnan(bootstrap_difference_ci([], [1.0]))) and all(np.isnan(bootstrap_difference_ci([1.0], [])))
+    assert bootstrap_difference_ci([0.0, 1.0], [0.0]) == (0.0, 1.0)
+    assert bootstrap_difference_ci([0.0], [0.0, 1.0]) == (-1.0, 0.0)  # b subtracted, not a
+    assert bootstrap_difference_ci([0.0, 1.0], [0.0], level=0.2) == (0.5, 0.5)
+    # the seed is used: two seeds give different intervals of a spread sample, the same seed the same one
+    values = list(np.linspace(0.0, 1.0, 7))
+    assert bootstrap_ci(values, seed=1) == bootstrap_ci(values, seed=1) != bootstrap_ci(values, seed=2)
+    assert bootstrap_difference_ci(values, values, seed=1) != bootstrap_difference_ci(values, values, seed=2)
+
+
+def test_difference_needs_three_runs_in_each_group():
+    diff, low, high = difference_ci([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])
+    assert diff == 2.0 and not np.isnan(low) and not np.isnan(high)
+    for a, b in (([1.0, 2.0], [0.0, 0.0, 0.0]), ([1.0, 2.0, 3.0], [0.0, 0.0])):
+        diff, low, high = difference_ci(a, b)
+        assert np.isnan(low) and np.isnan(high) and diff == pytest.approx(np.mean(a) - np.mean(b))
+    assert all(np.isnan(difference_ci([], [1.0, 2.0, 3.0])))
+    assert all(np.isnan(difference_ci([1.0, 2.0, 3.0], [])))
+
+
+def test_per_run_statistic_over_the_last_episodes_or_a_closed_window():
+    r = run("ddpg", "collision", 70.0, 0, [1.0, 2.0, 4.0, 8.0])  # episodes 1..4
+    assert per_run([r], "collisions", 2, None) == [6.0]  # (4 + 8) / 2
+    assert per_run([r], "collisions", 1, None) == [8.0]
+    assert per_run([r], "collisions", 9, None) == [3.75]  # all four
+    assert per_run([r], "collisions", 2, (2, 4)) == [pytest.approx(14 / 3)]  # episodes 2, 3, 4: both ends in
+    assert per_run([r], "collisions", 2, (1, 2)) == [1.5]
+    assert per_run([r], "collisions", 2, (2, 5)) == []  # the run ends before episode 5
+    assert per_run([r, r], "speed_dev_mps", 2, None) == [1.0, 1.0]
