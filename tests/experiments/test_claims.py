@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,9 @@ import pandas as pd
 import pytest
 
 from lanefree_sumo.experiments.claims import (
+    COLUMNS,
     COMPARISONS,
+    Comparison,
     check_claims,
     claims_markdown,
     decidable,
@@ -19,6 +22,7 @@ from lanefree_sumo.experiments.claims import (
     rank_test,
     verdict,
 )
+from lanefree_sumo.experiments.markdown import TABLE_BEGIN
 from lanefree_sumo.experiments.report import RunData
 from lanefree_sumo.experiments.statistics import bootstrap_ci, bootstrap_difference_ci
 
@@ -181,7 +185,7 @@ def test_the_bootstrap_intervals_at_their_boundaries():
 def test_difference_needs_three_runs_in_each_group():
     diff, low, high = difference_ci([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])
     assert diff == 2.0 and not np.isnan(low) and not np.isnan(high)
-    for a, b in (([1.0, 2.0], [0.0, 0.0, 0.0]), ([1.0, 2.0, 3.0], [0.0, 0.0])):
+    for a, b in (([1.0, 2.0], [1.0, 1.0, 4.0]), ([1.0, 2.0, 3.0], [0.5, 1.5])):
         diff, low, high = difference_ci(a, b)
         assert np.isnan(low) and np.isnan(high) and diff == pytest.approx(np.mean(a) - np.mean(b))
     assert all(np.isnan(difference_ci([], [1.0, 2.0, 3.0])))
@@ -197,3 +201,95 @@ def test_per_run_statistic_over_the_last_episodes_or_a_closed_window():
     assert per_run([r], "collisions", 2, (1, 2)) == [1.5]
     assert per_run([r], "collisions", 2, (2, 5)) == []  # the run ends before episode 5
     assert per_run([r, r], "speed_dev_mps", 2, None) == [1.0, 1.0]
+
+
+def test_the_bootstrap_quantiles_are_the_two_tails_of_the_level():
+    # [0, 1, 1]: the resampled mean is 0 with probability (1/3)^3 = 1/27 ≈ 3.7 %, 1/3 with 6/27 ≈ 22 %. A level of
+    # 0.91 puts the low bound at the 4.5 % quantile: above the 3.7 % of zeros (by about 8 draws' standard errors
+    # in 10 000), so 1/3; a 3 % quantile would fall among the zeros
+    assert bootstrap_ci([0.0, 1.0, 1.0], level=0.91) == (pytest.approx(1 / 3), 1.0)
+    # mirrored, [0, 0, 1]: the high bound at the 95.5 % quantile is 2/3 (1 has 3.7 %)
+    assert bootstrap_ci([0.0, 0.0, 1.0], level=0.91) == (0.0, pytest.approx(2 / 3))
+    assert bootstrap_difference_ci([1.0, 1.0, 1.0], [0.0, 0.0, 1.0], level=0.91) == (pytest.approx(1 / 3), 1.0)
+
+
+def test_the_default_seed_is_zero_and_a_seed_fixes_the_draws():
+    # the committed tables were computed with seed 0: the same values give the same CIs, another seed others
+    values = [0.0, 0.3, 1.1, 2.9, 7.0, 20.5]
+    assert bootstrap_ci(values) == bootstrap_ci(values, seed=0) == bootstrap_ci(values, seed=0)
+    assert bootstrap_ci(values, seed=0) != bootstrap_ci(values, seed=1)
+    other = [1.0, 4.2, 0.7]
+    assert bootstrap_difference_ci(values, other) == bootstrap_difference_ci(values, other, seed=0) \
+        == bootstrap_difference_ci(values, other, seed=0)
+    assert bootstrap_difference_ci(values, other, seed=0) != bootstrap_difference_ci(values, other, seed=1)
+    assert difference_ci(values, other)[1:] == bootstrap_difference_ci(values, other)
+    assert difference_ci(values, other, seed=1)[1:] == bootstrap_difference_ci(values, other, seed=1)
+
+
+def test_an_empty_group_gives_nan_without_a_numpy_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all(np.isnan(bootstrap_difference_ci([], [1.0, 2.0])))
+        assert all(np.isnan(bootstrap_difference_ci([1.0, 2.0], [])))
+        assert all(np.isnan(difference_ci([], [1.0, 2.0, 3.0]))) and all(np.isnan(difference_ci([1.0, 2.0], [])))
+
+
+def test_a_run_short_of_the_window_is_skipped_and_the_next_one_counted():
+    short = run("ddpg", "collision", 70.0, 0, [1.0, 2.0])
+    full = run("ddpg", "collision", 70.0, 1, [1.0, 2.0, 4.0, 8.0])
+    assert per_run([short, full, short, full], "collisions", 2, (2, 4)) == [pytest.approx(14 / 3)] * 2
+
+
+def test_sampled_rank_p_values_are_reproducible():
+    many = list(np.linspace(0, 1, 11)), list(np.linspace(0.5, 1.5, 11))  # C(22, 11) = 705 432 splits: sampled
+    assert rank_test(*many, -1) == rank_test(*many, -1)
+
+
+FZOC_KEY = ("ddpg", "fields_zones_overtake_collision")
+
+
+def test_claims_rows_name_their_groups_metric_and_the_papers_difference():
+    speed = Comparison("speed", (*FZOC_KEY, 120.0), (*FZOC_KEY, 70.0), metric="speed_dev_mps")
+    windowed = Comparison("window", (*FZOC_KEY, 120.0), (*FZOC_KEY, 70.0), window=(2, 3))
+    unknown = Comparison("no paper value", (*FZOC_KEY, 120.0), ("ddpg", "collision", 55.0))
+    table = check_claims({}, comparisons=(speed, windowed, unknown))
+    assert list(table.columns) == list(COLUMNS)
+    assert list(table["metric"]) == ["speed_dev_mps (last 50)", "collisions (episodes 2–3)", "collisions (last 50)"]
+    assert list(table["a"]) == ["ddpg/fields_zones_overtake_collision/120"] * 3
+    assert list(table["b"]) == ["ddpg/fields_zones_overtake_collision/70", "ddpg/fields_zones_overtake_collision/70",
+                                "ddpg/collision/55"]
+    # Table 7 (FZOC, DDPG): speed deviation 1.718 m/s at 120 veh/km, 0.723 at 70; no paper value for a window
+    # or for a setting the paper does not have
+    assert table["paper_difference"].iloc[0] == pytest.approx(1.718 - 0.723)
+    assert np.isnan(table["paper_difference"].iloc[1]) and np.isnan(table["paper_difference"].iloc[2])
+    assert list(check_claims({}, comparisons=()).columns) == list(COLUMNS)  # no rows, the same columns
+
+
+def test_claims_use_the_last_fifty_episodes_by_default():
+    # 60 episodes: the first 10 differ, so the last 50 (not 51) give exactly 2.0 and 1.0
+    groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [9.0] * 10 + [2.0] * 50)
+                                            for s in range(3)],
+              ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [0.0] * 10 + [1.0] * 50)
+                                                   for s in range(3)]}
+    row = check_claims(groups, comparisons=COMPARISONS[:1]).iloc[0]
+    assert row["difference"] == 1.0 and row["metric"] == "collisions (last 50)"
+
+
+def test_claims_markdown_rows_with_and_without_data():
+    groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [3.0 + s] * 4) for s in range(3)],
+              ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [1.0] * 4)
+                                                   for s in range(3)]}
+    comparisons = (COMPARISONS[0], Comparison("unknown", ("ddpg", "collision", 55.0), ("ddpg", "collision", 70.0)))
+    text = claims_markdown(check_claims(groups, last=2, comparisons=comparisons))
+    assert text.startswith("# The paper's claims, checked\n\nDifference of per-run means")
+    assert text.endswith("\n") and "(every a above every b).\n\n" + TABLE_BEGIN + "\n" in text
+    rows = fenced_rows(text)
+    assert rows[0] == "| claim | metric | n (a, b) | paper | ours [95 % CI] | rank: a > b, p | verdict |"
+    assert rows[1] == "|---|---|---|---|---|---|---|"
+    # a − b = mean(3, 4, 5) − 1 = 3; every a above every b: 9 of 9 pairs, p = 1/20; paper 2.256 − 0.726
+    low, high = check_claims(groups, last=2, comparisons=comparisons[:1]).iloc[0][["ci95_low", "ci95_high"]]
+    assert rows[2] == (f"| {COMPARISONS[0].claim} | collisions (last 2) | 3, 3 | +1.530 | +3.000 [{low:+.3f}, "
+                       f"{high:+.3f}] | 9/9, p = 0.05 | reproduced |")
+    # no runs at 55 veh/km and no paper value: dashes, no CI, no rank
+    assert rows[3] == "| unknown | collisions (last 2) | 0, 3 | – | – | – | no data |"
+    assert len(rows) == 4

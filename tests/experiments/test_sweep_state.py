@@ -6,11 +6,14 @@ from __future__ import annotations
 import json
 import os
 import socket
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import pytest
 
+from lanefree_sumo.experiments.sweep import state
 from lanefree_sumo.experiments.sweep.manifest import SweepDir
 from lanefree_sumo.experiments.sweep.state import (
     BUSY,
@@ -29,6 +32,7 @@ from lanefree_sumo.experiments.sweep.state import (
     failure_reason,
     heartbeat_age,
     inspect_run,
+    open_files,
     overlay,
     read_heartbeat,
     record_failure,
@@ -161,3 +165,42 @@ def test_overlay_running_busy_failed_on_top_of_the_folder_state(tmp_path):
     clear_failure(sweep, name)
     assert failure_reason(sweep, name) is None and overlay(sweep, name, info, {}) == info
     assert heartbeat_age(sweep, "other") is None and read_heartbeat(sweep, "other") == {}
+
+
+def test_a_heartbeat_names_its_worker_is_refreshed_and_removed(tmp_path, monkeypatch):
+    monkeypatch.setattr(state, "HEARTBEAT_S", 0.01)
+    sweep = SweepDir(tmp_path)
+    beat = state.Heartbeat(sweep, "r", {"episodes": 3})
+    try:
+        data = read_heartbeat(sweep, "r")
+        assert (data["pid"], data["host"], data["episodes"]) == (os.getpid(), socket.gethostname(), 3)
+        assert time.strptime(data["started"], "%Y-%m-%dT%H:%M:%S")
+        old = time.time() - 60
+        os.utime(beat.path, (old, old))
+        deadline = time.monotonic() + 30
+        while heartbeat_age(sweep, "r") > 30 and time.monotonic() < deadline:
+            time.sleep(0.01)  # polling the state the thread changes
+        assert heartbeat_age(sweep, "r") < 30  # refreshed by the thread
+    finally:
+        beat.stop()
+    assert not beat.path.exists()
+    beat._thread.join(timeout=30)  # stop() waits 2 × HEARTBEAT_S only; a loaded machine may need longer
+    assert not beat._thread.is_alive()  # the thread ended: the stop event was set
+
+
+def test_open_files_lists_the_files_other_processes_hold(tmp_path):
+    path = tmp_path / "episodes.csv"
+    path.write_text("episode\n")
+    holder = subprocess.Popen([sys.executable, "-c", f"f = open({str(path)!r}); print('open', flush=True); "
+                               "import sys; sys.stdin.read()"],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        opened = open_files()
+        assert holder.pid in opened[str(path.resolve())]
+        assert os.getpid() not in {pid for pids in opened.values() for pid in pids}  # never this process
+        assert writers_elsewhere(path) == [holder.pid]
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    assert writers_elsewhere(path) == []

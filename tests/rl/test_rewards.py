@@ -271,6 +271,7 @@ def test_overtake_simple_pass():
     assert detect_overtakes(np.array([0.0]), np.array([-1.0]), 80.0, L) == 0  # from > 0 only
     assert detect_overtakes(np.array([-1.0]), np.array([1.0]), 80.0, L) == 0  # being passed
     assert detect_overtakes(np.array([3.0]), np.array([2.0]), 80.0, L) == 0  # still ahead
+    assert detect_overtakes(np.array([2.0]), np.array([0.5]), 80.0, L) == 0  # still ahead, closer than 1 m
 
 
 def test_overtake_ring_seam_is_not_a_pass():
@@ -452,6 +453,7 @@ def test_unknown_preset_lists_names():
         get_preset("fieldz")
     msg = str(err.value)
     assert "fieldz" in msg and "\n" not in msg
+    assert msg.endswith("valid presets: " + ", ".join(SPEC_TABLE))
     for name in SPEC_TABLE:
         assert name in msg
     with pytest.raises(ValueError):
@@ -562,9 +564,22 @@ def test_compute_reward_uses_every_constant_of_its_config():
     # the switches come from the weights, the amounts from the config
     quiet = _one_neighbour(RewardWeights(2.0, 0.0, 3.0, False, False), cfg, collided=True, overtook=1)
     assert quiet.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x + 3.0 * c_f))
+    # r_o switched off by the preset: a pass without a collision earns nothing
+    no_bonus = _one_neighbour(RewardWeights(2.0, 0.0, 3.0, True, False), cfg, overtook=1)
+    assert no_bonus.overtook is True and no_bonus.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x + 3.0 * c_f))
     # w_f = 0: c_f is still reported, and the reward ignores it
     no_f = _one_neighbour(RewardWeights(2.0, 0.0, 0.0, False, False), cfg)
     assert no_f.c_f == pytest.approx(c_f) and no_f.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x))
+
+
+def test_compute_reward_lateral_closing_speed_is_the_agents_minus_the_neighbours():
+    # the same scene with the neighbour drifting right at 0.5 m/s: dvy = 0.5 − (−0.5) = 1 m/s, closing (dy > 0);
+    # default constants: broad b_b = 2 × (1 + 0.4 × 1) = 2.8, a_b = 3 × (1 + 0.5 × 2) = 6 (ux = 2)
+    terms = compute_reward(np.array([6.0]), np.array([1.0]), np.array([15.0]), np.array([-0.5]), np.array([3.0]),
+                           np.array([2.0]), 5.0, 17.0, 0.5, 3.0, 2.0, 20.0, 10.0, "fields")
+    e_c = 0.5 / ((6 / 3) ** 4 + (1 / 2) ** 4 + 1)
+    e_b = 0.5 / ((6 / 6) ** 2 + (1 / 2.8) ** 2 + 1)
+    assert terms.c_f == pytest.approx(e_c + e_b)
 
 
 def test_compute_reward_floor_of_the_desired_speed_comes_from_the_config():
@@ -630,3 +645,29 @@ def test_boxes_that_touch_do_not_overlap_the_agent():
     # a 2 m one at the same offset does not
     assert agent_overlaps(np.array([4.5, 50.0]), np.zeros(2), 4.0, 2.0, np.array([6.0, 2.0]), np.ones(2))
     assert not agent_overlaps(np.array([50.0, 4.5]), np.zeros(2), 4.0, 2.0, np.array([6.0, 2.0]), np.ones(2))
+
+
+def test_zone_blockers_at_the_exact_scan_boundaries():
+    # agent and vehicle 3 m long: half sum 3 m; agent at 10 m/s, time gap 0.5 s: d_o = 5 m (all exact in binary)
+    def zones(dx):
+        return zone_target(np.array([dx]), np.array([0.0]), np.array([8.0]), np.array([3.0]), np.array([2.0]), 5.0,
+                           10.0, 3.0, 2.0, 20.0, 10.0, time_gap=0.5, margin=0.0)
+
+    assert zones(-3.0) == (5.0, 20.0, False)  # touching behind: entirely behind, not a blocker
+    assert zones(-2.96875)[0] == 8.0  # overlapping by 1/32 m: a blocker ([4, 6] taken, a tie -> left zone [6, 10])
+    assert zones(8.0)[0] == 8.0  # bumper gap 8 − 3 = 5 m = d_o: a blocker
+    assert zones(8.03125) == (5.0, 20.0, False)  # 1/32 m beyond d_o: not
+
+
+def test_zone_edges_are_clipped_to_the_road():
+    # a 0.8 m agent at y = 0.5 with no margin; a 2 m blocker at y = 1.5 takes [0.5, 2.5]: the zone [0, 0.5] is too
+    # narrow, so [2.5, 10] (centre 6.25) is the target
+    def target(y_blocker):
+        return zone_target(np.array([5.0]), np.array([y_blocker - 0.5]), np.array([8.0]), np.array([3.0]),
+                           np.array([2.0]), 0.5, 10.0, 3.0, 0.8, 20.0, 10.0, margin=0.0)[0]
+
+    assert target(1.5) == pytest.approx(6.25)
+    # a blocker beyond the left edge (another road part, on an open road) frees the whole road [0, 10], not more
+    assert target(12.0) == pytest.approx(5.0)
+    # one beyond the right edge likewise
+    assert target(-2.0) == pytest.approx(5.0)
