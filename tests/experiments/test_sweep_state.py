@@ -151,7 +151,9 @@ def test_overlay_running_busy_failed_on_top_of_the_folder_state(tmp_path):
     beat.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
     assert read_heartbeat(sweep, name)["pid"] == os.getpid()
     running = overlay(sweep, name, info, {csv_path: [42]})
-    assert running.state == RUNNING and f"pid {os.getpid()}" in running.detail and running.episodes == 1
+    assert running == RunInfo(RUNNING, 1, f"pid {os.getpid()} on {socket.gethostname()}")
+    beat.write_text("{}")  # fresh but unreadable as a worker: trusted, named by question marks
+    assert overlay(sweep, name, info, {}) == RunInfo(RUNNING, 1, "pid ? on ?")
     # the same heartbeat of a process that is gone: not running
     beat.write_text(json.dumps({"pid": 2**22 + 12345, "host": socket.gethostname()}))
     assert overlay(sweep, name, info, {}).state == FAILED
@@ -204,3 +206,22 @@ def test_open_files_lists_the_files_other_processes_hold(tmp_path):
         holder.stdin.close()
         holder.wait()
     assert writers_elsewhere(path) == []
+
+
+def test_a_session_without_its_episode_count_finishes_nothing(tmp_path):
+    # the default of a missing "episodes_done" must not equal any budget: one episode and {} is not complete
+    assert inspect_run(write_run(tmp_path / "one", [1], done=None), 1).state == STALE
+    (tmp_path / "one" / "last_session.json").write_text("{}")
+    assert inspect_run(tmp_path / "one", 1).state == STALE
+
+
+def test_rows_that_are_not_text_are_still_counted(tmp_path):
+    path = tmp_path / "episodes.csv"
+    path.write_bytes(b"episode,return\n1,1.0\n\xff\xfe,2\n")  # a row of bytes that are not UTF-8
+    assert count_rows(path) == 2 and episode_numbers(path) is None
+
+
+def test_an_empty_failure_reason_reads_failed(tmp_path):
+    sweep = SweepDir(tmp_path)
+    record_failure(sweep, "r", "  ")
+    assert failure_reason(sweep, "r") == "failed"
