@@ -3,21 +3,28 @@
 from __future__ import annotations
 
 import itertools
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from lanefree_sumo.experiments.claims import (
+    COLUMNS,
     COMPARISONS,
+    Comparison,
     check_claims,
     claims_markdown,
     decidable,
     difference_ci,
+    per_run,
     rank_test,
     verdict,
 )
+from lanefree_sumo.experiments.markdown import TABLE_BEGIN
 from lanefree_sumo.experiments.report import RunData
+from lanefree_sumo.experiments.statistics import bootstrap_ci, bootstrap_difference_ci
 
 from conftest import fenced_rows
 
@@ -120,3 +127,169 @@ def test_a_grid_decides_only_the_claims_that_compare_two_of_its_settings():
                           ("dqn", "fields_zones_overtake_collision", 70)])) == 3  # zones at 70, DQN vs DDPG twice
     table = check_claims({}, comparisons=decidable(table5))
     assert list(table["claim"]) == claims and (table["verdict"] == "no data").all()
+
+
+# -- exact boundaries: a CI bound of exactly 0, the run counts, the episode window --------------------
+
+def test_a_ci_bound_of_exactly_zero_is_inconclusive_on_either_side():
+    assert verdict(1, 0.0, 0.5) == "inconclusive" and verdict(-1, 0.0, 0.5) == "inconclusive"
+    assert verdict(-1, -0.5, 0.0) == "inconclusive" and verdict(1, -0.5, 0.0) == "inconclusive"
+    assert verdict(0, 0.0, 0.5) == verdict(0, -0.5, 0.0) == "no difference detected (low power)"
+    assert verdict(1, 1e-12, 0.5) == "reproduced" and verdict(-1, 1e-12, 0.5) == "opposite"
+    assert verdict(-1, -0.5, -1e-12) == "reproduced" and verdict(1, -0.5, -1e-12) == "opposite"
+    assert verdict(0, 1e-12, 0.5) == verdict(0, -0.5, -1e-12) == "not reproduced (a difference)"
+    assert verdict(1, 0.0, 0.0) == "inconclusive"
+
+
+def test_a_bootstrap_whose_low_bound_is_exactly_zero():
+    # a = [1, 1, 1] always averages 1; b = [0, 0, 1] resampled averages 0, 1/3, 2/3 or 1. The difference
+    # is 0 only when all three draws of b are the 1: probability (1/3)^3 = 1/27 ≈ 3.7 % > 2.5 %, so the
+    # 2.5 % quantile is exactly 0; the difference is 1 with probability (2/3)^3 ≈ 30 % > 2.5 %: high = 1
+    diff, low, high = difference_ci([1.0, 1.0, 1.0], [0.0, 0.0, 1.0])
+    assert (diff, low, high) == (pytest.approx(2 / 3), 0.0, 1.0)
+    assert verdict(1, low, high) == "inconclusive"
+    diff, low, high = difference_ci([0.0, 0.0, 1.0], [1.0, 1.0, 1.0])  # mirrored: high is exactly 0
+    assert (diff, low, high) == (pytest.approx(-2 / 3), -1.0, 0.0)
+    assert verdict(-1, low, high) == "inconclusive"
+    # the claims table reads the same CI: three runs each, one value per run
+    groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [1.0] * 4) for s in range(3)],
+              ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [c] * 4)
+                                                   for s, c in enumerate([0.0, 0.0, 1.0])]}
+    row = check_claims(groups, last=2, comparisons=COMPARISONS[:1]).iloc[0]
+    assert (row["n_a"], row["n_b"], row["ci95_low"], row["ci95_high"]) == (3, 3, 0.0, 1.0)
+    assert row["verdict"] == "inconclusive" and row["difference"] == pytest.approx(2 / 3)
+
+
+def test_the_bootstrap_intervals_at_their_boundaries():
+    # two values: the resampled mean is 0, 0.5 or 1 with probabilities 1/4, 1/2, 1/4 (10 000 draws:
+    # about 2 500 ± 45 zeros and ones): the 95 % interval is [0, 1], the 20 % one (quantiles 0.4, 0.6) [0.5, 0.5]
+    assert bootstrap_ci([0.0, 1.0]) == (0.0, 1.0)
+    assert bootstrap_ci([0.0, 1.0], level=0.2) == (0.5, 0.5)
+    assert all(np.isnan(bootstrap_ci([1.0])))  # fewer than 2 values
+    assert bootstrap_ci([3.0, 3.0]) == (3.0, 3.0)
+    # one resample is one mean: both bounds are that mean, one of 0, 0.5, 1
+    low, high = bootstrap_ci([0.0, 1.0], resamples=1)
+    assert low == high and low in (0.0, 0.5, 1.0)
+    # the difference: one value per group is enough (its CI is the point), an empty group is not
+    assert bootstrap_difference_ci([2.0], [0.5]) == (1.5, 1.5)
+    assert all(np.isnan(bootstrap_difference_ci([], [1.0]))) and all(np.isnan(bootstrap_difference_ci([1.0], [])))
+    assert bootstrap_difference_ci([0.0, 1.0], [0.0]) == (0.0, 1.0)
+    assert bootstrap_difference_ci([0.0], [0.0, 1.0]) == (-1.0, 0.0)  # b subtracted, not a
+    assert bootstrap_difference_ci([0.0, 1.0], [0.0], level=0.2) == (0.5, 0.5)
+    # the seed is used: two seeds give different intervals of a spread sample, the same seed the same one
+    values = list(np.linspace(0.0, 1.0, 7))
+    assert bootstrap_ci(values, seed=1) == bootstrap_ci(values, seed=1) != bootstrap_ci(values, seed=2)
+    assert bootstrap_difference_ci(values, values, seed=1) != bootstrap_difference_ci(values, values, seed=2)
+
+
+def test_difference_needs_three_runs_in_each_group():
+    diff, low, high = difference_ci([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])
+    assert diff == 2.0 and not np.isnan(low) and not np.isnan(high)
+    for a, b in (([1.0, 2.0], [1.0, 1.0, 4.0]), ([1.0, 2.0, 3.0], [0.5, 1.5])):
+        diff, low, high = difference_ci(a, b)
+        assert np.isnan(low) and np.isnan(high) and diff == pytest.approx(np.mean(a) - np.mean(b))
+    assert all(np.isnan(difference_ci([], [1.0, 2.0, 3.0])))
+    assert all(np.isnan(difference_ci([1.0, 2.0, 3.0], [])))
+
+
+def test_per_run_statistic_over_the_last_episodes_or_a_closed_window():
+    r = run("ddpg", "collision", 70.0, 0, [1.0, 2.0, 4.0, 8.0])  # episodes 1..4
+    assert per_run([r], "collisions", 2, None) == [6.0]  # (4 + 8) / 2
+    assert per_run([r], "collisions", 1, None) == [8.0]
+    assert per_run([r], "collisions", 9, None) == [3.75]  # all four
+    assert per_run([r], "collisions", 2, (2, 4)) == [pytest.approx(14 / 3)]  # episodes 2, 3, 4: both ends in
+    assert per_run([r], "collisions", 2, (1, 2)) == [1.5]
+    assert per_run([r], "collisions", 2, (2, 5)) == []  # the run ends before episode 5
+    assert per_run([r, r], "speed_dev_mps", 2, None) == [1.0, 1.0]
+
+
+def test_the_bootstrap_quantiles_are_the_two_tails_of_the_level():
+    # [0, 1, 1]: the resampled mean is 0 with probability (1/3)^3 = 1/27 ≈ 3.7 %, 1/3 with 6/27 ≈ 22 %. A level of
+    # 0.91 puts the low bound at the 4.5 % quantile: above the 3.7 % of zeros (by about 8 draws' standard errors
+    # in 10 000), so 1/3; a 3 % quantile would fall among the zeros
+    assert bootstrap_ci([0.0, 1.0, 1.0], level=0.91) == (pytest.approx(1 / 3), 1.0)
+    # mirrored, [0, 0, 1]: the high bound at the 95.5 % quantile is 2/3 (1 has 3.7 %)
+    assert bootstrap_ci([0.0, 0.0, 1.0], level=0.91) == (0.0, pytest.approx(2 / 3))
+    assert bootstrap_difference_ci([1.0, 1.0, 1.0], [0.0, 0.0, 1.0], level=0.91) == (pytest.approx(1 / 3), 1.0)
+
+
+def test_the_default_seed_is_zero_and_a_seed_fixes_the_draws():
+    # the committed tables were computed with seed 0: the same values give the same CIs, another seed others
+    values = [0.0, 0.3, 1.1, 2.9, 7.0, 20.5]
+    assert bootstrap_ci(values) == bootstrap_ci(values, seed=0) == bootstrap_ci(values, seed=0)
+    assert bootstrap_ci(values, seed=0) != bootstrap_ci(values, seed=1)
+    other = [1.0, 4.2, 0.7]
+    assert bootstrap_difference_ci(values, other) == bootstrap_difference_ci(values, other, seed=0) \
+        == bootstrap_difference_ci(values, other, seed=0)
+    assert bootstrap_difference_ci(values, other, seed=0) != bootstrap_difference_ci(values, other, seed=1)
+    assert difference_ci(values, other)[1:] == bootstrap_difference_ci(values, other)
+    assert difference_ci(values, other, seed=1)[1:] == bootstrap_difference_ci(values, other, seed=1)
+
+
+def test_an_empty_group_gives_nan_without_a_numpy_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all(np.isnan(bootstrap_difference_ci([], [1.0, 2.0])))
+        assert all(np.isnan(bootstrap_difference_ci([1.0, 2.0], [])))
+        assert all(np.isnan(difference_ci([], [1.0, 2.0, 3.0]))) and all(np.isnan(difference_ci([1.0, 2.0], [])))
+
+
+def test_a_run_short_of_the_window_is_skipped_and_the_next_one_counted():
+    short = run("ddpg", "collision", 70.0, 0, [1.0, 2.0])
+    full = run("ddpg", "collision", 70.0, 1, [1.0, 2.0, 4.0, 8.0])
+    assert per_run([short, full, short, full], "collisions", 2, (2, 4)) == [pytest.approx(14 / 3)] * 2
+
+
+def test_sampled_rank_p_values_are_reproducible():
+    many = list(np.linspace(0, 1, 11)), list(np.linspace(0.5, 1.5, 11))  # C(22, 11) = 705 432 splits: sampled
+    assert rank_test(*many, -1) == rank_test(*many, -1)
+
+
+FZOC_KEY = ("ddpg", "fields_zones_overtake_collision")
+
+
+def test_claims_rows_name_their_groups_metric_and_the_papers_difference():
+    speed = Comparison("speed", (*FZOC_KEY, 120.0), (*FZOC_KEY, 70.0), metric="speed_dev_mps")
+    windowed = Comparison("window", (*FZOC_KEY, 120.0), (*FZOC_KEY, 70.0), window=(2, 3))
+    unknown = Comparison("no paper value", (*FZOC_KEY, 120.0), ("ddpg", "collision", 55.0))
+    table = check_claims({}, comparisons=(speed, windowed, unknown))
+    assert list(table.columns) == list(COLUMNS)
+    assert list(table["metric"]) == ["speed_dev_mps (last 50)", "collisions (episodes 2–3)", "collisions (last 50)"]
+    assert list(table["a"]) == ["ddpg/fields_zones_overtake_collision/120"] * 3
+    assert list(table["b"]) == ["ddpg/fields_zones_overtake_collision/70", "ddpg/fields_zones_overtake_collision/70",
+                                "ddpg/collision/55"]
+    # Table 7 (FZOC, DDPG): speed deviation 1.718 m/s at 120 veh/km, 0.723 at 70; no paper value for a window
+    # or for a setting the paper does not have
+    assert table["paper_difference"].iloc[0] == pytest.approx(1.718 - 0.723)
+    assert np.isnan(table["paper_difference"].iloc[1]) and np.isnan(table["paper_difference"].iloc[2])
+    assert list(check_claims({}, comparisons=()).columns) == list(COLUMNS)  # no rows, the same columns
+
+
+def test_claims_use_the_last_fifty_episodes_by_default():
+    # 60 episodes: the first 10 differ, so the last 50 (not 51) give exactly 2.0 and 1.0
+    groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [9.0] * 10 + [2.0] * 50)
+                                            for s in range(3)],
+              ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [0.0] * 10 + [1.0] * 50)
+                                                   for s in range(3)]}
+    row = check_claims(groups, comparisons=COMPARISONS[:1]).iloc[0]
+    assert row["difference"] == 1.0 and row["metric"] == "collisions (last 50)"
+
+
+def test_claims_markdown_rows_with_and_without_data():
+    groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [3.0 + s] * 4) for s in range(3)],
+              ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [1.0] * 4)
+                                                   for s in range(3)]}
+    comparisons = (COMPARISONS[0], Comparison("unknown", ("ddpg", "collision", 55.0), ("ddpg", "collision", 70.0)))
+    text = claims_markdown(check_claims(groups, last=2, comparisons=comparisons))
+    assert text.startswith("# The paper's claims, checked\n\nDifference of per-run means")
+    assert text.endswith("\n") and "(every a above every b).\n\n" + TABLE_BEGIN + "\n" in text
+    rows = fenced_rows(text)
+    assert rows[0] == "| claim | metric | n (a, b) | paper | ours [95 % CI] | rank: a > b, p | verdict |"
+    assert rows[1] == "|---|---|---|---|---|---|---|"
+    # a − b = mean(3, 4, 5) − 1 = 3; every a above every b: 9 of 9 pairs, p = 1/20; paper 2.256 − 0.726
+    low, high = check_claims(groups, last=2, comparisons=comparisons[:1]).iloc[0][["ci95_low", "ci95_high"]]
+    assert rows[2] == (f"| {COMPARISONS[0].claim} | collisions (last 2) | 3, 3 | +1.530 | +3.000 [{low:+.3f}, "
+                       f"{high:+.3f}] | 9/9, p = 0.05 | reproduced |")
+    # no runs at 55 veh/km and no paper value: dashes, no CI, no rank
+    assert rows[3] == "| unknown | collisions (last 2) | 0, 3 | – | – | – | no data |"
+    assert len(rows) == 4

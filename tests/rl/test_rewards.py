@@ -271,6 +271,7 @@ def test_overtake_simple_pass():
     assert detect_overtakes(np.array([0.0]), np.array([-1.0]), 80.0, L) == 0  # from > 0 only
     assert detect_overtakes(np.array([-1.0]), np.array([1.0]), 80.0, L) == 0  # being passed
     assert detect_overtakes(np.array([3.0]), np.array([2.0]), 80.0, L) == 0  # still ahead
+    assert detect_overtakes(np.array([2.0]), np.array([0.5]), 80.0, L) == 0  # still ahead, closer than 1 m
 
 
 def test_overtake_ring_seam_is_not_a_pass():
@@ -460,6 +461,7 @@ def test_unknown_preset_lists_names():
         get_preset("fieldz")
     msg = str(err.value)
     assert "fieldz" in msg and "\n" not in msg
+    assert msg.endswith("valid presets: " + ", ".join(PRESETS))
     for name in PAPER_TABLE_4:
         assert name in msg
     with pytest.raises(ValueError):
@@ -482,3 +484,191 @@ def test_the_configs_algorithm_names_are_the_registry():
     from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
     assert get_args(AlgorithmName) == ALGORITHM_NAMES
+
+
+# ------------------------------------------------------------------ non-default weights and constants
+# Weights other than the paper's, and every constant changed, so that a dropped factor, a swapped
+# weight or a default used in place of the passed value changes the number.
+
+
+def test_reciprocal_reward_with_non_default_weights_and_constants():
+    # w_x c_x = 2 × 0.2 = 0.4, w_y c_y = 3 × 0.4 = 1.2, w_f c_f = 4 × 0.5 = 2.0; ε_r = 0.5
+    # r0 = 0.5 / (0.5 + 0.4 + 1.2 + 2.0) = 0.5 / 4.1
+    r0 = 0.5 / 4.1
+    kw = {"epsilon_r": 0.5, "collision_reward": -7.0, "overtake_reward": 3.0}
+    args = (0.2, 0.4, 0.5)
+    w = (2.0, 3.0, 4.0)
+    assert reciprocal_reward(*args, False, False, *w, **kw) == pytest.approx(r0)
+    assert reciprocal_reward(*args, True, False, *w, **kw) == pytest.approx(r0 - 7.0)
+    assert reciprocal_reward(*args, False, True, *w, **kw) == pytest.approx(r0 + 3.0)
+    assert reciprocal_reward(*args, True, True, *w, **kw) == pytest.approx(r0 - 7.0)  # no bonus on a hit
+    # a count of 3 vehicles passed pays the bonus once (per step, not per vehicle)
+    assert reciprocal_reward(*args, False, 3, *w, **kw) == pytest.approx(r0 + 3.0)
+    assert reciprocal_reward(*args, True, False, *w, **kw, use_collision=False) == pytest.approx(r0)
+    assert reciprocal_reward(*args, False, True, *w, **kw, use_overtake=False) == pytest.approx(r0)
+    # swapping c_x and c_y changes the weighted sum: 2 × 0.4 + 3 × 0.2 = 1.4 instead of 1.6
+    assert reciprocal_reward(0.4, 0.2, 0.5, False, False, *w, **kw) == pytest.approx(0.5 / 3.9)
+
+
+def test_reciprocal_reward_arrays_match_the_scalar_formula():
+    # the same four steps as one array call: (collided, overtook) = (F, F), (T, F), (F, 2 passes), (T, T)
+    r0 = 0.5 / 4.1
+    got = reciprocal_reward(np.full(4, 0.2), np.full(4, 0.4), np.full(4, 0.5),
+                            np.array([False, True, False, True]), np.array([0, 0, 2, 1]), 2.0, 3.0, 4.0,
+                            epsilon_r=0.5, collision_reward=-7.0, overtake_reward=3.0)
+    np.testing.assert_allclose(got, [r0, r0 - 7.0, r0 + 3.0, r0 - 7.0])
+    # per-step costs differ: step 2 has c_x = 0 -> 0.5 / (0.5 + 1.2 + 2.0) = 0.5 / 3.7
+    got = reciprocal_reward(np.array([0.2, 0.0]), np.full(2, 0.4), np.full(2, 0.5), np.zeros(2), np.zeros(2),
+                            2.0, 3.0, 4.0, epsilon_r=0.5)
+    np.testing.assert_allclose(got, [0.5 / 4.1, 0.5 / 3.7])
+    off = reciprocal_reward(np.full(2, 0.2), np.full(2, 0.4), np.full(2, 0.5), np.array([True, False]),
+                            np.array([False, True]), 2.0, 3.0, 4.0, epsilon_r=0.5, use_collision=False,
+                            use_overtake=False)
+    np.testing.assert_allclose(off, [r0, r0])
+
+
+def test_longitudinal_cost_floor_is_the_passed_one():
+    # v_d_eff = 0.5 below the floor 2.0: |1.0 − 0.5| / 2.0 = 0.25 (the default floor 1.0 would give 0.5)
+    assert longitudinal_cost(1.0, 0.5, min_desired_speed=2.0) == pytest.approx(0.25)
+    # above the floor the desired speed itself divides: |3 − 8| / 8
+    assert longitudinal_cost(3.0, 8.0, min_desired_speed=2.0) == pytest.approx(5.0 / 8.0)
+
+
+def _one_neighbour(weights, config, collided=None, overtook=0):
+    """Agent 3.0 × 2.0 m at vx 17, vy 0.5; one vehicle 3.0 × 2.0 m at dx = 6, dy = 1, vx 15, vy 0."""
+    return compute_reward(np.array([6.0]), np.array([1.0]), np.array([15.0]), np.array([0.0]), np.array([3.0]),
+                          np.array([2.0]), 5.0, 17.0, 0.5, 3.0, 2.0, 20.0, 10.0, weights, config=config,
+                          collided=collided, overtook=overtook)
+
+
+def test_compute_reward_uses_every_constant_of_its_config():
+    cfg = RewardConfig(epsilon_r=0.5, collision_reward=-7.0, overtake_reward=3.0, field_magnitude=0.25,
+                       critical_exponents=(3.0, 2.0, 1.0), broad_exponents=(2.0, 1.0, 2.0), k_r_s_per_m=0.25,
+                       e_v_s_per_m=2.0)
+    weights = RewardWeights(2.0, 0.0, 3.0, True, True)
+    # a_c = (3 + 3)/2 = 3, b_c = (2 + 2)/2 = 2: rx = 6/3 = 2, ry = 1/2 = 0.5
+    # critical: 0.25 / (2^3 + 0.5^2 + 1)^1 = 0.25 / 9.25
+    e_c = 0.25 / 9.25
+    # closing speeds: ux = 17 − 15 = 2 (ahead, agent faster), uy = 0.5 − 0 = 0.5 (to the left, drifting left)
+    # broad: rx / (1 + 0.25 × 2) = 2 / 1.5 = 4/3, ry / (1 + 2 × 0.5) = 0.25
+    # 0.25 / ((4/3)^2 + 0.25^1 + 1)^2 = 0.25 / (16/9 + 1.25)^2
+    e_b = 0.25 / (16 / 9 + 1.25) ** 2
+    c_f = e_c + e_b
+    c_x = 3.0 / 20.0  # zones off (w_y = 0): |17 − 20| / 20
+    terms = _one_neighbour(weights, cfg, overtook=2)
+    assert terms.c_f == pytest.approx(c_f)
+    assert (terms.c_x, terms.c_y, terms.y_d, terms.v_d_eff) == (pytest.approx(c_x), 0.0, 5.0, 20.0)
+    assert terms.collided is False and terms.overtook is True  # |dx| = 6 ≥ 3: no overlap
+    assert terms.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x + 3.0 * c_f) + 3.0)
+    hit = _one_neighbour(weights, cfg, collided=True, overtook=2)
+    assert hit.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x + 3.0 * c_f) - 7.0)
+    # the switches come from the weights, the amounts from the config
+    quiet = _one_neighbour(RewardWeights(2.0, 0.0, 3.0, False, False), cfg, collided=True, overtook=1)
+    assert quiet.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x + 3.0 * c_f))
+    # r_o switched off by the preset: a pass without a collision earns nothing
+    no_bonus = _one_neighbour(RewardWeights(2.0, 0.0, 3.0, True, False), cfg, overtook=1)
+    assert no_bonus.overtook is True and no_bonus.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x + 3.0 * c_f))
+    # w_f = 0: c_f is still reported, and the reward ignores it
+    no_f = _one_neighbour(RewardWeights(2.0, 0.0, 0.0, False, False), cfg)
+    assert no_f.c_f == pytest.approx(c_f) and no_f.reward == pytest.approx(0.5 / (0.5 + 2.0 * c_x))
+
+
+def test_compute_reward_lateral_closing_speed_is_the_agents_minus_the_neighbours():
+    # the same scene with the neighbour drifting right at 0.5 m/s: dvy = 0.5 − (−0.5) = 1 m/s, closing (dy > 0);
+    # default constants: broad b_b = 2 × (1 + 0.4 × 1) = 2.8, a_b = 3 × (1 + 0.5 × 2) = 6 (ux = 2)
+    terms = compute_reward(np.array([6.0]), np.array([1.0]), np.array([15.0]), np.array([-0.5]), np.array([3.0]),
+                           np.array([2.0]), 5.0, 17.0, 0.5, 3.0, 2.0, 20.0, 10.0, "fields")
+    e_c = 0.5 / ((6 / 3) ** 4 + (1 / 2) ** 4 + 1)
+    e_b = 0.5 / ((6 / 6) ** 2 + (1 / 2.8) ** 2 + 1)
+    assert terms.c_f == pytest.approx(e_c + e_b)
+
+
+def test_compute_reward_floor_of_the_desired_speed_comes_from_the_config():
+    # v_desired = 2 below the floor 4: c_x = |3 − 2| / 4 = 0.25 (the default floor 1 would give 0.5)
+    terms = compute_reward(np.array([]), np.array([]), np.array([]), np.array([]), np.array([]), np.array([]),
+                           5.0, 3.0, 0.0, 3.0, 2.0, 2.0, 10.0, RewardWeights(1.0, 0.0, 0.0, False, False),
+                           config=RewardConfig(min_desired_speed_mps=4.0, epsilon_r=0.25))
+    assert terms.c_x == pytest.approx(0.25) and terms.c_f == 0.0
+    assert terms.reward == pytest.approx(0.25 / (0.25 + 0.25))
+
+
+def test_compute_reward_zones_use_the_configs_time_gap_and_margin():
+    # agent 3 × 2 m at y = 5 on a 10 m road, vx = 10; a 3 × 2 m blocker straight ahead at dx = 15, vx 15:
+    # bumper gap 15 − 3 = 12 m. Time gap 2 s: d_o = 20 m ≥ 12 -> it blocks (0.7 s: d_o = 7 m, it does not)
+    weights = RewardWeights(1.0, 2.0, 0.0, False, False)
+    args = (np.array([15.0]), np.array([0.0]), np.array([15.0]), np.array([0.0]), np.array([3.0]), np.array([2.0]),
+            5.0, 10.0, 0.0, 3.0, 2.0, 20.0, 10.0, weights)
+    far = compute_reward(*args, config=RewardConfig(epsilon_r=0.1))
+    assert (far.y_d, far.v_d_eff, far.blocked, far.c_y) == (5.0, 20.0, False, 0.0)
+    # the blocker occupies [4, 6]: zones [0, 4] and [6, 10], 1 m from the agent's centre each: a tie,
+    # the left one (centre 8): c_y = |5 − 8| / 10 = 0.3; c_x = |10 − 20| / 20 = 0.5
+    near = compute_reward(*args, config=RewardConfig(zone_time_gap_s=2.0))
+    assert (near.y_d, near.v_d_eff, near.blocked) == (pytest.approx(8.0), 20.0, False)
+    assert (near.c_x, near.c_y) == (pytest.approx(0.5), pytest.approx(0.3))
+    assert near.reward == pytest.approx(0.1 / (0.1 + 1.0 * 0.5 + 2.0 * 0.3))
+    # a margin of 1.5 m asks for 2 + 2 × 1.5 = 5 m > 4 m: no zone fits -> blocked, follow the blocker
+    # (y_d = its y = 5, v_d_eff = 15): c_x = |10 − 15| / 15 = 1/3, c_y = 0
+    narrow = compute_reward(*args, config=RewardConfig(zone_time_gap_s=2.0, zone_margin_m=1.5))
+    assert (narrow.y_d, narrow.v_d_eff, narrow.blocked, narrow.c_y) == (5.0, 15.0, True, 0.0)
+    assert narrow.reward == pytest.approx(0.1 / (0.1 + 1.0 / 3.0))
+
+
+# ------------------------------------------------------------------ several events in one step, exact boundaries
+
+
+def test_several_overtakes_in_one_step_and_the_range_and_quarter_boundaries():
+    # range 30 m on a 400 m ring (quarter 100 m)
+    prev = np.array([30.0, 0.5, 12.0, 3.0, 31.0, 4.0])
+    cur = np.array([-30.0, 0.0, -1.0, -29.9, -1.0, -31.0])
+    # passes: 30 -> −30 (|dx| = range at both steps counts), 0.5 -> 0 (ends at 0), 12 -> −1, 3 -> −29.9;
+    # not: 31 -> −1 (out of range before), 4 -> −31 (out of range after)
+    assert detect_overtakes(prev, cur, 30.0, 400.0) == 4
+    # the quarter of the ring is excluded exactly: ring 120 m (quarter 30 m), range 40 m
+    assert detect_overtakes(np.array([30.0]), np.array([-1.0]), 40.0, 120.0) == 0
+    assert detect_overtakes(np.array([29.5]), np.array([-1.0]), 40.0, 120.0) == 1
+    assert detect_overtakes(np.array([1.0]), np.array([-30.0]), 40.0, 120.0) == 0
+    assert detect_overtakes(np.array([1.0]), np.array([-29.5]), 40.0, 120.0) == 1
+    # everyone passed at once (six vehicles) and nobody passed backwards
+    assert detect_overtakes(np.arange(1.0, 7.0), -np.arange(1.0, 7.0), 80.0, 500.0) == 6
+    assert detect_overtakes(-np.arange(1.0, 7.0), np.arange(1.0, 7.0), 80.0, 500.0) == 0
+
+
+def test_boxes_that_touch_do_not_overlap_the_agent():
+    # agent 4 × 2 m, vehicles 2 × 1 m: half sums (4 + 2)/2 = 3 m and (2 + 1)/2 = 1.5 m, exact in binary
+    def hit(dx, dy):
+        return agent_overlaps(np.array([dx]), np.array([dy]), 4.0, 2.0, np.array([2.0]), np.array([1.0]))
+
+    assert not hit(3.0, 0.0) and not hit(-3.0, 0.0)  # touching ahead and behind
+    assert not hit(0.0, 1.5) and not hit(0.0, -1.5)  # touching left and right
+    assert hit(2.96875, 1.46875) and hit(-2.96875, -1.46875)  # 1/32 m inside on both axes
+    assert not hit(2.96875, 1.5) and not hit(3.0, 1.46875)  # inside on one axis only
+    # each row has its own size: a 6 m long vehicle at dx = 4.5 touches ((4 + 6)/2 = 5 > 4.5: overlaps),
+    # a 2 m one at the same offset does not
+    assert agent_overlaps(np.array([4.5, 50.0]), np.zeros(2), 4.0, 2.0, np.array([6.0, 2.0]), np.ones(2))
+    assert not agent_overlaps(np.array([50.0, 4.5]), np.zeros(2), 4.0, 2.0, np.array([6.0, 2.0]), np.ones(2))
+
+
+def test_zone_blockers_at_the_exact_scan_boundaries():
+    # agent and vehicle 3 m long: half sum 3 m; agent at 10 m/s, time gap 0.5 s: d_o = 5 m (all exact in binary)
+    def zones(dx):
+        return zone_target(np.array([dx]), np.array([0.0]), np.array([8.0]), np.array([3.0]), np.array([2.0]), 5.0,
+                           10.0, 3.0, 2.0, 20.0, 10.0, time_gap=0.5, margin=0.0)
+
+    assert zones(-3.0) == (5.0, 20.0, False)  # touching behind: entirely behind, not a blocker
+    assert zones(-2.96875)[0] == 8.0  # overlapping by 1/32 m: a blocker ([4, 6] taken, a tie -> left zone [6, 10])
+    assert zones(8.0)[0] == 8.0  # bumper gap 8 − 3 = 5 m = d_o: a blocker
+    assert zones(8.03125) == (5.0, 20.0, False)  # 1/32 m beyond d_o: not
+
+
+def test_zone_edges_are_clipped_to_the_road():
+    # a 0.8 m agent at y = 0.5 with no margin; a 2 m blocker at y = 1.5 takes [0.5, 2.5]: the zone [0, 0.5] is too
+    # narrow, so [2.5, 10] (centre 6.25) is the target
+    def target(y_blocker):
+        return zone_target(np.array([5.0]), np.array([y_blocker - 0.5]), np.array([8.0]), np.array([3.0]),
+                           np.array([2.0]), 0.5, 10.0, 3.0, 0.8, 20.0, 10.0, margin=0.0)[0]
+
+    assert target(1.5) == pytest.approx(6.25)
+    # a blocker beyond the left edge (another road part, on an open road) frees the whole road [0, 10], not more
+    assert target(12.0) == pytest.approx(5.0)
+    # one beyond the right edge likewise
+    assert target(-2.0) == pytest.approx(5.0)

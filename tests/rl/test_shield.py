@@ -351,3 +351,43 @@ def test_rollout_random_policy_at_120_collides_without_the_shield_and_never_with
     assert on["shield_interventions_per_episode"] > 0
     assert off["collisions"] > 0 and off["shield_interventions_per_episode"] == 0
     assert len(shielded.stdout.strip().splitlines()) == 1 + 2 + 1  # header, 2 rows, the JSON
+
+
+# ------------------------------------------------------------------ the lateral margin, on both sides
+
+def _params(margin_y: float, margin_x: float = 0.5) -> ShieldParams:
+    """The default scene's parameters with a horizon of 1 s (background reach ½·1·1² = 0.5 m) and these margins."""
+    return ShieldParams(T, 10.2, 500.0, CFG.scenario.agent_bounds, AccelerationBounds(-4.0, 2.0, -1.0, 1.0),
+                        horizon_s=1.0, margin_x_m=margin_x, margin_y_m=margin_y)
+
+
+def test_reach_band_is_widened_by_the_lateral_margin_on_both_sides():
+    # y = 5, vy = 0, width 2: reach 0.5 m each way, body ± 1 m, margin 0.3 m: [5 − 1.8, 5 + 1.8]
+    lo, hi = reach_band(np.array([5.0]), np.array([0.0]), np.array([2.0]), _params(0.3))
+    assert (lo[0], hi[0]) == (pytest.approx(3.2), pytest.approx(6.8))
+    # drifting left at 0.5 m/s: 0.5·1 + 0.5 = 1.0 m up, max(0, −0.5 + 0.5) = 0 down
+    lo, hi = reach_band(np.array([5.0]), np.array([0.5]), np.array([2.0]), _params(0.3))
+    assert (lo[0], hi[0]) == (pytest.approx(5.0 - 1.3), pytest.approx(6.0 + 1.3))
+    # drifting right at 0.25 m/s: 0.25 m up, 0.75 m down
+    lo, hi = reach_band(np.array([5.0]), np.array([-0.25]), np.array([2.0]), _params(0.0))
+    assert (lo[0], hi[0]) == (pytest.approx(3.25), pytest.approx(6.25))
+    # at the right edge the reach stops at the road (clearance 1 mm), the margin does not
+    lo, hi = reach_band(np.array([1.2]), np.array([0.0]), np.array([2.0]), _params(0.3))
+    assert (lo[0], hi[0]) == (pytest.approx(1.001 - 1.3), pytest.approx(1.7 + 1.3))
+
+
+@pytest.mark.parametrize("side", [+1, -1])
+def test_a_car_alongside_within_the_lateral_margin_is_avoided_on_either_side(side):
+    # agent 1.6 m wide at y = 5, vy = 0: holding ay = 0 its committed band is 5 ± 0.8. A 1.8 m car alongside
+    # (dx = 0) at y = 5 ± 2.37: body edge 5 ± 1.47, reach edge 5 ± 0.97 (0.5 m reach), minus the margin m
+    state = scene((100.0, 5.0 + side * 2.37, 20.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    # m = 0.2: the reach edge at 0.77 m from the agent's centre meets its band (0.8 m): moving away is needed.
+    # One step at ay moves the agent ay·T²/2 and stops there (vy' = ay·T, braked at 1.8 m/s² from the next
+    # step on: the band's far edge stays at y'): ay = ∓1.0 moves 0.03125 m (0.8 − 0.03125 = 0.76875 < 0.77),
+    # ∓0.9 only 0.028125 m (0.771875 > 0.77): the closest certified candidate on the 0.1 m/s² grid is ∓1.0
+    d = shield_action(1, state, 0.0, 0.0, _params(0.2))
+    assert d.certified and d.intervened and d.ax == 0.0
+    assert d.ay == pytest.approx(-side * 1.0) and d.correction == pytest.approx(1.0)
+    # m = 0.1: the reach edge at 0.87 m stays off the band: the policy's action stands
+    d = shield_action(1, state, 0.0, 0.0, _params(0.1))
+    assert d.certified and not d.intervened and (d.ax, d.ay) == (0.0, 0.0)

@@ -18,6 +18,7 @@ from lanefree_sumo.sim.forces import (
     ramp_g,
     trapezoid_h,
 )
+from lanefree_sumo.sim.network import EDGES, edge_to_ring, ring_to_edge
 from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import max_density, spawn
 from lanefree_sumo.sim.state import VehicleState, wrap
@@ -334,3 +335,56 @@ def test_force_details_report_the_wall_leader_and_its_gap():
     assert details["wall_binds"][0]
     assert details["sum_fx"][0] == pytest.approx(-math.cos(math.atan2(2.3, 1.0)))
     assert np.isnan(details["leader_gap_m"][2])  # the front vehicle has nobody ahead within 100 m
+
+
+# -- exact boundaries: touching boxes, edge ends ---------------------------------------------------
+
+def test_boxes_that_touch_do_not_overlap_on_either_axis_or_across_the_seam():
+    # lengths 4 and 2 m, widths 2 and 1 m: half sums 3 m and 1.5 m, exact in binary
+    def pair(x, y):
+        state = make_state(x, y, [0, 0], [20, 20])
+        state.length[:] = [4.0, 2.0]
+        state.width[:] = [2.0, 1.0]
+        return overlap_matrix(state, L)
+
+    assert not pair([100.0, 103.0], [5.0, 5.0]).any()  # nose to tail, 3 m apart
+    assert not pair([103.0, 100.0], [5.0, 5.0]).any()  # the other order
+    assert not pair([100.0, 100.0], [5.0, 6.5]).any()  # side by side, 1.5 m apart
+    assert not pair([100.0, 100.0], [6.5, 5.0]).any()
+    assert not pair([499.0, 2.0], [5.0, 5.0]).any()  # across the seam: wrap(2 − 499) = 3 m
+    inside = pair([100.0, 102.96875], [5.0, 6.46875])  # 1/32 m inside on both axes
+    assert inside.tolist() == [[False, True], [True, False]]
+    assert pair([499.0, 1.96875], [5.0, 5.0])[0, 1]
+    assert not pair([100.0, 102.96875], [5.0, 6.5]).any()  # inside on one axis only
+
+
+def test_several_collision_events_start_in_one_step_and_each_pair_is_counted_once():
+    tracker = CollisionTracker(4)
+    m = np.zeros((4, 4), bool)
+    m[0, 1] = m[1, 0] = m[2, 3] = m[3, 2] = m[0, 3] = m[3, 0] = True
+    assert tracker.update(m).tolist() == [[0, 1], [0, 3], [2, 3]]  # three pairs start together, i < j
+    m2 = m.copy()
+    m2[1, 2] = m2[2, 1] = True  # one more pair while the others go on
+    assert tracker.update(m2).tolist() == [[1, 2]]
+    # vehicle 1 leaves the road: rows 0, 2, 3 keep their pairs; a new vehicle overlaps nobody yet
+    tracker.keep(np.array([True, False, True, True]))
+    tracker.add(1)
+    now = np.zeros((4, 4), bool)
+    now[1, 2] = now[2, 1] = True  # old vehicles 2 and 3: the same contact, no new event
+    now[0, 3] = now[3, 0] = True  # old vehicle 0 and the newcomer: a new event
+    assert tracker.update(now).tolist() == [[0, 3]]
+
+
+def test_a_vehicle_exactly_at_the_end_of_an_edge_is_at_the_start_of_the_next():
+    # 500 m ring, 4 edges of 125 m
+    assert EDGES == 4
+    edge, pos = ring_to_edge(np.array([0.0, 124.5, 125.0, 250.0, 374.5, 375.0, 499.5]), 500.0)
+    assert edge.tolist() == [0, 0, 1, 2, 2, 3, 3]
+    assert pos.tolist() == [0.0, 124.5, 0.0, 0.0, 124.5, 0.0, 124.5]
+    # x = L (outside [0, L), a rounding of x ≈ L) stays on the last edge, at its very end
+    edge, pos = ring_to_edge(np.array([500.0]), 500.0)
+    assert (edge.tolist(), pos.tolist()) == ([3], [125.0])
+    # the inverse, at every edge start and end
+    assert edge_to_ring(np.array([0, 1, 3, 3]), np.array([0.0, 0.0, 0.0, 125.0]), 500.0).tolist() == \
+        [0.0, 125.0, 375.0, 500.0]
+    assert float(edge_to_ring(2, 1.5, 300.0)) == 151.5  # 2 × 75 + 1.5

@@ -1,0 +1,321 @@
+"""The run-folder guard (:mod:`lanefree_sumo.experiments.rundir`): which earlier output ``--overwrite``
+may replace, which files a run folder owns, and the atomic replacement (files made by hand, no SUMO)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.rundir import (
+    OUTPUT_MARKER,
+    RunDir,
+    append_command,
+    check_new_file,
+    check_replaceable,
+    find_eval_dir,
+    fresh_output,
+    new_file,
+    read_config,
+    read_sessions,
+    record_session,
+    trajectory_path,
+    vehicles_path,
+    write_config,
+)
+
+
+def output_of(folder: Path, verb: str, *files: str) -> Path:
+    """A folder as ``lanefree VERB --out folder`` leaves it: its marker and ``files``."""
+    folder.mkdir(parents=True)
+    (folder / OUTPUT_MARKER).write_text(verb + "\n")
+    for name in files:
+        (folder / name).write_text("data\n")
+    return folder
+
+
+def run_folder(folder: Path) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "config.yaml").write_text("{}\n")
+    (folder / "episodes.csv").write_text("episode\n1\n")
+    return folder
+
+
+def test_overwrite_replaces_only_the_same_verbs_earlier_output(tmp_path):
+    sim = output_of(tmp_path / "sim", "simulate", "trajectory.csv")
+    check_replaceable(sim, True, "simulate")  # same verb: may be replaced
+    with pytest.raises(RunError, match="not the output of an earlier 'lanefree evaluate'"):
+        check_replaceable(sim, True, "evaluate")  # another verb's output
+    with pytest.raises(RunError, match=r"exists; choose another --out or pass --overwrite"):
+        check_replaceable(sim, False, "simulate")  # not without --overwrite
+    # the marker's whole text names the verb: a prefix or another verb in it is not that verb
+    (sim / OUTPUT_MARKER).write_text("simulated\n")
+    with pytest.raises(RunError, match="no marker file"):
+        check_replaceable(sim, True, "simulate")
+    (sim / OUTPUT_MARKER).write_text("  simulate \n")  # surrounding blanks do not matter
+    check_replaceable(sim, True, "simulate")
+    # a marker that is a folder is no marker
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / OUTPUT_MARKER).mkdir()
+    with pytest.raises(RunError, match="no marker file"):
+        check_replaceable(foreign, True, "simulate")
+
+
+def test_overwrite_accepts_a_missing_or_empty_folder_and_refuses_everything_else(tmp_path):
+    check_replaceable(tmp_path / "new", False, "simulate")  # does not exist: nothing to replace
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    check_replaceable(empty, True, "evaluate")
+    with pytest.raises(RunError, match="exists"):
+        check_replaceable(empty, False, "evaluate")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    with pytest.raises(RunError, match="not the output of an earlier 'lanefree simulate'"):
+        check_replaceable(mine, True, "simulate")
+    a_file = tmp_path / "file.csv"
+    a_file.write_text("x")
+    with pytest.raises(RunError, match="it is a file"):
+        check_replaceable(a_file, True, "simulate")
+    # a training run folder, even with the verb's marker in it (each of the three files alone tells)
+    for name in ("model.zip", "versions.json", "checkpoints"):
+        folder = output_of(tmp_path / f"run_{name}", "simulate")
+        (folder / name).mkdir() if name == "checkpoints" else (folder / name).write_text("x")
+        with pytest.raises(RunError, match="training run folder"):
+            check_replaceable(folder, True, "simulate")
+
+
+def test_overwrite_never_replaces_the_current_folder_or_a_parent(tmp_path, monkeypatch):
+    here = output_of(tmp_path / "a" / "b", "simulate")
+    monkeypatch.chdir(here)
+    for target in (here, here.parent, tmp_path, Path(".")):
+        with pytest.raises(RunError, match="current folder or one of its parents"):
+            check_replaceable(target, True, "simulate")
+    sibling = output_of(tmp_path / "a" / "c", "simulate")
+    check_replaceable(sibling, True, "simulate")  # beside the current folder: fine
+
+
+def test_fresh_output_marks_replaces_and_keeps_the_old_output_on_failure(tmp_path):
+    out = tmp_path / "out"
+    with fresh_output(out, False, "simulate") as tmp:
+        assert tmp != out and tmp.parent == tmp_path and (tmp / OUTPUT_MARKER).read_text() == "simulate\n"
+        (tmp / "a.csv").write_text("first")
+        assert not out.exists()  # nothing at out until the block ends
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "a.csv"]
+    with pytest.raises(ValueError), fresh_output(out, True, "simulate") as tmp:
+        (tmp / "a.csv").write_text("second")
+        raise ValueError("the verb failed")
+    assert (out / "a.csv").read_text() == "first"  # the earlier output is kept
+    with fresh_output(out, True, "simulate") as tmp:
+        (tmp / "b.csv").write_text("second")
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "b.csv"]  # replaced whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
+    with pytest.raises(RunError, match="not the output of an earlier 'lanefree evaluate'"), \
+            fresh_output(out, True, "evaluate"):
+        pass
+    assert (out / "b.csv").read_text() == "second"
+
+
+def test_a_run_folder_owns_its_files_whatever_overwrite_says(tmp_path):
+    run = run_folder(tmp_path / "run")
+    for name in ("config.yaml", "episodes.csv", "model.zip", "command.txt", "checkpoints/ep_00001/model.zip",
+                 "tb/events", "eval/episodes.csv", "eval_d90_shield/recording.json", "eval/trajectories/e.csv"):
+        with pytest.raises(RunError, match="belongs to the run folder or output"):
+            check_new_file(run / name, True, "export")
+    # but not its evaluations' export/ folders, nor a file of its own the run does not write
+    check_new_file(run / "eval" / "export" / "table.csv", False, "export")
+    check_new_file(run / "notes.md", False, "export")
+    # a folder with a config but neither episodes nor checkpoints is not a run folder
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "config.yaml").write_text("{}\n")
+    check_new_file(bare / "episodes.csv", False, "export")
+    with_ckpt = tmp_path / "ckpt"
+    (with_ckpt / "checkpoints").mkdir(parents=True)
+    (with_ckpt / "config.yaml").write_text("{}\n")
+    with pytest.raises(RunError, match="belongs to"):
+        check_new_file(with_ckpt / "episodes.csv", False, "export")
+
+
+def test_another_verbs_output_owns_its_files_but_not_its_export_folder(tmp_path):
+    sim = output_of(tmp_path / "sim", "simulate", "trajectory.csv")
+    with pytest.raises(RunError, match="belongs to the run folder or output"):
+        check_new_file(sim / "plot.png", True, "plot")
+    check_new_file(sim / "export" / "plot.png", False, "plot")  # export/ is anyone's
+    check_new_file(sim / "plot.png", False, "simulate")  # the same verb's own folder
+
+
+def test_an_existing_file_needs_overwrite_and_with_a_marker_folder_the_same_verb(tmp_path):
+    target = tmp_path / "plain" / "table.csv"
+    target.parent.mkdir()
+    target.write_text("old")
+    with pytest.raises(RunError, match=r"exists; choose another path or pass --overwrite$"):
+        check_new_file(target, False, "export")
+    with pytest.raises(RunError, match=r"exists; choose another path$"):
+        check_new_file(target, False, "plot")  # only export offers --overwrite
+    check_new_file(target, True, "export")
+    with pytest.raises(RunError, match="its folder is not the output of an earlier 'lanefree plot'"):
+        check_new_file(target, True, "plot", marker_folder=True)  # no marker
+    (target.parent / OUTPUT_MARKER).write_text("export\n")
+    with pytest.raises(RunError, match="belongs to"):  # another verb's output folder
+        check_new_file(target, True, "plot", marker_folder=True)
+    (target.parent / OUTPUT_MARKER).write_text("plot\n")
+    check_new_file(target, True, "plot", marker_folder=True)
+    check_new_file(tmp_path / "plain" / "new.csv", False, "plot", marker_folder=True)  # a new file: no question
+    folder = tmp_path / "plain" / "sub"
+    folder.mkdir()
+    with pytest.raises(RunError, match="exists and is not a file"):
+        check_new_file(folder, True, "plot")
+
+
+def test_new_file_replaces_only_on_success(tmp_path):
+    path = tmp_path / "table.csv"
+    path.write_text("old")
+    with pytest.raises(ValueError), new_file(path, "export") as tmp:
+        tmp.write_text("half")
+        raise ValueError("cut")
+    assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+    with new_file(path, "export") as tmp:
+        assert tmp.parent == tmp_path and tmp != path
+        tmp.write_text("new")
+    assert path.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+
+
+# -- the run folder's own files ---------------------------------------------------------------------
+
+def test_config_round_trip_and_a_damaged_config_is_named(tmp_path):
+    cfg = merge_config(LaneFreeConfig(), {"reward": {"epsilon_r": 0.25}, "scenario": {"density_veh_per_km": 90}})
+    write_config(tmp_path, cfg)
+    assert read_config(tmp_path) == cfg and RunDir(tmp_path).load_config() == cfg
+    data = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert list(data) == list(config_to_dict(cfg))  # in the config's own order, not sorted
+    with pytest.raises(RunError, match=r"is not a run folder \(no config.yaml\)"):
+        read_config(tmp_path / "nothing")
+    (tmp_path / "config.yaml").write_text("- a list\n")
+    with pytest.raises(RunError, match="it is not a mapping of config keys"):
+        read_config(tmp_path)
+    del data["reward"]["epsilon_r"], data["seed"]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(RunError, match=r"key 'reward.epsilon_r' and 1 more missing \(file cut short\?\)"):
+        read_config(tmp_path)
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({**config_to_dict(cfg), "seed": 0}).replace(
+        "seed: 0", "seed: [1"))
+    with pytest.raises(RunError, match=r"config.yaml is unusable \(.+\); restore it or start a new run$") as err:
+        read_config(tmp_path)
+    assert "\n" not in str(err.value)
+
+
+def test_one_missing_key_is_named_alone(tmp_path):
+    data = config_to_dict(LaneFreeConfig())
+    del data["seed"]
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(RunError, match=r"key 'seed' missing \(file cut short\?\)"):
+        read_config(tmp_path)
+
+
+def test_sessions_are_appended_one_per_line_and_a_cut_line_is_skipped(tmp_path):
+    assert read_sessions(tmp_path) == []
+    record_session(tmp_path, {"episodes_done": 3, "ended": "finished"})
+    assert json.loads((tmp_path / "last_session.json").read_text()) == {"episodes_done": 3, "ended": "finished"}
+    with open(tmp_path / "sessions.jsonl", "a") as fh:
+        fh.write('{"episodes_done": 4, "ended"')  # a process killed mid-write
+    record_session(tmp_path, {"episodes_done": 5})
+    assert json.loads((tmp_path / "last_session.json").read_text()) == {"episodes_done": 5}
+    lines = (tmp_path / "sessions.jsonl").read_text().split("\n")
+    assert lines == ['{"episodes_done": 3, "ended": "finished"}', '{"episodes_done": 4, "ended"',
+                     '{"episodes_done": 5}', ""]
+    assert read_sessions(tmp_path) == [{"episodes_done": 3, "ended": "finished"}, {"episodes_done": 5}]
+    with open(tmp_path / "sessions.jsonl", "a") as fh:
+        fh.write("[1, 2]\n")  # JSON, but not a session
+    assert len(read_sessions(tmp_path)) == 2
+    (tmp_path / "sessions.jsonl").write_bytes(b"\xff\xfe\n")
+    assert read_sessions(tmp_path) == []
+
+
+def test_commands_are_appended_one_per_line(tmp_path):
+    append_command(tmp_path, "lanefree train --density 90")
+    append_command(tmp_path, "lanefree evaluate run")
+    assert (tmp_path / "command.txt").read_text() == "lanefree train --density 90\nlanefree evaluate run\n"
+
+
+def test_evaluation_folder_names(tmp_path):
+    run = RunDir(tmp_path)
+    assert run.eval_dir() == tmp_path / "eval"
+    assert run.eval_dir(90.0) == tmp_path / "eval_d90"
+    assert run.eval_dir(87.5, shield=True) == tmp_path / "eval_d87.5_shield"
+    assert run.eval_dir(shield=False) == tmp_path / "eval_noshield"
+    assert run.eval_dir(90, scenario="onramp") == tmp_path / "eval_onramp_d90"
+    assert run.eval_dir(scenario="onramp", shield=True) == tmp_path / "eval_onramp_shield"
+    assert run.checkpoint(7) == tmp_path / "checkpoints" / "ep_00007"
+    assert (run.config, run.episodes, run.model, run.versions, run.last_session, run.tensorboard, run.lock_file) == \
+        tuple(tmp_path / n for n in ("config.yaml", "episodes.csv", "model.zip", "versions.json", "last_session.json",
+                                     "tb", ".lock"))
+    assert trajectory_path(tmp_path, 3) == tmp_path / "trajectories" / "episode_0003.csv"
+    assert vehicles_path(tmp_path, 12) == tmp_path / "trajectories" / "episode_0012.vehicles.csv"
+    assert find_eval_dir(tmp_path) == tmp_path / "eval"
+    (tmp_path / "trajectories").mkdir()
+    assert find_eval_dir(tmp_path) == tmp_path  # a recording itself
+
+
+def _checkpoint(run: RunDir, episodes: int, model: bool = True, buffer: bool = True) -> Path:
+    folder = run.checkpoint(episodes)
+    folder.mkdir(parents=True)
+    if model:
+        (folder / "model.zip").write_bytes(b"m")
+    if buffer:
+        (folder / "replay_buffer.pkl").write_bytes(b"b")
+    run.write_checkpoint_state(folder, {"episodes": episodes, "timesteps": 100 * episodes})
+    return folder
+
+
+def test_the_newest_complete_checkpoint_and_the_model_to_load(tmp_path):
+    run = RunDir(tmp_path)
+    with pytest.raises(RunError, match="has no model.zip and no checkpoint"):
+        run.find_model()
+    with pytest.raises(RunError, match="no usable checkpoint under checkpoints/"):
+        run.newest_checkpoint()
+    _checkpoint(run, 2)
+    _checkpoint(run, 4)
+    _checkpoint(run, 6, model=False)  # not complete: its model is missing
+    (run.checkpoint(8)).mkdir()  # nor is one without state.json
+    assert json.loads((run.checkpoint(4) / "state.json").read_text()) == {"episodes": 4, "timesteps": 400}
+    newest = run.newest_checkpoint()
+    assert (newest.path, newest.episodes, newest.timesteps) == (run.checkpoint(4), 4, 400)
+    assert newest.model == run.checkpoint(4) / "model.zip"
+    assert newest.replay_buffer == run.checkpoint(4) / "replay_buffer.pkl"
+    assert run.find_model() == run.checkpoint(4) / "model.zip"
+    (tmp_path / "model.zip").write_bytes(b"final")
+    assert run.find_model() == tmp_path / "model.zip"
+
+
+def test_replay_buffers_are_pruned_to_the_newest(tmp_path):
+    run = RunDir(tmp_path)
+    run.prune_replay_buffers(1)  # no checkpoints yet: nothing to do
+    for episodes in (1, 2, 3):
+        _checkpoint(run, episodes)
+
+    def buffers() -> list[int]:
+        return [e for e in (1, 2, 3) if (run.checkpoint(e) / "replay_buffer.pkl").exists()]
+
+    run.prune_replay_buffers(2)
+    assert buffers() == [2, 3]
+    run.prune_replay_buffers(1)
+    assert buffers() == [3]
+    run.prune_replay_buffers(0)
+    assert buffers() == [] and all((run.checkpoint(e) / "model.zip").exists() for e in (1, 2, 3))
+
+
+def test_one_writer_at_a_time(tmp_path):
+    run = RunDir(tmp_path)
+    with run.writer_lock():
+        assert run.lock_file.read_text() == f"{os.getpid()}\n"
+        with pytest.raises(RunError, match=f"is being written by process {os.getpid()} "), run.writer_lock():
+            pass
+    with run.writer_lock():  # released
+        pass
