@@ -80,9 +80,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, ShieldConfig
-from lanefree_sumo.sim.dynamics import plan_step
+from lanefree_sumo.sim.dynamics import clip_acceleration, plan_step
 from lanefree_sumo.sim.road import road_of
-from lanefree_sumo.sim.simulation import clip_acceleration
 from lanefree_sumo.sim.state import VehicleState, wrap
 
 Bounds = tuple[np.ndarray | float, np.ndarray | float]

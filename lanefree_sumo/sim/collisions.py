@@ -9,20 +9,31 @@ from __future__ import annotations
 
 import numpy as np
 
-from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
+from lanefree_sumo.sim.state import Bodies, pair_mask, pairwise_offsets
 
 
 def overlap_matrix(
-    state: VehicleState, ring_length: float, offsets: tuple[np.ndarray, np.ndarray] | None = None
+    state: Bodies, ring_length: np.ndarray | float, offsets: tuple[np.ndarray, np.ndarray] | None = None,
+    present: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Symmetric boolean matrix: ``[i, j]`` is True when vehicles i ≠ j overlap.
-    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed."""
+    """Symmetric boolean matrices ``[..., N, N]``: ``[i, j]`` is True when vehicles i ≠ j overlap.
+    ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed;
+    ``ring_length``: a scalar or one per run (``[..., 1]``); ``present`` (``[..., N]``, None: all): padded rows
+    (False) overlap nobody."""
     dx, dy = pairwise_offsets(state, ring_length) if offsets is None else offsets
-    half_len = 0.5 * (state.length[:, None] + state.length[None, :])
-    half_wid = 0.5 * (state.width[:, None] + state.width[None, :])
+    half_len = 0.5 * (state.length[..., :, None] + state.length[..., None, :])
+    half_wid = 0.5 * (state.width[..., :, None] + state.width[..., None, :])
     overlap = (np.abs(dx) < half_len) & (np.abs(dy) < half_wid)
-    np.fill_diagonal(overlap, False)
-    return overlap
+    if present is None:
+        n = overlap.shape[-1]
+        overlap[..., np.arange(n), np.arange(n)] = False
+        return overlap
+    return overlap & pair_mask(present)
+
+
+def started_overlaps(overlap: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """``[..., N, N]``, True at the pairs (i < j) whose overlap started now: collision events (module docstring)."""
+    return np.triu(overlap & ~previous, k=1)
 
 
 class CollisionTracker:
@@ -48,6 +59,6 @@ class CollisionTracker:
 
     def update(self, overlap: np.ndarray) -> np.ndarray:
         """Return an array of shape (k, 2) of the pairs (i < j) that started overlapping now."""
-        started = np.triu(overlap & ~self._previous, k=1)
+        started = started_overlaps(overlap, self._previous)
         self._previous = overlap.copy()
         return np.argwhere(started)

@@ -6,6 +6,9 @@
 ``vx'`` is floored at 0 (no reversing).  A lateral move that would put the body closer than
 ``clearance`` to a road edge is clipped there and ``vy'`` set to 0: a *boundary contact*.
 SUMO rejects lateral targets at or past the lane border, so the clearance is strictly positive.
+
+Every function is element-wise: arrays ``[N]`` of one simulation or ``[K, N]`` of a batch of runs
+(:mod:`~lanefree_sumo.sim.world`); the road width and bounds are scalars or broadcast against them.
 """
 
 from __future__ import annotations
@@ -13,6 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from lanefree_sumo.config import AccelerationBounds
 
 
 @dataclass
@@ -42,7 +48,7 @@ def plan_step(
     ax: np.ndarray,
     ay: np.ndarray,
     step_s: float,
-    road_width: float,
+    road_width: np.ndarray | float,
     clearance: float,
     contact_tolerance: float = 0.0,
     bounds: tuple[np.ndarray | float, np.ndarray | float] | None = None,
@@ -70,6 +76,32 @@ def plan_step(
     # realised lateral acceleration: the one that yields the clipped displacement
     ay_real = np.where(contact, 2.0 * (dy - vy * t) / (t * t), ay)
     return StepCommand(vx_next, dy, vy_next, ax_real, ay_real, contact)
+
+
+def clip_accelerations(
+    ax: ArrayLike, ay: ArrayLike, bounds: AccelerationBounds, vx: ArrayLike, max_speed: float, step_s: float,
+    vy: np.ndarray | float = 0.0, lateral_ratio: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Clip agents' accelerations (m/s², element-wise) to their bounds and so that each speed ``vx`` (m/s) does
+    not exceed ``max_speed`` (m/s) at the end of the step; with ``lateral_ratio`` r also so that |vy| ≤ r·vx
+    after the step (vy in m/s), as the driver model bounds the background's."""
+    vx = np.asarray(vx, dtype=float)
+    ax_top = np.minimum(bounds.ax_max, (max_speed - vx) / step_s)
+    ay_clipped = np.clip(np.asarray(ay, dtype=float), bounds.ay_min, bounds.ay_max)
+    if lateral_ratio is not None:
+        ay_clipped = np.maximum(np.minimum(ay_clipped, (lateral_ratio * vx - vy) / step_s),
+                                -(lateral_ratio * vx + vy) / step_s)
+        ay_clipped = np.clip(ay_clipped, bounds.ay_min, bounds.ay_max)
+    return np.minimum(np.maximum(np.asarray(ax, dtype=float), bounds.ax_min), ax_top), ay_clipped
+
+
+def clip_acceleration(
+    ax: float, ay: float, bounds: AccelerationBounds, vx: float, max_speed: float, step_s: float,
+    vy: float = 0.0, lateral_ratio: float | None = None,
+) -> tuple[float, float]:
+    """:func:`clip_accelerations` of one agent, as floats."""
+    ax_c, ay_c = clip_accelerations(ax, ay, bounds, vx, max_speed, step_s, vy, lateral_ratio)
+    return float(ax_c), float(ay_c)
 
 
 def ballistic_distance(vx: np.ndarray, vx_next: np.ndarray, step_s: float) -> np.ndarray:

@@ -1,8 +1,9 @@
 """The force-based lane-free background driver (SPEC §3), vectorised over all vehicles.
 
-Pure numpy: ``driver_accelerations`` maps a :class:`~lanefree_sumo.sim.state.VehicleState` to the
-longitudinal and lateral accelerations (m/s²) that every vehicle would choose.  The environment
-uses the rows of background vehicles; the agent's row is ignored there.
+Pure numpy: ``driver_accelerations`` maps the vehicles' arrays (``[N]`` of one simulation, or ``[K, N]`` of a
+batch of runs padded to a common N, :mod:`~lanefree_sumo.sim.world`) to the longitudinal and lateral
+accelerations (m/s²) that every vehicle would choose.  The environment uses the rows of background vehicles;
+the agent's row is ignored there.  Padded rows (``present`` False) exert and feel no force.
 
 Interpretation choices where SPEC §3 leaves room (documented here and in the README):
 
@@ -18,7 +19,7 @@ import numpy as np
 from scipy.special import erfc
 
 from lanefree_sumo.config import DriverConfig
-from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, wrap
+from lanefree_sumo.sim.state import Bodies, pair_mask, pairwise_offsets, row_sum, wrap
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -53,43 +54,45 @@ def edge_bound(v: np.ndarray, d: np.ndarray, step_s: float, decel: float) -> np.
 
 
 def symmetric_trapezoid(abs_t: np.ndarray, w: np.ndarray, l: np.ndarray) -> np.ndarray:
-    """H(t, w, l, w) from |t|: clip((w + l − |t|)/w, 0, 1), a step |t| ≤ l where w = 0.
+    """H(t, w, l, w) from |t|: clip((w + l − |t|)/w, 0, 1), a step |t| ≤ l where w = 0 (w ≥ 0).
 
     The fast form of :func:`trapezoid_h` for equal rise and fall, as both force ramps are."""
     num = (w + l) - abs_t
-    if np.min(w) > 0.0:
-        return np.minimum(np.maximum(num / w, 0.0), 1.0)
-    positive = w > 0.0
-    w_safe = np.where(positive, w, 1.0)
-    return np.where(positive, np.clip(num / w_safe, 0.0, 1.0), (num >= 0.0).astype(float))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.minimum(np.maximum(num / w, 0.0), 1.0)  # w = 0: ±inf clipped to the step's 1 or 0 ...
+    return np.where(np.isnan(out), 1.0, out)  # ... and 0/0 (the step's edge, |t| = l) is NaN: the step's 1
 
 
 def strongest_mask(mag: np.ndarray, k: int) -> np.ndarray:
-    """Per row, True at the (at most) k entries of largest magnitude ``mag`` among the non-zero
+    """Per row (last axis), True at the (at most) k entries of largest magnitude ``mag`` among the non-zero
     ones (SPEC §3: the 6 repulsions, or 3 nudges, of largest magnitude are summed)."""
     nonzero = mag > 0.0
-    if mag.shape[1] <= k or nonzero.sum(axis=1).max() <= k:
+    if mag.shape[-1] <= k or nonzero.sum(axis=-1).max() <= k:
         return nonzero
-    idx = np.argpartition(-mag, k - 1, axis=1)[:, :k]
+    idx = np.argpartition(-mag, k - 1, axis=-1)[..., :k]
     chosen = np.zeros_like(nonzero)
-    np.put_along_axis(chosen, idx, True, axis=1)
+    np.put_along_axis(chosen, idx, True, axis=-1)
     return chosen & nonzero
 
 
 def driver_accelerations(
-    state: VehicleState,
+    state: Bodies,
     cfg: DriverConfig,
-    ring_length: float,
-    road_width: float,
+    ring_length: np.ndarray | float,
+    road_width: np.ndarray | float,
     step_s: float,
     edge_clearance: float = 0.0,
     offsets: tuple[np.ndarray, np.ndarray] | None = None,
     details: dict[str, np.ndarray] | None = None,
     bounds: tuple[np.ndarray | float, np.ndarray | float] | None = None,
     lateral_target: np.ndarray | float = 0.0,
+    present: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Accelerations (ax, ay) in m/s² for every vehicle from the forces of its neighbours.
 
+    Arrays are ``[..., N]`` (one simulation, or runs ``[K, N]``); ``ring_length`` and ``road_width`` are scalars
+    or one per run, shape ``[..., 1]``. ``present`` (``[..., N]``, None: all): the padded rows (False) exert
+    and feel no force, and every sum over neighbours rounds as it would without them (:func:`row_sum`).
     Implements SPEC §3 in order: target-speed forces, pairwise trapezoid forces, the sums of the
     strongest repulsions (and nudges when ``cfg.nudging``), then the regulation steps 1–5.
     The road-edge bound (step 2) treats the edges as ``edge_clearance`` (m) inside the road, the
@@ -111,23 +114,29 @@ def driver_accelerations(
         offsets = pairwise_offsets(state, ring_length)
     dx, dy = offsets  # dx[i, j] = wrap(x_j − x_i), dy[i, j] = y_j − y_i
     abs_dx = np.abs(dx)
-    vx_j = vx[None, :]
+    vx_j = vx[..., None, :]
     ahead = dx >= 0.0
 
     # lateral trapezoid first: it is zero for most pairs
-    uy = np.abs(vy[:, None] - vy[None, :])
+    uy = np.abs(vy[..., :, None] - vy[..., None, :])
     ly = uy * cfg.time_headway_y_s + cfg.lateral_ramp_offset_m
-    half_wid = 0.5 * (width[:, None] + width[None, :])
+    half_wid = 0.5 * (width[..., :, None] + width[..., None, :])
     mag_y = symmetric_trapezoid(np.abs(dy), ly, half_wid + cfg.lateral_margin_m)
     # longitudinal trapezoid: approach speed ux, ramp L_x/2, plateau L_x/2 + D_x + margin
-    ux = np.where(ahead, np.maximum(0.0, vx[:, None] - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
-    half_len = 0.5 * (length[:, None] + length[None, :])
-    lx_half = (0.5 * cfg.time_headway_x_s) * vx[:, None]
+    ux = np.where(ahead, np.maximum(0.0, vx[..., :, None] - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
+    half_len = 0.5 * (length[..., :, None] + length[..., None, :])
+    lx_half = (0.5 * cfg.time_headway_x_s) * vx[..., :, None]
     gain_x = cfg.effective_gain_x  # k_x = c_x
     plateau = lx_half + (ux * ux) / (2.0 * gain_x) + half_len + cfg.longitudinal_margin_m
     mag = symmetric_trapezoid(abs_dx, lx_half, plateau) * mag_y
     mag[abs_dx > cfg.neighbour_range_m] = 0.0
-    np.fill_diagonal(mag, 0.0)
+    n = x.shape[-1]
+    if present is None:
+        mag[..., np.arange(n), np.arange(n)] = 0.0
+        count = None
+    else:
+        mag[~pair_mask(present)] = 0.0
+        count = present.sum(axis=-1)[..., None]  # each run's vehicles: its rows' sums round as unpadded
 
     dist = np.sqrt(dx * dx + dy * dy)
     scale = np.divide(mag, dist, out=np.zeros_like(mag), where=dist > 0.0)
@@ -136,12 +145,12 @@ def driver_accelerations(
 
     summed = strongest_mask(np.where(ahead, mag, 0.0), cfg.max_repulsions)
     rep_fx = np.where(summed, fx, 0.0)
-    sum_fx = rep_fx.sum(axis=1)
-    sum_fy = np.where(summed, fy, 0.0).sum(axis=1)
+    sum_fx = row_sum(rep_fx, count)
+    sum_fy = row_sum(np.where(summed, fy, 0.0), count)
     if cfg.nudging:
         nudges = strongest_mask(np.where(ahead, 0.0, mag), cfg.max_nudges)
-        sum_fx = sum_fx + cfg.nudge_scale_x * np.where(nudges, fx, 0.0).sum(axis=1)
-        sum_fy = sum_fy + cfg.nudge_scale_y * np.where(nudges, fy, 0.0).sum(axis=1)
+        sum_fx = sum_fx + cfg.nudge_scale_x * row_sum(np.where(nudges, fx, 0.0), count)
+        sum_fy = sum_fy + cfg.nudge_scale_y * row_sum(np.where(nudges, fy, 0.0), count)
 
     fts_x = erfc(vx - vd) - 1.0
     fts_y = erfc(vy - lateral_target) - 1.0
@@ -149,15 +158,19 @@ def driver_accelerations(
     ay = cfg.coef_fy * sum_fy + fts_y
 
     # 1. x-wall towards the summed repulsion of largest degree δ (the most negative f_x)
-    leader = np.argmin(rep_fx, axis=1)
-    lead_fx = rep_fx[np.arange(state.n), leader]
+    leader = np.argmin(rep_fx, axis=-1)[..., None]
+    lead_fx = np.take_along_axis(rep_fx, leader, -1)[..., 0]
     has_leader = lead_fx < 0.0
     degree = np.abs(np.clip(lead_fx, -1.0, 1.0)) ** cfg.wall_exponent
-    gap = wrap((x[leader] - 0.5 * length[leader]) - (x + 0.5 * length), ring_length)
-    v_safe = np.minimum(gap / cfg.wall_time_gap_s, vx[leader] - cfg.wall_speed_margin_mps)
+
+    def of_leader(a: np.ndarray) -> np.ndarray:
+        return np.take_along_axis(a, leader[..., 0], -1)
+
+    gap = wrap((of_leader(x) - 0.5 * of_leader(length)) - (x + 0.5 * length), ring_length)
+    v_safe = np.minimum(gap / cfg.wall_time_gap_s, of_leader(vx) - cfg.wall_speed_margin_mps)
     wall = ((1.0 - degree) * (vd - vx) + degree * (v_safe - vx)) / t
     if details is not None:
-        details["sum_fx"] = rep_fx.sum(axis=1)
+        details["sum_fx"] = row_sum(rep_fx, count)
         details["leader_gap_m"] = np.where(has_leader, gap, np.nan)
         details["wall_binds"] = has_leader & (wall < ax)
     ax = np.where(has_leader, np.minimum(ax, wall), ax)

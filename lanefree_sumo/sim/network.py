@@ -18,6 +18,7 @@ import dataclasses
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -32,12 +33,12 @@ VTYPE_BG_SLOW = "bg_slow"
 VTYPE_BG_FAST = "bg_fast"
 
 
-def edge_length(length_m: float) -> float:
-    """Length of each of the ring's ``EDGES`` equal edges (m)."""
+def edge_length(length_m: Any) -> Any:
+    """Length of each of the ring's ``EDGES`` equal edges (m; a scalar, or an array of rings' lengths)."""
     return length_m / EDGES
 
 
-def ring_to_edge(x: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray]:
+def ring_to_edge(x: np.ndarray, length_m: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
     """x along the centre line (m, in [0, L)) → (edge index, position on that edge in m).
 
     THE mapping between the ring coordinate and SUMO's (edge, lane position); its inverse is
@@ -47,7 +48,7 @@ def ring_to_edge(x: np.ndarray, length_m: float) -> tuple[np.ndarray, np.ndarray
     return edge, x - edge * segment
 
 
-def edge_to_ring(edge: np.ndarray | int, position_m: np.ndarray | float, length_m: float) -> np.ndarray:
+def edge_to_ring(edge: np.ndarray | int, position_m: np.ndarray | float, length_m: np.ndarray | float) -> np.ndarray:
     """(edge index, position on that edge in m) → x along the centre line (m)."""
     return np.asarray(edge) * edge_length(length_m) + position_m
 

@@ -5,7 +5,9 @@ vehicles' accelerations from it (the agent's come from outside), the dynamics tu
 commands, the backend executes them, and collisions are counted on the new state.
 
 Backends: ``libsumo`` (default) and ``traci`` execute in SUMO (:mod:`.backends.sumo`);
-``numpy`` executes the same dynamics with no SUMO at all — the reference and the fast path.
+``numpy`` executes the same dynamics with no SUMO at all — the reference and the fast path. On the ring the
+``numpy`` simulation is the batched core (:mod:`.world`) with one run; on the open road it keeps its own path
+(:class:`~lanefree_sumo.sim.backends.numpy.OpenRoadNumpyBackend`).
 """
 
 from __future__ import annotations
@@ -19,19 +21,21 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config, validate_config
-from lanefree_sumo.sim.backends.numpy import Backend, NumpyBackend, OpenRoadNumpyBackend
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, merge_config, validate_config
+from lanefree_sumo.sim.backends.numpy import Backend, OpenRoadNumpyBackend
 from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
-from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
+from lanefree_sumo.sim.dynamics import ballistic_distance, clip_acceleration, plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.open_road import OpenRoadTraffic, append_rows, keep_rows
 from lanefree_sumo.sim.road import Road, road_of
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
+from lanefree_sumo.sim.world import World, WorldParams, step_world, world_of
 
 
-def make_backend(cfg: LaneFreeConfig) -> Backend:
-    """The backend named by ``cfg.backend`` (``cfg.gui`` implies TraCI)."""
+def make_backend(cfg: LaneFreeConfig) -> Backend | None:
+    """The backend named by ``cfg.backend`` (``cfg.gui`` implies TraCI); None for the ring on ``numpy``, which
+    the batched core executes (:mod:`.world`)."""
     validate_config(cfg)
     if cfg.backend == "numpy":
         if cfg.gui:
@@ -39,7 +43,7 @@ def make_backend(cfg: LaneFreeConfig) -> Backend:
         if cfg.net_file:
             raise ConfigError(f"the numpy backend uses no SUMO network (net_file {cfg.net_file}); drop it, or use "
                               "--backend libsumo (or traci)")
-        return NumpyBackend(cfg) if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
+        return None if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
     from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
 
     return (OnRampSumoBackend if cfg.road.kind == "onramp" else SumoBackend)(cfg, kind=cfg.backend, gui=cfg.gui)
@@ -79,21 +83,6 @@ class Departure:
     """True where the vehicle's body overlapped another's after the step."""
 
 
-def clip_acceleration(
-    ax: float, ay: float, bounds: AccelerationBounds, vx: float, max_speed: float, step_s: float,
-    vy: float = 0.0, lateral_ratio: float | None = None,
-) -> tuple[float, float]:
-    """Clip an agent's acceleration (m/s²) to its bounds and so that its speed vx (m/s) does
-    not exceed ``max_speed`` (m/s) at the end of the step; with ``lateral_ratio`` r also so that
-    |vy| ≤ r·vx after the step (vy in m/s), as the driver model bounds the background's."""
-    ax_top = min(bounds.ax_max, (max_speed - vx) / step_s)
-    ay_clipped = float(np.clip(ay, bounds.ay_min, bounds.ay_max))
-    if lateral_ratio is not None:
-        ay_clipped = max(min(ay_clipped, (lateral_ratio * vx - vy) / step_s), -(lateral_ratio * vx + vy) / step_s)
-        ay_clipped = float(np.clip(ay_clipped, bounds.ay_min, bounds.ay_max))
-    return float(min(max(ax, bounds.ax_min), ax_top)), ay_clipped
-
-
 class Simulation:
     """Background traffic (and optionally externally controlled agents) on the road (:mod:`.road`).
 
@@ -109,6 +98,9 @@ class Simulation:
         self.cfg = cfg
         self.force_details: dict[str, np.ndarray] | None = {} if diagnostics else None
         self.backend: Backend | None = backend
+        self.world: World | None = None
+        """The ring on ``numpy``: the batched core's world with this one run (None with a backend)."""
+        self._world_params: WorldParams | None = None
         self.state: VehicleState | None = None
         self.last_result: StepResult | None = None
         """What happened in the latest step (for recorders)."""
@@ -116,7 +108,7 @@ class Simulation:
         """(dx, dy) matrices of the current state, shared by collisions, forces, observations."""
         self.steps = 0
         self.backend_seconds = 0.0
-        """Wall time spent inside ``backend.step`` (s), for profiling."""
+        """Wall time spent inside ``backend.step`` (s), for profiling (0 for the ring on ``numpy``: no backend)."""
         self._tracker = CollisionTracker(0)
         self.road: Road = road_of(cfg)
         self._wrap = self.road.wrap_length
@@ -159,7 +151,11 @@ class Simulation:
         places a spawned state, tests and scenarios may place their own."""
         if self.backend is None:
             self.backend = make_backend(self.cfg)
-        self.backend.reset(state)
+        if self.backend is None:
+            self.world = world_of([state], [self.cfg.road.length_m], [self.cfg.road.width_m])
+            self._world_params = WorldParams.of([self.cfg])
+        else:
+            self.backend.reset(state)
         self.state = state
         self.steps = 0
         self.on_ramp = np.zeros(state.n, dtype=bool)
@@ -203,31 +199,27 @@ class Simulation:
         """Advance one step. ``agent_accel`` = (ax, ay) in m/s² for the agent — with several agents
         one row (ax, ay) per agent, in the order of their rows in the state — each clipped to its
         bounds; required when the scenario has agents."""
-        if self.state is None or self.backend is None:
+        if self.state is None or (self.backend is None and self.world is None):
             raise RuntimeError("call reset() before step()")
+        if self.world is not None:
+            return self._step_world(agent_accel)
+        assert self.backend is not None
         entered = self._leave_and_enter() if self.traffic is not None else None
         state = self.state
         cfg = self.cfg
+        commands = self._agent_commands(state, agent_accel)
         bounds = self.road.bounds(state.x + 0.5 * state.length, self.on_ramp)  # at the front
         ax, ay = driver_accelerations(
             state, cfg.scenario.driver, self._wrap, cfg.road.width_m, cfg.sim.step_s,
             cfg.sim.edge_clearance_m, self.offsets, self.force_details, bounds=bounds,
             lateral_target=0.0 if self.traffic is None else self.traffic.lateral_target(state, self.on_ramp),
         )
-        if not state.controlled.all():
-            agents = np.flatnonzero(~state.controlled)
-            if agent_accel is None:
-                raise ValueError("this scenario has an agent: pass agent_accel=(ax, ay)")
-            commands = np.asarray(agent_accel, dtype=float).reshape(-1, 2)
-            if len(commands) != len(agents):
-                raise ValueError(f"this scenario has {len(agents)} agents: pass one (ax, ay) row each, "
-                                 f"got {len(commands)}")
-            for agent, (agent_ax, agent_ay) in zip(agents, commands):
-                ax[agent], ay[agent] = clip_acceleration(
-                    float(agent_ax), float(agent_ay), cfg.scenario.agent_bounds, float(state.vx[agent]),
-                    cfg.scenario.agent_max_speed_mps, cfg.sim.step_s, float(state.vy[agent]),
-                    cfg.scenario.agent_lateral_speed_ratio,
-                )
+        for agent, (agent_ax, agent_ay) in zip(np.flatnonzero(~state.controlled), commands):
+            ax[agent], ay[agent] = clip_acceleration(
+                float(agent_ax), float(agent_ay), cfg.scenario.agent_bounds, float(state.vx[agent]),
+                cfg.scenario.agent_max_speed_mps, cfg.sim.step_s, float(state.vy[agent]),
+                cfg.scenario.agent_lateral_speed_ratio,
+            )
         if self.traffic is not None:
             ax = self.traffic.end_wall(state, self.on_ramp, ax)  # the ramp's lane ends: for agents too
             # the dynamics clip at the boundaries where each front will be
@@ -252,8 +244,40 @@ class Simulation:
         self.last_result = StepResult(cmd.ax, cmd.ay, cmd.boundary_contact, overlap, new, entered)
         return self.last_result
 
+    @staticmethod
+    def _agent_commands(state: VehicleState, agent_accel: tuple[float, float] | np.ndarray | None) -> np.ndarray:
+        """The agents' (ax, ay) rows (m/s²), one per agent in row order; ValueError when they do not match."""
+        agents = int(np.count_nonzero(~state.controlled))
+        if not agents:
+            return np.zeros((0, 2))
+        if agent_accel is None:
+            raise ValueError("this scenario has an agent: pass agent_accel=(ax, ay)")
+        commands = np.asarray(agent_accel, dtype=float).reshape(-1, 2)
+        if len(commands) != agents:
+            raise ValueError(f"this scenario has {agents} agents: pass one (ax, ay) row each, got {len(commands)}")
+        return commands
+
+    def _step_world(self, agent_accel: tuple[float, float] | np.ndarray | None) -> StepResult:
+        """One step of the ring on ``numpy``: the batched core with this one run."""
+        state, world = self.state, self.world
+        assert state is not None and world is not None
+        commands = self._agent_commands(state, agent_accel)
+        details: dict[str, np.ndarray] | None = None if self.force_details is None else {}
+        assert self._world_params is not None
+        self.world, out = step_world(world, self._world_params, commands[None], details)
+        world = self.world
+        state.x, state.y, state.vx, state.vy = world.x[0], world.y[0], world.vx[0], world.vy[0]
+        if self.force_details is not None and details is not None:
+            self.force_details.update({k: v[0] for k, v in details.items()})
+        self.steps += 1
+        self.offsets = (world.dx[0], world.dy[0])
+        self.last_result = StepResult(out.ax[0], out.ay[0], out.boundary_contact[0], out.overlap[0],
+                                      np.argwhere(out.new_collisions[0]))
+        return self.last_result
+
     def close(self) -> None:
         """Stop the backend (idempotent)."""
+        self.world = None
         if self.backend is not None:
             self.backend.close()
             self.backend = None

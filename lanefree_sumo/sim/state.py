@@ -3,13 +3,30 @@
 Coordinates (SPEC §0): ``x`` is the longitudinal position along the ring's centre line in
 [0, L) (m), ``y`` the lateral position of the vehicle's centre from the right road edge (m),
 ``vx``/``vy`` the speeds along x/y (m/s).  Row ``i`` is vehicle ``ids[i]`` in every array.
+
+The physics (:mod:`.forces`, :mod:`.dynamics`, :mod:`.collisions`) takes arrays of shape ``[..., N]``: one
+simulation's ``[N]`` (a :class:`VehicleState`) or a batch of runs' ``[K, N]`` (:class:`~lanefree_sumo.sim.world.World`,
+whose runs are padded to a common N and masked by ``present``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
+
+
+class Bodies(Protocol):
+    """What the physics reads of the vehicles: arrays of shape ``[..., N]`` (one row per vehicle)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    vx: np.ndarray
+    vy: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    v_desired: np.ndarray
 
 
 @dataclass
@@ -48,14 +65,89 @@ class VehicleState:
         )
 
 
-def wrap(dx: np.ndarray | float, ring_length: float) -> np.ndarray:
-    """Map longitudinal differences onto [−L/2, L/2) on a ring of length ``ring_length`` (m)."""
+def wrap(dx: np.ndarray | float, ring_length: np.ndarray | float) -> np.ndarray:
+    """Map longitudinal differences onto [−L/2, L/2) on a ring of length ``ring_length`` (m; a scalar, or one
+    per run broadcastable against ``dx``)."""
     d = np.asarray(dx, dtype=float)
     return d - ring_length * np.floor(d / ring_length + 0.5)
 
 
-def pairwise_offsets(state: VehicleState, ring_length: float) -> tuple[np.ndarray, np.ndarray]:
-    """(dx, dy) matrices with ``dx[i, j] = wrap(x_j − x_i)`` and ``dy[i, j] = y_j − y_i`` (m)."""
-    dx = wrap(state.x[None, :] - state.x[:, None], ring_length)
-    dy = state.y[None, :] - state.y[:, None]
+def per_pair(value: np.ndarray | float) -> np.ndarray | float:
+    """A per-run value of shape ``[..., 1]`` (broadcasting against ``[..., N]``) as ``[..., 1, 1]`` for ``[..., N, N]``
+    pair matrices; a scalar stays a scalar."""
+    return value[..., None] if isinstance(value, np.ndarray) and value.ndim else value
+
+
+def pairwise_offsets(state: Bodies, ring_length: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """(dx, dy) matrices ``[..., N, N]`` with ``dx[i, j] = wrap(x_j − x_i)`` and ``dy[i, j] = y_j − y_i`` (m);
+    ``ring_length``: a scalar or one per run, shape ``[..., 1]``."""
+    dx = wrap(state.x[..., None, :] - state.x[..., :, None], per_pair(ring_length))
+    dy = state.y[..., None, :] - state.y[..., :, None]
     return dx, dy
+
+
+def pair_mask(present: np.ndarray) -> np.ndarray:
+    """``[..., N, N]``: True where both vehicles of a pair are present and they are two (the diagonal is False)."""
+    both = present[..., :, None] & present[..., None, :]
+    n = present.shape[-1]
+    both[..., np.arange(n), np.arange(n)] = False
+    return both
+
+
+def row_sum(a: np.ndarray, count: np.ndarray | None = None) -> np.ndarray:
+    """Σ over the last axis, bit for bit numpy's own ``a.sum(axis=-1)`` over each row's first ``count`` entries.
+
+    ``count`` (broadcastable to ``a.shape[:-1]``): how many entries of each row are real, the rest being padding
+    equal to 0.0; None: every entry. numpy sums a row pairwise (eight running sums over blocks of eight, combined
+    as a tree, then the remainder one by one; halves first beyond 128 entries), so the grouping depends on the
+    row's length: a padded row summed by numpy would round differently from the same row unpadded. This
+    reproduces numpy's grouping for each row's own length, so a run padded in a batch sums as it does alone."""
+    if count is None:
+        return a.sum(axis=-1)
+    count = np.broadcast_to(count, a.shape[:-1])
+    if (count == a.shape[-1]).all():
+        return a.sum(axis=-1)
+    return _pairwise(a, np.zeros_like(count), count, a.shape[-1])
+
+
+_BLOCK = 128
+"""numpy's pairwise block: rows up to this long are summed with eight running sums, longer ones halved first."""
+
+
+def _pairwise(a: np.ndarray, start: np.ndarray, count: np.ndarray, width: int) -> np.ndarray:
+    """numpy's pairwise sum of ``a[..., start:start + count]`` per row (:func:`row_sum`); ``count`` ≤ ``width``."""
+    if start.any():
+        index = np.minimum(start[..., None] + np.arange(width), a.shape[-1] - 1)
+        window = np.take_along_axis(a, index, -1)
+    else:
+        window = a[..., :width]
+    if width <= _BLOCK:
+        return _block_sum(window, count)
+    # rows longer than a block are summed as two halves (numpy's split: n/2 rounded down to a multiple of 8)
+    half = count // 2
+    half = half - half % 8
+    split = (_pairwise(a, start, half, width // 2)
+             + _pairwise(a, start + half, count - half, min(width, width - width // 2 + 8)))
+    return np.where(count > _BLOCK, split, _block_sum(window[..., :_BLOCK], np.minimum(count, _BLOCK)))
+
+
+def _block_sum(a: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """numpy's sum of ``a[..., :count]`` (count ≤ 128 per row): below 8 entries one by one; else eight running sums
+    over whole blocks of eight, combined pairwise, then the remaining entries one by one."""
+    width = a.shape[-1]
+    if not width:
+        return np.zeros(a.shape[:-1])
+    blocked = np.where(count >= 8, count - count % 8, 0)
+    lanes = np.zeros(a.shape[:-1] + (-(-width // 8) * 8,))
+    np.copyto(lanes[..., :width], a, where=np.arange(width) < blocked[..., None])
+    # the eight running sums: a reduction over the blocks (not the innermost axis) adds them one after another
+    acc = lanes.reshape(a.shape[:-1] + (-1, 8)).sum(axis=-2)
+    tree = ((acc[..., 0] + acc[..., 1]) + (acc[..., 2] + acc[..., 3])) + ((acc[..., 4] + acc[..., 5])
+                                                                           + (acc[..., 6] + acc[..., 7]))
+    total = np.where(count >= 8, tree, 0.0)
+    rest = np.arange(7)
+    tail = np.take_along_axis(a, np.minimum(blocked[..., None] + rest, width - 1), -1)
+    tail = np.where(rest < (count - blocked)[..., None], tail, 0.0)
+    for t in range(7):
+        total = total + tail[..., t]
+    return total

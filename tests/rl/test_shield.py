@@ -19,8 +19,7 @@ from lanefree_sumo.rl.shield import (
     shield_action,
     stopping_distance,
 )
-from lanefree_sumo.sim.dynamics import plan_step
-from lanefree_sumo.sim.simulation import clip_acceleration
+from lanefree_sumo.sim.dynamics import clip_acceleration, plan_step
 from lanefree_sumo.sim.state import VehicleState, wrap
 
 from conftest import lanefree

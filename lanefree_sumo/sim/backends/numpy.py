@@ -1,4 +1,5 @@
-"""The SUMO-free backend, and the protocol every backend follows."""
+"""The protocol every backend follows, and the SUMO-free backend of the open road (the ring's runs as the
+batched core, :mod:`lanefree_sumo.sim.world`)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,9 @@ import numpy as np
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.sim.dynamics import StepCommand, ballistic_distance
 from lanefree_sumo.sim.network import (
-    EDGES,
-    edge_length,
-    edge_to_ring,
     onramp_edge_lengths,
     onramp_edge_offsets,
     onramp_lane_centre,
-    ring_to_edge,
 )
 from lanefree_sumo.sim.state import VehicleState
 
@@ -28,47 +25,6 @@ class Backend(Protocol):
     def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     def close(self) -> None: ...
-
-
-class NumpyBackend:
-    """SUMO-free execution of the same commands.
-
-    Positions are kept the way SUMO keeps them — edge index plus position on the edge, lateral
-    offset from the lane centre — and updated with the same arithmetic (ballistic distance,
-    edge hand-over, small lateral moves set rather than driven), so that both backends produce
-    bit-identical trajectories from the same commands.
-    """
-
-    def __init__(self, cfg: LaneFreeConfig) -> None:
-        self._length = cfg.road.length_m
-        self._segment = edge_length(cfg.road.length_m)
-        self._step = cfg.sim.step_s
-        self._half_width = 0.5 * cfg.road.width_m
-        self._min_lateral_move = cfg.sim.sumo_min_lateral_speed_mps * cfg.sim.step_s
-        self._edge = np.zeros(0, dtype=int)
-        self._pos = self._pos_lat = self._vx = self._y = np.zeros(0)
-
-    def reset(self, state: VehicleState) -> None:
-        self._edge, self._pos = ring_to_edge(state.x, self._length)
-        self._pos_lat = state.y - self._half_width
-        self._vx = state.vx.copy()
-        self._y = state.y.copy()
-
-    def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        pos = self._pos + ballistic_distance(self._vx, cmd.vx_next, self._step)
-        passed = pos > self._segment
-        self._pos = np.where(passed, pos - self._segment, pos)
-        self._edge = np.where(passed, (self._edge + 1) % EDGES, self._edge)
-        tiny = np.abs(cmd.dy) < self._min_lateral_move
-        moved = np.where(tiny, (self._y + cmd.dy) - self._half_width, self._pos_lat + cmd.dy)
-        self._pos_lat = np.where(cmd.dy == 0.0, self._pos_lat, moved)
-        self._vx = cmd.vx_next.copy()
-        x = edge_to_ring(self._edge, self._pos, self._length)
-        self._y = self._pos_lat + self._half_width
-        return x, self._y.copy(), self._vx.copy()
-
-    def close(self) -> None:
-        pass
 
 
 class OpenRoadNumpyBackend:
