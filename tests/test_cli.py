@@ -192,3 +192,26 @@ def test_sigterm_stops_rollout_with_the_summary_of_complete_episodes():
     summary = json.loads(out.splitlines()[-1])
     assert summary["interrupted"] is True and summary["episodes"] >= 1
     assert "complete episode" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["--seeds", "3-1"], "expected seeds as A-B"),
+        (["--seeds", "a-b"], "expected seeds as A-B"),
+        (["--seeds", "1,1"], "seeds repeat"),
+        (["--seeds", "0-1", "--seed", "4"], "--seed and --seeds exclude each other"),
+        (["--seeds", "0-1", "--shield"], "does not support the safety shield"),
+        (["--seeds", "0-1", "--scenario", "onramp"], "does not support the onramp road"),
+        (["--seeds", "0-1", "--agents", "2"], "does not support several agents"),
+        (["--seeds", "0-1", "--obs", "set"], "does not support the set observation"),
+        (["--seeds", "0-1", "--algo", "ppo"], "batched training covers ddpg, dqn, ddqn, dueling, per, not ppo"),
+    ],
+)
+def test_bad_batch_options_are_one_line_and_write_nothing(tmp_path, args, needle):
+    out = tmp_path / "batch"
+    res = lanefree("train", "--out", str(out), *args)
+    assert res.returncode != 0
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], res.stderr
+    assert not out.exists()
