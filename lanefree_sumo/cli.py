@@ -359,6 +359,9 @@ def _train(args: argparse.Namespace) -> int:
             raise UsageError(f"--resume {args.resume} continues a batch with its saved options; {extra} cannot be "
                              "given (a batch is not extended)")
         return _report_batch(_resume_batch(args.resume))
+    if args.resume is not None and is_batch(args.resume.parent):
+        raise UsageError(f"{args.resume} is a run of the batch {args.resume.parent}; resume the whole batch with: "
+                         f"lanefree train --resume {args.resume.parent}")
     if args.resume is not None:
         ignored = sorted(args.given - {"--resume", "--episodes"})
         if ignored:

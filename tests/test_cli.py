@@ -215,3 +215,15 @@ def test_bad_batch_options_are_one_line_and_write_nothing(tmp_path, args, needle
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], res.stderr
     assert not out.exists()
+
+
+def test_a_run_of_a_batch_is_resumed_with_its_batch(tmp_path):
+    """--resume of one run folder of a batch names the batch to resume instead (its checkpoints are the batch's)."""
+    batch = tmp_path / "batch"
+    run = batch / "ddpg_fields_zones_overtake_collision_d70_s0"
+    run.mkdir(parents=True)
+    (batch / "batch.json").write_text('{"runs": ["ddpg_fields_zones_overtake_collision_d70_s0"]}')
+    res = lanefree("train", "--resume", str(run))
+    assert res.returncode != 0
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"lanefree train --resume {batch}" in lines[0], res.stderr

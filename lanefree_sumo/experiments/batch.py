@@ -161,7 +161,7 @@ class _Batch:
             append_command(run.path, command)
         names = [_seed_name(r.path) for r in self.folders]
         bar = tqdm(total=sum(books.target), initial=sum(books.done), unit="ep", disable=not progress,
-                   desc=f"{cfgs[0].train.algo} x{self.runs}", dynamic_ncols=True)
+                   desc=f"{cfgs[0].train.algo} x{self.runs}", dynamic_ncols=True, postfix=_bar_text(books, names))
         stop = _Stop()
         previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
         t0 = time.perf_counter()
@@ -169,7 +169,8 @@ class _Batch:
             while any(books.active(k) for k in range(self.runs)) and not stop.requested:
                 checkpoint = self._step(env, learner, obs, books, logs, bar)
                 obs = env.reset([k for k in range(self.runs) if self._ended[k] and books.active(k)])
-                bar.set_postfix_str(_bar_text(books, names))
+                if self._ended.any():
+                    bar.set_postfix_str(_bar_text(books, names))
                 if checkpoint or (stop.requested and any(books.active(k) for k in range(self.runs))):
                     self.save(env, learner, obs, books)
         finally:
@@ -250,7 +251,7 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
     if len(set(paths)) != len(paths):
         raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")
     batch_dir.mkdir(parents=True, exist_ok=True)
-    if (batch_dir / BATCH_FILE).exists():
+    if any((batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt")):  # a batch killed before its first starts afresh
         raise RunError(f"{batch_dir} holds a batch already; resume it with --resume {batch_dir} or choose another "
                        "--out")
     with contextlib.ExitStack() as stack:
@@ -282,6 +283,8 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise RunError(f"{batch_dir / BATCH_FILE} is unusable ({exc}); it is not a batch folder") from None
     runs = [RunDir(batch_dir / p) for p in listed]
+    if all(run.model.is_file() for run in runs):
+        raise RunError(f"{batch_dir} is finished (every run has its model.zip); nothing to resume")
     with contextlib.ExitStack() as stack:
         cfgs = [run.load_config() for run in runs]
         for run in runs:
