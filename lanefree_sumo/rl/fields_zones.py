@@ -102,15 +102,40 @@ def field_cost(
         if not ok.any():
             return 0.0
         dx_, dy_, dvx_, dvy_, lens_, wids_ = dx_[ok], dy_[ok], dvx_[ok], dvy_[ok], lens_[ok], wids_[ok]
-    a_c = 0.5 * (agent_len + lens_)
-    b_c = 0.5 * (agent_wid + wids_)
-    rx = np.abs(dx_) / a_c
-    ry = np.abs(dy_) / b_c
+    e_c, e_b = field_terms(dx_, dy_, dvx_, dvy_, agent_len, agent_wid, lens_, wids_, magnitude=magnitude,
+                           critical_exponents=critical_exponents, broad_exponents=broad_exponents, k_r=k_r, e_v=e_v,
+                           stretch=stretch)
+    return min(1.0, float(e_c.sum() + e_b.sum()))
+
+
+def field_terms(
+    dx: np.ndarray,
+    dy: np.ndarray,
+    dvx: np.ndarray,
+    dvy: np.ndarray,
+    agent_len: np.ndarray | float,
+    agent_wid: np.ndarray | float,
+    lens: np.ndarray,
+    wids: np.ndarray,
+    *,
+    magnitude: float,
+    critical_exponents: tuple[float, float, float],
+    broad_exponents: tuple[float, float, float],
+    k_r: float,
+    e_v: float,
+    stretch: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each neighbour's critical and broad field values (E_c, E_b), element-wise over arrays of any shape (the
+    agent's dimensions broadcast against them); :func:`field_cost` sums them. Arguments as there."""
+    a_c = 0.5 * (agent_len + lens)
+    b_c = 0.5 * (agent_wid + wids)
+    rx = np.abs(dx) / a_c
+    ry = np.abs(dy) / b_c
     if stretch == "absolute":
-        ux, uy = np.abs(dvx_), np.abs(dvy_)
+        ux, uy = np.abs(dvx), np.abs(dvy)
     elif stretch == "closing":
-        ux = np.maximum(0.0, np.sign(dx_) * dvx_)
-        uy = np.maximum(0.0, np.sign(dy_) * dvy_)
+        ux = np.maximum(0.0, np.sign(dx) * dvx)
+        uy = np.maximum(0.0, np.sign(dy) * dvy)
     else:
         raise ValueError(f"stretch must be 'closing' or 'absolute', got {stretch!r}")
     pcx, pcy, pct = critical_exponents
@@ -118,7 +143,7 @@ def field_cost(
     # the ellipsoid() formula, on |dx|/a and |dy|/b computed once
     e_c = magnitude / (rx**pcx + ry**pcy + 1.0) ** pct
     e_b = magnitude / ((rx / (1.0 + k_r * ux)) ** pbx + (ry / (1.0 + e_v * uy)) ** pby + 1.0) ** pbt
-    return min(1.0, float(e_c.sum() + e_b.sum()))
+    return e_c, e_b
 
 
 # --------------------------------------------------------------------------------------------
@@ -162,33 +187,78 @@ def zone_target(
        equally fast blockers the first in array order.
     """
     dx_, dy_, vx_, lens_, wids_ = _rows(dx, dy, vxs, lens, wids)
-    half_len = 0.5 * (agent_len + lens_)
-    d_o = agent_vx * time_gap
+    y_d, v_d_eff, blocked = zone_targets(
+        dx_[None], dy_[None], vx_[None], lens_[None], wids_[None], np.array([agent_y]), np.array([agent_vx]),
+        agent_len, agent_wid, np.array([v_desired], dtype=float), np.array([road_width], dtype=float),
+        time_gap=time_gap, margin=margin,
+    )
+    return float(y_d[0]), float(v_d_eff[0]), bool(blocked[0])
+
+
+def zone_targets(
+    dx: np.ndarray,
+    dy: np.ndarray,
+    vxs: np.ndarray,
+    lens: np.ndarray,
+    wids: np.ndarray,
+    agent_y: np.ndarray,
+    agent_vx: np.ndarray,
+    agent_len: ArrayLike,
+    agent_wid: ArrayLike,
+    v_desired: np.ndarray,
+    road_width: np.ndarray,
+    *,
+    time_gap: float,
+    margin: float,
+    present: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`zone_target` of many agents at once: vehicle rows ``[..., M]`` (in array order; non-finite or not
+    ``present`` rows are absent), the agents' values ``[...]``; returns ``(y_d, v_d_eff, blocked)`` ``[...]``,
+    each agent's bit for bit as :func:`zone_target` gives it from its present rows alone.
+
+    The free intervals are found as there, with the absent rows sorted last as empty extents (lower end +∞,
+    upper end −∞): they leave the running maximum alone and their intervals are not candidates."""
+    shape = dx.shape[:-1]
+    if dx.shape[-1] == 0:  # no vehicle at all: one absent row keeps the reductions below defined
+        dx, dy, vxs, lens, wids = (np.full(shape + (1,), np.nan) for _ in range(5))
+        present = None
+
+    def row(a: ArrayLike) -> np.ndarray:
+        return np.broadcast_to(np.asarray(a, dtype=float), shape)[..., None]
+
+    y_a, vx_a, len_a, wid_a, width = row(agent_y), row(agent_vx), row(agent_len), row(agent_wid), row(road_width)
+    half_len = 0.5 * (len_a + lens)
+    d_o = vx_a * time_gap
     with np.errstate(invalid="ignore"):
-        is_blocker = (
-            np.isfinite(dx_) & np.isfinite(dy_) & np.isfinite(vx_)
-            & (dx_ > -half_len) & (dx_ - half_len <= d_o)
-        )
-    if not is_blocker.any():
-        return 0.5 * road_width, float(v_desired), False
+        is_blocker = np.isfinite(dx) & np.isfinite(dy) & np.isfinite(vxs) & (dx > -half_len) & (dx - half_len <= d_o)
+    if present is not None:
+        is_blocker &= present
+    any_blocker = is_blocker.any(axis=-1)
 
-    y_j = agent_y + dy_[is_blocker]
-    half_w = 0.5 * wids_[is_blocker]
-    lo = np.clip(y_j - half_w, 0.0, road_width)
-    hi = np.clip(y_j + half_w, 0.0, road_width)
-    order = np.argsort(lo, kind="stable")
-    lo, hi = lo[order], hi[order]
+    y_j = y_a + dy
+    half_w = 0.5 * wids
+    lo = np.where(is_blocker, np.clip(y_j - half_w, 0.0, width), np.inf)
+    hi = np.where(is_blocker, np.clip(y_j + half_w, 0.0, width), -np.inf)
+    order = np.argsort(lo, axis=-1, kind="stable")
+    lo, hi = np.take_along_axis(lo, order, -1), np.take_along_axis(hi, order, -1)
     # Free intervals: gaps between the running maximum of occupied upper ends and the next lower end.
-    starts = np.concatenate(([0.0], np.maximum.accumulate(hi)))
-    ends = np.concatenate((lo, [road_width]))
-    fits = (ends - starts) >= agent_wid + 2.0 * margin
-    if fits.any():
-        starts, ends = starts[fits], ends[fits]
-        dist = np.maximum(0.0, np.maximum(starts - agent_y, agent_y - ends))
-        candidates = np.flatnonzero(dist <= dist.min() + _TIE_TOL_M)
-        k = candidates[np.argmax(starts[candidates])]  # tie -> the leftmost (largest y) zone
-        return float(0.5 * (starts[k] + ends[k])), float(v_desired), False
+    starts = np.concatenate((np.zeros(shape + (1,)), np.maximum.accumulate(hi, axis=-1)), axis=-1)
+    ends = np.concatenate((lo, width), axis=-1)
+    real = np.concatenate((np.take_along_axis(is_blocker, order, -1), np.ones(shape + (1,), dtype=bool)), axis=-1)
+    with np.errstate(invalid="ignore"):
+        fits = real & ((ends - starts) >= wid_a + 2.0 * margin)
+        dist = np.maximum(0.0, np.maximum(starts - y_a, y_a - ends))
+    nearest = np.min(np.where(fits, dist, np.inf), axis=-1, keepdims=True)
+    candidates = fits & (dist <= nearest + _TIE_TOL_M)
+    k = np.argmax(np.where(candidates, starts, -np.inf), axis=-1)[..., None]  # tie -> the leftmost (largest y)
+    y_zone = (0.5 * (np.take_along_axis(starts, k, -1) + np.take_along_axis(ends, k, -1)))[..., 0]
+    any_fit = fits.any(axis=-1)
 
-    vx_b = vx_[is_blocker]
-    fastest = int(np.argmax(vx_b))
-    return float(agent_y + dy_[is_blocker][fastest]), float(min(v_desired, vx_b.min())), True
+    # no zone fits: the fastest blocker (the first in array order among equally fast ones)
+    fastest = np.argmax(np.where(is_blocker, vxs, -np.inf), axis=-1)[..., None]
+    y_fast = (y_a + np.take_along_axis(dy, fastest, -1))[..., 0]
+    slowest = np.min(np.where(is_blocker, vxs, np.inf), axis=-1)
+    blocked = any_blocker & ~any_fit
+    v_desired = np.broadcast_to(np.asarray(v_desired, dtype=float), shape)
+    y_d = np.where(any_blocker, np.where(any_fit, y_zone, y_fast), 0.5 * width[..., 0])
+    return y_d, np.where(blocked, np.minimum(v_desired, slowest), v_desired), blocked

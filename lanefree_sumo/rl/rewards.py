@@ -50,18 +50,21 @@ _DEFAULTS = RewardConfig()
 
 
 def longitudinal_cost(
-    vx: float,
-    v_d_eff: float,
+    vx: Any,
+    v_d_eff: Any,
     *,
     min_desired_speed: float = _DEFAULTS.min_desired_speed_mps,
-) -> float:
-    """``c_x = min(1, |vx − v_d,eff| / max(v_d,eff, min_desired_speed))`` (–); speeds in m/s."""
-    return float(min(1.0, abs(vx - v_d_eff) / max(v_d_eff, min_desired_speed)))
+) -> Any:
+    """``c_x = min(1, |vx − v_d,eff| / max(v_d,eff, min_desired_speed))`` (–); speeds in m/s. Element-wise;
+    scalar inputs give a ``float``."""
+    c_x = np.minimum(1.0, np.abs(np.subtract(vx, v_d_eff)) / np.maximum(v_d_eff, min_desired_speed))
+    return float(c_x) if np.ndim(c_x) == 0 else c_x
 
 
-def lateral_cost(y: float, y_d: float, road_width: float) -> float:
-    """``c_y = |y − y_d| / W`` (–); y, y_d and road_width W in m."""
-    return float(abs(y - y_d) / road_width)
+def lateral_cost(y: Any, y_d: Any, road_width: Any) -> Any:
+    """``c_y = |y − y_d| / W`` (–); y, y_d and road_width W in m. Element-wise; scalar inputs give a ``float``."""
+    c_y = np.abs(np.subtract(y, y_d)) / road_width
+    return float(c_y) if np.ndim(c_y) == 0 else c_y
 
 
 def reciprocal_reward(
@@ -70,45 +73,44 @@ def reciprocal_reward(
     c_f: ArrayLike,
     collided: ArrayLike,
     overtook: ArrayLike,
-    w_x: float,
-    w_y: float,
-    w_f: float,
+    w_x: ArrayLike,
+    w_y: ArrayLike,
+    w_f: ArrayLike,
     *,
     epsilon_r: float = _DEFAULTS.epsilon_r,
     collision_reward: float = _DEFAULTS.collision_reward,
     overtake_reward: float = _DEFAULTS.overtake_reward,
-    use_collision: bool = True,
-    use_overtake: bool = True,
+    use_collision: ArrayLike = True,
+    use_overtake: ArrayLike = True,
 ) -> float | np.ndarray:
     """Paper Eq. 16: ``ε_r/(ε_r + w_x c_x + w_y c_y + w_f c_f) + r_c·[collided]
     + r_o·[overtook and not collided]`` (–).
 
     ``overtook`` is an indicator (a count > 0 counts once: the bonus is per step, not per
-    vehicle).  ``use_collision`` / ``use_overtake`` switch the r_c / r_o terms off (presets).
-    Arrays broadcast; scalar inputs give a ``float``.
+    vehicle).  ``use_collision`` / ``use_overtake`` switch the r_c / r_o terms off (presets; one per
+    row when runs differ). Arrays broadcast; scalar inputs give a ``float``.
     """
-    if all(np.ndim(v) == 0 for v in (c_x, c_y, c_f, collided, overtook)):  # one step: plain floats
-        r0 = epsilon_r / (epsilon_r + w_x * float(c_x) + w_y * float(c_y) + w_f * float(c_f))  # type: ignore[arg-type]
+    if all(np.ndim(v) == 0 for v in (c_x, c_y, c_f, collided, overtook, w_x, use_collision)):  # plain floats
+        r0 = epsilon_r / (epsilon_r + float(w_x) * float(c_x) + float(w_y) * float(c_y)  # type: ignore[arg-type]
+                          + float(w_f) * float(c_f))  # type: ignore[arg-type]
         hit, passed = bool(collided), bool(overtook)
         return (r0 + (collision_reward if use_collision and hit else 0.0)
                 + (overtake_reward if use_overtake and passed and not hit else 0.0))
     col = np.asarray(collided).astype(bool)
     ovt = np.asarray(overtook).astype(bool)
-    denom = epsilon_r + w_x * np.asarray(c_x, float) + w_y * np.asarray(c_y, float) \
-        + w_f * np.asarray(c_f, float)
+    denom = epsilon_r + np.multiply(w_x, c_x) + np.multiply(w_y, c_y) + np.multiply(w_f, c_f)
     r = epsilon_r / denom
-    if use_collision:
-        r = r + np.where(col, collision_reward, 0.0)
-    if use_overtake:
-        r = r + np.where(ovt & ~col, overtake_reward, 0.0)
+    # a switched-off term adds 0.0: the same number as not adding it
+    r = r + np.where(np.logical_and(use_collision, col), collision_reward, 0.0)
+    r = r + np.where(np.logical_and(use_overtake, ovt & ~col), overtake_reward, 0.0)
     return float(r) if np.ndim(r) == 0 else r
 
 
 def pass_events(
     prev_dx: ArrayLike,
     dx: ArrayLike,
-    range_m: float,
-    ring_length: float,
+    range_m: ArrayLike,
+    ring_length: ArrayLike,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(passed, passed_by): boolean masks of the vehicles the agent passed, and of those that passed it,
     between two steps.
@@ -117,10 +119,11 @@ def pass_events(
     the current step; NaN = not present / not in range.  A pass is ``prev_dx > 0`` and
     ``dx ≤ 0`` (being passed: ``prev_dx ≤ 0`` and ``dx > 0``) for a vehicle with ``|dx| ≤ range_m``
     at both steps and ``|dx| < ring_length/4`` at both steps, so a jump across the ring seam
-    (dx ≈ ±L/2) is never a pass, nor is a vehicle entering or leaving range.
+    (dx ≈ ±L/2) is never a pass, nor is a vehicle entering or leaving range. Element-wise over arrays of
+    any shape (several agents' rows); ``range_m`` and ``ring_length`` broadcast against them.
     """
     p, c = _rows(prev_dx, dx)
-    quarter = 0.25 * ring_length
+    quarter = 0.25 * np.asarray(ring_length)
     with np.errstate(invalid="ignore"):
         valid = (
             np.isfinite(p) & np.isfinite(c)

@@ -97,6 +97,7 @@ class Simulation:
         self.backend: Backend | None = backend
         self.world: World | None = None
         """The ring on ``numpy``: the batched core's world with this one run (None with a backend)."""
+        self._world_params: WorldParams | None = None
         self.state: VehicleState | None = None
         self.last_result: StepResult | None = None
         """What happened in the latest step (for recorders)."""
@@ -104,7 +105,7 @@ class Simulation:
         """(dx, dy) matrices of the current state, shared by collisions, forces, observations."""
         self.steps = 0
         self.backend_seconds = 0.0
-        """Wall time spent inside ``backend.step`` (s), for profiling."""
+        """Wall time spent inside ``backend.step`` (s), for profiling (0 for the ring on ``numpy``: no backend)."""
         self._tracker = CollisionTracker(0)
         self.road: Road = road_of(cfg)
         self._wrap = self.road.wrap_length
@@ -259,9 +260,8 @@ class Simulation:
         assert state is not None and world is not None
         commands = self._agent_commands(state, agent_accel)
         details: dict[str, np.ndarray] | None = None if self.force_details is None else {}
-        t0 = time.perf_counter()
+        assert self._world_params is not None
         self.world, out = step_world(world, self._world_params, commands[None], details)
-        self.backend_seconds += time.perf_counter() - t0
         world = self.world
         state.x, state.y, state.vx, state.vy = world.x[0], world.y[0], world.vx[0], world.vy[0]
         if self.force_details is not None and details is not None:

@@ -1,0 +1,349 @@
+"""K runs of LaneFree-v0 on the ring in one batched environment (the simulation as :mod:`~lanefree_sumo.sim.world`).
+
+Run k is, bit for bit, a :class:`~lanefree_sumo.rl.env.LaneFreeEnv` of its own config whose episodes take the
+traffic seeds of a training run (:func:`~lanefree_sumo.rl.models.episode_seed` (seed, 0, e) for its e-th
+episode, as ``lanefree train --seed <seed>`` gives them): the same observations, rewards, reward terms, episode
+ends and episode metrics (every column but the wall time). The runs may differ in seed, density (vehicle count:
+the world pads and masks) and reward preset; they share the step, the driver model, the agents' limits, the
+action and observation settings and the reward's constants.
+
+Every step's work is array operations over the runs: observations, reward terms (:mod:`.rewards`,
+:mod:`.fields_zones`, evaluated for all runs at once), collisions, overtakes and the episode books. A run whose
+action is not finite is stopped — reported in ``info["stopped"]`` with its reason, never stepped as a learner
+again — while the other runs go on. The safety shield and the on-ramp are not batched
+(:class:`~lanefree_sumo.rl.env.LaneFreeEnv` has them).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lanefree_sumo.config import LaneFreeConfig, config_to_dict
+from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.rl.env import (
+    DISCRETE_ACTIONS,
+    METRIC_TERMS,
+    NEIGHBOUR_FEATURES,
+    feature_scales,
+    resolve_config,
+)
+from lanefree_sumo.rl.fields_zones import field_terms, zone_targets
+from lanefree_sumo.rl.models import episode_seed
+from lanefree_sumo.rl.rewards import get_preset, lateral_cost, longitudinal_cost, pass_events, reciprocal_reward
+from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.state import row_sum
+from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of
+
+SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
+"""Config sections every run of a batch must have alike (the reward may differ in its preset only)."""
+
+BOOKS = ("return", "return_bonus", "return_collision", "collisions", "collision_steps", "background_collisions",
+         "speed_dev_sum", "speed_error_sum", "speed_sum", "overtakes", "boundary_contacts",
+         *(f"sum_{t}" for t in METRIC_TERMS))
+
+
+@dataclass
+class Rewards:
+    """One step's reward terms of every run (``[K]``; costs –, y_d m, v_d_eff m/s), as ``info`` reports them."""
+
+    c_x: np.ndarray
+    c_y: np.ndarray
+    c_f: np.ndarray
+    y_d: np.ndarray
+    v_d_eff: np.ndarray
+    blocked: np.ndarray
+    collided: np.ndarray
+    overtook: np.ndarray
+    reward: np.ndarray
+
+
+def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[LaneFreeConfig]:
+    """The runs' full configs; ConfigError for what the batch cannot run together."""
+    cfgs = [resolve_config(c) for c in configs]
+    if not cfgs:
+        raise ConfigError("a batched environment needs at least one run")
+    first = config_to_dict(cfgs[0])
+    for k, cfg in enumerate(cfgs):
+        if cfg.road.kind != "ring" or cfg.scenario.agents != 1:
+            raise ConfigError(f"run {k}: the batched environment runs one agent on the ring "
+                              f"(road.kind = ring, scenario.agents = 1); use LaneFree-v0 for the others")
+        if cfg.shield.enabled:
+            raise ConfigError(f"run {k}: the batched environment has no safety shield; "
+                              "use LaneFree-v0 with shield.enabled")
+        if cfg.reward.overtake_bonus != "every_pass":
+            raise ConfigError(f"run {k}: the batched environment books the overtake bonus for every pass "
+                              f"(reward.overtake_bonus = every_pass), not {cfg.reward.overtake_bonus}; "
+                              "use LaneFree-v0 for the others")
+        mine = config_to_dict(cfg)
+        differ = [s for s in SHARED_SECTIONS if mine[s] != first[s]]
+        differ += ["reward"] if {**mine["reward"], "preset": None} != {**first["reward"], "preset": None} else []
+        if differ:
+            raise ConfigError(f"run {k} differs from run 0 in {', '.join(differ)}: the runs of one batch may differ in "
+                              "seed, density and reward preset only")
+    WorldParams.of(cfgs)  # the physics' shared parts (driver model, agents' limits)
+    return cfgs
+
+
+class BatchedRingEnv:
+    """K runs of the ring, each one learning agent (module docstring).
+
+    ``reset()`` starts every run's next episode and returns the observations ``[K, obs_dim]`` (the set observation:
+    a dict of ``ego`` ``[K, E]`` and ``others`` ``[K, rows, 5]``); ``reset(runs)`` restarts those runs only (their
+    episodes ended) and returns every run's current observation. ``step(actions)`` takes ``[K, 2]`` continuous or
+    ``[K]`` discrete actions and returns ``(obs, reward [K], terminated [K], truncated [K], info)``; a run whose
+    episode ended has its episode-metrics row in ``info["episode_metrics"][k]`` (None for the others).
+    ``first_episodes``: each run's next episode number (1 for a new run; a resumed run continues its schedule)."""
+
+    def __init__(self, configs: Sequence[LaneFreeConfig | Mapping[str, Any]],
+                 first_episodes: Sequence[int] | None = None) -> None:
+        self.cfgs = _resolve(configs)
+        cfg = self.cfgs[0]
+        self.runs = len(self.cfgs)
+        self.params = WorldParams.of(self.cfgs)
+        self.episode = np.array([e - 1 for e in (first_episodes or [1] * self.runs)], dtype=int)
+        self.episode_seeds = np.zeros(self.runs, dtype=np.int64)
+        self.stopped = np.zeros(self.runs, dtype=bool)
+        """Runs stopped for a non-finite action; they are never reset nor scored again."""
+        self.world: World | None = None
+        self._vehicles = [c.background_vehicles + 1 for c in self.cfgs]
+        presets = [get_preset(c.reward.preset) for c in self.cfgs]
+        self._w = {name: np.array([getattr(p, name) for p in presets]) for name in
+                   ("w_x", "w_y", "w_f", "use_collision", "use_overtake")}
+        self._ego_scale, self._neighbour_scale = (np.array(s) for s in zip(*(feature_scales(c) for c in self.cfgs)))
+        self._density = [c.scenario.density_veh_per_km for c in self.cfgs]
+        self._range = cfg.observation.range_m
+        self._books = {name: np.zeros(self.runs) for name in BOOKS}
+        self._t0 = np.zeros(self.runs)
+        self._prev_dx = np.zeros((self.runs, 0))
+        self._order = np.zeros((self.runs, 0), dtype=int)
+        self._in_range = np.zeros((self.runs, 0), dtype=bool)
+
+    @property
+    def cfg(self) -> LaneFreeConfig:
+        """Run 0's config (the action and observation settings are every run's)."""
+        return self.cfgs[0]
+
+    # -- episodes -----------------------------------------------------------------------------
+    def reset(self, runs: Sequence[int] | None = None) -> Any:
+        """Start the next episode of ``runs`` (None: every run not stopped); returns every run's observation."""
+        chosen = [k for k in (range(self.runs) if runs is None else runs) if not self.stopped[k]]
+        states = []
+        for k in chosen:
+            self.episode[k] += 1
+            self.episode_seeds[k] = episode_seed(self.cfgs[k].seed, 0, int(self.episode[k]))
+            states.append(spawn(self.cfgs[k], np.random.default_rng(int(self.episode_seeds[k]))))
+            for book in self._books.values():
+                book[k] = 0.0
+            self._t0[k] = time.perf_counter()
+        if self.world is None or len(chosen) == self.runs:
+            if len(chosen) != self.runs:
+                raise RuntimeError("the first reset starts every run")
+            self.world = world_of(states, [c.road.length_m for c in self.cfgs], [c.road.width_m for c in self.cfgs],
+                                  rows=max(self._vehicles))
+        else:
+            self.world = replace_runs(self.world, chosen, states)
+        obs = self._observe()
+        dx_row = self._agent_row(self.world.dx)
+        if self._prev_dx.shape != dx_row.shape:
+            self._prev_dx = dx_row
+        self._prev_dx[chosen] = dx_row[chosen]
+        return obs
+
+    def episode_metrics(self, k: int) -> dict[str, Any]:
+        """Run k's episode metrics so far: the row :meth:`~lanefree_sumo.rl.env.LaneFreeEnv.episode_metrics` gives."""
+        assert self.world is not None
+        b, steps = {name: self._books[name][k] for name in BOOKS}, int(self.world.steps[k])
+        per = max(steps, 1)
+        cfg = self.cfgs[k]
+        return {
+            "episode": int(self.episode[k]),
+            "steps": steps,
+            "return": float(b["return"]),
+            "return_bonus": float(b["return_bonus"]),
+            "return_collision": float(b["return_collision"]),
+            "return_reciprocal": float(b["return"] - b["return_bonus"] - b["return_collision"]),
+            "collisions": int(b["collisions"]),
+            "collision_steps": int(b["collision_steps"]),
+            "background_collisions": int(b["background_collisions"]),
+            "speed_dev_mps": float(b["speed_dev_sum"] / per),
+            "speed_dev_episode_mps": float(abs(b["speed_error_sum"]) / per),
+            "speed_error_mps": float(b["speed_error_sum"] / per),
+            "mean_speed_mps": float(b["speed_sum"] / per),
+            "overtakes": int(b["overtakes"]),
+            "boundary_contacts": int(b["boundary_contacts"]),
+            "shield_interventions": 0,
+            "shield_fallbacks": 0,
+            **{f"mean_{t}": float(b[f"sum_{t}"] / per) for t in METRIC_TERMS},
+            "density": cfg.scenario.density_veh_per_km,
+            "seed": int(self.episode_seeds[k]),
+            "reward_preset": cfg.reward.preset,
+            "wall_s": time.perf_counter() - self._t0[k],
+        }
+
+    # -- one step -----------------------------------------------------------------------------
+    def accelerations(self, actions: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(ax, ay) ``[K]`` in m/s² for the runs' actions (SPEC §6, as
+        :func:`~lanefree_sumo.rl.env.action_to_acceleration`), and ``[K]`` True where a run's action is not finite
+        (its acceleration is then 0)."""
+        cfg = self.cfg
+        values = np.asarray(actions, dtype=float).reshape(self.runs, -1)
+        bad = ~np.isfinite(values).all(axis=1)
+        values = np.where(bad[:, None], 0.0, values)
+        if cfg.action.kind == "discrete":
+            index = values[:, 0].astype(int)
+            if values.shape[1] != 1 or (values[:, 0] != index).any() or (index < 0).any() or \
+                    (index >= len(DISCRETE_ACTIONS)).any():
+                raise ValueError(f"a discrete action is one whole number 0 … {len(DISCRETE_ACTIONS) - 1} per run, "
+                                 f"got {actions!r}")
+            signs = DISCRETE_ACTIONS[index]
+            accel = np.column_stack([signs[:, 0] * cfg.action.discrete_ax_mps2,
+                                     signs[:, 1] * cfg.action.discrete_ay_mps2])
+        else:
+            if values.shape[1] != 2:
+                raise ValueError(f"a continuous action has 2 components (ax, ay in [-1, 1]) per run, got {actions!r}")
+            bounds = cfg.scenario.agent_bounds
+            a = np.minimum(1.0, np.maximum(-1.0, values))
+            accel = np.column_stack([np.where(a[:, 0] >= 0.0, a[:, 0] * bounds.ax_max, -a[:, 0] * bounds.ax_min),
+                                     a[:, 1] * bounds.ay_max])
+        return np.where(bad[:, None], 0.0, accel), bad
+
+    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One step of every run (class docstring). Stopped runs report reward 0 and no episode end."""
+        if self.world is None:
+            raise RuntimeError("call reset() before step()")
+        accel, bad = self.accelerations(actions)
+        newly = bad & ~self.stopped
+        stopped_now = {int(k): f"run {k}: action {np.asarray(actions)[k]!r} at step {int(self.world.steps[k]) + 1} of "
+                       f"episode {int(self.episode[k])} is not finite; a diverged policy must not drive the car"
+                       for k in np.flatnonzero(newly)}
+        self.stopped |= bad
+        before = self.world
+        self.world, out = step_world(before, self.params, accel[:, None, :])
+        world = self.world
+        active = ~self.stopped
+
+        a = world.agent_rows[:, :1]
+        collided = np.take_along_axis(out.overlap, a[..., None], 1)[:, 0].any(axis=1)
+        new = out.new_collisions
+        agent_events = (np.take_along_axis(new, a[..., None], 1)[:, 0].sum(axis=1)
+                        + np.take_along_axis(new, a[:, None, :], 2)[..., 0].sum(axis=1))
+        background_only = new.sum(axis=(1, 2)) - agent_events
+        obs = self._observe()
+        dx_row = self._agent_row(world.dx)
+        passed = pass_events(self._prev_dx, dx_row, self._range, world.road_length[:, None])[0]
+        overtakes = np.count_nonzero(passed & self._in_range, axis=1)
+        self._prev_dx = dx_row
+        terms = self._rewards(collided, overtakes > 0)
+
+        vx_a = self._agent(world.vx)
+        error = vx_a - self._agent(world.v_desired)
+        contact = self._agent(out.boundary_contact)
+        r, w = self.cfg.reward, self._w
+        bonus = np.where(w["use_overtake"] & terms.overtook & ~collided, r.overtake_reward, 0.0)
+        b = self._books
+        for name, value in (("return", terms.reward), ("return_bonus", bonus),
+                            ("return_collision", np.where(w["use_collision"] & collided, r.collision_reward, 0.0)),
+                            ("collisions", agent_events), ("collision_steps", collided),
+                            ("background_collisions", background_only), ("speed_dev_sum", np.abs(error)),
+                            ("speed_error_sum", error), ("speed_sum", vx_a),
+                            ("overtakes", overtakes), ("boundary_contacts", contact), ("sum_c_x", terms.c_x),
+                            ("sum_c_y", terms.c_y), ("sum_c_f", terms.c_f), ("sum_reward", terms.reward)):
+            b[name] = np.where(active, b[name] + value, b[name])
+
+        terminated = active & np.array([c.episode.terminate_on_collision for c in self.cfgs]) & collided
+        truncated = active & (world.steps >= self.cfg.sim.episode_steps)
+        metrics = [self.episode_metrics(k) if terminated[k] or truncated[k] else None for k in range(self.runs)]
+        info = {**{name: getattr(terms, name) for name in Rewards.__dataclass_fields__},
+                "overtakes": overtakes, "collision_events": agent_events, "boundary_contact": contact,
+                "ax": accel[:, 0], "ay": accel[:, 1], "episode_metrics": metrics, "stopped": stopped_now}
+        return obs, np.where(active, terms.reward, 0.0), terminated, truncated, info
+
+    # -- the agent's view -----------------------------------------------------------------------
+    def _agent(self, a: np.ndarray) -> np.ndarray:
+        """Each run's agent value of a ``[K, N]`` array: ``[K]``."""
+        assert self.world is not None
+        return np.take_along_axis(a, self.world.agent_rows[:, :1], 1)[:, 0]
+
+    def _agent_row(self, pairs: np.ndarray) -> np.ndarray:
+        """Each run's agent row of a ``[K, N, N]`` array: ``[K, N]``."""
+        assert self.world is not None
+        return np.take_along_axis(pairs, self.world.agent_rows[:, :1, None], 1)[:, 0]
+
+    def _observe(self) -> Any:
+        """Every run's observation (:meth:`~lanefree_sumo.rl.env.LearningVehicle.observe`); keeps the vehicles in
+        range and their order by distance for the reward."""
+        world, o = self.world, self.cfg.observation
+        assert world is not None
+        dx, dy = self._agent_row(world.dx), self._agent_row(world.dy)
+        in_range = (np.abs(dx) <= o.range_m) & world.present
+        np.put_along_axis(in_range, world.agent_rows[:, :1], False, 1)
+        order = np.argsort(np.where(in_range, np.hypot(dx, dy), np.inf), axis=1, kind="stable")
+        self._in_range, self._order = in_range, order
+        seen = in_range.sum(axis=1)
+        y_a, vx_a, vy_a = self._agent(world.y), self._agent(world.vx), self._agent(world.vy)
+        ego = np.column_stack([y_a, vx_a, vy_a, self._agent(world.v_desired)]) / self._ego_scale
+
+        def neighbours(rows: int, fill: np.ndarray) -> np.ndarray:
+            """``[K, rows, 4]``: the nearest ``rows`` vehicles in range (dx, dy, vx, vy), ``fill`` beyond them."""
+            shown = order[:, :rows]
+            if shown.shape[1] < rows:  # fewer vehicles on the road than rows: the rest is fill
+                shown = np.pad(shown, ((0, 0), (0, rows - shown.shape[1])), mode="edge")
+            table = np.stack([np.take_along_axis(a, shown, 1) for a in (dx, dy, world.vx, world.vy)], axis=-1)
+            return np.where((np.arange(rows) < seen[:, None])[..., None], table, fill)
+
+        if o.kind == "vector":
+            fill = np.stack([np.full(self.runs, o.range_m), np.zeros(self.runs), vx_a, vy_a], axis=-1)[:, None, :]
+            rows = neighbours(o.n_neighbours, fill) / self._neighbour_scale[:, None, :]
+            return np.concatenate([ego, rows.reshape(self.runs, -1)], axis=1).astype(np.float32)
+        table = np.zeros((self.runs, o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
+        shown = np.arange(o.max_rows) < seen[:, None]
+        scaled = neighbours(o.max_rows, np.zeros(1)) / self._neighbour_scale[:, None, :]
+        table[..., :NEIGHBOUR_FEATURES] = np.where(shown[..., None], scaled, 0.0)
+        table[..., NEIGHBOUR_FEATURES] = shown
+        return {"ego": ego.astype(np.float32), "others": table}
+
+    def _rewards(self, collided: Any, overtook: Any) -> Rewards:
+        """Every run's reward terms (:func:`~lanefree_sumo.rl.rewards.compute_reward`, over the runs at once)."""
+        world, r = self.world, self.cfg.reward
+        assert world is not None
+        dx, dy = self._agent_row(world.dx), self._agent_row(world.dy)
+        y_a, vx_a, vy_a = self._agent(world.y), self._agent(world.vx), self._agent(world.vy)
+        len_a, wid_a, vd_a = self._agent(world.length), self._agent(world.width), self._agent(world.v_desired)
+        width = world.road_width
+        w = self._w
+
+        zones = w["w_y"] > 0.0
+        y_d, v_d_eff, blocked = zone_targets(dx, dy, world.vx, world.length, world.width, y_a, vx_a, len_a, wid_a,
+                                             vd_a, width, time_gap=r.zone_time_gap_s, margin=r.zone_margin_m,
+                                             present=self._in_range)
+        y_d = np.where(zones, y_d, 0.5 * width)
+        v_d_eff = np.where(zones, v_d_eff, vd_a)
+        blocked = zones & blocked
+        c_y = np.where(zones, lateral_cost(y_a, y_d, width), 0.0)
+        c_x = longitudinal_cost(vx_a, v_d_eff, min_desired_speed=r.min_desired_speed_mps)
+
+        n = self.cfg.observation.n_neighbours
+        seen = np.minimum(self._in_range.sum(axis=1), n)
+        observed = self._order[:, :n]
+
+        def of(a: np.ndarray) -> np.ndarray:
+            return np.take_along_axis(a, observed, 1)
+
+        e_c, e_b = field_terms(of(dx), of(dy), vx_a[:, None] - of(world.vx), vy_a[:, None] - of(world.vy),
+                               len_a[:, None], wid_a[:, None], of(world.length), of(world.width),
+                               magnitude=r.field_magnitude, critical_exponents=r.critical_exponents,
+                               broad_exponents=r.broad_exponents, k_r=r.k_r_s_per_m, e_v=r.e_v_s_per_m,
+                               stretch=r.broad_stretch)
+        valid = np.arange(observed.shape[1]) < seen[:, None]
+        c_f = np.minimum(1.0, row_sum(np.where(valid, e_c, 0.0), seen) + row_sum(np.where(valid, e_b, 0.0), seen))
+        reward = reciprocal_reward(c_x, c_y, c_f, collided, overtook, w["w_x"], w["w_y"], w["w_f"],
+                                   epsilon_r=r.epsilon_r, collision_reward=r.collision_reward,
+                                   overtake_reward=r.overtake_reward, use_collision=w["use_collision"],
+                                   use_overtake=w["use_overtake"])
+        return Rewards(c_x, c_y, c_f, y_d, v_d_eff, blocked, collided, overtook, np.asarray(reward))
+

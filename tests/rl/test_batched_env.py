@@ -1,0 +1,125 @@
+"""The batched environment: run k is, bit for bit, LaneFree-v0 (numpy) with its config and a training run's seeds."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.rl.batched_env import BatchedRingEnv
+from lanefree_sumo.rl.env import LaneFreeEnv
+from lanefree_sumo.rl.models import EpisodeSeeds
+
+# (seed, density, preset): three vehicle counts (padding), presets with and without zones, fields and bonuses
+RUNS = [(3, 70.0, "fields_zones_overtake_collision"), (4, 120.0, "collision"), (5, 90.0, "fields_overtake_collision")]
+STEPS = 40
+TERMS = ("c_x", "c_y", "c_f", "y_d", "v_d_eff", "blocked", "collided", "overtook", "reward", "overtakes",
+         "collision_events", "boundary_contact")
+
+
+def configs(kind: str, observation: str = "vector") -> list[dict]:
+    return [{"seed": seed, "backend": "numpy", "scenario": {"density_veh_per_km": density},
+             "reward": {"preset": preset}, "action": {"kind": kind}, "observation": {"kind": observation},
+             "sim": {"episode_steps": STEPS}} for seed, density, preset in RUNS]
+
+
+def actions(rng: np.random.Generator, kind: str) -> np.ndarray:
+    """Mostly accelerating, so the agents race, overtake and collide."""
+    if kind == "discrete":
+        return rng.choice([1, 5, 7, 0, 3, 4], size=len(RUNS))
+    return np.column_stack([rng.uniform(-0.3, 1.0, len(RUNS)), rng.uniform(-1.0, 1.0, len(RUNS))]).astype(np.float32)
+
+
+def assert_same_obs(batched, k: int, single) -> None:
+    if isinstance(single, dict):
+        for key in single:
+            np.testing.assert_array_equal(batched[key][k], single[key])
+    else:
+        np.testing.assert_array_equal(batched[k], single)
+
+
+def without_wall(row: dict) -> dict:
+    return {key: value for key, value in row.items() if key != "wall_s"}
+
+
+@pytest.mark.parametrize(("kind", "observation"), [("continuous", "vector"), ("discrete", "vector"),
+                                                   ("continuous", "set")])
+def test_each_run_is_lanefree_v0_with_a_training_runs_episode_seeds(kind, observation):
+    cfgs = configs(kind, observation)
+    batch = BatchedRingEnv(cfgs)
+    singles = [EpisodeSeeds(LaneFreeEnv(cfg), cfg["seed"], 0, 1) for cfg in cfgs]
+    rng = np.random.default_rng(1)
+    seen = {"overtakes": 0, "collision_events": 0, "ended": 0}
+    for _episode in range(2):
+        obs = batch.reset()
+        for k, env in enumerate(singles):
+            single_obs, info = env.reset()
+            assert_same_obs(obs, k, single_obs)
+            assert info["episode_seed"] == batch.episode_seeds[k]
+        for _ in range(STEPS):
+            act = actions(rng, kind)
+            obs, reward, terminated, truncated, info = batch.step(act)
+            for k, env in enumerate(singles):
+                single_obs, single_reward, single_term, single_trunc, single_info = env.step(act[k])
+                assert_same_obs(obs, k, single_obs)
+                assert reward[k] == single_reward
+                assert (terminated[k], truncated[k]) == (single_term, single_trunc)
+                for term in TERMS:
+                    assert info[term][k] == single_info[term], term
+                if single_term or single_trunc:
+                    assert without_wall(info["episode_metrics"][k]) == without_wall(single_info["episode_metrics"])
+                    seen["ended"] += 1
+                else:
+                    assert info["episode_metrics"][k] is None
+                seen["overtakes"] += single_info["overtakes"]
+                seen["collision_events"] += single_info["collision_events"]
+    assert seen["ended"] == 2 * len(RUNS)
+    assert seen["overtakes"] > 0 and seen["collision_events"] > 0  # the bonuses and penalties were compared too
+
+
+def test_a_run_with_a_nan_action_stops_alone_and_the_others_go_on():
+    cfgs = configs("continuous")
+    batch = BatchedRingEnv(cfgs)
+    singles = [EpisodeSeeds(LaneFreeEnv(cfg), cfg["seed"], 0, 1) for cfg in cfgs]
+    batch.reset()
+    for env in singles:
+        env.reset()
+    rng = np.random.default_rng(2)
+    for step in range(STEPS):
+        act = actions(rng, "continuous")
+        if step == 5:
+            act[1, 0] = np.nan
+        obs, reward, terminated, truncated, info = batch.step(act)
+        if step == 5:
+            assert list(info["stopped"]) == [1] and "not finite" in info["stopped"][1]
+        else:
+            assert info["stopped"] == {}
+        assert batch.stopped.tolist() == [False, step >= 5, False]
+        for k in (0, 2):
+            single_obs, single_reward, *_ = singles[k].step(act[k])
+            np.testing.assert_array_equal(obs[k], single_obs)
+            assert reward[k] == single_reward
+        if step >= 5:
+            assert reward[1] == 0.0 and not terminated[1] and not truncated[1]
+            assert info["episode_metrics"][1] is None
+    assert truncated.tolist() == [True, False, True]
+    batch.reset([0, 2])
+    batch.reset()  # a stopped run is not restarted
+    assert batch.episode.tolist() == [3, 1, 3] and batch.stopped[1]
+    assert not math.isnan(float(batch.episode_metrics(1)["return"]))
+
+
+def test_runs_that_cannot_share_a_batch_are_refused():
+    base = configs("continuous")[:2]
+    with pytest.raises(ConfigError, match="run 1 differs from run 0 in sim"):
+        BatchedRingEnv([base[0], {**base[1], "sim": {"episode_steps": 50}}])
+    with pytest.raises(ConfigError, match="action"):
+        BatchedRingEnv([base[0], {**base[1], "action": {"kind": "discrete"}}])
+    with pytest.raises(ConfigError, match="shield"):
+        BatchedRingEnv([{**base[0], "shield": {"enabled": True}}])
+    with pytest.raises(ConfigError, match="ring"):
+        BatchedRingEnv([{**base[0], "road": {"kind": "onramp"}}])
+    with pytest.raises(ConfigError, match="overtake_bonus"):
+        BatchedRingEnv([{**base[0], "reward": {"overtake_bonus": "net_passes"}}])
