@@ -54,15 +54,13 @@ def edge_bound(v: np.ndarray, d: np.ndarray, step_s: float, decel: float) -> np.
 
 
 def symmetric_trapezoid(abs_t: np.ndarray, w: np.ndarray, l: np.ndarray) -> np.ndarray:
-    """H(t, w, l, w) from |t|: clip((w + l − |t|)/w, 0, 1), a step |t| ≤ l where w = 0.
+    """H(t, w, l, w) from |t|: clip((w + l − |t|)/w, 0, 1), a step |t| ≤ l where w = 0 (w ≥ 0).
 
     The fast form of :func:`trapezoid_h` for equal rise and fall, as both force ramps are."""
     num = (w + l) - abs_t
-    if np.min(w) > 0.0:
-        return np.minimum(np.maximum(num / w, 0.0), 1.0)
-    positive = w > 0.0
-    w_safe = np.where(positive, w, 1.0)
-    return np.where(positive, np.clip(num / w_safe, 0.0, 1.0), (num >= 0.0).astype(float))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.minimum(np.maximum(num / w, 0.0), 1.0)  # w = 0: ±inf clipped to the step's 1 or 0 ...
+    return np.where(np.isnan(out), 1.0, out)  # ... and 0/0 (the step's edge, |t| = l) is NaN: the step's 1
 
 
 def strongest_mask(mag: np.ndarray, k: int) -> np.ndarray:

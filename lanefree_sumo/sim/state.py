@@ -135,19 +135,19 @@ def _block_sum(a: np.ndarray, count: np.ndarray) -> np.ndarray:
     """numpy's sum of ``a[..., :count]`` (count ≤ 128 per row): below 8 entries one by one; else eight running sums
     over whole blocks of eight, combined pairwise, then the remaining entries one by one."""
     width = a.shape[-1]
+    if not width:
+        return np.zeros(a.shape[:-1])
     blocked = np.where(count >= 8, count - count % 8, 0)
-    blocks = max(1, -(-width // 8))
-    padded = np.zeros(a.shape[:-1] + (8 * blocks,))
-    padded[..., :width] = np.where(np.arange(width) < blocked[..., None], a, 0.0)
-    lanes = padded.reshape(a.shape[:-1] + (blocks, 8))
-    acc = lanes[..., 0, :]
-    for b in range(1, blocks):
-        acc = acc + lanes[..., b, :]
+    lanes = np.zeros(a.shape[:-1] + (-(-width // 8) * 8,))
+    np.copyto(lanes[..., :width], a, where=np.arange(width) < blocked[..., None])
+    # the eight running sums: a reduction over the blocks (not the innermost axis) adds them one after another
+    acc = lanes.reshape(a.shape[:-1] + (-1, 8)).sum(axis=-2)
     tree = ((acc[..., 0] + acc[..., 1]) + (acc[..., 2] + acc[..., 3])) + ((acc[..., 4] + acc[..., 5])
                                                                            + (acc[..., 6] + acc[..., 7]))
     total = np.where(count >= 8, tree, 0.0)
+    rest = np.arange(7)
+    tail = np.take_along_axis(a, np.minimum(blocked[..., None] + rest, width - 1), -1)
+    tail = np.where(rest < (count - blocked)[..., None], tail, 0.0)
     for t in range(7):
-        at = blocked + t
-        value = np.take_along_axis(a, np.minimum(at, width - 1)[..., None], -1)[..., 0]
-        total = total + np.where(at < count, value, 0.0)
+        total = total + tail[..., t]
     return total
