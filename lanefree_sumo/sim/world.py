@@ -29,7 +29,7 @@ from lanefree_sumo.sim.dynamics import ballistic_distance, clip_accelerations, p
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.network import EDGES, edge_length, edge_to_ring, ring_to_edge
 from lanefree_sumo.sim.spawn import spawn
-from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
+from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, take_rows
 
 
 @dataclass(frozen=True)
@@ -209,8 +209,8 @@ def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
     commands = np.asarray(agent_accel, dtype=float).reshape(world.runs, -1, 2)
     rows = world.agent_rows
     agent_ax, agent_ay = clip_accelerations(commands[..., 0], commands[..., 1], params.agent_bounds,
-                                            np.take_along_axis(world.vx, rows, 1), params.agent_max_speed_mps, t,
-                                            np.take_along_axis(world.vy, rows, 1), params.agent_lateral_ratio)
+                                            take_rows(world.vx, rows), params.agent_max_speed_mps, t,
+                                            take_rows(world.vy, rows), params.agent_lateral_ratio)
     np.put_along_axis(ax, rows, agent_ax, 1)
     np.put_along_axis(ay, rows, agent_ay, 1)
     ax = np.where(world.present, ax, 0.0)
