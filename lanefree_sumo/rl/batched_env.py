@@ -36,7 +36,7 @@ from lanefree_sumo.rl.fields_zones import field_terms, zone_targets
 from lanefree_sumo.rl.models import episode_seed
 from lanefree_sumo.rl.rewards import get_preset, lateral_cost, longitudinal_cost, pass_events, reciprocal_reward
 from lanefree_sumo.sim.spawn import spawn
-from lanefree_sumo.sim.state import row_sum
+from lanefree_sumo.sim.state import row_sum, take_rows
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of
 
 SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
@@ -267,12 +267,12 @@ class BatchedRingEnv:
     def _agent(self, a: np.ndarray) -> np.ndarray:
         """Each run's agent value of a ``[K, N]`` array: ``[K]``."""
         assert self.world is not None
-        return np.take_along_axis(a, self.world.agent_rows[:, :1], 1)[:, 0]
+        return take_rows(a, self.world.agent_rows[:, :1])[:, 0]
 
     def _agent_row(self, pairs: np.ndarray) -> np.ndarray:
         """Each run's agent row of a ``[K, N, N]`` array: ``[K, N]``."""
         assert self.world is not None
-        return np.take_along_axis(pairs, self.world.agent_rows[:, :1, None], 1)[:, 0]
+        return pairs[np.arange(self.runs), self.world.agent_rows[:, 0]]
 
     def _observe(self) -> Any:
         """Every run's observation (:meth:`~lanefree_sumo.rl.env.LearningVehicle.observe`); keeps the vehicles in
@@ -293,7 +293,7 @@ class BatchedRingEnv:
             shown = order[:, :rows]
             if shown.shape[1] < rows:  # fewer vehicles on the road than rows: the rest is fill
                 shown = np.pad(shown, ((0, 0), (0, rows - shown.shape[1])), mode="edge")
-            table = np.stack([np.take_along_axis(a, shown, 1) for a in (dx, dy, world.vx, world.vy)], axis=-1)
+            table = np.stack([take_rows(a, shown) for a in (dx, dy, world.vx, world.vy)], axis=-1)
             return np.where((np.arange(rows) < seen[:, None])[..., None], table, fill)
 
         if o.kind == "vector":
@@ -332,7 +332,7 @@ class BatchedRingEnv:
         observed = self._order[:, :n]
 
         def of(a: np.ndarray) -> np.ndarray:
-            return np.take_along_axis(a, observed, 1)
+            return take_rows(a, observed)
 
         e_c, e_b = field_terms(of(dx), of(dy), vx_a[:, None] - of(world.vx), vy_a[:, None] - of(world.vy),
                                len_a[:, None], wid_a[:, None], of(world.length), of(world.width),

@@ -224,9 +224,11 @@ def zone_targets(
         present = None
 
     def row(a: ArrayLike) -> np.ndarray:
-        return np.broadcast_to(np.asarray(a, dtype=float), shape)[..., None]
+        a = np.asarray(a, dtype=float)
+        return (a if a.shape == shape else np.broadcast_to(a, shape))[..., None]
 
     y_a, vx_a, len_a, wid_a, width = row(agent_y), row(agent_vx), row(agent_len), row(agent_wid), row(road_width)
+    v_desired = row(v_desired)[..., 0]
     half_len = 0.5 * (len_a + lens)
     d_o = vx_a * time_gap
     with np.errstate(invalid="ignore"):
@@ -234,6 +236,8 @@ def zone_targets(
     if present is not None:
         is_blocker &= present
     any_blocker = is_blocker.any(axis=-1)
+    if not any_blocker.any():  # a shortcut with the same result: no blocker anywhere
+        return 0.5 * width[..., 0], v_desired.copy(), any_blocker
 
     y_j = y_a + dy
     half_w = 0.5 * wids
@@ -259,6 +263,5 @@ def zone_targets(
     y_fast = (y_a + np.take_along_axis(dy, fastest, -1))[..., 0]
     slowest = np.min(np.where(is_blocker, vxs, np.inf), axis=-1)
     blocked = any_blocker & ~any_fit
-    v_desired = np.broadcast_to(np.asarray(v_desired, dtype=float), shape)
     y_d = np.where(any_blocker, np.where(any_fit, y_zone, y_fast), 0.5 * width[..., 0])
     return y_d, np.where(blocked, np.minimum(v_desired, slowest), v_desired), blocked

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.special import erfc
 
 from lanefree_sumo.config import DriverConfig
-from lanefree_sumo.sim.state import Bodies, pair_mask, pairwise_offsets, row_sum, wrap
+from lanefree_sumo.sim.state import Bodies, pair_mask, pairwise_offsets, row_sum, take_rows, wrap
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -158,13 +158,13 @@ def driver_accelerations(
     ay = cfg.coef_fy * sum_fy + fts_y
 
     # 1. x-wall towards the summed repulsion of largest degree δ (the most negative f_x)
-    leader = np.argmin(rep_fx, axis=-1)[..., None]
-    lead_fx = np.take_along_axis(rep_fx, leader, -1)[..., 0]
+    leader = np.argmin(rep_fx, axis=-1)
+    lead_fx = rep_fx.min(axis=-1)  # the value at the leader
     has_leader = lead_fx < 0.0
     degree = np.abs(np.clip(lead_fx, -1.0, 1.0)) ** cfg.wall_exponent
 
     def of_leader(a: np.ndarray) -> np.ndarray:
-        return np.take_along_axis(a, leader[..., 0], -1)
+        return take_rows(a, leader)
 
     gap = wrap((of_leader(x) - 0.5 * of_leader(length)) - (x + 0.5 * length), ring_length)
     v_safe = np.minimum(gap / cfg.wall_time_gap_s, of_leader(vx) - cfg.wall_speed_margin_mps)

@@ -29,7 +29,7 @@ from lanefree_sumo.sim.dynamics import ballistic_distance, clip_accelerations, p
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.network import EDGES, edge_length, edge_to_ring, ring_to_edge
 from lanefree_sumo.sim.spawn import spawn
-from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
+from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, take_rows
 
 
 @dataclass(frozen=True)
@@ -204,17 +204,19 @@ def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
     ring = world.road_length[:, None]
     road_width = world.road_width[:, None]
     bounds = (0.0, road_width)
+    present = None if world.present.all() else world.present  # no padding: nothing to mask
     ax, ay = driver_accelerations(world, params.driver, ring, road_width, t, params.clearance_m,
-                                  (world.dx, world.dy), details, bounds=bounds, present=world.present)
+                                  (world.dx, world.dy), details, bounds=bounds, present=present)
     commands = np.asarray(agent_accel, dtype=float).reshape(world.runs, -1, 2)
     rows = world.agent_rows
     agent_ax, agent_ay = clip_accelerations(commands[..., 0], commands[..., 1], params.agent_bounds,
-                                            np.take_along_axis(world.vx, rows, 1), params.agent_max_speed_mps, t,
-                                            np.take_along_axis(world.vy, rows, 1), params.agent_lateral_ratio)
+                                            take_rows(world.vx, rows), params.agent_max_speed_mps, t,
+                                            take_rows(world.vy, rows), params.agent_lateral_ratio)
     np.put_along_axis(ax, rows, agent_ax, 1)
     np.put_along_axis(ay, rows, agent_ay, 1)
-    ax = np.where(world.present, ax, 0.0)
-    ay = np.where(world.present, ay, 0.0)
+    if present is not None:
+        ax = np.where(present, ax, 0.0)
+        ay = np.where(present, ay, 0.0)
     cmd = plan_step(world.x, world.y, world.vx, world.vy, world.width, ax, ay, t, road_width, params.clearance_m,
                     params.contact_tolerance_m, bounds=bounds)
 
@@ -233,7 +235,8 @@ def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
     new = replace(world, x=edge_to_ring(edge, pos, ring), y=lat + half_width, vx=cmd.vx_next, vy=cmd.vy_next,
                   edge=edge, pos=pos, lat=lat, steps=world.steps + 1)
     new.dx, new.dy = pairwise_offsets(new, ring)
-    new.overlap = overlap_matrix(new, ring, (new.dx, new.dy), world.present)
-    outcome = StepOutcome(cmd.ax, cmd.ay, cmd.boundary_contact & world.present, new.overlap,
+    new.overlap = overlap_matrix(new, ring, (new.dx, new.dy), present)
+    contact = cmd.boundary_contact if present is None else cmd.boundary_contact & present
+    outcome = StepOutcome(cmd.ax, cmd.ay, contact, new.overlap,
                           started_overlaps(new.overlap, world.overlap))
     return new, outcome
