@@ -422,15 +422,21 @@ def _resume_batch(folder: Path) -> list[tuple[Path, int]]:
 
 
 def _report_batch(results: list[tuple[Path, int]]) -> int:
-    """Print each run's outcome; EXIT_INTERRUPTED when a run is short of its episodes (stopped or interrupted)."""
+    """Print each run's outcome; EXIT_INTERRUPTED when a run is short of its episodes by an interruption (a run
+    stopped for a non-finite action is named with its reason: resuming would not continue it)."""
+    from lanefree_sumo.experiments.rundir import read_sessions
+
     short = False
     for run, done in results:
         target = _episodes_target(run)
-        short |= done < target
-        print(f"{'trained' if done >= target else 'stopped after'} {done}/{target} episodes -> {run}")
+        reason = (read_sessions(run) or [{}])[-1].get("stopped_by") or ""
+        diverged = "not finite" in reason  # stopped for good: resuming does not continue it
+        short |= done < target and not diverged
+        print(f"{'trained' if done >= target else 'stopped after'} {done}/{target} episodes -> {run}"
+              + (f" ({reason})" if diverged else ""))
     if short:
         print(f"resume the batch with: lanefree train --resume {results[0][0].parent}", file=sys.stderr)
-    return EXIT_INTERRUPTED if short else 0
+    return EXIT_INTERRUPTED if short else (1 if any(done < _episodes_target(r) for r, done in results) else 0)
 
 
 def _episodes_target(run: Path) -> int:

@@ -42,13 +42,15 @@ from lanefree_sumo.experiments.train import EpisodeLog, _Stop, episode_columns, 
 BATCH_FILE = "batch.json"
 BATCH_CHECKPOINTS = "batch_checkpoints"
 KEEP_BATCH_CHECKPOINTS = 2
-BATCH_ALGORITHMS = ("ddpg", "dqn", "ddqn", "dueling", "per")
 
 
 def check_batchable(cfg: LaneFreeConfig) -> None:
     """ConfigError (one line) for a run the batched path cannot train."""
-    if cfg.train.algo not in BATCH_ALGORITHMS:
-        raise ConfigError(f"batched training covers {', '.join(BATCH_ALGORITHMS)}, not {cfg.train.algo}; "
+    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
+
+    algorithms = ("ddpg", *FAMILY)
+    if cfg.train.algo not in algorithms:
+        raise ConfigError(f"batched training covers {', '.join(algorithms)}, not {cfg.train.algo}; "
                           "train it with --seed (one run)")
     for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
                         (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),

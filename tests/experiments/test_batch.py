@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from lanefree_sumo.cli import _report_batch
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, batch_name, resume_batch, train_batch
 from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
@@ -56,7 +57,8 @@ def test_batched_runs_equal_sequential_runs(tmp_path: Path, algo: str) -> None:
     assert results[1][0].name == batch_name(cfgs[1]) == f"{algo}_{cfgs[1].reward.preset}_d120_s1"
 
 
-def test_a_run_with_a_non_finite_action_stops_alone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_run_with_a_non_finite_action_stops_alone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """Run 1's policy gives NaN in episode 2: run 1 stops there (its folder's session says why, no model.zip),
     run 0 finishes as it would have alone."""
     from lanefree_sumo.rl.algorithms.batched import BatchedDDPG
@@ -81,6 +83,9 @@ def test_a_run_with_a_non_finite_action_stops_alone(tmp_path: Path, monkeypatch:
     session = json.loads((run1 / "last_session.json").read_text())
     assert "not finite" in session["stopped_by"] and session["episodes_done"] == 1
     assert json.loads((run0 / "last_session.json").read_text())["stopped_by"] is None
+    assert _report_batch([(run0, done0), (run1, done1)]) == 1  # not an interruption: nothing to resume
+    out = capsys.readouterr()
+    assert f"stopped after 1/3 episodes -> {run1} (run 1: action" in out.out and "--resume" not in out.err
 
 
 def test_a_batch_stopped_by_sigterm_resumes_with_the_uninterrupted_episodes(tmp_path: Path) -> None:
