@@ -63,12 +63,12 @@ train: system-deps $(STAMP)
 	$(BIN)/lanefree train $(TRAIN_OPTS)
 
 evaluate: system-deps $(STAMP)
-	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder>"; exit 2; }
-	$(BIN)/lanefree evaluate $(RUN) --record
+	@test -n "$(RUN)" || { echo "usage: make evaluate RUN=runs/<run folder> [OVERWRITE=1]"; exit 2; }
+	$(BIN)/lanefree evaluate $(RUN) --record $(if $(OVERWRITE),--overwrite)
 
 replay: system-deps $(STAMP)
-	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1]"; exit 2; }
-	$(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
+	@test -n "$(RUN)" || { echo "usage: make replay RUN=runs/<run folder> [EPISODE=1] (under xvfb-run without a DISPLAY)"; exit 2; }
+	$(if $(DISPLAY),,xvfb-run -a) $(BIN)/lanefree replay $(RUN) $(call opt,EPISODE,--episode)
 
 report: $(STAMP)
 	$(BIN)/lanefree report $(RUNS) $(call opt,OUT,--out)
@@ -98,7 +98,7 @@ sweep: system-deps $(STAMP)
 	$(BIN)/lanefree sweep $(GRID) $(call opt,OUT,--out) $(call opt,SEEDS,--seeds) $(call opt,EPISODES,--episodes) \
 		$(call opt,WORKERS,--workers) $(call opt,ADDRESS,--address)
 
-# Issue 17: evaluate finished runs and rewrite every committed result table (results/paper, results/varobs).
+# Evaluate finished runs and rewrite every committed result table (results/paper, results/varobs).
 results: system-deps $(STAMP)
 	scripts/update-results.sh
 
@@ -108,6 +108,6 @@ clean-venv:
 traffic: system-deps $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.traffic_check
 
-# The on-ramp's inflow-outflow curve (issue 21) into results/onramp/ (RAMP=veh/h, default 300).
+# The on-ramp's inflow-outflow curve into results/onramp/ (RAMP=veh/h, default 300).
 onramp-flows: $(STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.onramp_flows $(if $(RAMP),--ramp-flow $(RAMP) --out results/onramp/ramp$(RAMP),)

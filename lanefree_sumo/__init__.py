@@ -4,19 +4,14 @@ Importing the package registers the gymnasium environment ``LaneFree-v0``::
 
     import gymnasium, lanefree_sumo
     env = gymnasium.make("LaneFree-v0", config={"scenario": {"density_veh_per_km": 90}})
-"""
 
-import sys
+Citations "specification §N" in the docstrings refer to the project's specification, docs/specification.md.
+"""
 
 from lanefree_sumo.numerics import keep_numpy_portable
 
 keep_numpy_portable()  # before anything imports numpy: the same episodes on every machine (numerics.py)
 
 from gymnasium.envs.registration import register  # noqa: E402  (numpy's kernels are chosen above)
-
-from lanefree_sumo.rl import rewards  # noqa: E402
-
-# SPEC §7 names the pure reward functions `lanefree_sumo.rewards`: the same module as rl.rewards.
-sys.modules[f"{__name__}.rewards"] = rewards
 
 register(id="LaneFree-v0", entry_point="lanefree_sumo.rl.env:LaneFreeEnv")

@@ -100,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=DEFAULTS.seed,
                      help=f"random seed of the initial traffic (default {DEFAULTS.seed})")
     sim.add_argument("--out", type=Path, default=None,
-                     help="output folder (default runs/sim-d<density>-s<seed>); refused if it exists")
+                     help="output folder (default runs/sim-d<density>-s<seed>, on the on-ramp "
+                     "runs/sim-onramp-d<density>-s<seed>); refused if it exists")
     sim.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     sim.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
                      help=f"libsumo (SUMO in-process), traci (SUMO over a socket) or numpy (no SUMO); "
@@ -120,16 +121,16 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser(
         "train",
         help="train an agent; writes a run folder under runs/",
-        description="Train an agent on LaneFree-v0 with the paper's hyperparameters (SPEC §9) and write a run "
-        "folder runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/ (config.yaml, command.txt, versions.json, "
-        "episodes.csv, TensorBoard logs in tb/, checkpoints/, model.zip). Ctrl-C or SIGTERM saves a checkpoint; "
-        "--resume RUN continues from the newest one.",
+        description="Train an agent on LaneFree-v0 with the paper's hyperparameters (docs/specification.md "
+        "§9) and write a run folder runs/<date-time>_<algo>_<reward>_d<density>_s<seed>/ (config.yaml, "
+        "command.txt, versions.json, episodes.csv, TensorBoard logs in tb/, checkpoints/, model.zip). Ctrl-C or "
+        "SIGTERM saves a checkpoint; --resume RUN continues from the newest one.",
     )
     t = DEFAULTS.train
     tr.add_argument("--algo", choices=ALGORITHM_NAMES, default=t.algo,
                     help=f"algorithm (default {t.algo}): {algorithms_help()}")
     tr.add_argument("--reward", choices=tuple(PRESETS), default=DEFAULTS.reward.preset,
-                    help=f"reward preset of SPEC §7 (default {DEFAULTS.reward.preset})")
+                    help=f"reward preset of docs/specification.md §7 (default {DEFAULTS.reward.preset})")
     tr.add_argument("--density", type=argtypes.density, default=density,
                     help=f"background density in veh/km (default {density:g})")
     tr.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=t.episodes,
@@ -251,14 +252,16 @@ def build_parser() -> argparse.ArgumentParser:
         description="Group run folders by (algorithm, reward preset, density, variant: every other setting in "
         "which a run's config differs from the defaults, e.g. shield.enabled=True), average the seeds, and write "
         "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
-        "and a table of last-50-episode means ± std with the paper's numbers (SPEC §10) as summary.csv and "
-        "summary.md. Unusable runs are named and skipped. Given a sweep folder (one with sweep.yaml), writes the "
-        "sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over seeds, as 'lanefree sweep'.",
+        "and a table of last-50-episode means ± std with the paper's numbers (docs/specification.md §10) as "
+        "summary.csv and summary.md. Unusable runs are named and skipped. Given a sweep folder (one with "
+        "sweep.yaml), writes the sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over "
+        "seeds, as 'lanefree sweep'.",
     )
     rep.add_argument("runs", type=Path, nargs="*", metavar="RUN",
                      help="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep' "
                      "(at least one)")
-    rep.add_argument("--out", type=Path, default=Path("runs/report"), help="output folder (default runs/report)")
+    rep.add_argument("--out", type=Path, default=Path("report"),
+                     help="output folder (default report/: outside runs/, which holds run folders only)")
     rep.add_argument("--last", type=argtypes.positive(int, "episodes"), default=REPORT.last_episodes,
                      help=f"episodes at the end of each run averaged in the table (default {REPORT.last_episodes}, "
                      "as the paper)")
@@ -328,7 +331,8 @@ def _simulate(args: argparse.Namespace) -> int:
     _check_road_options(args, cfg)
     from lanefree_sumo.experiments.simulate import simulate
 
-    out = args.out or Path("runs") / f"sim-d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"
+    road = "" if cfg.road.kind == "ring" else f"{cfg.road.kind}-"  # a ring and an on-ramp run do not collide
+    out = args.out or Path("runs") / f"sim-{road}d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"
     summary = simulate(cfg, args.seconds, out, _command(), overwrite=args.overwrite,
                        write_trajectory=not args.no_trajectory, progress=not args.json)
     if args.json:
@@ -395,7 +399,12 @@ def _train(args: argparse.Namespace) -> int:
         print(f"stopped after {done}/{target} episodes; checkpoint saved. Resume with: lanefree train --resume {run}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"trained {done} episodes -> {run}")
+    from lanefree_sumo.experiments.markdown import count
+    from lanefree_sumo.experiments.rundir import read_sessions
+
+    sessions = read_sessions(run)  # this session's first episode: a resume trains the rest only
+    now = done - int(sessions[-1].get("first_episode", 1)) + 1 if sessions else done
+    print(f"trained {count(now, 'episode')}" + (f" ({done} of {target} in all)" if now != done else "") + f" -> {run}")
     return 0
 
 
@@ -424,6 +433,7 @@ def _resume_batch(folder: Path) -> list[tuple[Path, int]]:
 def _report_batch(results: list[tuple[Path, int]]) -> int:
     """Print each run's outcome; EXIT_INTERRUPTED when a run is short of its episodes by an interruption (a run
     stopped for a non-finite action is named with its reason: resuming would not continue it)."""
+    from lanefree_sumo.experiments.markdown import count
     from lanefree_sumo.experiments.rundir import read_sessions
 
     short = False
@@ -432,8 +442,8 @@ def _report_batch(results: list[tuple[Path, int]]) -> int:
         reason = (read_sessions(run) or [{}])[-1].get("stopped_by") or ""
         diverged = "not finite" in reason  # stopped for good: resuming does not continue it
         short |= done < target and not diverged
-        print(f"{'trained' if done >= target else 'stopped after'} {done}/{target} episodes -> {run}"
-              + (f" ({reason})" if diverged else ""))
+        what = f"trained {count(done, 'episode')}" if done >= target else f"stopped after {done}/{target} episodes"
+        print(f"{what} -> {run}" + (f" ({reason})" if diverged else ""))
     if short:
         print(f"resume the batch with: lanefree train --resume {results[0][0].parent}", file=sys.stderr)
     return EXIT_INTERRUPTED if short else (1 if any(done < _episodes_target(r) for r, done in results) else 0)
@@ -451,7 +461,7 @@ def _command() -> str:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from lanefree_sumo.experiments.evaluate import evaluate
+    from lanefree_sumo.experiments.evaluate import evaluate, summary_line
 
     result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
                       out=args.out, overwrite=args.overwrite, shield=args.shield,
@@ -463,7 +473,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if result.interrupted:
         print(f"lanefree: interrupted; kept {result.episodes} complete episode(s) in {result.out}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"evaluated {result.episodes} episodes -> {result.out / 'episodes.csv'}")
+    print(summary_line(result))
     return 0
 
 

@@ -1,4 +1,4 @@
-"""How fast DDPG's actor saturates its tanh output (issue 17, part 3): trains the paper's DDPG (the config of
+"""How fast DDPG's actor saturates its tanh output: trains the paper's DDPG (the config of
 `lanefree train`, numpy backend) for a few episodes per observation and prints, every K environment steps
 after learning starts, the actor's median |pre-tanh| activation and the share of action components at the
 bound (|a| > 0.999) over 256 fixed states of the random warm-up (drawn with a generator of their own, so the

@@ -1,4 +1,4 @@
-"""Collisions against overtakes, one point per run (issue 17: what drives the gap to the paper).
+"""Collisions against overtakes, one point per run (what drives the gap to the paper).
 
 Reads a sweep's ``runs.csv`` (``lanefree report SWEEP`` writes it) and draws two panels: the last 50
 training episodes (with exploration noise) and the deterministic evaluation (``eval/``, where a run has

@@ -1,4 +1,4 @@
-"""Learning check of a training path against reference runs (issue 22): DDPG fzoc 70 veh/km, the first
+"""Learning check of a training path against reference runs: DDPG fzoc 70 veh/km, the first
 150 episodes of each run. Prints the mean over episodes 101–150 per run and per group, the difference of
 group means with a 95 % bootstrap CI over runs, and draws the smoothed curves of both groups in one PNG.
 

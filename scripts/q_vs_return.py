@@ -1,4 +1,4 @@
-"""Does a trained critic over- or underestimate what its own policy earns? (issue 17: why the DQN family races)
+"""Does a trained critic over- or underestimate what its own policy earns? (why the DQN family races)
 
 For each run: drives the final policy deterministically (numpy backend, the traffic seeds of `lanefree
 evaluate`: the run's seed + 100000 + k) and

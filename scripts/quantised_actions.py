@@ -1,9 +1,9 @@
-"""Can the DQN family's 9 discrete actions drive as calmly as DDPG? (issue 17: why the DQN family races)
+"""Can the DQN family's 9 discrete actions drive as calmly as DDPG? (why the DQN family races)
 
 Drives a trained DDPG policy deterministically (numpy backend, the traffic seeds of `lanefree evaluate`: the
 run's seed + 100000 + k) three ways on the same traffic: its own continuous actions, and each action turned
 into one of the 9 discrete actions the DQN family chooses from (ax in {-2, 0, +2} m/s², ay in {-1, 0, +1} m/s²,
-SPEC §6) by
+specification §6) by
 
 * ``nearest``: the nearest level per component (|ax| ≤ 1 → 0, halves rounding to 0; braking harder than
   −2 m/s² becomes −2);

@@ -1,4 +1,4 @@
-"""Rewrite the README's results table from a sweep's ``summary.csv`` (issue 17: one source for the numbers).
+"""Rewrite the README's results table from a sweep's ``summary.csv`` (one source for the numbers).
 
 The table sits between ``<!-- results-table -->`` and ``<!-- /results-table -->`` in README.md; one row per
 setting of the summary, in its order: runs complete, and per metric the mean over runs [95 % bootstrap CI
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from lanefree_sumo.experiments.sweep.manifest import write_atomic
+from lanefree_sumo.experiments.rundir import write_atomic
 from lanefree_sumo.experiments.sweep.summary import interval_text
 
 ROOT = Path(__file__).resolve().parent.parent

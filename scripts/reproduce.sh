@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 17's long runs, started and stopped the same way every session:
+# The long result runs, started and stopped the same way every time:
 #
 #   scripts/reproduce.sh start [PAPER_WORKERS]   the paper sweep (results/paper) on PAPER_WORKERS cores (1 by
 #                                                default; 0 leaves it stopped), the set-encoder sweeps of the

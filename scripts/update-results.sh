@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 17: bring the committed result files up to date after runs finish. Evaluates every finished run of
+# Bring the committed result files up to date after runs finish. Evaluates every finished run of
 # the paper sweep that still has its model (deterministic and shielded, 50 episodes each), rewrites the
 # sweep's summary, claims and curves, both evaluation tables, the collisions-against-overtakes figure and
 # README.md's results table (scripts/collisions_vs_overtakes.py, readme_results.py) from the committed

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Issue 17, part 3: evaluate every finished run of the variable-dimension experiment deterministically at its
+# Evaluate every finished run of the variable-dimension experiment deterministically at its
 # training density (eval/), zero-shot at 90 and 120 veh/km (eval_d90/, eval_d120/) and on the on-ramp's main
 # road at its training density (eval_onramp/), and report each comparison of the fixed vector against the set
 # encoder at fields_zones_overtake_collision / 70 veh/km:
-#   DDPG (the issue's): the paper sweep's own DDPG runs (seeds 0-2, the default vector observation) against
+#   DDPG (the experiment's design): the paper sweep's own DDPG runs (seeds 0-2, the default vector observation) against
 #     results/varobs/set/runs/*; training report (curves of both observations overlaid) in
 #     results/varobs/report/, the four evaluations side by side (table, bar charts) in results/varobs/report_transfer/;
 #   DQN (Liu et al.'s own setting, a Q-network): the paper sweep's DQN runs against results/varobs/set_dqn/runs/*;

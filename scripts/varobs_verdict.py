@@ -1,6 +1,6 @@
-"""Liu et al.'s claim, decided run by run: the set encoder loses nothing against the fixed vector (issue 17, part 3).
+"""Liu et al.'s claim, decided run by run: the set encoder loses nothing against the fixed vector.
 
-For each comparison (DDPG, the issue's; DQN, Liu et al.'s own Q-network; fields_zones_overtake_collision at
+For each comparison (DDPG, the experiment's design; DQN, Liu et al.'s own Q-network; fields_zones_overtake_collision at
 70 veh/km) and each source (training over episodes 1–12, about the 10 000 steps over which Liu et al. compare
 training rewards, over all 625 and over the last 50; the last 50 episodes of the deterministic evaluation at
 70 veh/km, zero-shot at 90 and 120 veh/km and on the on-ramp): the difference set − vector of the per-run means
@@ -23,9 +23,8 @@ from pathlib import Path
 
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import difference_ci, per_run, rank_test
-from lanefree_sumo.experiments.report import UnusableRunError, read_run, read_run_config
-from lanefree_sumo.experiments.rundata import RunData
-from lanefree_sumo.experiments.sweep.manifest import write_atomic
+from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_run, read_run_config
+from lanefree_sumo.experiments.rundir import write_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -194,6 +194,29 @@ def test_sigterm_stops_rollout_with_the_summary_of_complete_episodes():
     assert "complete episode" in err and "Traceback" not in err
 
 
+def test_simulate_names_its_default_folder_after_the_scenario(tmp_path):
+    """A ring run and an on-ramp run of the same density and seed get two folders: neither refuses the other."""
+    for scenario in ("ring", "onramp"):
+        res = lanefree("simulate", "--scenario", scenario, "--seconds", "1", "--backend", "numpy", cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["sim-d70-s0", "sim-onramp-d70-s0"]
+
+
+def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
+    run = tmp_path / "run"
+    res = lanefree("train", "--episodes", "1", "--episode-steps", "20", "--backend", "numpy", "--out", str(run))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == f"trained 1 episode -> {run}"
+    res = lanefree("train", "--resume", str(run), "--episodes", "3")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == f"trained 2 episodes (3 of 3 in all) -> {run}"
+    res = lanefree("evaluate", str(run), "--episodes", "2")
+    assert res.returncode == 0, res.stderr
+    line = res.stdout.strip().splitlines()[-1]
+    assert line.startswith("evaluated 2 episodes: ") and " agent collisions per episode, speed deviation " in line
+    assert line.endswith(f"-> {run / 'eval' / 'episodes.csv'}")
+
+
 @pytest.mark.parametrize(
     "args,needle",
     [

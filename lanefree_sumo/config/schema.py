@@ -1,7 +1,7 @@
 """The configuration's schema: every default, unit and allowed value of the platform.
 
 Every number the simulation, the driver model, the rewards, the observations and the algorithms
-use lives here, with its unit, and nowhere else (SPEC §1–§9). Allowed values are ``Literal``
+use lives here, with its unit, and nowhere else (specification §1–§9). Allowed values are ``Literal``
 types or a field's ``range`` metadata; :mod:`.validation` checks them.
 """
 
@@ -41,7 +41,7 @@ class OnRampConfig:
     """Speed of a vehicle entering the ramp (m/s; its desired speed if that is lower)."""
     merge_lateral_speed_mps: float = field(default=0.5, metadata={"range": (0.0, 5.0)})
     """The lateral speed an unmerged ramp vehicle's target-speed force aims at in the merge zone (m/s;
-    elsewhere, and for every other vehicle, 0 as in SPEC §3): the merge rule's intention to merge."""
+    elsewhere, and for every other vehicle, 0 as in specification §3): the merge rule's intention to merge."""
     agent_start: Literal["ramp", "main"] = "ramp"
     """Where a learning vehicle starts: at the ramp's start (the merge task) or on the main road at
     ``agent_main_start_m`` (pass the merge area)."""
@@ -134,7 +134,7 @@ class AccelerationBounds:
 
 @dataclass
 class DriverConfig:
-    """The force-based lane-free background driver (SPEC §3, Papageorgiou et al. 2021)."""
+    """The force-based lane-free background driver (specification §3, Papageorgiou et al. 2021)."""
 
     neighbour_range_m: float = field(default=100.0, metadata={"range": (0.1, 10_000.0)})
     """Neighbours j with |dx_j| ≤ this contribute forces (m)."""
@@ -147,7 +147,7 @@ class DriverConfig:
     gain_x: float = field(default=3.0, metadata={"range": (0.01, 100.0)})
     """k_x = c_x with nudging off (the paper's setting): the gain on Σf_x (m/s² per unit force)
     and the braking deceleration c_x in D_x = ux²/(2·c_x) + len (m/s²). The reference uses one
-    parameter for both (SPEC §3, Revision 2)."""
+    parameter for both (specification §3)."""
     gain_x_nudging: float = field(default=5.0, metadata={"range": (0.01, 100.0)})
     """k_x = c_x with nudging on (the reference's nudging configuration)."""
     longitudinal_margin_m: float = field(default=2.5, metadata={"range": (0.0, 100.0)})
@@ -182,7 +182,7 @@ class DriverConfig:
     """|vy| ≤ this × vx after the step (–)."""
     bounds: AccelerationBounds = field(default_factory=lambda: AccelerationBounds(-4.0, 2.0, -1.0, 1.0))
     """Hard bounds of the background accelerations: the reference declares them as integers, so
-    its effective bounds are F_x ∈ [−4, 2], F_y ∈ [−1, 1] m/s² (SPEC §3, Revision 2)."""
+    its effective bounds are F_x ∈ [−4, 2], F_y ∈ [−1, 1] m/s² (specification §3)."""
 
     @property
     def effective_gain_x(self) -> float:
@@ -192,7 +192,7 @@ class DriverConfig:
 
 @dataclass
 class SpawnConfig:
-    """Initial placement of vehicles at a density (SPEC §1).
+    """Initial placement of vehicles at a density (specification §1).
 
     The road is cut into cells of (vehicle length + ``gap_x_m``) × (vehicle width + ``gap_y_m``);
     vehicles go to distinct random cells with a random offset inside their cell, so positions
@@ -215,8 +215,8 @@ OvertakeBonus = Literal["every_pass", "once_per_vehicle", "net_passes"]
 LearnerProfile = Literal["sb3", "kerasrl"]
 RewardPreset = Literal["collision", "overtake_collision", "fields", "fields_collision", "fields_overtake_collision",
                        "zones_overtake_collision", "fields_zones_overtake_collision"]
-"""The reward presets of SPEC §7; their weights are :data:`lanefree_sumo.rl.rewards.PRESETS` (a test keeps the
-two in step)."""
+"""The reward presets of specification §7, the one list of their names; each name lists its components, from
+which :data:`lanefree_sumo.rl.rewards.PRESETS` derives the weights."""
 AlgorithmName = Literal["ddpg", "td3", "sac", "ppo", "dqn", "ddqn", "dueling", "per"]
 """The algorithms; their classes are :data:`lanefree_sumo.rl.algorithms.ALGORITHMS` (a test keeps the two in
 step). The config owns every name it validates: the config room imports nothing from the RL room."""
@@ -244,7 +244,7 @@ class ScenarioConfig:
     agent_bounds: AccelerationBounds = field(default_factory=AccelerationBounds)
     agent_max_speed_mps: float = field(default=30.0, metadata={
         "range": (1.0, 1000.0), "paper": "none: only the agent's accelerations are bounded"})
-    """The agent's top speed (m/s); SPEC §2 bounds only its accelerations, but without a top
+    """The agent's top speed (m/s); specification §2 bounds only its accelerations, but without a top
     speed a policy learns to lap the ring at hundreds of m/s and farm overtake bonuses."""
     agent_lateral_speed_ratio: float | None = field(default=None, metadata={
         "range": (0.0, 100.0), "paper": "none for the agent; the background keeps |v_y| <= 0.5 v_x"})
@@ -256,10 +256,10 @@ class ScenarioConfig:
 
 @dataclass
 class RewardConfig:
-    """Reward components (SPEC §7, paper Tables 3–4). Weights are set by the preset."""
+    """Reward components (specification §7, paper Tables 3–4). Weights are set by the preset."""
 
     preset: RewardPreset = "fields_zones_overtake_collision"
-    """One of the presets of SPEC §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
+    """One of the presets of specification §7 (:data:`lanefree_sumo.rl.rewards.PRESETS`)."""
     epsilon_r: float = field(default=0.1, metadata={"range": (1e-9, 1e6)})
     """ε_r of the reciprocal reward (–)."""
     collision_reward: float = field(default=-2.5, metadata={"range": (-1e6, 0.0)})
@@ -284,7 +284,7 @@ class RewardConfig:
     broad_stretch: Literal["closing", "absolute"] = "closing"
     """What stretches the broad region: ``closing`` (default) the closing speeds only (a receding
     neighbour does not stretch it), ``absolute`` any speed difference |Δvx|, |Δvy| — the other
-    reading of the paper's undefined k_r, e_v (issue 9's controlled runs compare the two)."""
+    reading of the paper's undefined k_r, e_v (docs/results.md's controlled runs compare the two)."""
     zone_time_gap_s: float = field(default=0.7, metadata={"range": (0.0, 60.0)})
     """t_g: zones scan d_o = vx · t_g ahead (s)."""
     zone_margin_m: float = field(default=0.1, metadata={"range": (0.0, 100.0)})
@@ -295,7 +295,7 @@ class RewardConfig:
 
 @dataclass
 class ObservationConfig:
-    """Agent observation (SPEC §5)."""
+    """Agent observation (specification §5)."""
 
     kind: ObservationKind = "vector"
     """``vector`` (the paper's n nearest) or ``set`` (all in range, padded)."""
@@ -322,7 +322,7 @@ class ObservationConfig:
 
 @dataclass
 class ActionConfig:
-    """Agent actions (SPEC §6)."""
+    """Agent actions (specification §6)."""
 
     kind: ActionKind = "continuous"
     """``continuous`` (Box(2) in [−1, 1], piecewise linear) or ``discrete`` (9 actions)."""
@@ -344,7 +344,7 @@ class EpisodeConfig:
 
 @dataclass
 class ShieldConfig:
-    """The agent's safety shield (:mod:`lanefree_sumo.rl.shield`, issue 12); off by default."""
+    """The agent's safety shield (:mod:`lanefree_sumo.rl.shield`); off by default."""
 
     enabled: bool = False
     """Pass every agent action through the shield (``lanefree train/evaluate/rollout --shield``)."""
@@ -410,7 +410,7 @@ class DQNConfig:
     """Hard target-network update interval (steps; one gradient update per step, so also updates). The paper
     does not give it. 10 000 is the Nature DQN's convention (Mnih et al. 2015: every 10 000 parameter
     updates), which the paper's double-DQN reference [19] takes over (its tuned double DQN uses 30 000),
-    and SB3's default (there counted in environment steps). Until session 8: 1000 (docs/interpretation.md)."""
+    and SB3's default (there counted in environment steps). See docs/interpretation.md."""
     learning_starts_steps: int = field(default=800, metadata={"range": (0, 100_000_000)})
     """Steps before the first update (ε-greedy from ``epsilon_start`` meanwhile)."""
     loss: Literal["huber", "squared"] = field(default="huber", metadata={
@@ -424,7 +424,7 @@ class DQNConfig:
 
 @dataclass
 class TrainConfig:
-    """A training run (SPEC §9)."""
+    """A training run (specification §9)."""
 
     algo: AlgorithmName = "ddpg"
     """A name of the algorithm registry (:data:`lanefree_sumo.rl.algorithms.ALGORITHMS`)."""

@@ -18,7 +18,7 @@ permutation p-value in the paper's direction (two-sided for a claim of no differ
 group the smallest p possible is 1/20 = 0.05 one-sided (every a above every b): the bootstrap CI can
 exclude 0 where the rank test cannot go below 0.05.
 
-The paper's own difference (Karalakou et al. 2023, SPEC §10) is printed beside ours.
+The paper's own difference (Karalakou et al. 2023, specification §10) is printed beside ours.
 """
 
 from __future__ import annotations

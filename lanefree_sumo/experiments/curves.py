@@ -75,7 +75,7 @@ def plot_curves(groups: dict[Any, list[RunData]], column: str, ylabel: str, path
     handles, labels = ax.get_legend_handles_labels()
     if any_paper:
         handles.append(Line2D([], [], color="grey", ls="--"))
-        labels.append("paper value (SPEC §10)")
+        labels.append("paper value (docs/specification.md §10)")
     ax.set_xlabel("training episode")
     ax.set_ylabel(ylabel)
     ax.set_title(f"trailing {smooth}-episode moving average; line = mean, band = ± std over seeds", fontsize=10)

@@ -3,7 +3,7 @@
 Writes ``<RUN>/eval/episodes.csv`` (``eval_d<density>/`` when evaluated at another density than
 trained; ``eval_shield/`` or ``eval_noshield/``, after the density, when the safety shield is
 switched on or off against the run's config; ``eval_onramp…`` first for a ring-trained policy on the
-on-ramp, :func:`on_another_road`), one row per episode with the SPEC §8 columns, and
+on-ramp, :func:`on_another_road`), one row per episode with the specification §8 columns, and
 with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
 vehicle on the road at every step including the initial state (on the on-ramp vehicles come and
 go: see :mod:`lanefree_sumo.experiments.trajectory`), in the format of
@@ -16,6 +16,7 @@ recording has a ``shielded`` column (1 in an agent's row on the steps the shield
 
 from __future__ import annotations
 
+import csv
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,8 @@ from typing import Any
 
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config, validate_density
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
+from lanefree_sumo.experiments.markdown import count
 from lanefree_sumo.experiments.rundir import (
     EPISODES,
     RECORDING,
@@ -35,7 +38,6 @@ from lanefree_sumo.experiments.rundir import (
     write_config,
 )
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
-from lanefree_sumo.experiments.train import EpisodeLog
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.spawn import agent_id
@@ -54,6 +56,25 @@ class EvaluationResult:
     kept_earlier: bool = False
     """Interrupted while replacing an earlier evaluation (``overwrite``): the earlier one is kept whole and
     the new, incomplete one discarded."""
+
+
+def summary_line(result: EvaluationResult) -> str:
+    """One line on what an evaluation measured: its episodes, the means over its rows (one per episode, or
+    per agent and episode with several agents) of collisions, speed deviation (m/s), mean speed (m/s) and
+    return, and where they are."""
+    path = result.out / EPISODES
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return f"evaluated 0 episodes -> {path}"
+
+    def mean(key: str) -> float:
+        return sum(float(row[key]) for row in rows) / len(rows)
+
+    per = "per agent and episode" if len(rows) > result.episodes else "per episode"
+    return (f"evaluated {count(result.episodes, 'episode')}: {mean('collisions'):.2f} agent collisions {per}, "
+            f"speed deviation {mean('speed_dev_mps'):.2f} m/s, mean speed {mean('mean_speed_mps'):.2f} m/s, "
+            f"return {mean('return'):.1f} -> {path}")
 
 
 class _IncompleteError(Exception):
@@ -161,7 +182,6 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     requested: the episode in progress is dropped with its recording)."""
     from tqdm import tqdm
 
-    from lanefree_sumo.experiments.train import episode_columns
     from lanefree_sumo.experiments.trajectory import TrajectoryWriter
     from lanefree_sumo.rl.multi_agent import PolicyDriver
 

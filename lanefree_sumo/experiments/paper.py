@@ -1,4 +1,4 @@
-"""The paper's reference results (SPEC §10, Karalakou et al. 2023 Tables 5–8).
+"""The paper's reference results (specification §10, Karalakou et al. 2023 Tables 5–8).
 
 Last-50-episode means over 10 runs: agent collisions per episode and speed deviation (m/s),
 keyed by (algorithm, reward preset, density veh/km). :data:`PAPER_ROWS` keeps the table each
@@ -17,7 +17,7 @@ GroupKey = tuple[str, str, float]
 
 
 class PaperReference(NamedTuple):
-    """One reference result of the paper (SPEC §10): last-50-episode means over 10 runs."""
+    """One reference result of the paper (specification §10): last-50-episode means over 10 runs."""
 
     collisions: float
     """Agent collisions per episode."""
@@ -27,7 +27,7 @@ class PaperReference(NamedTuple):
     """Paper table(s) reporting it, e.g. ``"Tables 6, 7, 8"``."""
 
 
-# (table, algorithm, preset, density veh/km, collisions / episode, speed deviation m/s) — SPEC §10.
+# (table, algorithm, preset, density veh/km, collisions / episode, speed deviation m/s) — specification §10.
 PAPER_ROWS: tuple[tuple[int, str, str, float, float, float], ...] = (
     # Table 5: DDPG, reward presets, 70 veh/km
     (5, "ddpg", "collision", DEFAULT_DENSITY, 2.256, 0.135),
@@ -74,7 +74,7 @@ def _build_paper_reference() -> dict[GroupKey, PaperReference]:
 
 
 PAPER_REFERENCE: dict[GroupKey, PaperReference] = _build_paper_reference()
-"""SPEC §10 reference numbers keyed by (algorithm, reward preset, density veh/km)."""
+"""specification §10 reference numbers keyed by (algorithm, reward preset, density veh/km)."""
 
 
 def paper_reference(algorithm: str, preset: str, density: float, road: str = "ring") -> PaperReference | None:

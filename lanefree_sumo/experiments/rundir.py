@@ -7,7 +7,7 @@ with the safety shield) holds::
     command.txt          every command that worked on the run, one per line
     versions.json        python, torch, SB3, gymnasium, numpy (and the SIMD kernels numpy and torch run on),
                          SUMO, lanefree_sumo, git commit
-    episodes.csv         one row per finished episode (SPEC §8 + algorithm, timesteps), flushed each time
+    episodes.csv         one row per finished episode (specification §8 + algorithm, timesteps), flushed each time
     tb/                  TensorBoard logs
     checkpoints/ep_NNNNN/  model.zip, replay_buffer.pkl (off-policy), state.json (written last)
     model.zip            the final model
@@ -253,6 +253,24 @@ def _identity(path: Path) -> tuple[int, int] | None:
     except FileNotFoundError:
         return None
     return st.st_dev, st.st_ino
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all: into a file beside it, then renamed over it (a reader
+    never sees half a file; an interrupted write leaves ``path`` as it was)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # mkstemp makes it private; these are ordinary files
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 @contextlib.contextmanager

@@ -15,7 +15,6 @@ bit-identical replay of an uninterrupted one.
 from __future__ import annotations
 
 import contextlib
-import csv
 import itertools
 import json
 import platform
@@ -33,28 +32,11 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import spawn
-
-EPISODE_COLUMNS = (
-    "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
-    "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
-    "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s", "shield_interventions",
-    "speed_dev_episode_mps", "speed_error_mps", "return_reciprocal", "return_bonus", "return_collision",
-)
-MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
-"""Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
-ONRAMP_COLUMNS = ("merged", "time_to_merge_s", "left_road")
-"""Added to ``EPISODE_COLUMNS`` in runs on the on-ramp."""
-
-
-def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
-    """The columns of a run's ``episodes.csv``."""
-    return (EPISODE_COLUMNS + (MULTI_AGENT_COLUMNS if cfg.scenario.agents > 1 else ())
-            + (ONRAMP_COLUMNS if cfg.road.kind == "onramp" else ()))
-
 
 # -- provenance ----------------------------------------------------------------------------------
 
@@ -118,58 +100,6 @@ def versions() -> dict[str, str]:
 
 # -- episode log and checkpoints ------------------------------------------------------------------
 
-class EpisodeLog:
-    """``episodes.csv``: one row per finished episode (and agent), appended and flushed at once."""
-
-    def __init__(self, path: Path, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
-        self.path = path
-        new = not path.exists() or path.stat().st_size == 0
-        if not new:  # a resumed run keeps its file's columns (one written before columns were added has fewer)
-            with open(path, newline="") as fh:
-                header = next(csv.reader(fh), None)
-            columns = tuple(header) if header else columns
-        self._fh = open(path, "a", newline="")
-        self._writer = csv.DictWriter(self._fh, fieldnames=columns, extrasaction="ignore")
-        if new:
-            self._writer.writeheader()
-            self._fh.flush()
-
-    def append(self, row: dict[str, Any]) -> None:
-        self._writer.writerow(row)
-        self._fh.flush()
-
-    def close(self) -> None:
-        self._fh.close()
-
-    @staticmethod
-    def missing(path: Path, episodes: int, rows_per_episode: int = 1) -> list[int]:
-        """Episodes among 1..``episodes`` that ``path`` lacks, holds a wrong number of times (each has
-        ``rows_per_episode`` rows: one per agent) or holds in a half-written row (fewer fields than the header)."""
-        counts: dict[int, int] = {}
-        if path.exists():
-            with open(path, newline="") as fh:
-                for row in csv.DictReader(fh):
-                    text = (row.get("episode") or "").strip()
-                    whole = None not in row.values() and None not in row
-                    if text.isdigit() and whole:
-                        counts[int(text)] = counts.get(int(text), 0) + 1
-        return [k for k in range(1, episodes + 1) if counts.get(k, 0) != rows_per_episode]
-
-    @staticmethod
-    def truncate(path: Path, episodes: int, columns: tuple[str, ...] = EPISODE_COLUMNS) -> None:
-        """Keep the header and the rows of episodes 1..``episodes`` (drops rows a crash left
-        beyond the checkpoint, so a resumed run has no duplicates)."""
-        if not path.exists():
-            return
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-        kept = [r for r in rows if r.get("episode", "").isdigit() and int(r["episode"]) <= episodes]
-        with open(path, "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(kept)
-
-
 KEEP_REPLAY_BUFFERS = 2
 """Checkpoints whose replay buffer is kept (the newest ones; older checkpoints keep their model):
 a buffer of 100 000 transitions is ~20 MB, 25 of them per run would be half a gigabyte."""
@@ -218,7 +148,8 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
         def __init__(self) -> None:
             super().__init__()
             self.episodes = done
-            self.bar = tqdm(total=target, initial=done, unit="ep", desc=f"{algo}", disable=not progress,
+            desc = f"{algo}, {cfg.scenario.agents} agents" if shared else algo
+            self.bar = tqdm(total=target, initial=done, unit="ep", desc=desc, disable=not progress,
                             dynamic_ncols=True)
 
         def _on_step(self) -> bool:
@@ -236,9 +167,11 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
                     self.logger.record(f"episode/{key}", float(np.mean([m[key] for m in group])))
                 self.logger.dump(self.num_timesteps)
                 self.bar.update(1)
-                self.bar.set_postfix(collisions=sum(m["collisions"] for m in group),
-                                     speed_dev=f"{np.mean([m['speed_dev_mps'] for m in group]):.2f}",
-                                     ret=f"{np.mean([m['return'] for m in group]):.1f}")
+                # several agents: collisions summed over them, speed deviation and return their means
+                summed, mean = (" (sum)", " (mean)") if shared else ("", "")
+                self.bar.set_postfix({f"collisions{summed}": sum(m["collisions"] for m in group),
+                                      f"speed_dev{mean}": f"{np.mean([m['speed_dev_mps'] for m in group]):.2f}",
+                                      f"ret{mean}": f"{np.mean([m['return'] for m in group]):.1f}"})
                 if self.episodes % cfg.train.checkpoint_every_episodes == 0 and self.episodes < target:
                     save_checkpoint(self.model, run, self.episodes, algo)
             return not stop.requested and self.episodes < target

@@ -187,7 +187,7 @@ class BatchedRingEnv:
 
     # -- one step -----------------------------------------------------------------------------
     def accelerations(self, actions: Any) -> tuple[np.ndarray, np.ndarray]:
-        """(ax, ay) ``[K]`` in m/s² for the runs' actions (SPEC §6, as
+        """(ax, ay) ``[K]`` in m/s² for the runs' actions (specification §6, as
         :func:`~lanefree_sumo.rl.env.action_to_acceleration`), and ``[K]`` True where a run's action is not finite
         (its acceleration is then 0)."""
         cfg = self.cfg

@@ -1,10 +1,10 @@
-"""Permutation-invariant encoder for variable-size *set* observations (SPEC §5).
+"""Permutation-invariant encoder for variable-size *set* observations (specification §5).
 
 Source followed
 ---------------
 Liu, Zhang & Zhou (2023), "Vehicle Simulation Algorithm for Observations with
 Variable Dimensions Based on Deep Reinforcement Learning", Electronics 12, 5029
-(``/work/shared/seeds/004_6d9c0ce92b74d570.txt``):
+(doi:10.3390/electronics12245029):
 
 * §3.1 and Figure 1: an observation ``obs ∈ R^{n × dim_fixed}`` (n = number of
   observed vehicles, variable) is mapped row-wise by two encoders

@@ -1,10 +1,10 @@
-"""``LaneFree-v0``: one learning agent among the force-driven background traffic (SPEC §5–§8).
+"""``LaneFree-v0``: one learning agent among the force-driven background traffic (specification §5–§8).
 
 The environment orchestrates: the simulation core moves every vehicle, :mod:`.rewards` scores
 the step, and this module only selects neighbours, scales observations and keeps the episode's
 books.  Every step's ``info`` carries each reward term (c_x, c_y, c_f, y_d, v_d_eff, blocked,
 collided, overtook, reward); the last step of an episode also carries ``episode_metrics``
-(SPEC §8).
+(specification §8).
 
 With ``shield.enabled`` every action passes through :mod:`.shield` before the simulation
 (the env orchestrates, the shield computes): ``info`` then reports ``shield_intervened`` (bool)
@@ -38,7 +38,7 @@ from lanefree_sumo.sim.simulation import Simulation, StepResult
 EGO_FEATURES = 4  # y, vx, vy, v_d
 ONRAMP_FEATURES = 4  # lowest and highest lateral position at the front (/W), on the ramp (0/1), ramp end ahead (/d)
 NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
-# Discrete actions (SPEC §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
+# Discrete actions (specification §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
 # four combinations.
 DISCRETE_ACTIONS = np.array(
     [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1)], dtype=float
@@ -59,7 +59,7 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFre
 
 class LearningVehicle:
     """One learning vehicle's view of the simulation: its observation, its reward terms, its shield and
-    its episode books (SPEC §5–§8). :class:`LaneFreeEnv` drives one, the multi-agent environment
+    its episode books (specification §5–§8). :class:`LaneFreeEnv` drives one, the multi-agent environment
     (:mod:`lanefree_sumo.rl.multi_agent`) one per agent, with the same arithmetic."""
 
     def __init__(self, cfg: LaneFreeConfig, sim: Simulation, scales: tuple[np.ndarray, np.ndarray]) -> None:
@@ -251,7 +251,7 @@ class LearningVehicle:
         return obs, idx, observed
 
     def metrics(self, episode: int, seed: int) -> dict[str, Any]:
-        """SPEC §8 metrics of the episode so far (one CSV row)."""
+        """specification §8 metrics of the episode so far (one CSV row)."""
         b, steps = self.books, max(self.sim.steps, 1)
         return {
             "episode": episode,
@@ -326,7 +326,7 @@ def action_space(cfg: LaneFreeConfig) -> spaces.Space:
 
 
 def action_to_acceleration(cfg: LaneFreeConfig, action: Any, where: str) -> tuple[float, float]:
-    """(ax, ay) in m/s² for an action (SPEC §6); continuous actions are clipped to [−1, 1].
+    """(ax, ay) in m/s² for an action (specification §6); continuous actions are clipped to [−1, 1].
 
     A NaN or infinite action raises ``ValueError`` naming ``where`` (the step): a diverged policy must
     not silently drive the car."""
@@ -429,7 +429,7 @@ class LaneFreeEnv(gym.Env):
         self.sim.close()
 
     def episode_metrics(self) -> dict[str, Any]:
-        """SPEC §8 metrics of the episode so far (one CSV row)."""
+        """specification §8 metrics of the episode so far (one CSV row)."""
         return self.vehicle.metrics(self.episode, self._episode_seed)
 
     def config_dict(self) -> dict[str, Any]:

@@ -1,8 +1,8 @@
-"""Potential fields and overtaking zones of the reward (SPEC §7; Karalakou et al. 2023).
+"""Potential fields and overtaking zones of the reward (specification §7; Karalakou et al. 2023).
 
 Pure numpy, SI units. ``ellipsoid``/``field_cost`` give the fields cost c_f from the observed
 neighbours; ``zone_target`` the lateral target y_d and the effective desired speed. Re-exported by
-:mod:`lanefree_sumo.rl.rewards` (the module SPEC §7 names ``lanefree_sumo.rewards``), whose
+:mod:`lanefree_sumo.rl.rewards`, whose
 docstring states the conventions shared by these functions.
 """
 
@@ -167,7 +167,7 @@ def zone_target(
     time_gap: float = _DEFAULTS.zone_time_gap_s,
     margin: float = _DEFAULTS.zone_margin_m,
 ) -> tuple[float, float, bool]:
-    """Lateral target and effective desired speed from the overtaking zones (SPEC §7 "Zones").
+    """Lateral target and effective desired speed from the overtaking zones (specification §7 "Zones").
 
     dx, dy, vxs, lens, wids: the vehicles in range (m, m, m/s, m, m); agent_y (m), agent_vx
     (m/s), agent dimensions (m), v_desired (m/s), road_width W (m).  Returns

@@ -1,4 +1,4 @@
-"""Models and environments with the paper's hyperparameters (SPEC §9).
+"""Models and environments with the paper's hyperparameters (specification §9).
 
 ``training_config`` fixes what the algorithm decides (action kind, the agent on the road);
 ``make_vec_env`` builds the environments (one process each when several: libsumo runs one
@@ -130,7 +130,7 @@ def exploration_fraction(cfg: LaneFreeConfig) -> float:
 
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
-    """A new model for ``cfg.train.algo`` with the paper's hyperparameters (SPEC §9); ``cls`` another class
+    """A new model for ``cfg.train.algo`` with the paper's hyperparameters (specification §9); ``cls`` another class
     taking SB3's constructor arguments (e.g. SB3's own ``DDPG``, for comparisons)."""
     import torch
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise

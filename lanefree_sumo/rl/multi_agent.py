@@ -151,7 +151,8 @@ class LaneFreeParallelEnv(ParallelEnv):
         return observations, rewards, terminations, truncations, infos
 
     def episode_metrics(self, agent: str) -> dict[str, Any]:
-        """SPEC §8 metrics of ``agent``'s episode so far, with its name and its collisions with other agents."""
+        """The metrics (specification §8) of ``agent``'s episode so far, its name and its collisions with other
+        agents."""
         vehicle = self.vehicles[agent]
         return {**vehicle.metrics(self.episode, self.episode_seed), "agent": agent,
                 "agent_collisions": vehicle.books["agent_collisions"]}

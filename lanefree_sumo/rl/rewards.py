@@ -1,11 +1,12 @@
-"""Reward components of the lane-free agent (SPEC §7; Karalakou et al., Systems 2023, Eq. 16).
+"""Reward components of the lane-free agent (specification §7; Karalakou et al., Systems 2023, Eq. 16).
 
-Pure numpy: no SUMO, no gym.  Units are SI throughout (m, s, m/s).  Coordinates follow SPEC §1:
+Pure numpy: no SUMO, no gym.  Units are SI throughout (m, s, m/s).  Coordinates follow specification §1:
 ``dx_j = wrap(x_j − x_agent)`` in [−L/2, L/2) on the ring, ``dy_j = y_j − y_agent`` with ``y``
 measured from the right road edge (0 ≤ y ≤ W).
 
 Every default comes from :class:`lanefree_sumo.config.RewardConfig` (``_DEFAULTS`` below); the
-preset weights are the paper's Table 4 (SPEC §7 table).
+preset names from :data:`lanefree_sumo.config.RewardPreset`, the one list of them, and each preset's
+weights from the components its name lists, as in the paper's Table 4 (specification §7 table).
 
 Conventions shared by the functions taking neighbour arrays (``field_cost``, ``zone_target``,
 ``agent_overlaps``): arrays are aligned by vehicle and broadcast against each other (so ``lens``
@@ -16,12 +17,12 @@ padded arrays can be passed directly.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from lanefree_sumo.config import RewardConfig
+from lanefree_sumo.config import RewardConfig, RewardPreset
 from lanefree_sumo.rl.fields_zones import _rows, ellipsoid, field_cost, zone_target
 
 __all__ = [
@@ -184,7 +185,7 @@ def agent_overlaps(
     lens: ArrayLike,
     wids: ArrayLike,
 ) -> bool:
-    """Whether the agent's rectangle overlaps any vehicle's (SPEC §4).
+    """Whether the agent's rectangle overlaps any vehicle's (specification §4).
 
     Overlap: ``|dx| < (agent_len + len_j)/2`` and ``|dy| < (agent_wid + wid_j)/2`` (m); touching
     edges do not overlap.
@@ -216,16 +217,27 @@ class RewardWeights:
         return self.w_y > 0.0
 
 
-# w_x = 0.35 when zones are on (w_y = 0.65), else 0.65 (SPEC §7 table).
-PRESETS: dict[str, RewardWeights] = {
-    "collision": RewardWeights(0.65, 0.0, 0.0, True, False),
-    "overtake_collision": RewardWeights(0.65, 0.0, 0.0, True, True),
-    "fields": RewardWeights(0.65, 0.0, 1.0, False, False),
-    "fields_collision": RewardWeights(0.65, 0.0, 1.0, True, False),
-    "fields_overtake_collision": RewardWeights(0.65, 0.0, 1.0, True, True),
-    "zones_overtake_collision": RewardWeights(0.35, 0.65, 0.0, True, True),
-    "fields_zones_overtake_collision": RewardWeights(0.35, 0.65, 1.0, True, True),
-}
+PRESET_COMPONENTS: tuple[str, ...] = ("fields", "zones", "overtake", "collision")
+"""What a reward preset's name may list, joined by ``_`` (paper Table 4's components)."""
+
+
+def _weights(name: str) -> RewardWeights:
+    """A preset's weights from the components its name lists (paper Table 4, specification §7): ``fields``
+    w_f = 1; ``zones`` w_y = 0.65 and w_x = 0.35 (w_x = 0.65 without zones); ``collision`` r_c on;
+    ``overtake`` r_o on. A name with another part is a mistake in the config's list: ValueError."""
+    parts = set(name.split("_"))
+    if not parts <= set(PRESET_COMPONENTS):
+        unknown = ", ".join(sorted(parts - set(PRESET_COMPONENTS)))
+        raise ValueError(f"reward preset {name!r}: unknown component(s) {unknown}; a preset's name joins some of "
+                         f"{', '.join(PRESET_COMPONENTS)} with '_'")
+    zones = "zones" in parts
+    return RewardWeights(w_x=0.35 if zones else 0.65, w_y=0.65 if zones else 0.0,
+                         w_f=1.0 if "fields" in parts else 0.0,
+                         use_collision="collision" in parts, use_overtake="overtake" in parts)
+
+
+PRESETS: dict[str, RewardWeights] = {name: _weights(name) for name in get_args(RewardPreset)}
+"""Every reward preset's weights, by name: the names are the config's (:data:`lanefree_sumo.config.RewardPreset`)."""
 
 
 def get_preset(name: str) -> RewardWeights:

@@ -1,11 +1,11 @@
 """A safety shield for the agent: the closest action it can certify, by worst-case reasoning on
-the double integrator (issue 12). Pure numpy on the state arrays: no SUMO, no gym.
+the double integrator. Pure numpy on the state arrays: no SUMO, no gym.
 
-**Model.** Every vehicle moves by the ballistic update of SPEC §2 with step T and vx ≥ 0. The
+**Model.** Every vehicle moves by the ballistic update of specification §2 with step T and vx ≥ 0. The
 agent's command is clipped to its bounds and top speed (``clip_acceleration``) and its lateral
 move at the road edges as in :func:`~lanefree_sumo.sim.dynamics.plan_step`; the shield predicts
 the agent's next state with exactly these functions. A background vehicle j may do anything
-within its bounds (SPEC §3: F_x ∈ [−b_L, a_L] = [−4, 2], |F_y| ≤ 1 m/s²).
+within its bounds (specification §3: F_x ∈ [−b_L, a_L] = [−4, 2], |F_y| ≤ 1 m/s²).
 
 **Braking distance.** Braking at b from speed v under the ballistic update with the v ≥ 0 floor
 covers ``S_b(v) = v²/(2b) + r·(bT − r)/(2b)``, r = v mod bT (at most bT²/8 more than v²/(2b)).

@@ -1,4 +1,4 @@
-"""Collisions (SPEC §4): rectangle overlaps on the ring, counted as events.
+"""Collisions (specification §4): rectangle overlaps on the ring, counted as events.
 
 Two vehicles overlap when ``|dx| < (l_i + l_j)/2`` and ``|dy| < (w_i + w_j)/2``.  A collision
 *event* starts on the first step of an overlap of a pair; a contact lasting many steps is one

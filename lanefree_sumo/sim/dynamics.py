@@ -1,4 +1,4 @@
-"""Vehicle dynamics (SPEC §2): a double integrator with the ballistic update, on a ring.
+"""Vehicle dynamics (specification §2): a double integrator with the ballistic update, on a ring.
 
     x' = x + vx·T + ½·ax·T²      vx' = vx + ax·T
     y' = y + vy·T + ½·ay·T²      vy' = vy + ay·T

@@ -1,11 +1,11 @@
-"""The force-based lane-free background driver (SPEC §3), vectorised over all vehicles.
+"""The force-based lane-free background driver (specification §3), vectorised over all vehicles.
 
 Pure numpy: ``driver_accelerations`` maps the vehicles' arrays (``[N]`` of one simulation, or ``[K, N]`` of a
 batch of runs padded to a common N, :mod:`~lanefree_sumo.sim.world`) to the longitudinal and lateral
 accelerations (m/s²) that every vehicle would choose.  The environment uses the rows of background vehicles;
 the agent's row is ignored there.  Padded rows (``present`` False) exert and feel no force.
 
-Interpretation choices where SPEC §3 leaves room (documented here and in the README):
+Interpretation choices where specification §3 leaves room (documented here and in the README):
 
 * A neighbour with ``dx ≥ 0`` is *ahead*; its force has ``f_x ≤ 0`` and counts as a repulsion.
   A neighbour with ``dx < 0`` is *behind*; its ``f_x > 0`` is a nudge.
@@ -65,7 +65,7 @@ def symmetric_trapezoid(abs_t: np.ndarray, w: np.ndarray, l: np.ndarray) -> np.n
 
 def strongest_mask(mag: np.ndarray, k: int) -> np.ndarray:
     """Per row (last axis), True at the (at most) k entries of largest magnitude ``mag`` among the non-zero
-    ones (SPEC §3: the 6 repulsions, or 3 nudges, of largest magnitude are summed)."""
+    ones (specification §3: the 6 repulsions, or 3 nudges, of largest magnitude are summed)."""
     nonzero = mag > 0.0
     if mag.shape[-1] <= k or nonzero.sum(axis=-1).max() <= k:
         return nonzero
@@ -93,14 +93,14 @@ def driver_accelerations(
     Arrays are ``[..., N]`` (one simulation, or runs ``[K, N]``); ``ring_length`` and ``road_width`` are scalars
     or one per run, shape ``[..., 1]``. ``present`` (``[..., N]``, None: all): the padded rows (False) exert
     and feel no force, and every sum over neighbours rounds as it would without them (:func:`row_sum`).
-    Implements SPEC §3 in order: target-speed forces, pairwise trapezoid forces, the sums of the
+    Implements specification §3 in order: target-speed forces, pairwise trapezoid forces, the sums of the
     strongest repulsions (and nudges when ``cfg.nudging``), then the regulation steps 1–5.
     The road-edge bound (step 2) treats the edges as ``edge_clearance`` (m) inside the road, the
     line the dynamics clip at, so a driver that obeys it never touches the clip.
     ``offsets`` = (dx, dy) from :func:`~lanefree_sumo.sim.state.pairwise_offsets` if already computed.
     ``bounds`` = (lowest, highest) lateral position each vehicle's body may reach (m; scalars or one per
     vehicle, :meth:`~lanefree_sumo.sim.road.Road.bounds`); None: the ring's 0 and ``road_width``.
-    ``lateral_target``: the lateral speed the target-speed force aims at (m/s; SPEC §3: 0; a merging ramp
+    ``lateral_target``: the lateral speed the target-speed force aims at (m/s; specification §3: 0; a merging ramp
     vehicle's is positive, :mod:`~lanefree_sumo.sim.open_road`).
     ``details``, if given, receives per-vehicle diagnostics: ``sum_fx`` (Σ of the summed
     repulsions' f_x), ``leader_gap_m`` (bumper gap to the x-wall leader, NaN without one) and
@@ -197,5 +197,5 @@ def driver_accelerations(
     r = cfg.lateral_speed_ratio
     ay = np.minimum(ay, (r * vx - vy) / t)
     ay = np.maximum(ay, -(r * vx + vy) / t)
-    ay = np.clip(ay, b.ay_min, b.ay_max)  # the lateral hard bound again (SPEC §3, Revision 2)
+    ay = np.clip(ay, b.ay_min, b.ay_max)  # the lateral hard bound again (specification §3)
     return ax, ay

@@ -1,4 +1,4 @@
-"""Initial placement of vehicles at a density (SPEC §1).
+"""Initial placement of vehicles at a density (specification §1).
 
 The road is cut into a grid of cells, one vehicle per cell: ``rows`` across the width and
 ``cols`` along the ring.  A cell is long enough for the longest vehicle plus ``gap_x`` and wide

@@ -1,6 +1,6 @@
 """Vehicle state arrays shared by the physics, the backends and the environment.
 
-Coordinates (SPEC §0): ``x`` is the longitudinal position along the ring's centre line in
+Coordinates (specification §0): ``x`` is the longitudinal position along the ring's centre line in
 [0, L) (m), ``y`` the lateral position of the vehicle's centre from the right road edge (m),
 ``vx``/``vy`` the speeds along x/y (m/s).  Row ``i`` is vehicle ``ids[i]`` in every array.
 

@@ -89,7 +89,7 @@ def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[st
 def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600,
                   encoder: str | None = None) -> float:
     """Env steps per second of a training run of ``algo`` including its learning updates,
-    measured over ``steps`` steps after learning has started (SPEC §9 settings); with
+    measured over ``steps`` steps after learning has started (specification §9 settings); with
     ``encoder`` (``small`` or ``paper``), on the set observation through that set encoder."""
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -503,7 +503,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
     lines += [
         "",
         "Training throughput at 90 veh/km (`lanefree train`'s defaults: numpy backend, one env, learning updates every "
-        "step, SPEC §9 settings):",
+        "step, docs/specification.md §9 settings):",
         "",
         "| algorithm | env steps/s incl. learning | projected 625-episode run |\n|---|---|---|",
     ]

@@ -1,4 +1,4 @@
-"""``make onramp-flows``: the on-ramp's inflow–outflow curve (issue 21).
+"""``make onramp-flows``: the on-ramp's inflow–outflow curve.
 
 For each main-road demand of ``--main-flows`` at the fixed ramp demand ``--ramp-flow`` and each seed, the
 background traffic runs ``--seconds`` on the on-ramp; the first ``--warmup`` seconds are not measured.

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS, MULTI_AGENT_COLUMNS
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import replay
-from lanefree_sumo.experiments.report import read_episodes
 from lanefree_sumo.experiments.rollout import rollout
-from lanefree_sumo.experiments.train import EPISODE_COLUMNS, MULTI_AGENT_COLUMNS, train
+from lanefree_sumo.experiments.rundata import read_episodes
+from lanefree_sumo.experiments.train import train
 
 from conftest import TINY_TRAINING, lanefree
 

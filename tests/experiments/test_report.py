@@ -13,10 +13,10 @@ import pytest
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments.curves import evaluation_series, smoothed_curve
+from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.paper import PAPER_REFERENCE
 from lanefree_sumo.experiments.report import RunData, report
 from lanefree_sumo.experiments.rundir import write_config
-from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
 from conftest import fenced_rows, lanefree
 
@@ -120,9 +120,11 @@ def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path
     assert list(table.n_seeds) == [3, 1, 1, 1, 1, 1] and list(table.collisions_mean) == [2.0, 5.0, 0.0, 7.0, 4.0, 6.0]
     assert list(table.collisions_paper) == [0.449] * 4 + [0.952] * 2
     md = (tmp_path / "out" / "summary.md").read_text()
-    assert "| ddpg | fields_zones_overtake_collision | 70 | default | 3 |" in md
+    # the columns every group shares are named once above the table, not repeated in each row
+    assert "Every row: reward preset fields_zones_overtake_collision; density (veh/km) 70." in md
+    assert "| ddpg | default | 3 |" in md
     assert "| shield.enabled=True | 1 |" in md
-    assert len(fenced_rows(md)) == 2 + 6  # header, rule, one row per group
+    assert len(fenced_rows(md)) == 1 + 2 + 6  # the shared columns, header, rule, one row per group
 
 
 def test_eval_source_tabulates_each_runs_evaluation_at_its_density(tmp_path: Path) -> None:
@@ -161,8 +163,9 @@ def test_several_evaluations_side_by_side_one_row_each_a_missing_one_named(tmp_p
                                               "summary.csv", "summary.md"]
     assert all(p.stat().st_size > 0 for p in result.files)
     rows = fenced_rows((tmp_path / "out" / "summary.md").read_text())
-    assert rows[2].startswith(f"| `eval` | ddpg | {FZOC} | 70 | default | 2 | 1.500 ± 0.707 |")
-    assert rows[3].startswith(f"| `eval_d120` | ddpg | {FZOC} | 120 | default | 1 | 10.000 ± n/a |")
+    assert rows[0] == f"Every row: algorithm ddpg; reward preset {FZOC}; variant default."
+    assert rows[3].startswith("| `eval` | 70 | 2 | 1.500 ± 0.707 |")
+    assert rows[4].startswith("| `eval_d120` | 120 | 1 | 10.000 ± n/a |")
     with pytest.raises(ReportError, match="name each evaluation folder once"):
         report(runs, tmp_path / "out2", source=["eval", "eval"])
     with pytest.raises(ReportError, match="no run has any of the evaluations eval_d90, eval_shield"):
@@ -239,8 +242,9 @@ def test_paper_numbers_beside_matching_cells_only(two_seed_runs: list[Path], tmp
         assert missing.paper_source == ""
 
     md = (out / "summary.md").read_text()
-    lines = {ln.split("|")[1].strip() + "/" + ln.split("|")[3].strip(): ln for ln in md.splitlines()
-             if ln.startswith("| ") and FZOC in ln}
+    assert f"Every row: reward preset {FZOC}; variant default." in md  # columns: algorithm, density, ...
+    lines = {ln.split("|")[1].strip() + "/" + ln.split("|")[2].strip(): ln for ln in fenced_rows(md)
+             if ln.startswith("| ") and not ln.startswith("| algorithm")}
     assert "0.600 ± 0.141 (paper 0.449)" in lines["ddpg/70"]
     assert "0.600 ± 0.283 (paper 0.723)" in lines["ddpg/70"]
     assert "(paper 0.952)" in lines["dqn/70"] and "(paper 0.471)" in lines["dqn/70"]
@@ -256,7 +260,7 @@ def test_paper_numbers_beside_matching_cells_only(two_seed_runs: list[Path], tmp
 
 
 def test_paper_reference_table_matches_spec() -> None:
-    assert len(PAPER_REFERENCE) == 15  # distinct settings of SPEC §10 Tables 5–8
+    assert len(PAPER_REFERENCE) == 15  # distinct settings of specification §10 Tables 5–8
     assert PAPER_REFERENCE[("ddpg", "collision", 70.0)][:2] == (2.256, 0.135)
     assert PAPER_REFERENCE[("ddpg", "fields_overtake_collision", 120.0)][:2] == (1.066, 1.715)
     assert PAPER_REFERENCE[("per", FZOC, 70.0)][:2] == (0.792, 0.617)
@@ -362,8 +366,8 @@ def test_written_files_are_valid(two_seed_runs: list[Path], tmp_path: Path) -> N
         assert pixels.ndim == 3 and pixels.shape[0] > 300 and pixels.shape[1] > 500
         assert float(np.std(pixels)) > 0.01  # not a blank canvas
     md = (out / "summary.md").read_text()
-    assert ("| algorithm | reward preset | density (veh/km) | variant | seeds | collisions / episode | "
-            "speed deviation (m/s) | return | overtakes / episode |") in md
+    assert ("| algorithm | seeds | collisions / episode | speed deviation (m/s) | return | overtakes / episode |"
+            in md) and f"Every row: reward preset {FZOC}; density (veh/km) 70; variant default." in md
 
 
 def _run_data(values: list[float], seed: int) -> RunData:

@@ -1,4 +1,4 @@
-"""Issue 17's result scripts on a tiny real sweep: `make results` (scripts/update-results.sh) evaluates a
+"""The result scripts on a tiny real sweep: `make results` (scripts/update-results.sh) evaluates a
 finished run deterministically and shielded, zero-shot at 90 and 120 veh/km and on the on-ramp, writes every
 table; a second pass evaluates only what a stopped evaluation left unfinished."""
 

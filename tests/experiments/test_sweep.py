@@ -33,13 +33,13 @@ import yaml
 from lanefree_sumo.cli import main
 from lanefree_sumo.config import merge_config
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
+from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.rundir import RunDir, record_session, write_config
 from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid, builtin_grid, load_grid, parse_grid
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
 from lanefree_sumo.experiments.sweep.summary import COLUMNS, RUN_COLUMNS, bootstrap_ci, summarize
-from lanefree_sumo.experiments.train import EPISODE_COLUMNS
 
 from conftest import CLI_ENV, fenced_rows, lanefree, lanefree_popen
 

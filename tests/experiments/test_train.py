@@ -14,8 +14,9 @@ import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
+from lanefree_sumo.experiments.train import train
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, get_algorithm
 from lanefree_sumo.rl.models import episode_seed
 

@@ -19,18 +19,14 @@ from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms import ALGORITHMS
 from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
-from lanefree_sumo.rl.algorithms.dueling import (
-    DuelingDoubleDQN,
-    DuelingDQNPolicy,
-    DuelingQNetwork,
-    MultiInputDuelingDQNPolicy,
-)
+from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
 from lanefree_sumo.rl.algorithms.fast_dqn import FastDQN
 from lanefree_sumo.rl.algorithms.prioritized import (
     PrioritizedDictReplayBuffer,
     PrioritizedDoubleDQN,
     PrioritizedReplayBuffer,
 )
+from lanefree_sumo.rl.algorithms.q_networks import DuelingDQNPolicy, DuelingQNetwork, MultiInputDuelingDQNPolicy
 from lanefree_sumo.rl.algorithms.segment_tree import MinTree, SumTree
 
 ALPHA, EPS = 0.6, 1e-6

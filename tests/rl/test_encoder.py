@@ -1,4 +1,4 @@
-"""Tests for lanefree_sumo.rl.encoder (set encoder of Liu, Zhang & Zhou 2023, SPEC §5)."""
+"""Tests for lanefree_sumo.rl.encoder (set encoder of Liu, Zhang & Zhou 2023, specification §5)."""
 
 from __future__ import annotations
 
@@ -260,7 +260,7 @@ def test_sb3_training_and_predict(algo, use_dict):
     np.testing.assert_allclose(np.asarray(action_big), np.asarray(action), atol=1e-5)
 
 
-# --------------------------------------------------------------------------- named configurations (SPEC §5)
+# --------------------------------------------------------------------------- named configurations (specification §5)
 
 
 def _paper(seed: int = 0) -> SetEncoder:

@@ -15,7 +15,7 @@ from lanefree_sumo.rl.rewards import PRESETS, reciprocal_reward
 
 pytestmark = pytest.mark.sumo
 
-SPEC8_COLUMNS = {
+METRIC_COLUMNS = {
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
     "density", "seed", "reward_preset", "wall_s",
@@ -70,7 +70,7 @@ def test_random_policy_runs_full_episodes_at_every_density(make):
             done = terminated or truncated
         assert steps == 800 and truncated and not terminated
         metrics = info["episode_metrics"]
-        assert SPEC8_COLUMNS <= set(metrics)
+        assert METRIC_COLUMNS <= set(metrics)
         assert metrics["steps"] == 800 and metrics["density"] == density
         assert metrics["collision_steps"] == collided_steps
         assert metrics["collisions"] <= collided_steps

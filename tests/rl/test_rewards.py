@@ -1,4 +1,4 @@
-"""Reward components (SPEC §7) against values computed by hand from the formulas."""
+"""Reward components (specification §7) against values computed by hand from the formulas."""
 
 from __future__ import annotations
 
@@ -423,7 +423,7 @@ def test_compute_reward_observed_subset_and_config():
 # ------------------------------------------------------------------ presets
 
 
-SPEC_TABLE = {
+PAPER_TABLE_4 = {
     # name: (w_x, w_y, w_f, r_c on, r_o on)
     "collision": (0.65, 0.0, 0.0, True, False),
     "overtake_collision": (0.65, 0.0, 0.0, True, True),
@@ -435,16 +435,24 @@ SPEC_TABLE = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(SPEC_TABLE))
-def test_presets_match_spec_table(name):
+@pytest.mark.parametrize("name", sorted(PAPER_TABLE_4))
+def test_presets_match_paper_table_4(name):
     p = get_preset(name)
     assert isinstance(p, RewardWeights)
-    assert (p.w_x, p.w_y, p.w_f, p.use_collision, p.use_overtake) == SPEC_TABLE[name]
+    assert (p.w_x, p.w_y, p.w_f, p.use_collision, p.use_overtake) == PAPER_TABLE_4[name]
 
 
 def test_preset_set_is_exactly_the_table():
-    assert set(PRESETS) == set(SPEC_TABLE)
+    assert set(PRESETS) == set(PAPER_TABLE_4)
     assert RewardConfig().preset in PRESETS
+
+
+def test_a_preset_name_with_an_unknown_component_is_refused():
+    from lanefree_sumo.rl.rewards import _weights
+
+    assert _weights("fields_zones_collision") == RewardWeights(0.35, 0.65, 1.0, True, False)
+    with pytest.raises(ValueError, match="'feilds_collision': unknown component.s. feilds"):
+        _weights("feilds_collision")
 
 
 def test_unknown_preset_lists_names():
@@ -452,7 +460,7 @@ def test_unknown_preset_lists_names():
         get_preset("fieldz")
     msg = str(err.value)
     assert "fieldz" in msg and "\n" not in msg
-    for name in SPEC_TABLE:
+    for name in PAPER_TABLE_4:
         assert name in msg
     with pytest.raises(ValueError):
         compute_reward(np.array([]), np.array([]), np.array([]), np.array([]), np.array([]),
@@ -465,19 +473,12 @@ def test_presets_are_frozen():
     assert math.isclose(get_preset("fields").w_f, 1.0)
 
 
-def test_spec_module_path_lanefree_sumo_rewards_is_the_rewards_module():
-    import lanefree_sumo.rewards as spec_path
-    from lanefree_sumo.rl import rewards as module
-
-    assert spec_path is module and spec_path.ellipsoid(0.0, 0.0, 1.0, 1.0, 4, 4, 1, 0.5) == 0.5
-
-
-def test_the_configs_preset_and_algorithm_names_are_the_registries():
-    """The config validates names it owns (no import from the RL room); these keep them in step."""
+def test_the_configs_algorithm_names_are_the_registry():
+    """The config validates names it owns (no import from the RL room); this keeps the algorithms in step
+    (the reward presets' names are the config's own list, PRESETS is built from it)."""
     from typing import get_args
 
-    from lanefree_sumo.config import AlgorithmName, RewardPreset
+    from lanefree_sumo.config import AlgorithmName
     from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
-    assert get_args(RewardPreset) == tuple(PRESETS)
     assert get_args(AlgorithmName) == ALGORITHM_NAMES

@@ -1,4 +1,4 @@
-"""The safety shield (issue 12): closed-form bounds on hand-built scenes, the one-step guarantee
+"""The safety shield: closed-form bounds on hand-built scenes, the one-step guarantee
 and recursive feasibility over random states (numpy only), and zero agent collisions in SUMO."""
 
 from __future__ import annotations

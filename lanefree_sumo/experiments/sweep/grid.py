@@ -1,4 +1,4 @@
-"""Grids of training runs: the paper's tables (SPEC §10) built in, or a YAML file.
+"""Grids of training runs: the paper's tables (specification §10) built in, or a YAML file.
 
 A grid is a list of *settings* (algorithm, reward preset, density in veh/km) × a list of seeds,
 with an episode budget and config overrides applied to every run. Built-in grids: ``table5`` …
@@ -39,9 +39,9 @@ from lanefree_sumo.errors import ConfigError, UsageError
 from lanefree_sumo.experiments.paper import PAPER_ROWS
 
 PAPER_EPISODES = 625
-"""Training episodes per run in the paper (SPEC §9)."""
+"""Training episodes per run in the paper (specification §9)."""
 PAPER_SEEDS = 10
-"""Runs per setting in the paper (SPEC §10)."""
+"""Runs per setting in the paper (specification §10)."""
 PAPER_EPISODE_STEPS = LaneFreeConfig().sim.episode_steps
 """Steps per episode in the paper (800 × 0.25 s)."""
 

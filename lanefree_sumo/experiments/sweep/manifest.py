@@ -15,7 +15,6 @@ import json
 import os
 import re
 import socket
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -25,6 +24,7 @@ from typing import Any
 import yaml
 
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
+from lanefree_sumo.experiments.rundir import write_atomic
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 
 MANIFEST = "sweep.yaml"
@@ -167,22 +167,6 @@ def write_manifest(folder: Path, manifest: Manifest) -> None:
     text = ("# lanefree sweep manifest: the grid of this sweep folder. Resume with 'lanefree sweep --resume "
             f"{SELF}'.\n" + yaml.safe_dump(data, sort_keys=False))
     write_atomic(path, text)
-
-
-def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp makes it private; these are ordinary files
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def grid_difference(saved: Grid, asked: Grid) -> str | None:

@@ -31,8 +31,9 @@ from typing import Any
 
 from lanefree_sumo.config import config_to_dict
 from lanefree_sumo.errors import RunError, UsageError
+from lanefree_sumo.experiments.rundir import write_atomic
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
-from lanefree_sumo.experiments.sweep.manifest import SweepDir, write_atomic
+from lanefree_sumo.experiments.sweep.manifest import SweepDir
 from lanefree_sumo.experiments.sweep.state import STALE_S, count_rows, heartbeat_age, record_failure
 
 POLL_S = 2.0

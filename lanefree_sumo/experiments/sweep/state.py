@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import IO, Any
 
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import RunDir
-from lanefree_sumo.experiments.sweep.manifest import SweepDir, write_atomic
+from lanefree_sumo.experiments.rundir import RunDir, write_atomic
+from lanefree_sumo.experiments.sweep.manifest import SweepDir
 
 HEARTBEAT_S = 10.0
 """A worker refreshes its heartbeat this often (s)."""

@@ -1,6 +1,6 @@
 """A sweep's results: ``summary.csv``, ``summary.md`` and learning curves grouped per paper table.
 
-Definitions (SPEC §8, §10):
+Definitions (specification §8, §10):
 
 * **Per run**: the mean of a metric over its last ``last`` episodes (50, the paper's; all of them
   when a run has fewer), as :mod:`lanefree_sumo.experiments.report` computes it. Only *complete*
@@ -11,7 +11,7 @@ Definitions (SPEC §8, §10):
   interval over runs (:func:`bootstrap_ci`: 10 000 resamples of the runs with replacement, fixed
   random seed so a summary is reproducible; undefined — NaN, ``n/a`` — with fewer than 2 runs; with
   very few runs the percentile bootstrap is too narrow, so read n_runs beside it).
-* **Paper values**: SPEC §10 where the paper has the setting.
+* **Paper values**: specification §10 where the paper has the setting.
 * **Every run**: ``runs.csv`` and the second table of ``summary.md``, one row per complete run: its
   last-``last`` means, and the means over all episodes of its deterministic (``eval/``) and shielded
   (``eval_shield/``) evaluations where it has them (``lanefree evaluate``; empty where it has none).
@@ -52,11 +52,11 @@ from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_ma
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.effects import effect_table, effects_markdown
 from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.report import RunData, UnusableRunError, read_episodes, read_run
-from lanefree_sumo.experiments.rundir import EPISODES, RunDir
+from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_episodes, read_run
+from lanefree_sumo.experiments.rundir import EPISODES, RunDir, write_atomic
 from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
 from lanefree_sumo.experiments.sweep.grid import DEFAULT_VARIANT, Cell, Grid, Setting
-from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest, write_atomic
+from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
 
 METRICS = ("collisions", "speed_dev_mps", "speed_dev_episode_mps", "speed_error_mps")
@@ -209,7 +209,7 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
     lines += [
         f"Per run: the mean over its last {last} episodes (all of them when it has fewer); only complete runs "
         f"count. Cell: mean over runs [{CI_LEVEL:.0%} percentile-bootstrap CI over runs, {BOOTSTRAP_RESAMPLES} "
-        "resamples; n/a below 2 runs, too narrow with very few] (paper value, SPEC §10).",
+        "resamples; n/a below 2 runs, too narrow with very few] (paper value, docs/specification.md §10).",
         "",
     ]
     lines += ["Speed deviation, three readings (m/s): per step, the mean of |vx − v_d| (the paper's tables are "
@@ -227,7 +227,7 @@ def summary_markdown(grid: Grid, table: pd.DataFrame, curves: dict[str, list[Pat
                        row["speed_dev_episode_mps_ci95_high"], 2),
          interval_text(row["speed_error_mps_mean"], row["speed_error_mps_ci95_low"],
                        row["speed_error_mps_ci95_high"], 2)]
-        for _, row in table.iterrows()])
+        for _, row in table.iterrows()], drop_constant=True)
     if curves:
         lines += ["", "## Learning curves", ""]
         titles: dict[tuple[Path, ...], list[str]] = {}  # tables drawn by the same files share a line

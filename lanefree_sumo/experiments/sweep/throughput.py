@@ -1,5 +1,5 @@
 """Sweep throughput against one standalone run: env steps/s summed over a sweep's concurrent runs
-divided by the steps/s of one ``lanefree train`` alone on the same machine (issue 11 asks ≥ 1.7
+divided by the steps/s of one ``lanefree train`` alone on the same machine (the goal: ≥ 1.7
 with 2 workers on 2 cores).
 
     python -m lanefree_sumo.experiments.sweep.throughput [--workers 2] [--episodes 10] [--out DIR]

@@ -85,8 +85,8 @@ def check_adoptable(folder: Path, expected: Any) -> None:
 def _finish_from_checkpoint(folder: Path, target: int) -> bool:
     """A run killed between its final checkpoint and writing model.zip: finish it from that
     checkpoint (its model IS the final model). True when done."""
+    from lanefree_sumo.experiments.episodes import EpisodeLog
     from lanefree_sumo.experiments.rundir import RunDir
-    from lanefree_sumo.experiments.train import EpisodeLog
 
     run = RunDir(folder)
     try:

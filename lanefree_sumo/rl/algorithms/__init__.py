@@ -3,7 +3,8 @@
 Training, evaluation, the benchmark, the CLI's help and the tests all read :data:`ALGORITHMS`.
 Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
 import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
-:mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`). ``ddpg`` is :mod:`.fast_ddpg`'s
+:mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`); the dueling Q-network head and its
+policies in :mod:`.q_networks`, which imports no algorithm. ``ddpg`` is :mod:`.fast_ddpg`'s
 subclass of SB3's DDPG and ``dqn`` :mod:`.fast_dqn`'s of SB3's DQN (the base of the other three): SB3's
 update bit for bit, faster (``train.fast_learner``, ``train.lean_loop``; shared pieces in :mod:`.lean`);
 they load models saved by SB3's classes, and SB3's classes load theirs.

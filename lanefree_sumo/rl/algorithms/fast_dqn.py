@@ -58,6 +58,7 @@ from lanefree_sumo.rl.algorithms.lean import (
     mean_of,
     mlp_layers,
 )
+from lanefree_sumo.rl.algorithms.q_networks import DuelingHead, DuelingQNetwork
 
 NO_REDUCTION = 0
 """torch's ``Reduction::None``, the reduction argument of ``smooth_l1_loss_backward``."""
@@ -101,7 +102,7 @@ class _MlpQ:
 
 
 class _DuelingQ:
-    """The dueling head (:class:`~.dueling.DuelingHead`): a ReLU trunk, then ``V + A − mean_a A``, written out."""
+    """The dueling head (:class:`~.q_networks.DuelingHead`): a ReLU trunk, then ``V + A − mean_a A``, written out."""
 
     def __init__(self, trunk: list[Layer], value: Layer, advantage: Layer) -> None:
         self.trunk, self.value, self.advantage = trunk, value, advantage
@@ -138,8 +139,6 @@ def _stock_methods(model: FastDQN) -> bool:
     ``predict``, the policy's ``_predict``/``predict``: the lean loop), the Q-network classes, the hooks the
     written-out step computes itself (``_compute_target_q_values``, ``_compute_loss``) and the autograd update
     it stands in for (``_autograd_train``). Checked on every use (a patch after the first update counts)."""
-    from lanefree_sumo.rl.algorithms.dueling import DuelingQNetwork  # (dueling imports this module)
-
     return (defined_by(model, "predict") is DQN and defined_by(model, "_sample_action") is OffPolicyAlgorithm
             and defined_by(model.policy, "_predict") is DQNPolicy
             and defined_by(model.policy, "predict") is BasePolicy
@@ -150,8 +149,6 @@ def _stock_methods(model: FastDQN) -> bool:
 
 def _q_head(net: nn.Module) -> _MlpQ | _DuelingQ | None:
     """The written-out form of a QNetwork's ``q_net`` (a plain MLP or a dueling head), or None."""
-    from lanefree_sumo.rl.algorithms.dueling import DuelingHead
-
     if isinstance(net, nn.Sequential):
         layers = mlp_layers(net, False)
         return None if layers is None else _MlpQ(layers)

@@ -1,6 +1,6 @@
 """The only module that talks to SUMO: netconvert, libsumo/TraCI backends, bare stepping.
 
-SUMO hosts the ring (SPEC §1).  Every step the orchestrator sends, for every vehicle, the speed
+SUMO hosts the ring (specification §1).  Every step the orchestrator sends, for every vehicle, the speed
 at the end of the step (``setSpeed`` under speed mode 0, ballistic step method) and the lateral
 displacement (``changeSublane`` under lane-change mode 0, vTypes with huge ``maxSpeedLat`` and
 ``lcAccelLat``); SUMO executes exactly that, and the new state is read back through

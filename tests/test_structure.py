@@ -1,0 +1,105 @@
+"""The package's shape: no import circles (none even through an import inside a function), and the scripts use
+public names only."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = ROOT / "lanefree_sumo"
+
+
+def _module(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path, modules: set[str]) -> set[str]:
+    """The package's modules that ``path`` imports anywhere in it (``from a.b import c`` counts ``a.b.c``
+    when that is a module, else ``a.b``)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found |= {f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+                      for a in node.names}
+    return found & modules
+
+
+def _graph() -> dict[str, set[str]]:
+    paths = {_module(p): p for p in PACKAGE.rglob("*.py")}
+    modules = set(paths)
+    # a package's __init__ runs before any of its modules: importing ``a.b`` imports ``a`` too, which the
+    # graph leaves out (every module would sit in a circle with its package's __init__ otherwise)
+    return {name: {m for m in _imports(path, modules) if not name.startswith(m + ".")} - {name}
+            for name, path in paths.items()}
+
+
+def _circle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle of ``graph`` (its modules in order), or None."""
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state and (found := visit(nxt)):
+                return found
+        state[node] = 2
+        stack.pop()
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_the_algorithms_import_no_circle():
+    graph = _graph()
+    algorithms = {k: {m for m in v if m.startswith("lanefree_sumo.rl.algorithms.")}
+                  for k, v in graph.items() if k.startswith("lanefree_sumo.rl.algorithms.")}
+    assert _circle(algorithms) is None, f"import circle: {' -> '.join(_circle(algorithms) or [])}"
+    # the bases know nothing of their subclasses
+    assert not graph["lanefree_sumo.rl.algorithms.fast_dqn"] & {
+        "lanefree_sumo.rl.algorithms.dueling", "lanefree_sumo.rl.algorithms.double_dqn",
+        "lanefree_sumo.rl.algorithms.prioritized"}
+
+
+def test_the_circle_finder_finds_a_circle():
+    assert _circle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _circle({"a": {"b"}, "b": set()}) is None
+
+
+def test_evaluation_does_not_import_training():
+    assert "lanefree_sumo.experiments.train" not in _graph()["lanefree_sumo.experiments.evaluate"]
+
+
+def test_the_scripts_use_public_names_only():
+    private = []
+    for path in sorted((ROOT / "scripts").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("lanefree_sumo"):
+                private += [f"{path.name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+    assert not private, f"scripts importing private names of the package: {private}"
+
+
+def test_the_package_imports_no_circle():
+    """Rooms import downwards only (experiments -> rl -> sim -> config), and within a room no module imports
+    one that imports it back."""
+    assert _circle(_graph()) is None, f"import circle: {' -> '.join(_circle(_graph()) or [])}"
+
+
+def test_the_rooms_import_downwards_only():
+    """experiments -> rl -> sim -> config/errors: a room imports nothing of the rooms above it."""
+    above = {"config": ("sim", "rl", "experiments", "tools"), "sim": ("rl", "experiments", "tools"),
+             "rl": ("experiments", "tools")}
+    wrong = [(module, imported) for module, imports in _graph().items() for imported in imports
+             for room, higher in above.items() if module.startswith(f"lanefree_sumo.{room}.")
+             and any(imported.startswith(f"lanefree_sumo.{h}.") or imported == f"lanefree_sumo.{h}" for h in higher)]
+    assert not wrong, f"imports against the arrows: {wrong}"
