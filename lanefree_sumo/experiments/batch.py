@@ -36,8 +36,9 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ConfigError, RunError
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import RunDir, append_command, record_session, write_config
-from lanefree_sumo.experiments.train import EpisodeLog, _Stop, episode_columns, new_run_folder, versions
+from lanefree_sumo.experiments.train import _Stop, new_run_folder, versions
 
 BATCH_FILE = "batch.json"
 BATCH_CHECKPOINTS = "batch_checkpoints"

@@ -13,7 +13,8 @@ import pytest
 from lanefree_sumo.cli import _report_batch
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, batch_name, resume_batch, train_batch
-from lanefree_sumo.experiments.train import EPISODE_COLUMNS, train
+from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
+from lanefree_sumo.experiments.train import train
 from lanefree_sumo.rl.algorithms import get_algorithm
 
 from conftest import lanefree_popen, wait_for
