@@ -38,6 +38,23 @@ def seed(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def seeds(text: str) -> list[int]:
+    """Seeds of a batch: a range ``A-B`` (both included) or a list ``A,B,C`` of distinct seeds."""
+    try:
+        if "-" in text:
+            low, high = (int(part) for part in text.split("-", 1))
+            if high < low:
+                raise ValueError
+            values = list(range(low, high + 1))
+        else:
+            values = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seeds as A-B (A <= B) or A,B,C, got {text!r}") from None
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"seeds repeat in {text!r}; give each seed once")
+    return [seed(str(v)) for v in values]
+
+
 def _of(kind: type, unit: str) -> str:
     """'of episodes' for counts, 'in m/s' for measures."""
     return f"of {unit}" if kind is int else f"in {unit}"

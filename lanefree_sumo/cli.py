@@ -138,6 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
                     f"(default {t.episodes})")
     tr.add_argument("--seed", type=int, default=DEFAULTS.seed,
                     help=f"random seed of networks and traffic (default {DEFAULTS.seed})")
+    tr.add_argument("--seeds", type=argtypes.seeds, default=None, metavar="A-B",
+                    help="train these seeds (a range A-B or a list A,B,C) as one batch in one process, one run "
+                    "folder each under --out (ddpg and the DQN family, one agent on the ring, vector observation)")
     tr.add_argument("--obs", choices=OBSERVATION_KINDS, default=DEFAULTS.observation.kind,
                     help="vector = the paper's 5 nearest; set = every vehicle in range through the set encoder "
                     f"(default {DEFAULTS.observation.kind})")
@@ -163,7 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", type=Path, default=None, help="run folder (default runs/<date-time>_...)")
     tr.add_argument("--resume", type=Path, default=None, metavar="RUN",
                     help="continue RUN from its newest checkpoint with the options in RUN/config.yaml; with "
-                    "--episodes N, extend RUN (finished or not) to N episodes; other options are refused")
+                    "--episodes N, extend RUN (finished or not) to N episodes; other options are refused. A batch "
+                    "folder (made by --seeds) continues the whole batch")
     tr.add_argument("--backend", choices=BACKENDS, default=t.backend,
                     help=f"simulation backend (default {t.backend}: the same episodes as libsumo bit for bit, "
                     "without SUMO; libsumo/traci train inside SUMO)")
@@ -350,8 +354,18 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from lanefree_sumo.experiments.batch import is_batch
     from lanefree_sumo.experiments.train import train
 
+    if args.resume is not None and is_batch(args.resume):
+        extra = ", ".join(sorted(args.given - {"--resume"}))
+        if extra:
+            raise UsageError(f"--resume {args.resume} continues a batch with its saved options; {extra} cannot be "
+                             "given (a batch is not extended)")
+        return _report_batch(_resume_batch(args.resume))
+    if args.resume is not None and is_batch(args.resume.parent):
+        raise UsageError(f"{args.resume} is a run of the batch {args.resume.parent}; resume the whole batch with: "
+                         f"lanefree train --resume {args.resume.parent}")
     if args.resume is not None:
         ignored = sorted(args.given - {"--resume", "--episodes"})
         if ignored:
@@ -377,6 +391,8 @@ def _train(args: argparse.Namespace) -> int:
             ("train.overlap", ("--overlap", "--no-overlap"), args.overlap),
             ("train.checkpoint_every_episodes", ("--checkpoint-every",), args.checkpoint_every),
         ])
+        if args.seeds is not None:
+            return _report_batch(_train_batch(args, cfg))
         run, done = train(cfg, run=args.out)
     target = _episodes_target(run)
     if done < target:
@@ -390,6 +406,47 @@ def _train(args: argparse.Namespace) -> int:
     now = done - int(sessions[-1].get("first_episode", 1)) + 1 if sessions else done
     print(f"trained {count(now, 'episode')}" + (f" ({done} of {target} in all)" if now != done else "") + f" -> {run}")
     return 0
+
+
+def _train_batch(args: argparse.Namespace, cfg: LaneFreeConfig) -> list[tuple[Path, int]]:
+    """``lanefree train --seeds``: the seeds as one batch under ``--out``."""
+    from datetime import datetime
+
+    from lanefree_sumo.config import merge_config
+    from lanefree_sumo.experiments.batch import check_batchable, train_batch
+
+    if "--seed" in args.given:
+        raise UsageError("--seed and --seeds exclude each other; give the batch's seeds with --seeds only")
+    check_batchable(cfg)
+    seeds = args.seeds
+    out = args.out or Path("runs") / (f"{datetime.now():%Y%m%d-%H%M%S}_{cfg.train.algo}_{cfg.reward.preset}"
+                                      f"_d{cfg.scenario.density_veh_per_km:g}_s{seeds[0]}-{seeds[-1]}")
+    return train_batch([merge_config(cfg, {"seed": s}) for s in seeds], out, command=_command())
+
+
+def _resume_batch(folder: Path) -> list[tuple[Path, int]]:
+    from lanefree_sumo.experiments.batch import resume_batch
+
+    return resume_batch(folder, command=_command())
+
+
+def _report_batch(results: list[tuple[Path, int]]) -> int:
+    """Print each run's outcome; EXIT_INTERRUPTED when a run is short of its episodes by an interruption (a run
+    stopped for a non-finite action is named with its reason: resuming would not continue it)."""
+    from lanefree_sumo.experiments.markdown import count
+    from lanefree_sumo.experiments.rundir import read_sessions
+
+    short = False
+    for run, done in results:
+        target = _episodes_target(run)
+        reason = (read_sessions(run) or [{}])[-1].get("stopped_by") or ""
+        diverged = "not finite" in reason  # stopped for good: resuming does not continue it
+        short |= done < target and not diverged
+        what = f"trained {count(done, 'episode')}" if done >= target else f"stopped after {done}/{target} episodes"
+        print(f"{what} -> {run}" + (f" ({reason})" if diverged else ""))
+    if short:
+        print(f"resume the batch with: lanefree train --resume {results[0][0].parent}", file=sys.stderr)
+    return EXIT_INTERRUPTED if short else (1 if any(done < _episodes_target(r) for r, done in results) else 0)
 
 
 def _episodes_target(run: Path) -> int:

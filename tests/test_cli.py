@@ -215,3 +215,38 @@ def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
     line = res.stdout.strip().splitlines()[-1]
     assert line.startswith("evaluated 2 episodes: ") and " agent collisions per episode, speed deviation " in line
     assert line.endswith(f"-> {run / 'eval' / 'episodes.csv'}")
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["--seeds", "3-1"], "expected seeds as A-B"),
+        (["--seeds", "a-b"], "expected seeds as A-B"),
+        (["--seeds", "1,1"], "seeds repeat"),
+        (["--seeds", "0-1", "--seed", "4"], "--seed and --seeds exclude each other"),
+        (["--seeds", "0-1", "--shield"], "does not support the safety shield"),
+        (["--seeds", "0-1", "--scenario", "onramp"], "does not support the onramp road"),
+        (["--seeds", "0-1", "--agents", "2"], "does not support several agents"),
+        (["--seeds", "0-1", "--obs", "set"], "does not support the set observation"),
+        (["--seeds", "0-1", "--algo", "ppo"], "batched training covers ddpg, dqn, ddqn, dueling, per, not ppo"),
+    ],
+)
+def test_bad_batch_options_are_one_line_and_write_nothing(tmp_path, args, needle):
+    out = tmp_path / "batch"
+    res = lanefree("train", "--out", str(out), *args)
+    assert res.returncode != 0
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], res.stderr
+    assert not out.exists()
+
+
+def test_a_run_of_a_batch_is_resumed_with_its_batch(tmp_path):
+    """--resume of one run folder of a batch names the batch to resume instead (its checkpoints are the batch's)."""
+    batch = tmp_path / "batch"
+    run = batch / "ddpg_fields_zones_overtake_collision_d70_s0"
+    run.mkdir(parents=True)
+    (batch / "batch.json").write_text('{"runs": ["ddpg_fields_zones_overtake_collision_d70_s0"]}')
+    res = lanefree("train", "--resume", str(run))
+    assert res.returncode != 0
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"lanefree train --resume {batch}" in lines[0], res.stderr

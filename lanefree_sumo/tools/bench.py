@@ -11,7 +11,8 @@ machine noise hits both alike.  Timings are not tests: the numbers are for readi
 Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's update and the fast one,
 against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved, and
 :func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
-(``--training-only`` runs just these sections, ``--dqn-only`` the last).
+(``--training-only`` runs just these sections, ``--dqn-only`` the last), and :func:`batch_speed`: runs per
+core-hour of sequential runs against batches of K runs in one process (``--batch-only``).
 """
 
 from __future__ import annotations
@@ -392,6 +393,68 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     return "\n".join(lines)
 
 
+# -- batched training: K runs in one process against sequential runs --------------------------------------------
+
+BATCH_SIZES = (1, 4, 8, 16)
+PAPER_RUN_STEPS = 625 * 800
+"""Env steps of a paper run (625 episodes of 800 steps)."""
+
+
+def batched_rate(algo: str, runs: int, seed: int, steps: int, density: float = PEER_DENSITY) -> tuple[float, float]:
+    """(batch steps/s, replay bytes per run) of ``runs`` runs of ``algo`` (the paper's settings, seeds ``seed`` …)
+    trained as one batch, as :mod:`lanefree_sumo.experiments.batch` trains them (act, env step, store, update),
+    timed over ``steps`` steps once learning has started; one thread."""
+    import torch
+
+    from lanefree_sumo.rl.batched_env import BatchedRingEnv
+    from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.models import build_batched, training_config
+
+    cfgs = [training_config(merge_config(LaneFreeConfig(), {
+        "seed": seed + k, "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}})) for k in range(runs)]
+    torch.set_num_threads(cfgs[0].train.torch_threads)
+    env = BatchedRingEnv(cfgs)
+    learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]))
+    obs = env.reset()
+    t0 = 0.0
+    for step in range(learner.learning_starts + steps):
+        if step == learner.learning_starts:
+            t0 = time.perf_counter()
+        actions = learner.act(obs, explore=True)
+        new_obs, reward, terminated, truncated, _ = env.step(actions)
+        learner.store(obs, actions, reward, new_obs, terminated | truncated, truncated & ~terminated)
+        learner.update()
+        ended = np.flatnonzero(terminated | truncated)
+        obs = env.reset(list(ended)) if len(ended) else new_obs
+    rate = steps / (time.perf_counter() - t0)
+    replay = sum(v.nbytes for v in learner.replay.state_dict().values() if isinstance(v, torch.Tensor))
+    return rate, replay / runs
+
+
+def batch_speed(seed: int, steps: int = 800) -> str:
+    """Markdown: runs per core-hour of sequential ``lanefree train`` against batches of K runs (one process, one
+    thread each, measured one after another in this run), DDPG and DQN, and the replay memory per run."""
+    lines = [
+        f"Batched training against sequential runs (paper settings, {PEER_DENSITY:g} veh/km, one thread; {steps} "
+        f"steps timed after learning starts; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the "
+        "start — on a shared machine the figures move with the load):",
+        "",
+        "| algorithm | runs | env steps/s per run | runs per core-hour | × sequential | replay per run |",
+        "|---|---|---|---|---|---|",
+    ]
+    for algo in ("ddpg", "dqn"):
+        sequential = training_rate(algo, seed, steps=steps)
+        base = sequential * 3600 / PAPER_RUN_STEPS
+        lines.append(f"| {algo} | sequential `lanefree train` | {sequential:.0f} | {base:.2f} | 1.00× | |")
+        for k in BATCH_SIZES:
+            rate, replay = batched_rate(algo, k, seed, steps)
+            per_hour = k * rate * 3600 / PAPER_RUN_STEPS
+            lines.append(f"| {algo} | batch of {k} | {rate:.0f} | {per_hour:.2f} | {per_hour / base:.2f}× "
+                         f"| {replay / 2**20:.0f} MiB ({int(24 * 2**30 // replay)} runs in 24 GiB) |")
+            print(f"  {algo} batch {k}: {rate:.0f} steps/s", flush=True)
+    return "\n".join(lines)
+
+
 def run(steps: int, seed: int, out_dir: Path) -> str:
     rows = []
     profile = []
@@ -448,7 +511,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         rate = training_rate(algo, seed)
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
-    lines += ["", training_speed(seed)]
+    lines += ["", training_speed(seed), "", batch_speed(seed)]
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -468,8 +531,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/bench"), help="folder for the table")
     parser.add_argument("--training-only", action="store_true", help="only the training-speed sections")
     parser.add_argument("--dqn-only", action="store_true", help="only the DQN family's training-speed section")
+    parser.add_argument("--batch-only", action="store_true",
+                        help="only the batched-training section (sequential against batches of 1, 4, 8, 16 runs)")
     args = parser.parse_args()
-    if args.dqn_only:
+    if args.batch_only:
+        print(batch_speed(args.seed, steps=args.steps))
+    elif args.dqn_only:
         print(dqn_family_speed(args.seed))
     else:
         print(training_speed(args.seed) if args.training_only else run(args.steps, args.seed, args.out))

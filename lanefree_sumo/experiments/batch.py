@@ -1,0 +1,296 @@
+"""K training runs in one process (the batched environment and learners), written into K ordinary run folders.
+
+Run k of a batch is ``lanefree train`` of its own config: the loop below keeps SB3's order for every run (the
+action, the environment step, the finished episodes' rows, the transition stored with the terminal observation,
+the step's schedules, one update), so run k's ``episodes.csv`` equals the sequential run's in every column but
+``wall_s`` (on CPU; ``tests/experiments/test_batch.py``). Runs may differ in seed, density and reward preset
+(:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`, :func:`~lanefree_sumo.rl.models.build_batched`).
+
+Layout: the batch folder holds ``batch.json`` (the run folders, relative) and ``batch_checkpoints/`` (the whole
+batch — learners, replay, random streams, the environment — one file per checkpoint, the two newest kept). Each
+run folder is an ordinary one (config.yaml, command.txt, versions.json, episodes.csv, sessions.jsonl,
+last_session.json, model.zip when finished); its ``checkpoints/ep_N/`` holds the run's own ``model.zip`` and a
+``state.json`` naming the batch file it belongs to. A batch checkpoint is taken after a whole step (after the
+update), so ``lanefree train --resume BATCH`` continues with exactly the episodes of an uninterrupted batch.
+
+A run whose action is not finite (a diverged policy) is stopped alone: its folder's session says why and it gets
+no ``model.zip``; the other runs go on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import pickle
+import shlex
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.errors import ConfigError, RunError
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
+from lanefree_sumo.experiments.rundir import RunDir, append_command, record_session, write_config
+from lanefree_sumo.experiments.train import _Stop, new_run_folder, versions
+
+BATCH_FILE = "batch.json"
+BATCH_CHECKPOINTS = "batch_checkpoints"
+KEEP_BATCH_CHECKPOINTS = 2
+
+
+def check_batchable(cfg: LaneFreeConfig) -> None:
+    """ConfigError (one line) for a run the batched path cannot train."""
+    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
+
+    algorithms = ("ddpg", *FAMILY)
+    if cfg.train.algo not in algorithms:
+        raise ConfigError(f"batched training covers {', '.join(algorithms)}, not {cfg.train.algo}; "
+                          "train it with --seed (one run)")
+    for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
+                        (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),
+                        (cfg.scenario.agents != 1, "several agents (--agents)"),
+                        (cfg.observation.kind != "vector", "the set observation (--obs set)"),
+                        (cfg.train.envs != 1, "several environments (--envs)"),
+                        (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),
+                        (cfg.train.overlap, "--overlap"),
+                        (cfg.reward.overtake_bonus != "every_pass",
+                         f"reward.overtake_bonus = {cfg.reward.overtake_bonus}")):
+        if wrong:
+            raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
+
+
+@dataclass
+class _Books:
+    """What the batch loop keeps per run besides the learners and the environment (saved in its checkpoints)."""
+
+    done: list[int]
+    target: list[int]
+    finished: list[bool]
+    stopped: dict[int, str] = field(default_factory=dict)
+    steps: int = 0
+
+    def active(self, k: int) -> bool:
+        return not self.finished[k] and k not in self.stopped
+
+
+def _bar_text(books: _Books, names: list[str]) -> str:
+    return " ".join(f"{n}:{'x' if k in books.stopped else books.done[k]}" for k, n in enumerate(names))
+
+
+def _seed_name(folder: Path) -> str:
+    return folder.name.rsplit("_", 1)[-1] if "_" in folder.name else folder.name
+
+
+class _Batch:
+    """One session of a batch: its folders, environment, learner and books."""
+
+    def __init__(self, batch_dir: Path, cfgs: list[LaneFreeConfig], folders: list[RunDir]) -> None:
+        self.batch_dir, self.cfgs, self.folders = batch_dir, cfgs, folders
+        self.runs = len(cfgs)
+        self._ended = np.zeros(self.runs, dtype=bool)
+
+    # -- checkpoints ------------------------------------------------------------------------------------
+    def save(self, env: Any, learner: Any, obs: Any, books: _Books) -> Path:
+        """The whole batch after a complete step, and each unfinished run's ``checkpoints/ep_N`` naming it."""
+        import torch
+
+        folder = self.batch_dir / BATCH_CHECKPOINTS
+        folder.mkdir(exist_ok=True)
+        path = folder / f"step_{books.steps:010d}.pt"
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save({"learner": learner.state_dict(), "env": pickle.dumps(env), "obs": obs,
+                    "books": pickle.dumps(books)}, tmp)
+        os.replace(tmp, path)
+        saved = datetime.now().isoformat(timespec="seconds")
+        for k, run in enumerate(self.folders):
+            if books.finished[k] or books.done[k] == 0:
+                continue
+            ckpt = run.checkpoint(books.done[k])
+            ckpt.mkdir(parents=True, exist_ok=True)
+            learner.export(k, ckpt / "model.zip")
+            run.write_checkpoint_state(ckpt, {
+                "episodes": books.done[k], "timesteps": books.steps, "algo": self.cfgs[k].train.algo,
+                "saved": saved, "batch": os.path.relpath(path, run.path), "batch_run": k})
+        for old in sorted(folder.glob("step_*.pt"))[:-KEEP_BATCH_CHECKPOINTS]:
+            old.unlink(missing_ok=True)
+        return path
+
+    def newest(self) -> Path:
+        found = sorted((self.batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt"))
+        if not found:
+            raise RunError(f"{self.batch_dir} has no batch checkpoint under {BATCH_CHECKPOINTS}/ (it never reached "
+                           "its first); start the batch afresh")
+        return found[-1]
+
+    # -- the loop ---------------------------------------------------------------------------------------
+    def run(self, resume: bool, progress: bool, command: str) -> list[tuple[Path, int]]:
+        import torch
+        from tqdm import tqdm
+
+        from lanefree_sumo.rl.batched_env import BatchedRingEnv
+        from lanefree_sumo.rl.env import action_space, observation_space
+        from lanefree_sumo.rl.models import build_batched
+
+        cfgs = self.cfgs
+        torch.set_num_threads(cfgs[0].train.torch_threads)
+        started, session_versions = datetime.now(timezone.utc).isoformat(timespec="seconds"), versions()
+        learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]))
+        if resume:
+            path = self.newest()
+            try:
+                state = torch.load(path, weights_only=False)
+                learner.load_state_dict(state["learner"])
+                env, obs, books = pickle.loads(state["env"]), state["obs"], pickle.loads(state["books"])
+            except Exception as exc:
+                raise RunError(f"batch checkpoint {path} is unusable ({type(exc).__name__}: {exc}); delete it to "
+                               "resume from the older one") from None
+            for k, run in enumerate(self.folders):
+                EpisodeLog.truncate(run.episodes, books.done[k], episode_columns(cfgs[k]))
+        else:
+            env = BatchedRingEnv(cfgs)
+            obs = env.reset()
+            books = _Books([0] * self.runs, [c.train.episodes for c in cfgs], [False] * self.runs)
+        first = list(books.done)
+        steps0 = books.steps
+        logs = [EpisodeLog(run.episodes, episode_columns(c)) for run, c in zip(self.folders, cfgs)]
+        for run in self.folders:
+            append_command(run.path, command)
+        names = [_seed_name(r.path) for r in self.folders]
+        bar = tqdm(total=sum(books.target), initial=sum(books.done), unit="ep", disable=not progress,
+                   desc=f"{cfgs[0].train.algo} x{self.runs}", dynamic_ncols=True, postfix=_bar_text(books, names))
+        stop = _Stop()
+        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+        t0 = time.perf_counter()
+        try:
+            while any(books.active(k) for k in range(self.runs)) and not stop.requested:
+                checkpoint = self._step(env, learner, obs, books, logs, bar)
+                obs = env.reset([k for k in range(self.runs) if self._ended[k] and books.active(k)])
+                if self._ended.any():
+                    bar.set_postfix_str(_bar_text(books, names))
+                if checkpoint or (stop.requested and any(books.active(k) for k in range(self.runs))):
+                    self.save(env, learner, obs, books)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            for log in logs:
+                log.close()
+            bar.close()
+        wall = time.perf_counter() - t0
+        ended = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        for k, run in enumerate(self.folders):
+            record_session(run.path, {
+                "episodes_done": books.done[k], "timesteps": books.steps, "wall_s": wall,
+                "steps_per_s": (books.steps - steps0) / wall if wall > 0 else None,
+                "stopped_by": books.stopped.get(k) or (stop.signal_name or None if not books.finished[k] else None),
+                "first_episode": first[k] + 1, "started": started, "ended": ended, "versions": session_versions,
+                "batch": {"folder": os.path.relpath(self.batch_dir, run.path), "run": k, "runs": self.runs}})
+        return [(run.path, books.done[k]) for k, run in enumerate(self.folders)]
+
+    def _step(self, env: Any, learner: Any, obs: Any, books: _Books, logs: list[EpisodeLog], bar: Any) -> bool:
+        """One step of every run in SB3's order; returns whether a run reached a checkpoint episode."""
+        actions = learner.act(obs, explore=True)
+        new_obs, reward, terminated, truncated, info = env.step(actions)
+        timesteps = learner.num_timesteps + 1  # SB3 counts the step before the callback sees it
+        checkpoint = False
+        for k, reason in info["stopped"].items():
+            if books.active(k):
+                books.stopped[k] = reason
+                print(f"{self.folders[k].path}: stopped: {reason}", file=sys.stderr)
+        self._ended = np.zeros(self.runs, dtype=bool)
+        for k, metrics in enumerate(info["episode_metrics"]):
+            if metrics is None or not books.active(k):
+                continue
+            self._ended[k] = True
+            books.done[k] += 1
+            cfg = self.cfgs[k]
+            logs[k].append({**metrics, "episode": books.done[k], "algorithm": cfg.train.algo,
+                            "timesteps": timesteps})
+            bar.update(1)
+            every = cfg.train.checkpoint_every_episodes
+            if books.done[k] >= books.target[k]:
+                books.finished[k] = True  # the sequential run stops here: its final model is this one
+                run = self.folders[k]
+                ckpt = run.checkpoint(books.done[k])
+                ckpt.mkdir(parents=True, exist_ok=True)
+                learner.export(k, ckpt / "model.zip")
+                run.write_checkpoint_state(ckpt, {
+                    "episodes": books.done[k], "timesteps": timesteps, "algo": cfg.train.algo,
+                    "saved": datetime.now().isoformat(timespec="seconds"), "batch": None, "batch_run": k})
+                learner.export(k, run.model)
+                env.stopped[k] = True  # finished: never reset nor scored again
+            elif books.done[k] % every == 0:
+                checkpoint = True
+        done = terminated | truncated
+        learner.store(obs, actions, reward, new_obs, done, truncated & ~terminated)
+        learner.update()
+        books.steps += 1
+        return checkpoint
+
+
+def batch_name(cfg: LaneFreeConfig) -> str:
+    """A run's folder name in a batch, as a sweep names its cells: ``<algo>_<preset>_d<density>_s<seed>``."""
+    return f"{cfg.train.algo}_{cfg.reward.preset}_d{cfg.scenario.density_veh_per_km:g}_s{cfg.seed}"
+
+
+def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path] | None = None,
+                progress: bool = True, command: str | None = None) -> list[tuple[Path, int]]:
+    """Train the runs ``cfgs`` as one batch into ``folders`` (default ``batch_dir/<batch_name>``); return each
+    run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early."""
+    from lanefree_sumo.rl.models import training_config
+    from lanefree_sumo.sim.spawn import spawn
+
+    cfgs = [training_config(c) for c in cfgs]
+    for cfg in cfgs:
+        check_batchable(cfg)
+        spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
+    paths = folders or [batch_dir / batch_name(c) for c in cfgs]
+    if len(set(paths)) != len(paths):
+        raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")
+    batch_dir.mkdir(parents=True, exist_ok=True)
+    if any((batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt")):  # a batch killed before its first starts afresh
+        raise RunError(f"{batch_dir} holds a batch already; resume it with --resume {batch_dir} or choose another "
+                       "--out")
+    with contextlib.ExitStack() as stack:
+        runs = []
+        for cfg, path in zip(cfgs, paths):
+            run = RunDir(new_run_folder(cfg, path))
+            stack.enter_context(run.writer_lock())
+            if run.never_checkpointed():
+                run.clear()
+            runs.append(run)
+        for cfg, run in zip(cfgs, runs):
+            write_config(run.path, cfg)
+            run.versions.write_text(json.dumps(versions(), indent=2) + "\n")
+        (batch_dir / BATCH_FILE).write_text(json.dumps(
+            {"runs": [os.path.relpath(r.path, batch_dir) for r in runs]}, indent=2) + "\n")
+        return _Batch(batch_dir, cfgs, runs).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+    raise AssertionError("unreachable")
+
+
+def is_batch(folder: Path) -> bool:
+    """Whether ``folder`` is a batch folder (holds ``batch.json``)."""
+    return (folder / BATCH_FILE).is_file()
+
+
+def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = None) -> list[tuple[Path, int]]:
+    """Continue the batch in ``batch_dir`` from its newest batch checkpoint (the same episodes as uninterrupted)."""
+    try:
+        listed = json.loads((batch_dir / BATCH_FILE).read_text())["runs"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise RunError(f"{batch_dir / BATCH_FILE} is unusable ({exc}); it is not a batch folder") from None
+    runs = [RunDir(batch_dir / p) for p in listed]
+    if all(run.model.is_file() for run in runs):
+        raise RunError(f"{batch_dir} is finished (every run has its model.zip); nothing to resume")
+    with contextlib.ExitStack() as stack:
+        cfgs = [run.load_config() for run in runs]
+        for run in runs:
+            stack.enter_context(run.writer_lock())
+        return _Batch(batch_dir, cfgs, runs).run(True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+    raise AssertionError("unreachable")
