@@ -1,6 +1,6 @@
 # lanefree_sumo — everything runs inside .venv, bootstrapped on first use.
 # Main jobs:  make test  ·  make train DENSITY=90  ·  make simulate DENSITY=90  ·  make bench  ·  make docs
-# Checks:     make lint  ·  make test-fast (no SUMO, < 30 s)  ·  make mutate (before a release; not in CI)
+# Checks:     make lint  ·  make test-fast (no SUMO, no training)  ·  make mutate (before a release; not in CI)
 
 PYTHON ?= python3
 VENV   := .venv
@@ -52,7 +52,7 @@ TEST_WORKERS ?= $(shell n=$$(nproc); echo $$(( n < 4 ? n : 4 )))
 test: system-deps $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
-# Pure-numpy and small-torch tests only (no SUMO, no GUI, no training): < 30 s.
+# Pure-numpy and small-torch tests only (no SUMO, no GUI, no training; timings in README.md).
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not sumo and not gui and not slow"
 
