@@ -9,6 +9,8 @@ largest number of vehicles that fits is exactly ``rows × cols``.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from lanefree_sumo.config import ConfigError, LaneFreeConfig
@@ -36,6 +38,12 @@ def agent_count(cfg: LaneFreeConfig) -> int:
 def background_id(index: int) -> str:
     """SUMO id of background vehicle ``index``."""
     return f"bg{index}"
+
+
+def without_agents(cfg: LaneFreeConfig) -> LaneFreeConfig:
+    """``cfg`` with no agent on the road (``scenario.with_agent`` off), every other value as it is: the
+    background of the open road, drawn before its agents start."""
+    return replace(cfg, scenario=replace(cfg.scenario, with_agent=False))
 
 
 def grid_shape(cfg: LaneFreeConfig) -> tuple[int, int]:
