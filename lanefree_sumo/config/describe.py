@@ -33,7 +33,7 @@ def field_docs() -> dict[tuple[str, str], str]:
                     and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
                     and isinstance(after.value.value, str)):
                 text = " ".join(after.value.value.split())
-                docs[(node.name, here.target.id)] = re.split(r"(?<! al)\. ", text)[0].rstrip(".")
+                docs[(node.name, here.target.id)] = re.split(r"(?<! al)\.\s+(?=[A-Z`(])", text)[0].rstrip(".")
     return docs
 
 
