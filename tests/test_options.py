@@ -13,7 +13,15 @@ import pytest
 from lanefree_sumo.cli import VERBS, build_parser
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.config.describe import field_docs
-from lanefree_sumo.options import Option, add_options, argument, config_overrides, schema_field, verb_config
+from lanefree_sumo.options import (
+    Option,
+    _plain,
+    add_options,
+    argument,
+    config_overrides,
+    schema_field,
+    verb_config,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 DECLARED = {name: getattr(module, "OPTIONS", ()) for name, module in VERBS.items()}
@@ -38,7 +46,7 @@ def test_every_keyed_option_takes_its_meaning_default_and_choices_from_the_schem
         meaning = field_docs().get((owner.__name__, option.key.rsplit(".", 1)[-1]))
         assert meaning, f"{verb} {option.flag}: the schema field {option.key} has no docstring"
         _, kwargs = argument(option)
-        assert kwargs["help"].startswith(meaning.replace("``", "")[:20].split(":")[0])
+        assert kwargs["help"].startswith(_plain(meaning).replace("%", "%%")), (verb, option.flag)
         if typing.get_origin(annotation) is typing.Literal:
             assert kwargs["choices"] == typing.get_args(annotation)
         if option.default is not None and "default" in kwargs and option.flag.startswith("--"):
@@ -73,15 +81,28 @@ def test_options_that_exclude_each_other_are_one_group():
         _parse(rollout, ["--policy", "idle", "--run", "somewhere"])
 
 
+def _flags(node: ast.expr) -> bool:
+    """Whether ``node`` spells option names: ``"--x"`` or a tuple of them."""
+    if isinstance(node, ast.Tuple):
+        return bool(node.elts) and all(_flags(e) for e in node.elts)
+    return isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.startswith("--")
+
+
+def _key_beside_flag(source: str) -> list[str]:
+    """The tuples of ``source`` that pair a dotted config key with option names (``("a.b", "--x")``,
+    ``("a.b", ("--x",), value)``)."""
+    return [ast.unparse(node) for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Tuple)
+            and len(node.elts) >= 2 and isinstance(first := node.elts[0], ast.Constant)
+            and isinstance(first.value, str) and "." in first.value and _flags(node.elts[1])]
+
+
 def test_the_verbs_declare_no_flag_to_key_mapping_of_their_own():
     """No verb module spells a dotted config key beside a flag: the keys live in the declarations only."""
+    assert _key_beside_flag('x = [("road.length_m", "--length", 1), ("train.overlap", ("--overlap", "--no-overlap"))]')\
+        == ["('road.length_m', '--length', 1)", "('train.overlap', ('--overlap', '--no-overlap'))"]
     for module in VERBS.values():
         path = Path(module.__file__ or "")
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Tuple) and len(node.elts) >= 2 and all(
-                    isinstance(e, ast.Constant) and isinstance(e.value, str) for e in node.elts[:2]):
-                first, second = node.elts[0].value, node.elts[1].value  # type: ignore[attr-defined]
-                assert not ("." in first and second.startswith("--")), f"{path.name}: ({first!r}, {second!r})"
+        assert not _key_beside_flag(path.read_text()), path.name
 
 
 def test_every_verb_is_in_the_parser_and_its_help_has_units():
