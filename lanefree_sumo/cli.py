@@ -22,6 +22,7 @@ from typing import Any
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import (
     BACKENDS,
+    DEVICES,
     OBSERVATION_KINDS,
     ROAD_KINDS,
     EvaluationConfig,
@@ -171,6 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--backend", choices=BACKENDS, default=t.backend,
                     help=f"simulation backend (default {t.backend}: the same episodes as libsumo bit for bit, "
                     "without SUMO; libsumo/traci train inside SUMO)")
+    tr.add_argument("--device", choices=DEVICES, default=t.device,
+                    help=f"where a batch (--seeds) simulates and learns: cpu (numpy, bit for bit the single runs) "
+                    f"or cuda (torch on the GPU) (default {t.device})")
     argtypes.add_config_options(tr)
     tr.add_argument("--shield", action="store_true",
                     help="learn with the safety shield on every action (run folder ..._shield)")
@@ -388,6 +392,7 @@ def _train(args: argparse.Namespace) -> int:
             ("scenario.agents", ("--agents",), args.agents),
             ("road.kind", ("--scenario",), args.scenario),
             ("train.backend", ("--backend",), args.backend),
+            ("train.device", ("--device",), args.device),
             ("train.overlap", ("--overlap", "--no-overlap"), args.overlap),
             ("train.checkpoint_every_episodes", ("--checkpoint-every",), args.checkpoint_every),
         ])
