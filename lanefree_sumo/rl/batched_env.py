@@ -130,6 +130,8 @@ class BatchedRingEnv:
         self._range = cfg.observation.range_m
         self._books = {name: xp.zeros(self.runs) for name in BOOKS}
         self._t0 = np.zeros(self.runs)
+        self._active: tuple[np.ndarray, Any] | None = None
+        """The runs not stopped, on the host and as the simulation's array."""
         self._steps = np.zeros(self.runs, dtype=int)
         """Each run's steps since its reset (the world's ``steps``, kept on the host)."""
         self._prev_dx = xp.zeros((self.runs, 0))
@@ -262,7 +264,9 @@ class BatchedRingEnv:
         self._steps += 1
         world = self.world
         active_host = ~self.stopped
-        active = xp.asarray(active_host)
+        if self._active is None or not np.array_equal(self._active[0], active_host):  # copied when it changes
+            self._active = (active_host, xp.asarray(active_host))
+        active = self._active[1]
 
         a = world.agent_rows[:, :1]
         collided = xp.any(xp.take_along_axis(out.overlap, a[..., None], 1)[:, 0], axis=1)

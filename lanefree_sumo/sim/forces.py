@@ -133,13 +133,13 @@ def driver_accelerations(
     gain_x = cfg.effective_gain_x  # k_x = c_x
     plateau = lx_half + (ux * ux) / (2.0 * gain_x) + half_len + cfg.longitudinal_margin_m
     mag = symmetric_trapezoid(abs_dx, lx_half, plateau) * mag_y
-    mag[abs_dx > cfg.neighbour_range_m] = 0.0
+    xp.fill_where(mag, abs_dx > cfg.neighbour_range_m, 0.0)
     n = x.shape[-1]
     if present is None:
         mag[..., xp.arange(n), xp.arange(n)] = 0.0
         count = None
     else:
-        mag[~pair_mask(present)] = 0.0
+        xp.fill_where(mag, ~pair_mask(present), 0.0)
         count = present.sum(axis=-1)[..., None]  # each run's vehicles: its rows' sums round as unpadded
 
     dist = xp.sqrt(dx * dx + dy * dy)

@@ -10,26 +10,25 @@ scalars beside arrays), in float64 on the tensors' device. The physics (:mod:`.f
 
 The helpers stand for numpy idioms without a portable spelling: ``erfc`` (scipy's for numpy), ``power``,
 ``divide_where`` (``np.divide`` with ``out``/``where``), ``put_along_axis`` (in place), ``accumulate_max``,
-``argsort_stable``, ``largest_k`` (``argpartition``), ``errstate``, ``copy``, ``astype``, and the flag
+``argsort_stable``, ``largest_k`` (``argpartition``), ``fill_where`` (``a[mask] = value``; torch's boolean
+indexing would synchronise with the device), ``errstate``, ``copy``, ``astype``, and the flag
 ``is_numpy`` for result-preserving shortcuts that branch on values (taken on numpy only: on a GPU a branch on a
 value is a host synchronisation).
 
-Where torch and numpy differ in the last bit: the elementwise arithmetic (+ − × ÷, floor, min, max, clip, where)
-is IEEE in both and gives the same bits (``divide`` for a number divided by an array: torch's ``number /
-tensor`` multiplies by a reciprocal); ``erfc``, ``power``, ``hypot`` and even ``sqrt`` (torch's CPU kernel is
-not correctly rounded: 1–2 ulp off for some arguments, measured) are computed by different libraries and may
-differ in the last bit (:func:`numpy_transcendentals` exchanges them for numpy's in tests). Sums over vehicles
-are formed in numpy's order on both (:func:`~lanefree_sumo.sim.state.row_sum`). Where forces tie for the k-th
-strongest place, numpy's ``argpartition`` and torch's ``topk`` may pick different ones of the tied neighbours
+Where torch and numpy differ in the last bit: the elementwise arithmetic (+ − × ÷, floor, min, max, clip, where) is
+IEEE in both and gives the same bits (``divide`` for a number divided by an array: torch's ``number / tensor``
+multiplies by a reciprocal); ``erfc``, ``power``, ``hypot`` and even ``sqrt`` (torch's CPU kernel is not correctly
+rounded: 1–2 ulp off for some arguments, measured) are computed by different libraries and may differ in the last
+bit (:func:`~lanefree_sumo.sim.xp_torch.numpy_transcendentals` exchanges them for numpy's in tests). Sums over
+vehicles are formed in numpy's order on both (:func:`~lanefree_sumo.sim.state.row_sum`). Where forces tie for the
+k-th strongest place, numpy's ``argpartition`` and torch's ``topk`` may pick different ones of the tied neighbours
 (the specification does not say which).
 """
 
 from __future__ import annotations
 
-import contextlib
 import operator
 import sys
-from collections.abc import Iterator
 from types import SimpleNamespace
 from typing import Any
 
@@ -64,6 +63,11 @@ def _numpy_put_along_axis(a: np.ndarray, index: np.ndarray, values: Any, axis: i
         np.put_along_axis(a, index, values, axis)
 
 
+def _numpy_fill_where(a: np.ndarray, mask: np.ndarray, value: Any) -> None:
+    """``a[mask] = value`` in place."""
+    a[mask] = value
+
+
 def _numpy_namespace() -> SimpleNamespace:
     ns = SimpleNamespace(**{name: getattr(np, name) for name in dir(np) if not name.startswith("_")})
     ns.is_numpy = True
@@ -75,6 +79,7 @@ def _numpy_namespace() -> SimpleNamespace:
     ns.largest_k = _numpy_largest_k
     ns.take_along_axis = _numpy_take_along_axis
     ns.put_along_axis = _numpy_put_along_axis
+    ns.fill_where = _numpy_fill_where
     ns.copy = lambda a: a.copy()
     ns.astype = lambda a, dtype: a.astype(dtype)
     ns.float64 = np.float64
@@ -111,23 +116,3 @@ def torch_namespace(device: Any = "cpu") -> Any:
         _TORCH[key] = TorchNamespace(key)
     return _TORCH[key]
 
-
-def host_transcendentals() -> bool:
-    """Whether the torch namespaces compute the functions that differ with numpy (:func:`numpy_transcendentals`)."""
-    return _HOST_TRANSCENDENTALS
-
-
-_HOST_TRANSCENDENTALS = False
-"""Whether the torch namespaces compute the functions that differ with numpy's (:func:`numpy_transcendentals`)."""
-
-
-@contextlib.contextmanager
-def numpy_transcendentals() -> Iterator[None]:
-    """Within the block, the torch namespaces compute ``erfc``, ``power``, ``sqrt`` and ``hypot`` with numpy's on
-    the host (a test's means to show that every other operation gives numpy's bits; slow, never in a run)."""
-    global _HOST_TRANSCENDENTALS
-    saved, _HOST_TRANSCENDENTALS = _HOST_TRANSCENDENTALS, True
-    try:
-        yield
-    finally:
-        _HOST_TRANSCENDENTALS = saved

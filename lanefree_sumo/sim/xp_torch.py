@@ -3,14 +3,27 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 from scipy.special import erfc as _scipy_erfc
 
-from lanefree_sumo.sim.xp import host_transcendentals
+_HOST_TRANSCENDENTALS = False
+"""Whether the torch namespaces compute the functions that differ with numpy's (:func:`numpy_transcendentals`)."""
+
+
+@contextlib.contextmanager
+def numpy_transcendentals() -> Iterator[None]:
+    """Within the block, the torch namespaces compute ``erfc``, ``power``, ``sqrt`` and ``hypot`` with numpy's on
+    the host (a test's means to show that every other operation gives numpy's bits; slow, never in a run)."""
+    global _HOST_TRANSCENDENTALS
+    saved, _HOST_TRANSCENDENTALS = _HOST_TRANSCENDENTALS, True
+    try:
+        yield
+    finally:
+        _HOST_TRANSCENDENTALS = saved
 
 
 class TorchNamespace:
@@ -44,6 +57,9 @@ class TorchNamespace:
         dtype = self._dtype(dtype)
         if isinstance(a, torch.Tensor):
             return a if dtype is None or a.dtype == dtype else a.to(dtype)
+        if isinstance(a, bool | int | float):  # filled on the device: no copy from the host
+            return torch.full((), a, dtype=dtype or (torch.bool if isinstance(a, bool) else torch.int64
+                                                     if isinstance(a, int) else torch.float64), device=self.device)
         if dtype is None and isinstance(a, float | np.floating) or (isinstance(a, np.ndarray) and a.dtype.kind == "f"
                                                                     and dtype is None):
             dtype = torch.float64
@@ -61,22 +77,33 @@ class TorchNamespace:
     def copy(self, a: Any) -> Any:
         return a.clone()
 
+    def _number(self, x: Any, like: Any) -> Any:
+        """A Python number as a 0-d tensor beside tensor ``like``: ``like``'s dtype where that is a float (as numpy
+        treats a number beside an array), else float64, int64 or bool after the number. Made by a fill on the
+        device, not copied from the host (a copy would synchronise with the device)."""
+        if isinstance(x, torch.Tensor):
+            return x
+        if isinstance(x, np.ndarray | np.generic):
+            return self.asarray(x)
+        if like is not None and like.is_floating_point():
+            dtype = like.dtype
+        else:
+            dtype = torch.bool if isinstance(x, bool) else torch.int64 if isinstance(x, int) else torch.float64
+        return torch.full((), x, dtype=dtype, device=self.device)
+
     def _pair(self, a: Any, b: Any) -> tuple[Any, Any]:
-        """Both as tensors; a Python number takes the other's dtype (as numpy's scalars do)."""
-        if not isinstance(a, torch.Tensor):
-            a = torch.as_tensor(a, dtype=b.dtype if isinstance(b, torch.Tensor) and b.is_floating_point()
-                                else torch.float64 if isinstance(a, float) else None, device=self.device)
-        if not isinstance(b, torch.Tensor):
-            b = torch.as_tensor(b, dtype=a.dtype if a.is_floating_point()
-                                else torch.float64 if isinstance(b, float) else None, device=self.device)
-        return a, b
+        """Both as tensors (:meth:`_number` for a Python number)."""
+        if isinstance(a, torch.Tensor):
+            return a, self._number(b, a)
+        b = self._number(b, None)
+        return self._number(a, b), b
 
     # -- elementwise --------------------------------------------------------------------------------------
     def abs(self, a: Any) -> Any:
         return torch.abs(self.asarray(a))
 
     def sqrt(self, a: Any) -> Any:
-        if host_transcendentals():
+        if _HOST_TRANSCENDENTALS:
             return self.asarray(np.sqrt(self.to_numpy(a)))
         return torch.sqrt(a)
 
@@ -87,17 +114,17 @@ class TorchNamespace:
         return torch.sign(a)
 
     def hypot(self, a: Any, b: Any) -> Any:
-        if host_transcendentals():
+        if _HOST_TRANSCENDENTALS:
             return self.asarray(np.hypot(self.to_numpy(a), self.to_numpy(b)))
         return torch.hypot(*self._pair(a, b))
 
     def erfc(self, a: Any) -> Any:
-        if host_transcendentals():
+        if _HOST_TRANSCENDENTALS:
             return self.asarray(_scipy_erfc(self.to_numpy(a)))
         return torch.special.erfc(a)
 
     def power(self, a: Any, p: float) -> Any:
-        if host_transcendentals():
+        if _HOST_TRANSCENDENTALS:
             return self.asarray(np.power(self.to_numpy(a), p))
         return torch.pow(a, p)
 
@@ -108,15 +135,29 @@ class TorchNamespace:
         return torch.isfinite(self.asarray(a))
 
     def maximum(self, a: Any, b: Any) -> Any:
+        if isinstance(a, torch.Tensor) and isinstance(b, float | int) and a.is_floating_point():
+            return torch.clamp(a, min=b)  # max(a, b) with the number as a kernel argument: the same values
+        if isinstance(b, torch.Tensor) and isinstance(a, float | int) and b.is_floating_point():
+            return torch.clamp(b, min=a)
         return torch.maximum(*self._pair(a, b))
 
     def minimum(self, a: Any, b: Any) -> Any:
+        if isinstance(a, torch.Tensor) and isinstance(b, float | int) and a.is_floating_point():
+            return torch.clamp(a, max=b)
+        if isinstance(b, torch.Tensor) and isinstance(a, float | int) and b.is_floating_point():
+            return torch.clamp(b, max=a)
         return torch.minimum(*self._pair(a, b))
 
     def clip(self, a: Any, lo: Any, hi: Any) -> Any:
         return self.minimum(self.maximum(a, lo), hi)
 
     def where(self, cond: Any, a: Any, b: Any) -> Any:
+        if isinstance(a, torch.Tensor) and isinstance(b, float | int) and (a.is_floating_point() or
+                                                                           isinstance(b, int)):
+            return torch.where(cond, a, b)  # the number as a kernel argument, in the tensor's dtype
+        if isinstance(b, torch.Tensor) and isinstance(a, float | int) and (b.is_floating_point() or
+                                                                           isinstance(a, int)):
+            return torch.where(cond, a, b)
         a, b = self._pair(a, b)
         return torch.where(self.asarray(cond), a, b)
 
@@ -178,6 +219,10 @@ class TorchNamespace:
     # -- indexing -------------------------------------------------------------------------------------------
     def take_along_axis(self, a: Any, index: Any, axis: int) -> Any:
         return torch.take_along_dim(a, index, dim=axis)
+
+    def fill_where(self, a: Any, mask: Any, value: Any) -> None:
+        """``a[mask] = value`` in place, without the host synchronisation of boolean indexing."""
+        a.masked_fill_(mask, value)
 
     def put_along_axis(self, a: Any, index: Any, values: Any, axis: int) -> None:
         """``a[..., index] = values`` along ``axis``, in place (numpy's ``put_along_axis``)."""

@@ -10,7 +10,7 @@ import torch
 
 from lanefree_sumo.cli import main
 from lanefree_sumo.experiments.batch import train_batch
-from lanefree_sumo.sim.xp import numpy_transcendentals
+from lanefree_sumo.sim.xp_torch import numpy_transcendentals
 from tests.experiments.test_batch import rows, small
 
 pytestmark = [pytest.mark.slow]

@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from lanefree_sumo.rl.batched_env import BatchedRingEnv  # noqa: E402
-from lanefree_sumo.sim.xp import numpy_transcendentals  # noqa: E402
+from lanefree_sumo.sim.xp_torch import numpy_transcendentals  # noqa: E402
 from tests.rl.test_batched_env import TERMS, actions, configs  # noqa: E402
 
 

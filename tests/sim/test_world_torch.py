@@ -15,7 +15,8 @@ torch = pytest.importorskip("torch")
 
 from lanefree_sumo.sim.spawn import spawn  # noqa: E402
 from lanefree_sumo.sim.world import WorldParams, replace_runs, reset_world, step_world, world_to  # noqa: E402
-from lanefree_sumo.sim.xp import namespace, numpy_transcendentals  # noqa: E402
+from lanefree_sumo.sim.xp import namespace  # noqa: E402
+from lanefree_sumo.sim.xp_torch import numpy_transcendentals  # noqa: E402
 from tests.sim.test_world import RUNS, ring  # noqa: E402
 
 STATE = ("x", "y", "vx", "vy", "edge", "pos", "lat", "dx", "dy", "overlap", "steps")
