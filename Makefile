@@ -21,7 +21,7 @@ TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENS
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: venv system-deps test test-fast lint mutate docs train sweep evaluate replay report simulate nets bench traffic onramp-flows results clean-venv
+.PHONY: venv system-deps test test-fast lint mutate docs train sweep evaluate replay report simulate nets bench bench-gpu traffic onramp-flows results clean-venv
 
 # Re-installs only when pyproject.toml changes. torch must be exactly 2.13.0 (the local CPU
 # build) BEFORE anything depends on it; any other spec pulls a multi-GB CUDA build.
@@ -103,6 +103,10 @@ docs: $(STAMP) $(DOCS_STAMP)
 
 bench: system-deps $(STAMP) $(BENCH_STAMP)
 	$(BIN)/python -m lanefree_sumo.tools.bench
+
+# The batched path on a CUDA GPU (env rates, training iterations/s, the projected 150-run grid; < 8 min).
+bench-gpu: $(STAMP)
+	$(BIN)/python -m lanefree_sumo.tools.bench --gpu
 
 # make sweep GRID=table7 [OUT=runs/sweep_table7] [SEEDS=3] [EPISODES=625] [WORKERS=2] [ADDRESS=host:6379]
 sweep: system-deps $(STAMP)

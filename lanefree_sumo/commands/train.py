@@ -43,6 +43,7 @@ OPTIONS: tuple[Option, ...] = (
            "extend RUN (finished or not) to N episodes; other options are refused. A batch folder (made by "
            "--seeds) continues the whole batch"),
     Option("--backend", "train.backend"),
+    Option("--device", "train.device"),
     Option("--shield", "shield.enabled", note="run folder ..._shield"),
     Option("--overlap", "train.overlap", negatable=True,
            note="the acting policy then lags the learner by one update (off: SB3's order, bit for bit)"),

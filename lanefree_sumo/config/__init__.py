@@ -7,6 +7,7 @@ overrides and validates every value in one place.
 from lanefree_sumo.config.schema import (
     ACTION_KINDS,
     BACKENDS,
+    DEVICES,
     OBSERVATION_KINDS,
     ROAD_KINDS,
     AccelerationBounds,
@@ -52,7 +53,7 @@ from lanefree_sumo.config.validation import (
 from lanefree_sumo.errors import ConfigError
 
 __all__ = [
-    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "OBSERVATION_KINDS", "ROAD_KINDS", "SAME_RESULTS",
+    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "DEVICES", "OBSERVATION_KINDS", "ROAD_KINDS", "SAME_RESULTS",
     "AccelerationBounds", "ActionConfig", "ActionKind", "ActorCriticConfig", "AlgorithmName", "Backend", "ConfigError",
     "DQNConfig", "DriverConfig", "EpisodeConfig", "EvaluationConfig", "LaneFreeConfig", "ObservationConfig",
     "ObservationKind", "OnRampConfig",

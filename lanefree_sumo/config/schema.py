@@ -208,6 +208,7 @@ class SpawnConfig:
 
 
 Backend = Literal["libsumo", "traci", "numpy"]
+Device = Literal["cpu", "cuda"]
 ROAD_KINDS: tuple[str, ...] = get_args(RoadKind)
 ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
@@ -221,6 +222,7 @@ AlgorithmName = Literal["ddpg", "td3", "sac", "ppo", "dqn", "ddqn", "dueling", "
 """The algorithms; their classes are :data:`lanefree_sumo.rl.algorithms.ALGORITHMS` (a test keeps the two in
 step). The config owns every name it validates: the config room imports nothing from the RL room."""
 BACKENDS: tuple[str, ...] = get_args(Backend)
+DEVICES: tuple[str, ...] = get_args(Device)
 OBSERVATION_KINDS: tuple[str, ...] = get_args(ObservationKind)
 ACTION_KINDS: tuple[str, ...] = get_args(ActionKind)
 
@@ -458,6 +460,10 @@ class TrainConfig:
     same episodes as ``libsumo`` bit for bit without SUMO (``tests/sim/test_backends.py``,
     ``tests/experiments/test_train_backends.py``), ~2.6× faster; ``libsumo``/``traci`` train inside SUMO.
     Evaluation, rollout and replay of the run can use any backend."""
+    device: Device = "cpu"
+    """Where batched training (``train --seeds``) keeps the simulation and the learners: ``cpu`` (the numpy
+    simulation, bit for bit the single runs) or ``cuda`` (the same functions as torch on the GPU, float64; the
+    networks float32). Single runs train on the CPU."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
 

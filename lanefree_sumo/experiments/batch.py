@@ -30,7 +30,7 @@ import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -64,6 +64,22 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
                          f"reward.overtake_bonus = {cfg.reward.overtake_bonus}")):
         if wrong:
             raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
+    check_device(cfg.train.device)
+
+
+def check_device(device: str) -> None:
+    """ConfigError (one line) when ``device`` (``train.device``) is not on this machine."""
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError("train.device = cuda, but torch finds no CUDA GPU on this machine; "
+                              "train on the CPU with --device cpu")
+
+
+def torch_device(cfg: LaneFreeConfig) -> str | None:
+    """The torch device a batch of ``cfg`` simulates on: None (numpy, on the CPU) or ``cuda``."""
+    return None if cfg.train.device == "cpu" else cfg.train.device
 
 
 @dataclass
@@ -91,8 +107,11 @@ def _seed_name(folder: Path) -> str:
 class _Batch:
     """One session of a batch: its folders, environment, learner and books."""
 
-    def __init__(self, batch_dir: Path, cfgs: list[LaneFreeConfig], folders: list[RunDir]) -> None:
+    def __init__(self, batch_dir: Path, cfgs: list[LaneFreeConfig], folders: list[RunDir],
+                 device: str | None = None) -> None:
         self.batch_dir, self.cfgs, self.folders = batch_dir, cfgs, folders
+        self.device = device
+        """The torch device of the simulation and the learners (None: the numpy simulation, learners on the CPU)."""
         self.runs = len(cfgs)
         self._ended = np.zeros(self.runs, dtype=bool)
 
@@ -141,7 +160,8 @@ class _Batch:
         cfgs = self.cfgs
         torch.set_num_threads(cfgs[0].train.torch_threads)
         started, session_versions = datetime.now(timezone.utc).isoformat(timespec="seconds"), versions()
-        learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]))
+        learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]),
+                                device=self.device or "cpu")
         if resume:
             path = self.newest()
             try:
@@ -154,7 +174,7 @@ class _Batch:
             for k, run in enumerate(self.folders):
                 EpisodeLog.truncate(run.episodes, books.done[k], episode_columns(cfgs[k]))
         else:
-            env = BatchedRingEnv(cfgs)
+            env = BatchedRingEnv(cfgs, device=self.device)
             obs = env.reset()
             books = _Books([0] * self.runs, [c.train.episodes for c in cfgs], [False] * self.runs)
         first = list(books.done)
@@ -240,9 +260,12 @@ def batch_name(cfg: LaneFreeConfig) -> str:
 
 
 def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path] | None = None,
-                progress: bool = True, command: str | None = None) -> list[tuple[Path, int]]:
+                progress: bool = True, command: str | None = None,
+                device: str | None | Literal["config"] = "config") -> list[tuple[Path, int]]:
     """Train the runs ``cfgs`` as one batch into ``folders`` (default ``batch_dir/<batch_name>``); return each
-    run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early."""
+    run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early. ``device``: the torch
+    device to simulate and learn on (None: numpy on the CPU; ``"config"``: ``train.device``, :func:`torch_device`);
+    a torch device named here — ``"cpu"`` included — runs the torch simulation there."""
     from lanefree_sumo.rl.models import training_config
     from lanefree_sumo.sim.spawn import check_fits
 
@@ -270,7 +293,8 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
             run.versions.write_text(json.dumps(versions(), indent=2) + "\n")
         (batch_dir / BATCH_FILE).write_text(json.dumps(
             {"runs": [os.path.relpath(r.path, batch_dir) for r in runs]}, indent=2) + "\n")
-        return _Batch(batch_dir, cfgs, runs).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device).run(
+            False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")
 
 
@@ -290,7 +314,9 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
         raise RunError(f"{batch_dir} is finished (every run has its model.zip); nothing to resume")
     with contextlib.ExitStack() as stack:
         cfgs = [run.load_config() for run in runs]
+        check_device(cfgs[0].train.device)
         for run in runs:
             stack.enter_context(run.writer_lock())
-        return _Batch(batch_dir, cfgs, runs).run(True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0])).run(
+            True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")

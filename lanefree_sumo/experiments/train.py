@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.errors import RunError
+from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
@@ -284,6 +284,9 @@ def train(
             timesteps = ckpt.timesteps
         else:
             cfg = training_config(cfg)
+            if cfg.train.device != "cpu":
+                raise ConfigError(f"train.device = {cfg.train.device} is for batches; train on the GPU with --seeds "
+                                  "(one seed or several), or leave --device out for one run on the CPU")
             check_fits(cfg)  # the density fits, before anything is written
             run = new_run_folder(cfg, run)
             folder = RunDir(run)

@@ -37,7 +37,8 @@ from lanefree_sumo.rl.models import episode_seed
 from lanefree_sumo.rl.rewards import get_preset, lateral_cost, longitudinal_cost, pass_events, reciprocal_reward
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import row_sum, take_rows
-from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of
+from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
+from lanefree_sumo.sim.xp import NUMPY, torch_namespace
 
 SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
 """Config sections every run of a batch must have alike (the reward may differ in its preset only)."""
@@ -97,12 +98,20 @@ class BatchedRingEnv:
     episodes ended) and returns every run's current observation. ``step(actions)`` takes ``[K, 2]`` continuous or
     ``[K]`` discrete actions and returns ``(obs, reward [K], terminated [K], truncated [K], info)``; a run whose
     episode ended has its episode-metrics row in ``info["episode_metrics"][k]`` (None for the others).
-    ``first_episodes``: each run's next episode number (1 for a new run; a resumed run continues its schedule)."""
+    ``first_episodes``: each run's next episode number (1 for a new run; a resumed run continues its schedule).
+
+    ``device`` (None: numpy): a torch device the simulation, observations, rewards and episode books live on
+    (float64, the same functions through :mod:`~lanefree_sumo.sim.xp`); ``step`` then returns the observations
+    and rewards as tensors there, and ``terminated``/``truncated`` as host arrays (the episode ends are known on
+    the host from the step count; only ``episode.terminate_on_collision`` reads the device each step). The
+    actions are taken on the host (the learners draw them there) and the books leave the device at episode ends."""
 
     def __init__(self, configs: Sequence[LaneFreeConfig | Mapping[str, Any]],
-                 first_episodes: Sequence[int] | None = None) -> None:
+                 first_episodes: Sequence[int] | None = None, device: Any = None) -> None:
         self.cfgs = _resolve(configs)
         cfg = self.cfgs[0]
+        self.device = None if device is None else str(device)
+        xp = self.xp
         self.runs = len(self.cfgs)
         self.params = WorldParams.of(self.cfgs)
         self.episode = np.array([e - 1 for e in (first_episodes or [1] * self.runs)], dtype=int)
@@ -112,16 +121,27 @@ class BatchedRingEnv:
         self.world: World | None = None
         self._vehicles = [c.background_vehicles + 1 for c in self.cfgs]
         presets = [get_preset(c.reward.preset) for c in self.cfgs]
-        self._w = {name: np.array([getattr(p, name) for p in presets]) for name in
+        self._w = {name: xp.asarray(np.array([getattr(p, name) for p in presets])) for name in
                    ("w_x", "w_y", "w_f", "use_collision", "use_overtake")}
-        self._ego_scale, self._neighbour_scale = (np.array(s) for s in zip(*(feature_scales(c) for c in self.cfgs)))
+        self._ego_scale, self._neighbour_scale = (xp.asarray(np.array(s))
+                                                  for s in zip(*(feature_scales(c) for c in self.cfgs)))
+        self._terminate = np.array([c.episode.terminate_on_collision for c in self.cfgs])
         self._density = [c.scenario.density_veh_per_km for c in self.cfgs]
         self._range = cfg.observation.range_m
-        self._books = {name: np.zeros(self.runs) for name in BOOKS}
+        self._books = {name: xp.zeros(self.runs) for name in BOOKS}
         self._t0 = np.zeros(self.runs)
-        self._prev_dx = np.zeros((self.runs, 0))
-        self._order = np.zeros((self.runs, 0), dtype=int)
-        self._in_range = np.zeros((self.runs, 0), dtype=bool)
+        self._active: tuple[np.ndarray, Any] | None = None
+        """The runs not stopped, on the host and as the simulation's array."""
+        self._steps = np.zeros(self.runs, dtype=int)
+        """Each run's steps since its reset (the world's ``steps``, kept on the host)."""
+        self._prev_dx = xp.zeros((self.runs, 0))
+        self._order = xp.zeros((self.runs, 0), dtype=int)
+        self._in_range = xp.zeros((self.runs, 0), dtype=bool)
+
+    @property
+    def xp(self) -> Any:
+        """The array namespace of the simulation (:mod:`~lanefree_sumo.sim.xp`)."""
+        return NUMPY if self.device is None else torch_namespace(self.device)
 
     @property
     def cfg(self) -> LaneFreeConfig:
@@ -137,27 +157,34 @@ class BatchedRingEnv:
             self.episode[k] += 1
             self.episode_seeds[k] = episode_seed(self.cfgs[k].seed, 0, int(self.episode[k]))
             states.append(spawn(self.cfgs[k], np.random.default_rng(int(self.episode_seeds[k]))))
-            for book in self._books.values():
-                book[k] = 0.0
             self._t0[k] = time.perf_counter()
+            self._steps[k] = 0
+        if not chosen and self.world is not None:
+            return self._observe()
+        index = self.xp.asarray(chosen, dtype=int)
+        for book in self._books.values():
+            book[index] = 0.0
         if self.world is None or len(chosen) == self.runs:
             if len(chosen) != self.runs:
                 raise RuntimeError("the first reset starts every run")
-            self.world = world_of(states, [c.road.length_m for c in self.cfgs], [c.road.width_m for c in self.cfgs],
-                                  rows=max(self._vehicles))
+            world = world_of(states, [c.road.length_m for c in self.cfgs], [c.road.width_m for c in self.cfgs],
+                             rows=max(self._vehicles))
+            self.world = world if self.device is None else world_to(world, self.device)
         else:
             self.world = replace_runs(self.world, chosen, states)
         obs = self._observe()
         dx_row = self._agent_row(self.world.dx)
         if self._prev_dx.shape != dx_row.shape:
             self._prev_dx = dx_row
-        self._prev_dx[chosen] = dx_row[chosen]
+        self._prev_dx[index] = dx_row[index]
         return obs
 
-    def episode_metrics(self, k: int) -> dict[str, Any]:
-        """Run k's episode metrics so far: the row :meth:`~lanefree_sumo.rl.env.LaneFreeEnv.episode_metrics` gives."""
+    def episode_metrics(self, k: int, books: Mapping[str, np.ndarray] | None = None) -> dict[str, Any]:
+        """Run k's episode metrics so far: the row :meth:`~lanefree_sumo.rl.env.LaneFreeEnv.episode_metrics` gives
+        (``books``: the books on the host, :meth:`host_books`, when several runs are read at once)."""
         assert self.world is not None
-        b, steps = {name: self._books[name][k] for name in BOOKS}, int(self.world.steps[k])
+        books = self.host_books() if books is None else books
+        b, steps = {name: books[name][k] for name in BOOKS}, int(self._steps[k])
         per = max(steps, 1)
         cfg = self.cfgs[k]
         return {
@@ -185,13 +212,22 @@ class BatchedRingEnv:
             "wall_s": time.perf_counter() - self._t0[k],
         }
 
+    def host_books(self) -> dict[str, np.ndarray]:
+        """Every run's episode books so far as host arrays (from the device: one copy)."""
+        xp = self.xp
+        if xp.is_numpy:
+            return self._books
+        stacked = xp.to_numpy(xp.stack([self._books[name] for name in BOOKS]))
+        return dict(zip(BOOKS, stacked))
+
     # -- one step -----------------------------------------------------------------------------
     def accelerations(self, actions: Any) -> tuple[np.ndarray, np.ndarray]:
         """(ax, ay) ``[K]`` in m/s² for the runs' actions (specification §6, as
         :func:`~lanefree_sumo.rl.env.action_to_acceleration`), and ``[K]`` True where a run's action is not finite
         (its acceleration is then 0)."""
         cfg = self.cfg
-        values = np.asarray(actions, dtype=float).reshape(self.runs, -1)
+        values = np.asarray(NUMPY.to_numpy(actions) if isinstance(actions, np.ndarray)
+                            else self.xp.to_numpy(actions), dtype=float).reshape(self.runs, -1)
         bad = ~np.isfinite(values).all(axis=1)
         values = np.where(bad[:, None], 0.0, values)
         if cfg.action.kind == "discrete":
@@ -216,27 +252,32 @@ class BatchedRingEnv:
         """One step of every run (class docstring). Stopped runs report reward 0 and no episode end."""
         if self.world is None:
             raise RuntimeError("call reset() before step()")
+        xp = self.xp
         accel, bad = self.accelerations(actions)
         newly = bad & ~self.stopped
-        stopped_now = {int(k): f"run {k}: action {np.asarray(actions)[k]!r} at step {int(self.world.steps[k]) + 1} of "
-                       f"episode {int(self.episode[k])} is not finite; a diverged policy must not drive the car"
-                       for k in np.flatnonzero(newly)}
+        stopped_now = {int(k): f"run {k}: action {np.asarray(xp.to_numpy(actions))[k]!r} at step "
+                       f"{int(self._steps[k]) + 1} of episode {int(self.episode[k])} is not finite; a diverged policy "
+                       "must not drive the car" for k in np.flatnonzero(newly)}
         self.stopped |= bad
         before = self.world
-        self.world, out = step_world(before, self.params, accel[:, None, :])
+        self.world, out = step_world(before, self.params, xp.asarray(accel[:, None, :]))
+        self._steps += 1
         world = self.world
-        active = ~self.stopped
+        active_host = ~self.stopped
+        if self._active is None or not np.array_equal(self._active[0], active_host):  # copied when it changes
+            self._active = (active_host, xp.asarray(active_host))
+        active = self._active[1]
 
         a = world.agent_rows[:, :1]
-        collided = np.take_along_axis(out.overlap, a[..., None], 1)[:, 0].any(axis=1)
+        collided = xp.any(xp.take_along_axis(out.overlap, a[..., None], 1)[:, 0], axis=1)
         new = out.new_collisions
-        agent_events = (np.take_along_axis(new, a[..., None], 1)[:, 0].sum(axis=1)
-                        + np.take_along_axis(new, a[:, None, :], 2)[..., 0].sum(axis=1))
-        background_only = new.sum(axis=(1, 2)) - agent_events
+        agent_events = (xp.sum(xp.take_along_axis(new, a[..., None], 1)[:, 0], axis=1)
+                        + xp.sum(xp.take_along_axis(new, a[:, None, :], 2)[..., 0], axis=1))
+        background_only = xp.sum(new, axis=(1, 2)) - agent_events
         obs = self._observe()
         dx_row = self._agent_row(world.dx)
         passed = pass_events(self._prev_dx, dx_row, self._range, world.road_length[:, None])[0]
-        overtakes = np.count_nonzero(passed & self._in_range, axis=1)
+        overtakes = xp.count_nonzero(passed & self._in_range, axis=1)
         self._prev_dx = dx_row
         terms = self._rewards(collided, overtakes > 0)
 
@@ -244,24 +285,31 @@ class BatchedRingEnv:
         error = vx_a - self._agent(world.v_desired)
         contact = self._agent(out.boundary_contact)
         r, w = self.cfg.reward, self._w
-        bonus = np.where(w["use_overtake"] & terms.overtook & ~collided, r.overtake_reward, 0.0)
+        bonus = xp.where(w["use_overtake"] & terms.overtook & ~collided, r.overtake_reward, 0.0)
         b = self._books
         for name, value in (("return", terms.reward), ("return_bonus", bonus),
-                            ("return_collision", np.where(w["use_collision"] & collided, r.collision_reward, 0.0)),
+                            ("return_collision", xp.where(w["use_collision"] & collided, r.collision_reward, 0.0)),
                             ("collisions", agent_events), ("collision_steps", collided),
-                            ("background_collisions", background_only), ("speed_dev_sum", np.abs(error)),
+                            ("background_collisions", background_only), ("speed_dev_sum", xp.abs(error)),
                             ("speed_error_sum", error), ("speed_sum", vx_a),
                             ("overtakes", overtakes), ("boundary_contacts", contact), ("sum_c_x", terms.c_x),
                             ("sum_c_y", terms.c_y), ("sum_c_f", terms.c_f), ("sum_reward", terms.reward)):
-            b[name] = np.where(active, b[name] + value, b[name])
+            b[name] = xp.where(active, b[name] + value, b[name])
 
-        terminated = active & np.array([c.episode.terminate_on_collision for c in self.cfgs]) & collided
-        truncated = active & (world.steps >= self.cfg.sim.episode_steps)
-        metrics = [self.episode_metrics(k) if terminated[k] or truncated[k] else None for k in range(self.runs)]
+        if self._terminate.any():  # the one value read from the device every step, where collisions end episodes
+            terminated = active_host & self._terminate & np.asarray(xp.to_numpy(collided), dtype=bool)
+        else:
+            terminated = np.zeros(self.runs, dtype=bool)
+        truncated = active_host & (self._steps >= self.cfg.sim.episode_steps)
+        ended = np.flatnonzero(terminated | truncated)
+        books = self.host_books() if len(ended) else {}
+        metrics: list[dict[str, Any] | None] = [None] * self.runs
+        for k in ended:
+            metrics[k] = self.episode_metrics(int(k), books)
         info = {**{name: getattr(terms, name) for name in Rewards.__dataclass_fields__},
                 "overtakes": overtakes, "collision_events": agent_events, "boundary_contact": contact,
                 "ax": accel[:, 0], "ay": accel[:, 1], "episode_metrics": metrics, "stopped": stopped_now}
-        return obs, np.where(active, terms.reward, 0.0), terminated, truncated, info
+        return obs, xp.where(active, terms.reward, 0.0), terminated, truncated, info
 
     # -- the agent's view -----------------------------------------------------------------------
     def _agent(self, a: np.ndarray) -> np.ndarray:
@@ -272,44 +320,45 @@ class BatchedRingEnv:
     def _agent_row(self, pairs: np.ndarray) -> np.ndarray:
         """Each run's agent row of a ``[K, N, N]`` array: ``[K, N]``."""
         assert self.world is not None
-        return pairs[np.arange(self.runs), self.world.agent_rows[:, 0]]
+        return pairs[self.xp.arange(self.runs), self.world.agent_rows[:, 0]]
 
     def _observe(self) -> Any:
         """Every run's observation (:meth:`~lanefree_sumo.rl.env.LearningVehicle.observe`); keeps the vehicles in
         range and their order by distance for the reward."""
-        world, o = self.world, self.cfg.observation
+        world, o, xp = self.world, self.cfg.observation, self.xp
         assert world is not None
         dx, dy = self._agent_row(world.dx), self._agent_row(world.dy)
-        in_range = (np.abs(dx) <= o.range_m) & world.present
-        np.put_along_axis(in_range, world.agent_rows[:, :1], False, 1)
-        order = np.argsort(np.where(in_range, np.hypot(dx, dy), np.inf), axis=1, kind="stable")
+        in_range = (xp.abs(dx) <= o.range_m) & world.present
+        xp.put_along_axis(in_range, world.agent_rows[:, :1], False, 1)
+        order = xp.argsort_stable(xp.where(in_range, xp.hypot(dx, dy), xp.inf), axis=1)
         self._in_range, self._order = in_range, order
-        seen = in_range.sum(axis=1)
+        seen = xp.sum(in_range, axis=1)
         y_a, vx_a, vy_a = self._agent(world.y), self._agent(world.vx), self._agent(world.vy)
-        ego = np.column_stack([y_a, vx_a, vy_a, self._agent(world.v_desired)]) / self._ego_scale
+        ego = xp.column_stack([y_a, vx_a, vy_a, self._agent(world.v_desired)]) / self._ego_scale
 
         def neighbours(rows: int, fill: np.ndarray) -> np.ndarray:
             """``[K, rows, 4]``: the nearest ``rows`` vehicles in range (dx, dy, vx, vy), ``fill`` beyond them."""
             shown = order[:, :rows]
-            if shown.shape[1] < rows:  # fewer vehicles on the road than rows: the rest is fill
-                shown = np.pad(shown, ((0, 0), (0, rows - shown.shape[1])), mode="edge")
-            table = np.stack([take_rows(a, shown) for a in (dx, dy, world.vx, world.vy)], axis=-1)
-            return np.where((np.arange(rows) < seen[:, None])[..., None], table, fill)
+            if shown.shape[1] < rows:  # fewer vehicles on the road than rows: the rest is fill (the last row's)
+                last = xp.broadcast_to(shown[:, -1:], (self.runs, rows - shown.shape[1]))
+                shown = xp.concatenate([shown, last], axis=1)
+            table = xp.stack([take_rows(a, shown) for a in (dx, dy, world.vx, world.vy)], axis=-1)
+            return xp.where((xp.arange(rows) < seen[:, None])[..., None], table, fill)
 
         if o.kind == "vector":
-            fill = np.stack([np.full(self.runs, o.range_m), np.zeros(self.runs), vx_a, vy_a], axis=-1)[:, None, :]
+            fill = xp.stack([xp.full(self.runs, o.range_m), xp.zeros(self.runs), vx_a, vy_a], axis=-1)[:, None, :]
             rows = neighbours(o.n_neighbours, fill) / self._neighbour_scale[:, None, :]
-            return np.concatenate([ego, rows.reshape(self.runs, -1)], axis=1).astype(np.float32)
-        table = np.zeros((self.runs, o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
-        shown = np.arange(o.max_rows) < seen[:, None]
-        scaled = neighbours(o.max_rows, np.zeros(1)) / self._neighbour_scale[:, None, :]
-        table[..., :NEIGHBOUR_FEATURES] = np.where(shown[..., None], scaled, 0.0)
-        table[..., NEIGHBOUR_FEATURES] = shown
-        return {"ego": ego.astype(np.float32), "others": table}
+            return xp.astype(xp.concatenate([ego, rows.reshape(self.runs, -1)], axis=1), np.float32)
+        table = xp.zeros((self.runs, o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
+        shown = xp.arange(o.max_rows) < seen[:, None]
+        scaled = neighbours(o.max_rows, xp.zeros(1)) / self._neighbour_scale[:, None, :]
+        table[..., :NEIGHBOUR_FEATURES] = xp.astype(xp.where(shown[..., None], scaled, 0.0), np.float32)
+        table[..., NEIGHBOUR_FEATURES] = xp.astype(shown, np.float32)
+        return {"ego": xp.astype(ego, np.float32), "others": table}
 
     def _rewards(self, collided: Any, overtook: Any) -> Rewards:
         """Every run's reward terms (:func:`~lanefree_sumo.rl.rewards.compute_reward`, over the runs at once)."""
-        world, r = self.world, self.cfg.reward
+        world, r, xp = self.world, self.cfg.reward, self.xp
         assert world is not None
         dx, dy = self._agent_row(world.dx), self._agent_row(world.dy)
         y_a, vx_a, vy_a = self._agent(world.y), self._agent(world.vx), self._agent(world.vy)
@@ -321,14 +370,14 @@ class BatchedRingEnv:
         y_d, v_d_eff, blocked = zone_targets(dx, dy, world.vx, world.length, world.width, y_a, vx_a, len_a, wid_a,
                                              vd_a, width, time_gap=r.zone_time_gap_s, margin=r.zone_margin_m,
                                              present=self._in_range)
-        y_d = np.where(zones, y_d, 0.5 * width)
-        v_d_eff = np.where(zones, v_d_eff, vd_a)
+        y_d = xp.where(zones, y_d, 0.5 * width)
+        v_d_eff = xp.where(zones, v_d_eff, vd_a)
         blocked = zones & blocked
-        c_y = np.where(zones, lateral_cost(y_a, y_d, width), 0.0)
+        c_y = xp.where(zones, lateral_cost(y_a, y_d, width), 0.0)
         c_x = longitudinal_cost(vx_a, v_d_eff, min_desired_speed=r.min_desired_speed_mps)
 
         n = self.cfg.observation.n_neighbours
-        seen = np.minimum(self._in_range.sum(axis=1), n)
+        seen = xp.minimum(xp.sum(self._in_range, axis=1), n)
         observed = self._order[:, :n]
 
         def of(a: np.ndarray) -> np.ndarray:
@@ -339,11 +388,11 @@ class BatchedRingEnv:
                                magnitude=r.field_magnitude, critical_exponents=r.critical_exponents,
                                broad_exponents=r.broad_exponents, k_r=r.k_r_s_per_m, e_v=r.e_v_s_per_m,
                                stretch=r.broad_stretch)
-        valid = np.arange(observed.shape[1]) < seen[:, None]
-        c_f = np.minimum(1.0, row_sum(np.where(valid, e_c, 0.0), seen) + row_sum(np.where(valid, e_b, 0.0), seen))
+        valid = xp.arange(observed.shape[1]) < seen[:, None]
+        c_f = xp.minimum(1.0, row_sum(xp.where(valid, e_c, 0.0), seen) + row_sum(xp.where(valid, e_b, 0.0), seen))
         reward = reciprocal_reward(c_x, c_y, c_f, collided, overtook, w["w_x"], w["w_y"], w["w_f"],
                                    epsilon_r=r.epsilon_r, collision_reward=r.collision_reward,
                                    overtake_reward=r.overtake_reward, use_collision=w["use_collision"],
                                    use_overtake=w["use_overtake"])
-        return Rewards(c_x, c_y, c_f, y_d, v_d_eff, blocked, collided, overtook, np.asarray(reward))
+        return Rewards(c_x, c_y, c_f, y_d, v_d_eff, blocked, collided, overtook, xp.asarray(reward))
 

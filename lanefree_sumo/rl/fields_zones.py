@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from lanefree_sumo.config import RewardConfig
+from lanefree_sumo.sim.xp import namespace
 
 _DEFAULTS = RewardConfig()
 
@@ -127,22 +128,25 @@ def field_terms(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each neighbour's critical and broad field values (E_c, E_b), element-wise over arrays of any shape (the
     agent's dimensions broadcast against them); :func:`field_cost` sums them. Arguments as there."""
+    xp = namespace(dx)
     a_c = 0.5 * (agent_len + lens)
     b_c = 0.5 * (agent_wid + wids)
-    rx = np.abs(dx) / a_c
-    ry = np.abs(dy) / b_c
+    rx = xp.abs(dx) / a_c
+    ry = xp.abs(dy) / b_c
     if stretch == "absolute":
-        ux, uy = np.abs(dvx), np.abs(dvy)
+        ux, uy = xp.abs(dvx), xp.abs(dvy)
     elif stretch == "closing":
-        ux = np.maximum(0.0, np.sign(dx) * dvx)
-        uy = np.maximum(0.0, np.sign(dy) * dvy)
+        ux = xp.maximum(0.0, xp.sign(dx) * dvx)
+        uy = xp.maximum(0.0, xp.sign(dy) * dvy)
     else:
         raise ValueError(f"stretch must be 'closing' or 'absolute', got {stretch!r}")
     pcx, pcy, pct = critical_exponents
     pbx, pby, pbt = broad_exponents
     # the ellipsoid() formula, on |dx|/a and |dy|/b computed once
-    e_c = magnitude / (rx**pcx + ry**pcy + 1.0) ** pct
-    e_b = magnitude / ((rx / (1.0 + k_r * ux)) ** pbx + (ry / (1.0 + e_v * uy)) ** pby + 1.0) ** pbt
+    pw = xp.power
+    # xp.divide, not ``number / array``: torch's number / tensor multiplies by a reciprocal
+    e_c = xp.divide(magnitude, pw(pw(rx, pcx) + pw(ry, pcy) + 1.0, pct))
+    e_b = xp.divide(magnitude, pw(pw(rx / (1.0 + k_r * ux), pbx) + pw(ry / (1.0 + e_v * uy), pby) + 1.0, pbt))
     return e_c, e_b
 
 
@@ -218,50 +222,51 @@ def zone_targets(
 
     The free intervals are found as there, with the absent rows sorted last as empty extents (lower end +∞,
     upper end −∞): they leave the running maximum alone and their intervals are not candidates."""
-    shape = dx.shape[:-1]
+    xp = namespace(dx)
+    shape = tuple(dx.shape[:-1])
     if dx.shape[-1] == 0:  # no vehicle at all: one absent row keeps the reductions below defined
-        dx, dy, vxs, lens, wids = (np.full(shape + (1,), np.nan) for _ in range(5))
+        dx, dy, vxs, lens, wids = (xp.full(shape + (1,), xp.nan) for _ in range(5))
         present = None
 
-    def row(a: ArrayLike) -> np.ndarray:
-        a = np.asarray(a, dtype=float)
-        return (a if a.shape == shape else np.broadcast_to(a, shape))[..., None]
+    def row(value: ArrayLike) -> np.ndarray:
+        a: np.ndarray = xp.asarray(value, dtype=float)
+        return (a if tuple(a.shape) == shape else xp.broadcast_to(a, shape))[..., None]
 
     y_a, vx_a, len_a, wid_a, width = row(agent_y), row(agent_vx), row(agent_len), row(agent_wid), row(road_width)
     v_desired = row(v_desired)[..., 0]
     half_len = 0.5 * (len_a + lens)
     d_o = vx_a * time_gap
-    with np.errstate(invalid="ignore"):
-        is_blocker = np.isfinite(dx) & np.isfinite(dy) & np.isfinite(vxs) & (dx > -half_len) & (dx - half_len <= d_o)
+    with xp.errstate(invalid="ignore"):
+        is_blocker = xp.isfinite(dx) & xp.isfinite(dy) & xp.isfinite(vxs) & (dx > -half_len) & (dx - half_len <= d_o)
     if present is not None:
-        is_blocker &= present
-    any_blocker = is_blocker.any(axis=-1)
-    if not any_blocker.any():  # a shortcut with the same result: no blocker anywhere
+        is_blocker = is_blocker & present
+    any_blocker = xp.any(is_blocker, axis=-1)
+    if xp.is_numpy and not any_blocker.any():  # a shortcut with the same result: no blocker anywhere
         return 0.5 * width[..., 0], v_desired.copy(), any_blocker
 
     y_j = y_a + dy
     half_w = 0.5 * wids
-    lo = np.where(is_blocker, np.clip(y_j - half_w, 0.0, width), np.inf)
-    hi = np.where(is_blocker, np.clip(y_j + half_w, 0.0, width), -np.inf)
-    order = np.argsort(lo, axis=-1, kind="stable")
-    lo, hi = np.take_along_axis(lo, order, -1), np.take_along_axis(hi, order, -1)
+    lo = xp.where(is_blocker, xp.clip(y_j - half_w, 0.0, width), xp.inf)
+    hi = xp.where(is_blocker, xp.clip(y_j + half_w, 0.0, width), -xp.inf)
+    order = xp.argsort_stable(lo, axis=-1)
+    lo, hi = xp.take_along_axis(lo, order, -1), xp.take_along_axis(hi, order, -1)
     # Free intervals: gaps between the running maximum of occupied upper ends and the next lower end.
-    starts = np.concatenate((np.zeros(shape + (1,)), np.maximum.accumulate(hi, axis=-1)), axis=-1)
-    ends = np.concatenate((lo, width), axis=-1)
-    real = np.concatenate((np.take_along_axis(is_blocker, order, -1), np.ones(shape + (1,), dtype=bool)), axis=-1)
-    with np.errstate(invalid="ignore"):
+    starts = xp.concatenate((xp.zeros(shape + (1,)), xp.accumulate_max(hi, axis=-1)), axis=-1)
+    ends = xp.concatenate((lo, width), axis=-1)
+    real = xp.concatenate((xp.take_along_axis(is_blocker, order, -1), xp.ones(shape + (1,), dtype=bool)), axis=-1)
+    with xp.errstate(invalid="ignore"):
         fits = real & ((ends - starts) >= wid_a + 2.0 * margin)
-        dist = np.maximum(0.0, np.maximum(starts - y_a, y_a - ends))
-    nearest = np.min(np.where(fits, dist, np.inf), axis=-1, keepdims=True)
+        dist = xp.maximum(0.0, xp.maximum(starts - y_a, y_a - ends))
+    nearest = xp.min(xp.where(fits, dist, xp.inf), axis=-1, keepdims=True)
     candidates = fits & (dist <= nearest + _TIE_TOL_M)
-    k = np.argmax(np.where(candidates, starts, -np.inf), axis=-1)[..., None]  # tie -> the leftmost (largest y)
-    y_zone = (0.5 * (np.take_along_axis(starts, k, -1) + np.take_along_axis(ends, k, -1)))[..., 0]
-    any_fit = fits.any(axis=-1)
+    k = xp.argmax(xp.where(candidates, starts, -xp.inf), axis=-1)[..., None]  # tie -> the leftmost (largest y)
+    y_zone = (0.5 * (xp.take_along_axis(starts, k, -1) + xp.take_along_axis(ends, k, -1)))[..., 0]
+    any_fit = xp.any(fits, axis=-1)
 
     # no zone fits: the fastest blocker (the first in array order among equally fast ones)
-    fastest = np.argmax(np.where(is_blocker, vxs, -np.inf), axis=-1)[..., None]
-    y_fast = (y_a + np.take_along_axis(dy, fastest, -1))[..., 0]
-    slowest = np.min(np.where(is_blocker, vxs, np.inf), axis=-1)
+    fastest = xp.argmax(xp.where(is_blocker, vxs, -xp.inf), axis=-1)[..., None]
+    y_fast = (y_a + xp.take_along_axis(dy, fastest, -1))[..., 0]
+    slowest = xp.min(xp.where(is_blocker, vxs, xp.inf), axis=-1)
     blocked = any_blocker & ~any_fit
-    y_d = np.where(any_blocker, np.where(any_fit, y_zone, y_fast), 0.5 * width[..., 0])
-    return y_d, np.where(blocked, np.minimum(v_desired, slowest), v_desired), blocked
+    y_d = xp.where(any_blocker, xp.where(any_fit, y_zone, y_fast), 0.5 * width[..., 0])
+    return y_d, xp.where(blocked, xp.minimum(v_desired, slowest), v_desired), blocked

@@ -17,13 +17,14 @@ padded arrays can be passed directly.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, get_args
+from typing import Any, cast, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from lanefree_sumo.config import RewardConfig, RewardPreset
 from lanefree_sumo.rl.fields_zones import _rows, ellipsoid, field_cost, zone_target
+from lanefree_sumo.sim.xp import namespace
 
 __all__ = [
     "ellipsoid",
@@ -58,14 +59,16 @@ def longitudinal_cost(
 ) -> Any:
     """``c_x = min(1, |vx − v_d,eff| / max(v_d,eff, min_desired_speed))`` (–); speeds in m/s. Element-wise;
     scalar inputs give a ``float``."""
-    c_x = np.minimum(1.0, np.abs(np.subtract(vx, v_d_eff)) / np.maximum(v_d_eff, min_desired_speed))
-    return float(c_x) if np.ndim(c_x) == 0 else c_x
+    xp = namespace(vx, v_d_eff)
+    c_x = xp.minimum(1.0, xp.abs(xp.subtract(vx, v_d_eff)) / xp.maximum(v_d_eff, min_desired_speed))
+    return float(c_x) if xp.ndim(c_x) == 0 else c_x
 
 
 def lateral_cost(y: Any, y_d: Any, road_width: Any) -> Any:
     """``c_y = |y − y_d| / W`` (–); y, y_d and road_width W in m. Element-wise; scalar inputs give a ``float``."""
-    c_y = np.abs(np.subtract(y, y_d)) / road_width
-    return float(c_y) if np.ndim(c_y) == 0 else c_y
+    xp = namespace(y, y_d)
+    c_y = xp.abs(xp.subtract(y, y_d)) / road_width
+    return float(c_y) if xp.ndim(c_y) == 0 else c_y
 
 
 def reciprocal_reward(
@@ -97,14 +100,15 @@ def reciprocal_reward(
         hit, passed = bool(collided), bool(overtook)
         return (r0 + (collision_reward if use_collision and hit else 0.0)
                 + (overtake_reward if use_overtake and passed and not hit else 0.0))
-    col = np.asarray(collided).astype(bool)
-    ovt = np.asarray(overtook).astype(bool)
-    denom = epsilon_r + np.multiply(w_x, c_x) + np.multiply(w_y, c_y) + np.multiply(w_f, c_f)
-    r = epsilon_r / denom
+    xp = namespace(c_x, c_y, c_f, collided, overtook, w_x)
+    col = xp.astype(xp.asarray(collided), bool)
+    ovt = xp.astype(xp.asarray(overtook), bool)
+    denom = epsilon_r + xp.multiply(w_x, c_x) + xp.multiply(w_y, c_y) + xp.multiply(w_f, c_f)
+    r = xp.divide(epsilon_r, denom)  # not ``epsilon_r / denom``: torch's number / tensor is a reciprocal times
     # a switched-off term adds 0.0: the same number as not adding it
-    r = r + np.where(np.logical_and(use_collision, col), collision_reward, 0.0)
-    r = r + np.where(np.logical_and(use_overtake, ovt & ~col), overtake_reward, 0.0)
-    return float(r) if np.ndim(r) == 0 else r
+    r = r + xp.where(xp.logical_and(use_collision, col), collision_reward, 0.0)
+    r = r + xp.where(xp.logical_and(use_overtake, ovt & ~col), overtake_reward, 0.0)
+    return float(r) if xp.ndim(r) == 0 else r
 
 
 def pass_events(
@@ -123,13 +127,14 @@ def pass_events(
     (dx ≈ ±L/2) is never a pass, nor is a vehicle entering or leaving range. Element-wise over arrays of
     any shape (several agents' rows); ``range_m`` and ``ring_length`` broadcast against them.
     """
-    p, c = _rows(prev_dx, dx)
-    quarter = 0.25 * np.asarray(ring_length)
-    with np.errstate(invalid="ignore"):
+    xp = namespace(prev_dx, dx)
+    p, c = _rows(prev_dx, dx) if xp.is_numpy else (cast(np.ndarray, prev_dx), cast(np.ndarray, dx))
+    quarter = 0.25 * xp.asarray(ring_length)
+    with xp.errstate(invalid="ignore"):
         valid = (
-            np.isfinite(p) & np.isfinite(c)
-            & (np.abs(p) <= range_m) & (np.abs(c) <= range_m)
-            & (np.abs(p) < quarter) & (np.abs(c) < quarter)
+            xp.isfinite(p) & xp.isfinite(c)
+            & (xp.abs(p) <= range_m) & (xp.abs(c) <= range_m)
+            & (xp.abs(p) < quarter) & (xp.abs(c) < quarter)
         )
         return valid & (p > 0.0) & (c <= 0.0), valid & (p <= 0.0) & (c > 0.0)
 

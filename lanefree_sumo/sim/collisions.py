@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from lanefree_sumo.sim.state import Bodies, pair_mask, pairwise_offsets
+from lanefree_sumo.sim.xp import namespace
 
 
 def overlap_matrix(
@@ -23,17 +24,18 @@ def overlap_matrix(
     dx, dy = pairwise_offsets(state, ring_length) if offsets is None else offsets
     half_len = 0.5 * (state.length[..., :, None] + state.length[..., None, :])
     half_wid = 0.5 * (state.width[..., :, None] + state.width[..., None, :])
-    overlap = (np.abs(dx) < half_len) & (np.abs(dy) < half_wid)
+    xp = namespace(dx)
+    overlap = (xp.abs(dx) < half_len) & (xp.abs(dy) < half_wid)
     if present is None:
         n = overlap.shape[-1]
-        overlap[..., np.arange(n), np.arange(n)] = False
+        overlap[..., xp.arange(n), xp.arange(n)] = False
         return overlap
     return overlap & pair_mask(present)
 
 
 def started_overlaps(overlap: np.ndarray, previous: np.ndarray) -> np.ndarray:
     """``[..., N, N]``, True at the pairs (i < j) whose overlap started now: collision events (module docstring)."""
-    return np.triu(overlap & ~previous, k=1)
+    return namespace(overlap).triu(overlap & ~previous, k=1)
 
 
 class CollisionTracker:

@@ -7,7 +7,8 @@
 ``clearance`` to a road edge is clipped there and ``vy'`` set to 0: a *boundary contact*.
 SUMO rejects lateral targets at or past the lane border, so the clearance is strictly positive.
 
-Every function is element-wise: arrays ``[N]`` of one simulation or ``[K, N]`` of a batch of runs
+Every function is element-wise (numpy, or torch through :mod:`.xp`):
+arrays ``[N]`` of one simulation or ``[K, N]`` of a batch of runs
 (:mod:`~lanefree_sumo.sim.world`); the road width and bounds are scalars or broadcast against them.
 """
 
@@ -19,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from lanefree_sumo.config import AccelerationBounds
+from lanefree_sumo.sim.xp import namespace
 
 
 @dataclass
@@ -59,8 +61,9 @@ def plan_step(
     as a contact or zeroing vy (they are floating-point rounding of a driver that stops at the
     line). ``bounds`` = (lowest, highest) lateral position each body may reach (m; scalars or one per
     vehicle); None: 0 and ``road_width``."""
+    xp = namespace(vx)
     t = step_s
-    vx_next = np.maximum(vx + ax * t, 0.0)
+    vx_next = xp.maximum(vx + ax * t, 0.0)
     ax_real = (vx_next - vx) / t
     y_target = y + vy * t + 0.5 * ay * t * t
     if bounds is None:
@@ -69,12 +72,12 @@ def plan_step(
     else:
         lo = bounds[0] + 0.5 * width + clearance
         hi = bounds[1] - 0.5 * width - clearance
-    y_next = np.clip(y_target, lo, hi)
-    contact = np.abs(y_target - y_next) > contact_tolerance
+    y_next = xp.clip(y_target, lo, hi)
+    contact = xp.abs(y_target - y_next) > contact_tolerance
     dy = y_next - y
-    vy_next = np.where(contact, 0.0, vy + ay * t)
+    vy_next = xp.where(contact, 0.0, vy + ay * t)
     # realised lateral acceleration: the one that yields the clipped displacement
-    ay_real = np.where(contact, 2.0 * (dy - vy * t) / (t * t), ay)
+    ay_real = xp.where(contact, 2.0 * (dy - vy * t) / (t * t), ay)
     return StepCommand(vx_next, dy, vy_next, ax_real, ay_real, contact)
 
 
@@ -85,14 +88,15 @@ def clip_accelerations(
     """Clip agents' accelerations (m/s², element-wise) to their bounds and so that each speed ``vx`` (m/s) does
     not exceed ``max_speed`` (m/s) at the end of the step; with ``lateral_ratio`` r also so that |vy| ≤ r·vx
     after the step (vy in m/s), as the driver model bounds the background's."""
-    vx = np.asarray(vx, dtype=float)
-    ax_top = np.minimum(bounds.ax_max, (max_speed - vx) / step_s)
-    ay_clipped = np.clip(np.asarray(ay, dtype=float), bounds.ay_min, bounds.ay_max)
+    xp = namespace(vx, ax, ay)
+    speed: np.ndarray = xp.asarray(vx, dtype=float)
+    ax_top = xp.minimum(bounds.ax_max, (max_speed - speed) / step_s)
+    ay_clipped = xp.clip(xp.asarray(ay, dtype=float), bounds.ay_min, bounds.ay_max)
     if lateral_ratio is not None:
-        ay_clipped = np.maximum(np.minimum(ay_clipped, (lateral_ratio * vx - vy) / step_s),
-                                -(lateral_ratio * vx + vy) / step_s)
-        ay_clipped = np.clip(ay_clipped, bounds.ay_min, bounds.ay_max)
-    return np.minimum(np.maximum(np.asarray(ax, dtype=float), bounds.ax_min), ax_top), ay_clipped
+        ay_clipped = xp.maximum(xp.minimum(ay_clipped, (lateral_ratio * speed - vy) / step_s),
+                                -(lateral_ratio * speed + vy) / step_s)
+        ay_clipped = xp.clip(ay_clipped, bounds.ay_min, bounds.ay_max)
+    return xp.minimum(xp.maximum(xp.asarray(ax, dtype=float), bounds.ax_min), ax_top), ay_clipped
 
 
 def clip_acceleration(

@@ -1,9 +1,9 @@
 """The force-based lane-free background driver (specification §3), vectorised over all vehicles.
 
-Pure numpy: ``driver_accelerations`` maps the vehicles' arrays (``[N]`` of one simulation, or ``[K, N]`` of a
-batch of runs padded to a common N, :mod:`~lanefree_sumo.sim.world`) to the longitudinal and lateral
-accelerations (m/s²) that every vehicle would choose.  The environment uses the rows of background vehicles;
-the agent's row is ignored there.  Padded rows (``present`` False) exert and feel no force.
+Array code (numpy, or torch through :mod:`.xp`): ``driver_accelerations`` maps the vehicles' arrays (``[N]`` of one
+simulation, or ``[K, N]`` of a batch of runs padded to a common N, :mod:`~lanefree_sumo.sim.world`) to the
+longitudinal and lateral accelerations (m/s²) that every vehicle would choose. The environment uses the rows of
+background vehicles; the agent's row is ignored there. Padded rows (``present`` False) exert and feel no force.
 
 Interpretation choices where specification §3 leaves room (documented here and in the README):
 
@@ -16,10 +16,10 @@ Interpretation choices where specification §3 leaves room (documented here and 
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import erfc
 
 from lanefree_sumo.config import DriverConfig
 from lanefree_sumo.sim.state import Bodies, pair_mask, pairwise_offsets, row_sum, take_rows, wrap
+from lanefree_sumo.sim.xp import namespace
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -47,31 +47,34 @@ def edge_bound(v: np.ndarray, d: np.ndarray, step_s: float, decel: float) -> np.
     """U(v, d, ū): the largest acceleration now (m/s²) after which braking at ``decel`` (ū < 0)
     still stops a body moving at ``v`` (m/s) towards an edge ``d`` (m) away before reaching it.
     Where the root is not real, U = ū."""
+    xp = namespace(v, d)
     t = step_s
     disc = t * t * decel * decel - 4.0 * t * decel * v + 8.0 * decel * (t * v - d)
-    root = np.sqrt(np.maximum(disc, 0.0))
-    return np.where(disc >= 0.0, (t * decel - 2.0 * v + root) / (2.0 * t), decel)
+    root = xp.sqrt(xp.maximum(disc, 0.0))
+    return xp.where(disc >= 0.0, (t * decel - 2.0 * v + root) / (2.0 * t), decel)
 
 
 def symmetric_trapezoid(abs_t: np.ndarray, w: np.ndarray, l: np.ndarray) -> np.ndarray:
     """H(t, w, l, w) from |t|: clip((w + l − |t|)/w, 0, 1), a step |t| ≤ l where w = 0 (w ≥ 0).
 
     The fast form of :func:`trapezoid_h` for equal rise and fall, as both force ramps are."""
+    xp = namespace(abs_t, w, l)
     num = (w + l) - abs_t
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = np.minimum(np.maximum(num / w, 0.0), 1.0)  # w = 0: ±inf clipped to the step's 1 or 0 ...
-    return np.where(np.isnan(out), 1.0, out)  # ... and 0/0 (the step's edge, |t| = l) is NaN: the step's 1
+    with xp.errstate(divide="ignore", invalid="ignore"):
+        out = xp.minimum(xp.maximum(num / w, 0.0), 1.0)  # w = 0: ±inf clipped to the step's 1 or 0 ...
+    return xp.where(xp.isnan(out), 1.0, out)  # ... and 0/0 (the step's edge, |t| = l) is NaN: the step's 1
 
 
 def strongest_mask(mag: np.ndarray, k: int) -> np.ndarray:
     """Per row (last axis), True at the (at most) k entries of largest magnitude ``mag`` among the non-zero
     ones (specification §3: the 6 repulsions, or 3 nudges, of largest magnitude are summed)."""
+    xp = namespace(mag)
     nonzero = mag > 0.0
-    if mag.shape[-1] <= k or nonzero.sum(axis=-1).max() <= k:
+    if mag.shape[-1] <= k or (xp.is_numpy and nonzero.sum(axis=-1).max() <= k):
         return nonzero
-    idx = np.argpartition(-mag, k - 1, axis=-1)[..., :k]
-    chosen = np.zeros_like(nonzero)
-    np.put_along_axis(chosen, idx, True, axis=-1)
+    idx = xp.largest_k(mag, k)
+    chosen = xp.zeros_like(nonzero)
+    xp.put_along_axis(chosen, idx, True, axis=-1)
     return chosen & nonzero
 
 
@@ -109,93 +112,94 @@ def driver_accelerations(
     x, y, vx, vy = state.x, state.y, state.vx, state.vy
     length, width, vd = state.length, state.width, state.v_desired
     t = step_s
+    xp = namespace(x)
 
     if offsets is None:
         offsets = pairwise_offsets(state, ring_length)
     dx, dy = offsets  # dx[i, j] = wrap(x_j − x_i), dy[i, j] = y_j − y_i
-    abs_dx = np.abs(dx)
+    abs_dx = xp.abs(dx)
     vx_j = vx[..., None, :]
     ahead = dx >= 0.0
 
     # lateral trapezoid first: it is zero for most pairs
-    uy = np.abs(vy[..., :, None] - vy[..., None, :])
+    uy = xp.abs(vy[..., :, None] - vy[..., None, :])
     ly = uy * cfg.time_headway_y_s + cfg.lateral_ramp_offset_m
     half_wid = 0.5 * (width[..., :, None] + width[..., None, :])
-    mag_y = symmetric_trapezoid(np.abs(dy), ly, half_wid + cfg.lateral_margin_m)
+    mag_y = symmetric_trapezoid(xp.abs(dy), ly, half_wid + cfg.lateral_margin_m)
     # longitudinal trapezoid: approach speed ux, ramp L_x/2, plateau L_x/2 + D_x + margin
-    ux = np.where(ahead, np.maximum(0.0, vx[..., :, None] - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
+    ux = xp.where(ahead, xp.maximum(0.0, vx[..., :, None] - (1.0 - cfg.speed_share_ahead) * vx_j), vx_j)
     half_len = 0.5 * (length[..., :, None] + length[..., None, :])
     lx_half = (0.5 * cfg.time_headway_x_s) * vx[..., :, None]
     gain_x = cfg.effective_gain_x  # k_x = c_x
     plateau = lx_half + (ux * ux) / (2.0 * gain_x) + half_len + cfg.longitudinal_margin_m
     mag = symmetric_trapezoid(abs_dx, lx_half, plateau) * mag_y
-    mag[abs_dx > cfg.neighbour_range_m] = 0.0
+    xp.fill_where(mag, abs_dx > cfg.neighbour_range_m, 0.0)
     n = x.shape[-1]
     if present is None:
-        mag[..., np.arange(n), np.arange(n)] = 0.0
+        mag[..., xp.arange(n), xp.arange(n)] = 0.0
         count = None
     else:
-        mag[~pair_mask(present)] = 0.0
+        xp.fill_where(mag, ~pair_mask(present), 0.0)
         count = present.sum(axis=-1)[..., None]  # each run's vehicles: its rows' sums round as unpadded
 
-    dist = np.sqrt(dx * dx + dy * dy)
-    scale = np.divide(mag, dist, out=np.zeros_like(mag), where=dist > 0.0)
+    dist = xp.sqrt(dx * dx + dy * dy)
+    scale = xp.divide_where(mag, dist, 0.0)
     fx = -dx * scale  # −cos θ · mag
     fy = -dy * scale  # −sin θ · mag
 
-    summed = strongest_mask(np.where(ahead, mag, 0.0), cfg.max_repulsions)
-    rep_fx = np.where(summed, fx, 0.0)
+    summed = strongest_mask(xp.where(ahead, mag, 0.0), cfg.max_repulsions)
+    rep_fx = xp.where(summed, fx, 0.0)
     sum_fx = row_sum(rep_fx, count)
-    sum_fy = row_sum(np.where(summed, fy, 0.0), count)
+    sum_fy = row_sum(xp.where(summed, fy, 0.0), count)
     if cfg.nudging:
-        nudges = strongest_mask(np.where(ahead, 0.0, mag), cfg.max_nudges)
-        sum_fx = sum_fx + cfg.nudge_scale_x * row_sum(np.where(nudges, fx, 0.0), count)
-        sum_fy = sum_fy + cfg.nudge_scale_y * row_sum(np.where(nudges, fy, 0.0), count)
+        nudges = strongest_mask(xp.where(ahead, 0.0, mag), cfg.max_nudges)
+        sum_fx = sum_fx + cfg.nudge_scale_x * row_sum(xp.where(nudges, fx, 0.0), count)
+        sum_fy = sum_fy + cfg.nudge_scale_y * row_sum(xp.where(nudges, fy, 0.0), count)
 
-    fts_x = erfc(vx - vd) - 1.0
-    fts_y = erfc(vy - lateral_target) - 1.0
+    fts_x = xp.erfc(vx - vd) - 1.0
+    fts_y = xp.erfc(vy - lateral_target) - 1.0
     ax = gain_x * sum_fx + fts_x
     ay = cfg.coef_fy * sum_fy + fts_y
 
     # 1. x-wall towards the summed repulsion of largest degree δ (the most negative f_x)
-    leader = np.argmin(rep_fx, axis=-1)
-    lead_fx = rep_fx.min(axis=-1)  # the value at the leader
+    leader = xp.argmin(rep_fx, axis=-1)
+    lead_fx = xp.min(rep_fx, axis=-1)  # the value at the leader
     has_leader = lead_fx < 0.0
-    degree = np.abs(np.clip(lead_fx, -1.0, 1.0)) ** cfg.wall_exponent
+    degree = xp.power(xp.abs(xp.clip(lead_fx, -1.0, 1.0)), cfg.wall_exponent)
 
     def of_leader(a: np.ndarray) -> np.ndarray:
         return take_rows(a, leader)
 
     gap = wrap((of_leader(x) - 0.5 * of_leader(length)) - (x + 0.5 * length), ring_length)
-    v_safe = np.minimum(gap / cfg.wall_time_gap_s, of_leader(vx) - cfg.wall_speed_margin_mps)
+    v_safe = xp.minimum(gap / cfg.wall_time_gap_s, of_leader(vx) - cfg.wall_speed_margin_mps)
     wall = ((1.0 - degree) * (vd - vx) + degree * (v_safe - vx)) / t
     if details is not None:
         details["sum_fx"] = row_sum(rep_fx, count)
-        details["leader_gap_m"] = np.where(has_leader, gap, np.nan)
+        details["leader_gap_m"] = xp.where(has_leader, gap, xp.nan)
         details["wall_binds"] = has_leader & (wall < ax)
-    ax = np.where(has_leader, np.minimum(ax, wall), ax)
+    ax = xp.where(has_leader, xp.minimum(ax, wall), ax)
 
     # 2. road edges
     ubar = cfg.edge_decel_mps2
     k = cfg.edge_speed_factor
     lo, hi = (0.0, road_width) if bounds is None else bounds
-    room_left = np.maximum(0.0, hi - edge_clearance - y - 0.5 * width)
-    room_right = np.maximum(0.0, y - lo - edge_clearance - 0.5 * width)
-    ay = np.minimum(ay, edge_bound(k * vy, room_left, t, ubar))
-    ay = np.maximum(ay, -edge_bound(-k * vy, room_right, t, ubar))
+    room_left = xp.maximum(0.0, hi - edge_clearance - y - 0.5 * width)
+    room_right = xp.maximum(0.0, y - lo - edge_clearance - 0.5 * width)
+    ay = xp.minimum(ay, edge_bound(k * vy, room_left, t, ubar))
+    ay = xp.maximum(ay, -edge_bound(-k * vy, room_right, t, ubar))
 
     # 3. hard bounds
     b = cfg.bounds
-    ax = np.clip(ax, b.ax_min, b.ax_max)
-    ay = np.clip(ay, b.ay_min, b.ay_max)
+    ax = xp.clip(ax, b.ax_min, b.ax_max)
+    ay = xp.clip(ay, b.ay_min, b.ay_max)
 
     # 4. no reversing, no excessive speed
-    ax = np.maximum(ax, -vx / t)
-    ax = np.minimum(ax, (cfg.overspeed_factor * vd - vx) / t)
+    ax = xp.maximum(ax, -vx / t)
+    ax = xp.minimum(ax, (cfg.overspeed_factor * vd - vx) / t)
 
     # 5. lateral speed at most a share of the longitudinal speed
     r = cfg.lateral_speed_ratio
-    ay = np.minimum(ay, (r * vx - vy) / t)
-    ay = np.maximum(ay, -(r * vx + vy) / t)
-    ay = np.clip(ay, b.ay_min, b.ay_max)  # the lateral hard bound again (specification §3)
+    ay = xp.minimum(ay, (r * vx - vy) / t)
+    ay = xp.maximum(ay, -(r * vx + vy) / t)
+    ay = xp.clip(ay, b.ay_min, b.ay_max)  # the lateral hard bound again (specification §3)
     return ax, ay

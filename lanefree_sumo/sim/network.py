@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, VehicleClassConfig
+from lanefree_sumo.sim.xp import namespace
 
 EDGES = 4
 SHAPE_POINTS_PER_EDGE = 24
@@ -43,14 +44,15 @@ def ring_to_edge(x: np.ndarray, length_m: np.ndarray | float) -> tuple[np.ndarra
 
     THE mapping between the ring coordinate and SUMO's (edge, lane position); its inverse is
     ``edge_index · L / EDGES + lane position``."""
+    xp = namespace(x)
     segment = edge_length(length_m)
-    edge = np.minimum((np.asarray(x) // segment).astype(int), EDGES - 1)
+    edge = xp.minimum(xp.astype(xp.asarray(x) // segment, int), EDGES - 1)
     return edge, x - edge * segment
 
 
 def edge_to_ring(edge: np.ndarray | int, position_m: np.ndarray | float, length_m: np.ndarray | float) -> np.ndarray:
     """(edge index, position on that edge in m) → x along the centre line (m)."""
-    return np.asarray(edge) * edge_length(length_m) + position_m
+    return namespace(edge).asarray(edge) * edge_length(length_m) + position_m
 
 
 def edge_id(index: int) -> str:

@@ -16,6 +16,8 @@ from typing import Protocol
 
 import numpy as np
 
+from lanefree_sumo.sim.xp import namespace
+
 
 class Bodies(Protocol):
     """What the physics reads of the vehicles: arrays of shape ``[..., N]`` (one row per vehicle)."""
@@ -68,14 +70,15 @@ class VehicleState:
 def wrap(dx: np.ndarray | float, ring_length: np.ndarray | float) -> np.ndarray:
     """Map longitudinal differences onto [−L/2, L/2) on a ring of length ``ring_length`` (m; a scalar, or one
     per run broadcastable against ``dx``)."""
-    d = np.asarray(dx, dtype=float)
-    return d - ring_length * np.floor(d / ring_length + 0.5)
+    xp = namespace(dx)
+    d = xp.asarray(dx, dtype=float)
+    return d - ring_length * xp.floor(d / ring_length + 0.5)
 
 
 def per_pair(value: np.ndarray | float) -> np.ndarray | float:
     """A per-run value of shape ``[..., 1]`` (broadcasting against ``[..., N]``) as ``[..., 1, 1]`` for ``[..., N, N]``
     pair matrices; a scalar stays a scalar."""
-    return value[..., None] if isinstance(value, np.ndarray) and value.ndim else value
+    return value if isinstance(value, float | int) or not value.ndim else value[..., None]
 
 
 def pairwise_offsets(state: Bodies, ring_length: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
@@ -89,18 +92,20 @@ def pairwise_offsets(state: Bodies, ring_length: np.ndarray | float) -> tuple[np
 def take_rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
     """``a[..., index]`` row by row: ``a`` ``[..., N]``, ``index`` ``[..., M]`` → ``[..., M]`` (numpy's
     ``take_along_axis`` with less overhead for one simulation's or one batch's rows)."""
+    xp = namespace(a)
     if a.ndim == 1:
         return a[index]
-    if a.ndim == 2:
+    if a.ndim == 2 and xp.is_numpy:
         return a[np.arange(a.shape[0])[:, None], index]
-    return np.take_along_axis(a, index, -1)
+    return xp.take_along_axis(a, index, -1)
 
 
 def pair_mask(present: np.ndarray) -> np.ndarray:
     """``[..., N, N]``: True where both vehicles of a pair are present and they are two (the diagonal is False)."""
+    xp = namespace(present)
     both = present[..., :, None] & present[..., None, :]
     n = present.shape[-1]
-    both[..., np.arange(n), np.arange(n)] = False
+    both[..., xp.arange(n), xp.arange(n)] = False
     return both
 
 
@@ -112,24 +117,31 @@ def row_sum(a: np.ndarray, count: np.ndarray | None = None) -> np.ndarray:
     as a tree, then the remainder one by one; halves first beyond 128 entries), so the grouping depends on the
     row's length: a padded row summed by numpy would round differently from the same row unpadded. This
     reproduces numpy's grouping for each row's own length, so a run padded in a batch sums as it does alone."""
-    if count is None:
-        return a.sum(axis=-1)
-    count = np.broadcast_to(count, a.shape[:-1])
-    if (count == a.shape[-1]).all():
-        return a.sum(axis=-1)
-    return _pairwise(a, np.zeros_like(count), count, a.shape[-1])
+    xp = namespace(a)
+    if xp.is_numpy:  # numpy's own sum where it is the one wanted
+        if count is None:
+            return a.sum(axis=-1)
+        count = np.broadcast_to(count, a.shape[:-1])
+        if (count == a.shape[-1]).all():
+            return a.sum(axis=-1)
+    else:  # other libraries sum in their own order: numpy's order, formed step by step
+        count = xp.broadcast_to(a.shape[-1] if count is None else count, a.shape[:-1])
+    return _pairwise(a, None, count, a.shape[-1])
 
 
 _BLOCK = 128
 """numpy's pairwise block: rows up to this long are summed with eight running sums, longer ones halved first."""
 
 
-def _pairwise(a: np.ndarray, start: np.ndarray, count: np.ndarray, width: int) -> np.ndarray:
-    """numpy's pairwise sum of ``a[..., start:start + count]`` per row (:func:`row_sum`); ``count`` ≤ ``width``."""
-    if start.any():
-        index = np.minimum(start[..., None] + np.arange(width), a.shape[-1] - 1)
-        window = np.take_along_axis(a, index, -1)
+def _pairwise(a: np.ndarray, start: np.ndarray | None, count: np.ndarray, width: int) -> np.ndarray:
+    """numpy's pairwise sum of ``a[..., start:start + count]`` per row (:func:`row_sum`; ``start`` None: 0);
+    ``count`` ≤ ``width``."""
+    xp = namespace(a)
+    if start is not None and (not xp.is_numpy or start.any()):
+        index = xp.minimum(start[..., None] + xp.arange(width), a.shape[-1] - 1)
+        window = xp.take_along_axis(a, index, -1)
     else:
+        start = xp.zeros(count.shape, dtype=int)
         window = a[..., :width]
     if width <= _BLOCK:
         return _block_sum(window, count)
@@ -138,26 +150,35 @@ def _pairwise(a: np.ndarray, start: np.ndarray, count: np.ndarray, width: int) -
     half = half - half % 8
     split = (_pairwise(a, start, half, width // 2)
              + _pairwise(a, start + half, count - half, min(width, width - width // 2 + 8)))
-    return np.where(count > _BLOCK, split, _block_sum(window[..., :_BLOCK], np.minimum(count, _BLOCK)))
+    return xp.where(count > _BLOCK, split, _block_sum(window[..., :_BLOCK], xp.minimum(count, _BLOCK)))
 
 
 def _block_sum(a: np.ndarray, count: np.ndarray) -> np.ndarray:
     """numpy's sum of ``a[..., :count]`` (count ≤ 128 per row): below 8 entries one by one; else eight running sums
     over whole blocks of eight, combined pairwise, then the remaining entries one by one."""
+    xp = namespace(a)
     width = a.shape[-1]
     if not width:
-        return np.zeros(a.shape[:-1])
-    blocked = np.where(count >= 8, count - count % 8, 0)
-    lanes = np.zeros(a.shape[:-1] + (-(-width // 8) * 8,))
-    np.copyto(lanes[..., :width], a, where=np.arange(width) < blocked[..., None])
-    # the eight running sums: a reduction over the blocks (not the innermost axis) adds them one after another
-    acc = lanes.reshape(a.shape[:-1] + (-1, 8)).sum(axis=-2)
+        return xp.zeros(a.shape[:-1])
+    blocked = xp.where(count >= 8, count - count % 8, 0)
+    padded = -(-width // 8) * 8
+    lanes = xp.where(xp.arange(width) < blocked[..., None], a, 0.0)
+    if padded > width:
+        lanes = xp.concatenate([lanes, xp.zeros(a.shape[:-1] + (padded - width,))], axis=-1)
+    blocks = lanes.reshape(a.shape[:-1] + (-1, 8))
+    # the eight running sums, adding the blocks one after another (numpy's reduction over a non-innermost axis)
+    if xp.is_numpy:
+        acc = blocks.sum(axis=-2)
+    else:
+        acc = blocks[..., 0, :]
+        for b in range(1, blocks.shape[-2]):
+            acc = acc + blocks[..., b, :]
     tree = ((acc[..., 0] + acc[..., 1]) + (acc[..., 2] + acc[..., 3])) + ((acc[..., 4] + acc[..., 5])
                                                                            + (acc[..., 6] + acc[..., 7]))
-    total = np.where(count >= 8, tree, 0.0)
-    rest = np.arange(7)
-    tail = np.take_along_axis(a, np.minimum(blocked[..., None] + rest, width - 1), -1)
-    tail = np.where(rest < (count - blocked)[..., None], tail, 0.0)
+    total = xp.where(count >= 8, tree, 0.0)
+    rest = xp.arange(7)
+    tail = xp.take_along_axis(a, xp.minimum(blocked[..., None] + rest, width - 1), -1)
+    tail = xp.where(rest < (count - blocked)[..., None], tail, 0.0)
     for t in range(7):
         total = total + tail[..., t]
     return total

@@ -11,15 +11,17 @@ commands. The ring's :class:`~lanefree_sumo.sim.simulation.Simulation` on the ``
 with K = 1; a run of a batch gives, bit for bit, what that simulation gives alone with the same seed
 (padding included: sums over neighbours round as they would without it, :func:`~lanefree_sumo.sim.state.row_sum`).
 
-The step is written for a later port to other array libraries: no loop over vehicles and no branch on the
-state's values except result-preserving shortcuts. The open road (the on-ramp), whose vehicles come and go,
-keeps its own path in :class:`~lanefree_sumo.sim.simulation.Simulation`.
+The step is written once against an array namespace (:mod:`.xp`): on numpy arrays it runs as numpy, on torch
+tensors (:func:`world_to`) as torch on their device, float64 either way — no loop over vehicles and no branch
+on the state's values except result-preserving shortcuts taken on numpy. The open road (the on-ramp), whose
+vehicles come and go, keeps its own path in :class:`~lanefree_sumo.sim.simulation.Simulation`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +32,7 @@ from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.network import EDGES, edge_length, edge_to_ring, ring_to_edge
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, take_rows
+from lanefree_sumo.sim.xp import namespace, torch_namespace
 
 
 @dataclass(frozen=True)
@@ -186,11 +189,25 @@ def replace_runs(world: World, runs: Sequence[int], states: Sequence[VehicleStat
     fresh = world_of(states, world.road_length[list(runs)], world.road_width[list(runs)], rows=n)
     if fresh.agent_rows.shape[1] != world.agent_rows.shape[1]:
         raise ConfigError("the runs of one batch must have the same number of agents")
-    out = replace(world, **{f.name: getattr(world, f.name).copy() for f in fields(World)})
+    xp = namespace(world.x)
+    if not xp.is_numpy:
+        fresh = world_to(fresh, xp.device)
+    index = xp.asarray(list(runs), dtype=int)
+    out = replace(world, **{f.name: xp.copy(getattr(world, f.name)) for f in fields(World)})
     for f in fields(World):
         if f.name not in ("road_length", "road_width"):
-            getattr(out, f.name)[list(runs)] = getattr(fresh, f.name)
+            getattr(out, f.name)[index] = getattr(fresh, f.name)
     return out
+
+
+def world_to(world: World, device: Any) -> World:
+    """The world's arrays as torch tensors on ``device`` (float64 positions and speeds, int64 indices), or as
+    numpy arrays for ``device`` None; the same numbers."""
+    if device is None:
+        return replace(world, **{f.name: namespace(getattr(world, f.name)).to_numpy(getattr(world, f.name))
+                                 for f in fields(World)})
+    xp = torch_namespace(device)
+    return replace(world, **{f.name: xp.asarray(getattr(world, f.name)) for f in fields(World)})
 
 
 def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
@@ -200,23 +217,25 @@ def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
     ``agent_accel``: ``[K, A, 2]`` (or ``[K, 2]`` with one agent) — each agent's (ax, ay) in m/s², clipped to
     its bounds and top speed. ``details``: the driver model's per-vehicle diagnostics, ``[K, N]``
     (:func:`~lanefree_sumo.sim.forces.driver_accelerations`)."""
+    xp = namespace(world.x)
     t = params.step_s
     ring = world.road_length[:, None]
     road_width = world.road_width[:, None]
     bounds = (0.0, road_width)
-    present = None if world.present.all() else world.present  # no padding: nothing to mask
+    # no padding: nothing to mask (a shortcut with the same result, taken where it costs no synchronisation)
+    present = None if xp.is_numpy and world.present.all() else world.present
     ax, ay = driver_accelerations(world, params.driver, ring, road_width, t, params.clearance_m,
                                   (world.dx, world.dy), details, bounds=bounds, present=present)
-    commands = np.asarray(agent_accel, dtype=float).reshape(world.runs, -1, 2)
+    commands = xp.asarray(agent_accel, dtype=float).reshape(world.runs, -1, 2)
     rows = world.agent_rows
     agent_ax, agent_ay = clip_accelerations(commands[..., 0], commands[..., 1], params.agent_bounds,
                                             take_rows(world.vx, rows), params.agent_max_speed_mps, t,
                                             take_rows(world.vy, rows), params.agent_lateral_ratio)
-    np.put_along_axis(ax, rows, agent_ax, 1)
-    np.put_along_axis(ay, rows, agent_ay, 1)
+    xp.put_along_axis(ax, rows, agent_ax, 1)
+    xp.put_along_axis(ay, rows, agent_ay, 1)
     if present is not None:
-        ax = np.where(present, ax, 0.0)
-        ay = np.where(present, ay, 0.0)
+        ax = xp.where(present, ax, 0.0)
+        ay = xp.where(present, ay, 0.0)
     cmd = plan_step(world.x, world.y, world.vx, world.vy, world.width, ax, ay, t, road_width, params.clearance_m,
                     params.contact_tolerance_m, bounds=bounds)
 
@@ -226,11 +245,11 @@ def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
     half_width = 0.5 * road_width
     pos = world.pos + ballistic_distance(world.vx, cmd.vx_next, t)
     passed = pos > segment
-    pos = np.where(passed, pos - segment, pos)
-    edge = np.where(passed, (world.edge + 1) % EDGES, world.edge)
-    tiny = np.abs(cmd.dy) < params.min_lateral_move_m
-    moved = np.where(tiny, (world.y + cmd.dy) - half_width, world.lat + cmd.dy)
-    lat = np.where(cmd.dy == 0.0, world.lat, moved)
+    pos = xp.where(passed, pos - segment, pos)
+    edge = xp.where(passed, (world.edge + 1) % EDGES, world.edge)
+    tiny = xp.abs(cmd.dy) < params.min_lateral_move_m
+    moved = xp.where(tiny, (world.y + cmd.dy) - half_width, world.lat + cmd.dy)
+    lat = xp.where(cmd.dy == 0.0, world.lat, moved)
 
     new = replace(world, x=edge_to_ring(edge, pos, ring), y=lat + half_width, vx=cmd.vx_next, vy=cmd.vy_next,
                   edge=edge, pos=pos, lat=lat, steps=world.steps + 1)

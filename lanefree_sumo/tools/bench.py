@@ -12,7 +12,8 @@ Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's updat
 against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved, and
 :func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
 (``--training-only`` runs just these sections, ``--dqn-only`` the last), and :func:`batch_speed`: runs per
-core-hour of sequential runs against batches of K runs in one process (``--batch-only``).
+core-hour of sequential runs against batches of K runs in one process (``--batch-only``). ``--gpu``: the
+batched path on a torch device instead (:mod:`lanefree_sumo.tools.bench_gpu`, ``make bench-gpu``).
 """
 
 from __future__ import annotations
@@ -524,6 +525,17 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
     return text
 
 
+def _sizes(text: str) -> tuple[int, ...]:
+    """``1,150,1024`` → (1, 150, 1024)."""
+    try:
+        sizes = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+    if not sizes or min(sizes) < 1:
+        raise argparse.ArgumentTypeError(f"sizes are whole numbers ≥ 1, got {text!r}")
+    return sizes
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.tools.bench", description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=800, help="steps per measurement (default 800)")
@@ -533,8 +545,26 @@ def main() -> None:
     parser.add_argument("--dqn-only", action="store_true", help="only the DQN family's training-speed section")
     parser.add_argument("--batch-only", action="store_true",
                         help="only the batched-training section (sequential against batches of 1, 4, 8, 16 runs)")
+    gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
+    gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
+    gpu.add_argument("--device", default="cuda", help="torch device of --gpu (default cuda; cpu runs it on the CPU)")
+    gpu.add_argument("--env-sizes", type=_sizes, default=(1, 1024, 16384), help="K of the env rows (1,1024,16384)")
+    gpu.add_argument("--train-sizes", type=_sizes, default=(1, 150, 1024), help="K of the training rows (1,150,1024)")
+    gpu.add_argument("--env-steps", type=int, default=100, help="steps per env row (default 100)")
+    gpu.add_argument("--train-steps", type=int, default=100, help="iterations per training row (default 100)")
+    gpu.add_argument("--budget-s", type=float, default=420.0,
+                     help="rows whose turn comes later are skipped (default 420 s: done within 8 minutes)")
     args = parser.parse_args()
-    if args.batch_only:
+    if args.gpu:
+        from lanefree_sumo.errors import LaneFreeError
+        from lanefree_sumo.tools import bench_gpu
+
+        try:
+            bench_gpu.run(args.device, args.env_sizes, args.train_sizes, args.env_steps, args.train_steps,
+                          args.budget_s, args.seed)
+        except LaneFreeError as exc:
+            raise SystemExit(f"error: {exc}") from None
+    elif args.batch_only:
         print(batch_speed(args.seed, steps=args.steps))
     elif args.dqn_only:
         print(dqn_family_speed(args.seed))

@@ -91,9 +91,11 @@ class BatchedLearner:
 
     # -- the cycle ------------------------------------------------------------------------------------------
 
-    def _obs(self, obs: np.ndarray) -> th.Tensor:
-        """Observations ``[K, obs]`` as the networks take them: ``[K, 1, obs]`` float32 on the device."""
-        return th.as_tensor(np.asarray(obs)).float().reshape(self.runs, 1, self.obs_dim).to(self.device)
+    def _obs(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
+        """Observations ``[K, obs]`` (host arrays, or tensors where the env runs on a device) as the networks take
+        them: ``[K, 1, obs]`` float32 on the device."""
+        values = obs if isinstance(obs, th.Tensor) else th.as_tensor(np.asarray(obs))
+        return values.float().reshape(self.runs, 1, self.obs_dim).to(self.device)
 
     def store(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
               done: np.ndarray, truncated: np.ndarray | None = None) -> None:

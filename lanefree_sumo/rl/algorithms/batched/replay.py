@@ -107,13 +107,16 @@ class BatchedReplay:
 
     def add(self, obs: np.ndarray, next_obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             dones: np.ndarray, timeouts: np.ndarray) -> int:
-        """Store one transition per run (rows of the arrays, cast as SB3's numpy buffer casts); returns its
-        position."""
+        """Store one transition per run (rows of the arrays, cast as SB3's numpy buffer casts; tensors already on
+        a device are cast there, with the same rounding); returns its position."""
         pos = self.pos
         device = self.observations.device
         for target, values in ((self.observations, obs), (self.next_observations, next_obs),
                                (self.actions, actions), (self.rewards, rewards), (self.dones, dones),
                                (self.timeouts, timeouts)):
+            if isinstance(values, th.Tensor):
+                target[:, pos].copy_(values.to(device=device, dtype=target.dtype).reshape(target[:, pos].shape))
+                continue
             host = np.asarray(values).astype(_NUMPY[target.dtype]).reshape(target[:, pos].shape)
             target[:, pos].copy_(th.from_numpy(host).to(device, non_blocking=True))
         self.pos += 1
