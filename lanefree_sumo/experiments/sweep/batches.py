@@ -149,55 +149,74 @@ def trained_in_batch(run: Path) -> bool:
         return False
 
 
-def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInfo], size: int) -> Packing:
-    """Batches and single runs for ``todo`` (module docstring); deletes batch folders without a checkpoint.
-    RunError for a finished batched run the grid asks to extend (a batch is not extended)."""
-    packing = Packing(size=size)
-    wanted = {c.name: c for c in todo}
-    claimed: set[str] = set()
-    if sweep.batches.is_dir():
-        for folder in sorted(p for p in sweep.batches.iterdir() if p.is_dir()):
-            runs = members(folder)
-            if not has_checkpoint(folder):
-                shutil.rmtree(folder)  # killed before its first checkpoint: its runs restart
-            elif any(r in wanted for r in runs):
-                packing.batches.append(Batch(folder.name, tuple(runs), resumed=True))
-                claimed.update(runs)
+def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell]) -> list[Batch]:
+    """The batches of ``sweep`` to continue: those with a batch checkpoint and a run in ``todo``. Deletes the
+    batch folders without a checkpoint (killed before their first: their runs start afresh)."""
+    found: list[Batch] = []
+    if not sweep.batches.is_dir():
+        return found
+    wanted, known = {c.name for c in todo}, {c.name for c in grid.cells()}
+    for folder in sorted(p for p in sweep.batches.iterdir() if p.is_dir()):
+        runs = members(folder)
+        if not has_checkpoint(folder):
+            shutil.rmtree(folder)
+        elif wanted.intersection(runs):
+            strangers = sorted(set(runs) - known)
+            if strangers:
+                raise RunError(f"batch {folder} holds {strangers[0]}, not a run of this sweep's grid; move the "
+                               "batch folder away to train its other runs afresh")
+            found.append(Batch(folder.name, tuple(runs), resumed=True))
+    return found
+
+
+def _single_reason(sweep: SweepDir, grid: Grid, cell: Cell, info: RunInfo, size: int,
+                   why_single: str) -> str | None:
+    """Why ``cell`` trains one run per task (None: it may be batched). RunError for a finished batched run the
+    grid would extend."""
+    if info.state == PARTIAL and trained_in_batch(sweep.run(cell)):
+        raise RunError(f"{sweep.run(cell)} was trained in a batch ({info.detail}); a batch is not extended: "
+                       f"keep the grid's episodes or use another --out")
+    if size < 2:
+        return why_single
+    if info.state not in (PENDING, STALE):
+        return "resumed from its own checkpoint"
+    try:
+        batch_key(grid.config(cell))
+    except ConfigError as exc:
+        return str(exc).split(";")[0]
+    return None
+
+
+def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInfo], size: int,
+         why_single: str = "--batch 1") -> Packing:
+    """Batches of at most ``size`` and single runs for ``todo`` (module docstring; ``why_single``: the plan's
+    reason when ``size`` is 1); deletes batch folders without a checkpoint. RunError for a finished batched run
+    the grid asks to extend (a batch is not extended)."""
+    packing = Packing(batches=interrupted_batches(sweep, grid, todo), size=size)
+    claimed = {name for batch in packing.batches for name in batch.runs}
     groups: dict[str, list[Cell]] = {}
     for cell in todo:
         if cell.name in claimed:
             continue
-        info = states[cell.name]
-        if info.state == PARTIAL and trained_in_batch(sweep.run(cell)):
-            raise RunError(f"{sweep.run(cell)} was trained in a batch ({info.detail}); a batch is not extended: "
-                           f"keep the grid's episodes or use another --out")
-        reason = None
-        if size < 2:
-            reason = "--batch 1"
-        elif info.state not in (PENDING, STALE):
-            reason = "resumed from its own checkpoint"
+        reason = _single_reason(sweep, grid, cell, states[cell.name], size, why_single)
+        if reason is None:
+            groups.setdefault(batch_key(grid.config(cell)), []).append(cell)
         else:
-            try:
-                key = batch_key(grid.config(cell))
-            except ConfigError as exc:
-                reason = str(exc).split(";")[0]
-        if reason is not None:
             packing.sequential.append(cell)
             packing.reasons[reason] = packing.reasons.get(reason, 0) + 1
-            continue
-        groups.setdefault(key, []).append(cell)
     for cells in groups.values():
         count = math.ceil(len(cells) / size)
         start = 0
         for i in range(count):  # near equal sizes: 10 runs at K = 8 are 5 + 5, not 8 + 2
             n = len(cells) // count + (i < len(cells) % count)
-            names = [c.name for c in cells[start:start + n]]
+            chunk = cells[start:start + n]
             start += n
-            if len(names) == 1:
-                packing.sequential.append(wanted[names[0]])
+            if len(chunk) == 1:
+                packing.sequential.append(chunk[0])
                 packing.reasons["alone in its batch"] = packing.reasons.get("alone in its batch", 0) + 1
             else:
-                packing.batches.append(Batch(batch_name(cells[0].setting.algorithm, names), tuple(names)))
+                packing.batches.append(Batch(batch_name(chunk[0].setting.algorithm, [c.name for c in chunk]),
+                                             tuple(c.name for c in chunk)))
     return packing
 
 

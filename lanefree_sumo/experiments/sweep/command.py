@@ -209,7 +209,8 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED)]
     with driver_lock(folder, command):
         size = batch_size(batch, len(todo), workers)
-        packing = pack(sweep, grid, todo, states, size)
+        packing = pack(sweep, grid, todo, states, size,
+                       "--batch 1" if batch == 1 else "no more runs to train than workers")
         manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)
         manifest.grid = grid  # the same, or with the seeds --seeds added
         manifest.sessions.append({"started": datetime.now().isoformat(timespec="seconds"), "command": command,
