@@ -8,6 +8,8 @@ import csv
 import json
 import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,7 +22,7 @@ from lanefree_sumo.experiments.sweep.grid import load_grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import PARTIAL, PENDING, STALE, RunInfo
 
-from conftest import lanefree, lanefree_popen, wait_for
+from conftest import CLI_ENV, lanefree, lanefree_popen, wait_for
 
 
 def write_grid(path: Path, data: dict) -> Path:
@@ -107,6 +109,18 @@ def test_bad_batch_options_are_one_line_errors(tmp_path):
 
 
 # -- real sweeps on the embedded Ray ----------------------------------------------------------------------------
+
+def test_an_embedded_ray_that_cannot_start_is_one_line_and_trains_nothing(tmp_path):
+    """Ray's temp folder is a file here (a start that fails as an overloaded machine's does: no Ray)."""
+    (tmp_path / "file").write_text("")
+    grid = write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0], "episodes": 2})
+    done = subprocess.run([sys.executable, "-m", "lanefree_sumo.cli", "sweep", str(grid), "--out",
+                           str(tmp_path / "out"), "--workers", "1", "--no-progress"], capture_output=True, text=True,
+                          timeout=300, env={**CLI_ENV, "RAY_TMPDIR": str(tmp_path / "file")})
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "the embedded Ray did not start" in done.stderr and "internal error" not in done.stderr
+    assert not (tmp_path / "out" / "runs").exists()
+
 
 TINY = {"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision", "fields_collision"], "seeds": [0],
         "episodes": 2, "overrides": {"sim": {"episode_steps": 40}, "train": {

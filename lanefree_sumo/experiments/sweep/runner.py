@@ -97,8 +97,14 @@ def start_ray(workers: int | None, address: str | None) -> Any:
         raise UsageError(f"'lanefree sweep' needs Ray ({exc}); pip install -e '.[rl]'") from None
     common: dict[str, Any] = {"log_to_driver": False, "logging_level": logging.WARNING}
     if address is None:
-        ray.init(address="local", num_cpus=workers, num_gpus=0, include_dashboard=False,
-                 object_store_memory=OBJECT_STORE_BYTES, **common)
+        try:
+            ray.init(address="local", num_cpus=workers, num_gpus=0, include_dashboard=False,
+                     object_store_memory=OBJECT_STORE_BYTES, **common)
+        except Exception as exc:  # a node that timed out starting (an overloaded machine), no room for its files
+            reason = " ".join(str(exc).split())[:300]
+            raise RunError(f"the embedded Ray did not start ({type(exc).__name__}: {reason}); nothing was trained: "
+                           "rerun the same command (it resumes) once that is mended (a timeout: when the machine "
+                           "is less loaded)") from None
         return ray
     check_address(address)
     try:
