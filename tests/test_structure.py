@@ -97,9 +97,23 @@ def test_the_package_imports_no_circle():
 
 def test_the_rooms_import_downwards_only():
     """experiments -> rl -> sim -> config/errors: a room imports nothing of the rooms above it."""
-    above = {"config": ("sim", "rl", "experiments", "tools"), "sim": ("rl", "experiments", "tools"),
-             "rl": ("experiments", "tools")}
+    verbs = ("commands", "cli", "options")  # the command line, above every room (rollout's own options aside)
+    above = {"config": ("sim", "rl", "experiments", "tools", *verbs), "sim": ("rl", "experiments", "tools", *verbs),
+             "rl": ("experiments", "tools", *verbs), "experiments": ("tools", "commands", "cli")}
     wrong = [(module, imported) for module, imports in _graph().items() for imported in imports
              for room, higher in above.items() if module.startswith(f"lanefree_sumo.{room}.")
              and any(imported.startswith(f"lanefree_sumo.{h}.") or imported == f"lanefree_sumo.{h}" for h in higher)]
     assert not wrong, f"imports against the arrows: {wrong}"
+
+
+def test_the_algorithm_names_are_the_configs_and_the_registry_is_keyed_by_them():
+    """The names are declared once, in the config (``AlgorithmName``); the registry takes them in their order,
+    each class under its name, and the config room imports nothing from the RL room to know them."""
+    from typing import get_args
+
+    from lanefree_sumo.config import AlgorithmName
+    from lanefree_sumo.rl.algorithms import ALGORITHMS
+
+    assert tuple(ALGORITHMS) == get_args(AlgorithmName)
+    assert all(spec.name == name for name, spec in ALGORITHMS.items())
+    assert not any(m.startswith("lanefree_sumo.rl") for m in _graph()["lanefree_sumo.config.schema"])

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import inspect
+import re
 import typing
 from functools import cache
 from typing import Any, get_args, get_origin
@@ -32,7 +33,7 @@ def field_docs() -> dict[tuple[str, str], str]:
                     and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
                     and isinstance(after.value.value, str)):
                 text = " ".join(after.value.value.split())
-                docs[(node.name, here.target.id)] = text.split(". ")[0].rstrip(".")
+                docs[(node.name, here.target.id)] = re.split(r"(?<! al)\.\s+(?=[A-Z`(])", text)[0].rstrip(".")
     return docs
 
 

@@ -432,9 +432,11 @@ class TrainConfig:
     """The learner choices the paper leaves open, set together (:data:`LEARNER_PROFILES`): ``sb3`` (SB3's
     defaults) or ``kerasrl`` (Keras-RL's DQNAgent and DDPGAgent defaults); keys given beside it win."""
     episodes: int = field(default=625, metadata={"range": (1, 10_000_000)})
+    """Training episodes of ``sim.episode_steps`` steps each."""
     envs: int = field(default=1, metadata={"range": (1, 4096)})
     """Parallel environments, one process each (libsumo runs one simulation per process)."""
     checkpoint_every_episodes: int = field(default=25, metadata={"range": (1, 10_000_000)})
+    """Save a checkpoint every this many episodes."""
     torch_threads: int = field(default=1, metadata={"range": (1, 1024)})
     """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
     fast_learner: bool = True
@@ -505,6 +507,7 @@ class EvaluationConfig:
     """Defaults of ``lanefree evaluate`` (not part of a run's config)."""
 
     episodes: int = 20
+    """Evaluation episodes, deterministic, on fresh seeds."""
     seed_offset: int = 100_000
     """Evaluation episode k of a run with seed s uses seed s + this + k: never a training seed."""
 

@@ -244,12 +244,12 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
     """Train the runs ``cfgs`` as one batch into ``folders`` (default ``batch_dir/<batch_name>``); return each
     run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early."""
     from lanefree_sumo.rl.models import training_config
-    from lanefree_sumo.sim.spawn import spawn
+    from lanefree_sumo.sim.spawn import check_fits
 
     cfgs = [training_config(c) for c in cfgs]
     for cfg in cfgs:
         check_batchable(cfg)
-        spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
+        check_fits(cfg)  # the density fits, before anything is written
     paths = folders or [batch_dir / batch_name(c) for c in cfgs]
     if len(set(paths)) != len(paths):
         raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")

@@ -21,15 +21,17 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lanefree_sumo import argtypes
-from lanefree_sumo.config import BACKENDS, EvaluationConfig, LaneFreeConfig, layered_config
+from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig
 from lanefree_sumo.errors import EXIT_INTERRUPTED
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
+from lanefree_sumo.options import DENSITY, Option, add_options, verb_config
 
 POLICIES = ("random", "idle")
 EVALUATION = EvaluationConfig()
@@ -37,6 +39,27 @@ DEFAULTS = LaneFreeConfig()
 ROW = ("episode", "agent", "seed", "collisions", "background_collisions", "shield_interventions", "shield_fallbacks",
        "speed_dev_mps", "mean_speed_mps", "return")
 """Columns of the per-episode rows."""
+
+
+OPTIONS: tuple[Option, ...] = (
+    Option("--policy", extra={"choices": POLICIES}, group="who",
+           note="built-in policy: random (uniform actions, seeded) or idle (ax = ay = 0); default random"),
+    Option("--run", type=Path, extra={"metavar": "RUN"}, group="who",
+           note="a run folder made by 'lanefree train': its model, deterministic, with its config"),
+    replace(DENSITY, default=None, note=f"default {DEFAULTS.scenario.density_veh_per_km:g}, or RUN's"),
+    Option("--episodes", "episodes", schema=EvaluationConfig, unit="episodes",
+           note=f"of {DEFAULTS.sim.episode_steps} steps"),
+    Option("--seed", type=argtypes.seed, default=None,
+           note=f"episode k uses traffic seed SEED+k-1 (default {DEFAULTS.seed}; with --run, RUN's seed+"
+           f"{EVALUATION.seed_offset}+1 as 'lanefree evaluate')"),
+    Option("--agents", "scenario.agents", unit="vehicles", default=None,
+           note=f"on top of the background traffic (default {DEFAULTS.scenario.agents}, or RUN's); rows per agent "
+           "and episode"),
+    Option("--shield", "shield.enabled", negatable=True, default=None, note="default off; with --run, as RUN was "
+           "trained"),
+    Option("--backend", "backend"),
+    Option("--json", note="print ONE JSON summary object on stdout's last line", extra={"action": "store_true"}),
+)
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -48,27 +71,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "safety shield, and print one row per episode; --json adds ONE JSON summary on stdout's last line. "
         "Nothing is written to disk.",
     )
-    who = p.add_mutually_exclusive_group()
-    who.add_argument("--policy", choices=POLICIES, default=None,
-                     help="built-in policy: random (uniform actions, seeded) or idle (ax = ay = 0); default random")
-    who.add_argument("--run", type=Path, default=None, metavar="RUN",
-                     help="a run folder made by 'lanefree train': its model, deterministic, with its config")
-    density = DEFAULTS.scenario.density_veh_per_km
-    p.add_argument("--density", type=argtypes.density, default=None,
-                   help=f"background density in veh/km (default {density:g}, or RUN's)")
-    p.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=EVALUATION.episodes,
-                   help=f"episodes of {DEFAULTS.sim.episode_steps} steps (default {EVALUATION.episodes})")
-    p.add_argument("--seed", type=argtypes.seed, default=None,
-                   help=f"episode k uses traffic seed SEED+k-1 (default {DEFAULTS.seed}; with --run, RUN's seed+"
-                   f"{EVALUATION.seed_offset}+1 as 'lanefree evaluate')")
-    p.add_argument("--agents", type=argtypes.positive(int, "vehicles"), default=None,
-                   help=f"vehicles driven by the policy, on top of the background traffic (default "
-                   f"{DEFAULTS.scenario.agents}, or RUN's); rows per agent and episode")
-    p.add_argument("--shield", action=argparse.BooleanOptionalAction, default=None,
-                   help="pass every action through the safety shield (default off; with --run, as RUN was trained)")
-    p.add_argument("--backend", choices=BACKENDS, default=DEFAULTS.backend,
-                   help=f"simulation backend (default {DEFAULTS.backend})")
-    p.add_argument("--json", action="store_true", help="print ONE JSON summary object on stdout's last line")
+    add_options(p, OPTIONS)
     argtypes.add_config_options(p)
     return p
 
@@ -109,20 +112,14 @@ def run(args: argparse.Namespace) -> int:
 def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
     """The config (and the model with --run) of a rollout: the defaults or RUN's config, then ``--config FILE``,
     then the options, then every ``--set``."""
-    overrides: dict[str, Any] = {"backend": args.backend}
-    if args.density is not None:
-        overrides["scenario"] = {"density_veh_per_km": args.density}
-    if args.shield is not None:
-        overrides["shield"] = {"enabled": args.shield}
-    if args.agents is not None:
-        overrides.setdefault("scenario", {})["agents"] = args.agents
     folder = None
     if args.run is not None:
         from lanefree_sumo.experiments.rundir import RunDir
 
         folder = RunDir(args.run)
     base = LaneFreeConfig() if folder is None else folder.load_config()
-    cfg = layered_config(base, args.config, [overrides], args.settings)
+    # the backend is always the option's (a run's training backend is not the rollout's)
+    cfg = verb_config(args, OPTIONS, {"backend": args.backend}, base=base)
     if folder is None:
         return cfg, None
     from lanefree_sumo.experiments.evaluate import load_model

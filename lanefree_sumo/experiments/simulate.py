@@ -11,8 +11,6 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lanefree_sumo.config import LaneFreeConfig, SimulationConfig
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.experiments.rundir import (
@@ -24,7 +22,7 @@ from lanefree_sumo.experiments.rundir import (
 )
 from lanefree_sumo.experiments.trajectory import TrajectoryWriter
 from lanefree_sumo.sim.simulation import run_simulation
-from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.spawn import check_fits
 
 MAX_STEPS: int = next(f for f in fields(SimulationConfig) if f.name == "episode_steps").metadata["range"][1]
 """The most steps one simulation runs: the longest episode the config allows."""
@@ -49,7 +47,7 @@ def simulate(
     steps = int(round(seconds / cfg.sim.step_s))
     if steps < 1:
         raise ConfigError(f"--seconds {seconds:g} is shorter than one step of {cfg.sim.step_s:g} s")
-    spawn(cfg, np.random.default_rng(cfg.seed))  # density check before anything is written
+    check_fits(cfg)  # before anything is written
     with fresh_output(out, overwrite, "simulate") as folder:
         append_command(folder, command)
         write_config(folder, cfg)

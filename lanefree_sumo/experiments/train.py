@@ -36,7 +36,7 @@ from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
-from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.spawn import check_fits
 
 # -- provenance ----------------------------------------------------------------------------------
 
@@ -284,7 +284,7 @@ def train(
             timesteps = ckpt.timesteps
         else:
             cfg = training_config(cfg)
-            spawn(cfg, np.random.default_rng(cfg.seed))  # the density fits, before anything is written
+            check_fits(cfg)  # the density fits, before anything is written
             run = new_run_folder(cfg, run)
             folder = RunDir(run)
             stack.enter_context(folder.writer_lock())  # another start of the same --out: refused, nothing removed

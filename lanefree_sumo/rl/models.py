@@ -42,13 +42,12 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
                           "use --envs 1 and no --overlap with it")
     from lanefree_sumo.rl.env import resolve_config
 
-    resolve_config(base)  # what the environments would refuse, refused here: not inside their processes
+    resolved = resolve_config(base)  # what the environments would refuse, refused here: not inside their processes
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
     if base.train.envs > most:
         raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
                           f"{os.cpu_count()} cores: use at most {most}")
-    return merge_config(base, {"action": {"kind": kind}, "scenario": {"with_agent": True},
-                              "backend": base.train.backend})
+    return merge_config(resolved, {"action": {"kind": kind}, "backend": base.train.backend})
 
 
 def total_timesteps(cfg: LaneFreeConfig) -> int:

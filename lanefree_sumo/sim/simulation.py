@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lanefree_sumo.config import ConfigError, LaneFreeConfig, merge_config, validate_config
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, validate_config
 from lanefree_sumo.sim.backends.numpy import Backend, OpenRoadNumpyBackend
 from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.sim.dynamics import ballistic_distance, clip_acceleration, plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.open_road import OpenRoadTraffic, append_rows, keep_rows
 from lanefree_sumo.sim.road import Road, road_of
-from lanefree_sumo.sim.spawn import spawn
+from lanefree_sumo.sim.spawn import spawn, without_agents
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
 from lanefree_sumo.sim.world import World, WorldParams, step_world, world_of
 
@@ -124,7 +124,7 @@ class Simulation:
         if self.traffic is None:
             return self.place(spawn(self.cfg, rng))
         self.traffic.reset(seed)
-        background = spawn(merge_config(self.cfg, {"scenario": {"with_agent": False}}), rng)
+        background = spawn(without_agents(self.cfg), rng)
         if not self.cfg.scenario.with_agent:
             return self.place(background)
         agents, on_ramp = self.traffic.agent_start(background)

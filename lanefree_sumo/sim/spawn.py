@@ -9,6 +9,8 @@ largest number of vehicles that fits is exactly ``rows × cols``.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from lanefree_sumo.config import ConfigError, LaneFreeConfig
@@ -38,6 +40,12 @@ def background_id(index: int) -> str:
     return f"bg{index}"
 
 
+def without_agents(cfg: LaneFreeConfig) -> LaneFreeConfig:
+    """``cfg`` with no agent on the road (``scenario.with_agent`` off), every other value as it is: the
+    background of the open road, drawn before its agents start."""
+    return replace(cfg, scenario=replace(cfg.scenario, with_agent=False))
+
+
 def grid_shape(cfg: LaneFreeConfig) -> tuple[int, int]:
     """(rows, cols) of the spawn grid for the vehicle classes on the road."""
     sc = cfg.scenario
@@ -56,6 +64,28 @@ def max_density(cfg: LaneFreeConfig) -> float:
     return capacity * 1000.0 / cfg.road.main_length_m
 
 
+def check_fits(cfg: LaneFreeConfig) -> None:
+    """Refuse (:class:`ConfigError`) a density whose vehicles (background and agents) do not fit on the road
+    in :func:`spawn`'s grid, or that puts no vehicle on the ring: the check :func:`spawn` makes, without
+    drawing a state (a verb makes it before it writes anything)."""
+    sc = cfg.scenario
+    n_bg = cfg.background_vehicles
+    k = agent_count(cfg)
+    rows, cols = grid_shape(cfg)
+    if n_bg < 1 and cfg.road.kind == "ring":
+        raise ConfigError(
+            f"density {sc.density_veh_per_km:g} veh/km puts no vehicle on a "
+            f"{cfg.road.length_m:g} m ring; use at least {1000.0 / cfg.road.length_m:g} veh/km"
+        )
+    if n_bg + k > rows * cols:
+        raise ConfigError(
+            f"density {sc.density_veh_per_km:g} veh/km ({n_bg} vehicles{f' and {k} agents' if k > 1 else ''}) "
+            "does not fit on a "
+            f"{cfg.road.main_length_m:g} m × {cfg.road.width_m:g} m {cfg.road.kind}; the maximum is "
+            f"{max_density(cfg):.0f} veh/km"
+        )
+
+
 def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     """Random non-overlapping initial state: background vehicles, then the agents if any (the last
     :func:`agent_count` rows; with one agent the draws are those of the one-agent scenario).
@@ -63,23 +93,12 @@ def spawn(cfg: LaneFreeConfig, rng: np.random.Generator) -> VehicleState:
     On the on-ramp (``road.kind``) they start on the main road, which may also start empty.
     Raises :class:`ConfigError` when the density does not fit on the road.
     """
+    check_fits(cfg)
     sc = cfg.scenario
     n_bg = cfg.background_vehicles
     k = agent_count(cfg)
     n = n_bg + k
     rows, cols = grid_shape(cfg)
-    if n_bg < 1 and cfg.road.kind == "ring":
-        raise ConfigError(
-            f"density {sc.density_veh_per_km:g} veh/km puts no vehicle on a "
-            f"{cfg.road.length_m:g} m ring; use at least {1000.0 / cfg.road.length_m:g} veh/km"
-        )
-    if n > rows * cols:
-        raise ConfigError(
-            f"density {sc.density_veh_per_km:g} veh/km ({n_bg} vehicles{f' and {k} agents' if k > 1 else ''}) "
-            "does not fit on a "
-            f"{cfg.road.main_length_m:g} m × {cfg.road.width_m:g} m {cfg.road.kind}; the maximum is "
-            f"{max_density(cfg):.0f} veh/km"
-        )
     cells = rng.choice(rows * cols, size=n, replace=False)
     row, col = np.divmod(cells, cols)
     length = np.full(n, sc.background.length_m)

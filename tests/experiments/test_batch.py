@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from lanefree_sumo.cli import _report_batch
+from lanefree_sumo.commands.train import report_batch
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, batch_name, resume_batch, train_batch
 from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
@@ -114,7 +114,7 @@ def test_a_run_with_a_non_finite_action_stops_alone(tmp_path: Path, monkeypatch:
     session = json.loads((run1 / "last_session.json").read_text())
     assert "not finite" in session["stopped_by"] and session["episodes_done"] == 1
     assert json.loads((run0 / "last_session.json").read_text())["stopped_by"] is None
-    assert _report_batch([(run0, done0), (run1, done1)]) == 1  # not an interruption: nothing to resume
+    assert report_batch([(run0, done0), (run1, done1)]) == 1  # not an interruption: nothing to resume
     out = capsys.readouterr()
     assert f"stopped after 1/3 episodes -> {run1} (run 1: action" in out.out and "--resume" not in out.err
 

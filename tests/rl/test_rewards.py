@@ -475,17 +475,6 @@ def test_presets_are_frozen():
     assert math.isclose(get_preset("fields").w_f, 1.0)
 
 
-def test_the_configs_algorithm_names_are_the_registry():
-    """The config validates names it owns (no import from the RL room); this keeps the algorithms in step
-    (the reward presets' names are the config's own list, PRESETS is built from it)."""
-    from typing import get_args
-
-    from lanefree_sumo.config import AlgorithmName
-    from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
-
-    assert get_args(AlgorithmName) == ALGORITHM_NAMES
-
-
 # ------------------------------------------------------------------ non-default weights and constants
 # Weights other than the paper's, and every constant changed, so that a dropped factor, a swapped
 # weight or a default used in place of the passed value changes the number.

@@ -20,7 +20,7 @@ from lanefree_sumo.sim.forces import (
 )
 from lanefree_sumo.sim.network import EDGES, edge_to_ring, ring_to_edge
 from lanefree_sumo.sim.simulation import Simulation
-from lanefree_sumo.sim.spawn import max_density, spawn
+from lanefree_sumo.sim.spawn import check_fits, max_density, spawn
 from lanefree_sumo.sim.state import VehicleState, wrap
 
 T = 0.25
@@ -288,9 +288,11 @@ def test_spawn_never_overlaps_and_stays_on_road(density):
 def test_spawn_rejects_density_that_does_not_fit_and_names_the_maximum():
     cfg = merge_config(LaneFreeConfig(), {"scenario": {"density_veh_per_km": 2000}})
     top = max_density(cfg)
-    with pytest.raises(ConfigError, match=f"maximum is {top:.0f} veh/km"):
-        spawn(cfg, np.random.default_rng(0))
+    for check in (lambda c: spawn(c, np.random.default_rng(0)), check_fits):  # the check without a draw too
+        with pytest.raises(ConfigError, match=f"maximum is {top:.0f} veh/km"):
+            check(cfg)
     full = merge_config(cfg, {"scenario": {"density_veh_per_km": top}})
+    check_fits(full)
     assert not overlap_matrix(spawn(full, np.random.default_rng(0)), L).any()
 
 

@@ -349,7 +349,7 @@ def _owned(overrides: Mapping[str, Any], path: str = "") -> list[str]:
 
 def validate_grid(grid: Grid, source: str) -> Grid:
     """Check the overrides and that every setting's traffic fits on the road (before any run starts)."""
-    from lanefree_sumo.sim.spawn import spawn
+    from lanefree_sumo.sim.spawn import check_fits
 
     where = f"grid {source}"
     if not isinstance(grid.overrides, Mapping):
@@ -391,9 +391,7 @@ def validate_grid(grid: Grid, source: str) -> Grid:
         try:
             cfg = grid.config(cell)
             if (setting.density, cfg.road.length_m) not in checked:
-                import numpy as np
-
-                spawn(cfg, np.random.default_rng(0))
+                check_fits(cfg)
                 checked.add((setting.density, cfg.road.length_m))
         except ConfigError as exc:
             raise ConfigError(f"{where}: {setting.label}: {exc}") from None

@@ -1,4 +1,5 @@
-"""THE algorithm registry: name → SB3(-compatible) class, action kind, on/off-policy, config section.
+"""THE algorithm registry: name → SB3(-compatible) class, action kind, on/off-policy, config section; the
+names are the config's ``AlgorithmName`` (the config room imports nothing of this one).
 
 Training, evaluation, the benchmark, the CLI's help and the tests all read :data:`ALGORITHMS`.
 Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
@@ -14,8 +15,9 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
+from lanefree_sumo.config import AlgorithmName
 from lanefree_sumo.errors import ConfigError
 
 
@@ -23,7 +25,8 @@ from lanefree_sumo.errors import ConfigError
 class AlgorithmSpec:
     """What the platform needs to know about one algorithm."""
 
-    name: str
+    name: AlgorithmName
+    """One of the config's names (a name the schema lacks is a type error)."""
     target: str
     """``module:attribute`` of the class."""
     actions: Literal["continuous", "discrete"]
@@ -50,7 +53,7 @@ class AlgorithmSpec:
 
 _ALGOS = "lanefree_sumo.rl.algorithms"
 _OU = ("ou_sigma", "ou_theta")
-ALGORITHMS: dict[str, AlgorithmSpec] = {
+_SPECS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
         AlgorithmSpec("ddpg", f"{_ALGOS}.fast_ddpg:FastDDPG", "continuous", True, "actor_critic",
@@ -71,7 +74,12 @@ ALGORITHMS: dict[str, AlgorithmSpec] = {
                       "double DQN with prioritised replay", fast_learner=True),
     )
 }
-ALGORITHM_NAMES: tuple[str, ...] = tuple(ALGORITHMS)
+ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)
+"""The algorithms' names: the config's :data:`~lanefree_sumo.config.AlgorithmName`, in its order."""
+if set(_SPECS) != set(ALGORITHM_NAMES):  # a name without a class, or a class the config would refuse
+    raise ImportError(f"the registry's algorithms {sorted(_SPECS)} are not the config's {sorted(ALGORITHM_NAMES)}")
+ALGORITHMS: dict[str, AlgorithmSpec] = {name: _SPECS[name] for name in ALGORITHM_NAMES}
+"""THE registry, keyed by the config's algorithm names."""
 
 
 def get_algorithm(name: str) -> AlgorithmSpec:

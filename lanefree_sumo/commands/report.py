@@ -1,0 +1,98 @@
+"""``lanefree report``: learning curves and paper-style tables from run folders, or a sweep's summary."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from lanefree_sumo.config import ReportConfig
+from lanefree_sumo.errors import UsageError
+from lanefree_sumo.options import Option, add_options
+
+OPTIONS: tuple[Option, ...] = (
+    Option("runs", type=Path, extra={"nargs": "*", "metavar": "RUN"},
+           note="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep' (at least one)"),
+    Option("--out", type=Path, default=Path("report"),
+           note="output folder (default report/: outside runs/, which holds run folders only)"),
+    Option("--last", "last_episodes", schema=ReportConfig, unit="episodes"),
+    Option("--smooth", "smooth_episodes", schema=ReportConfig, unit="episodes"),
+    Option("--eval", extra={"nargs": "*", "metavar": "NAME"},
+           note="tabulate each run's evaluation RUN/NAME/episodes.csv (default NAME eval; e.g. eval_d120, "
+           "eval_shield) instead of its training episodes, at the evaluated density; several NAMEs: the "
+           "evaluations side by side in one table and two bar charts (evaluations_collisions.png, "
+           "evaluations_speed_dev.png), no learning curves. Put the RUN folders before --eval"),
+)
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """The ``report`` sub-command's parser."""
+    p = subparsers.add_parser(
+        "report",
+        help="learning curves and paper-style tables from run folders",
+        description="Group run folders by (algorithm, reward preset, density, variant: every other setting in "
+        "which a run's config differs from the defaults, e.g. shield.enabled=True), average the seeds, and write "
+        "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
+        "and a table of last-50-episode means ± std with the paper's numbers (docs/specification.md §10) as "
+        "summary.csv and summary.md. Unusable runs are named and skipped. Given a sweep folder (one with "
+        "sweep.yaml), writes the sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over "
+        "seeds, as 'lanefree sweep'.",
+    )
+    add_options(p, OPTIONS)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """``lanefree report``: write the report and print its summary table."""
+    from lanefree_sumo.experiments.report import report
+    from lanefree_sumo.experiments.sweep.manifest import MANIFEST
+
+    sources = _evaluation_names(args.eval)
+    if not args.runs:
+        raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder), before --eval")
+    sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
+    if sweeps:
+        return _report_sweep(args, sweeps)
+    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources)
+    for path, reason in result.skipped:
+        print(f"skipped {path}: {reason}", file=sys.stderr)
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    rows = "group(s)" if isinstance(sources, str) or len(sources) == 1 else "row(s), one per evaluation and group"
+    print(f"{len(result.table)} {rows} -> {args.out}")
+    print((args.out / "summary.md").read_text())
+    return 0
+
+
+def _evaluation_names(names: list[str] | None) -> list[str] | str:
+    """``report --eval``'s names: "" without the option (training episodes), ["eval"] for a bare ``--eval``;
+    a path among them is refused (the run folders were put after ``--eval``)."""
+    if names is None:
+        return ""
+    names = [name.rstrip("/") for name in names]
+    for name in names:
+        if not name or "/" in name or name in (".", ".."):
+            raise UsageError(f"--eval takes evaluation folder names inside each run (eval, eval_d120, …), got "
+                             f"{name!r}: put the RUN folders before --eval")
+    return names or ["eval"]
+
+
+def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
+    """``lanefree report SWEEP_DIR``: the sweep's summary with bootstrap CIs, written into it."""
+    from lanefree_sumo.experiments.sweep.summary import summarize
+
+    if len(args.runs) > 1:
+        raise UsageError(f"{sweeps[0]} is a sweep folder: report it alone (lanefree report {sweeps[0]})")
+    if "--out" in args.given or args.eval is not None:
+        bad = "--out" if "--out" in args.given else "--eval"
+        raise UsageError(f"a sweep's summary is written into the sweep folder {sweeps[0]} from its training runs; "
+                         f"drop {bad}")
+    result = summarize(sweeps[0], last=args.last, smooth=args.smooth)
+    for name, reason in result.incomplete:
+        print(f"not in the summary: {name} ({reason})", file=sys.stderr)
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"{len(result.table)} setting(s) -> {sweeps[0]}")
+    print((sweeps[0] / "summary.md").read_text())
+    return 0
