@@ -3,8 +3,10 @@
 Run k of a batch is ``lanefree train`` of its own config: the loop below keeps SB3's order for every run (the
 action, the environment step, the finished episodes' rows, the transition stored with the terminal observation,
 the step's schedules, one update), so run k's ``episodes.csv`` equals the sequential run's in every column but
-``wall_s`` (on CPU; ``tests/experiments/test_batch.py``). Runs may differ in seed, density and reward preset
-(:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`, :func:`~lanefree_sumo.rl.models.build_batched`).
+``wall_s`` (on CPU; ``tests/experiments/test_batch.py``), under every open modelling choice (the overtake bonus,
+the agent's limits, the discrete action sizes, the learner profile). Runs may differ in seed, density, reward
+preset and overtake bonus (:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`,
+:func:`~lanefree_sumo.rl.models.build_batched`).
 
 Layout: the batch folder holds ``batch.json`` (the run folders, relative) and ``batch_checkpoints/`` (the whole
 batch — learners, replay, random streams, the environment — one file per checkpoint, the two newest kept). Each
@@ -59,9 +61,7 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
                         (cfg.observation.kind != "vector", "the set observation (--obs set)"),
                         (cfg.train.envs != 1, "several environments (--envs)"),
                         (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),
-                        (cfg.train.overlap, "--overlap"),
-                        (cfg.reward.overtake_bonus != "every_pass",
-                         f"reward.overtake_bonus = {cfg.reward.overtake_bonus}")):
+                        (cfg.train.overlap, "--overlap")):
         if wrong:
             raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
     check_device(cfg.train.device)

@@ -4,8 +4,9 @@ Run k is, bit for bit, a :class:`~lanefree_sumo.rl.env.LaneFreeEnv` of its own c
 traffic seeds of a training run (:func:`~lanefree_sumo.rl.models.episode_seed` (seed, 0, e) for its e-th
 episode, as ``lanefree train --seed <seed>`` gives them): the same observations, rewards, reward terms, episode
 ends and episode metrics (every column but the wall time). The runs may differ in seed, density (vehicle count:
-the world pads and masks) and reward preset; they share the step, the driver model, the agents' limits, the
-action and observation settings and the reward's constants.
+the world pads and masks), reward preset and which passes earn the overtake bonus (``reward.overtake_bonus``);
+they share the step, the driver model, the agents' limits (top speed, lateral speed bound), the action and
+observation settings (the discrete action sizes among them) and the reward's constants.
 
 Every step's work is array operations over the runs: observations, reward terms (:mod:`.rewards`,
 :mod:`.fields_zones`, evaluated for all runs at once), collisions, overtakes and the episode books. A run whose
@@ -41,7 +42,13 @@ from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world
 from lanefree_sumo.sim.xp import NUMPY, torch_namespace
 
 SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
-"""Config sections every run of a batch must have alike (the reward may differ in its preset only)."""
+"""Config sections every run of a batch must have alike (the reward may differ in its preset and overtake bonus)."""
+
+PER_RUN_REWARD = ("preset", "overtake_bonus")
+"""The reward's keys the runs of one batch may differ in."""
+
+OVERTAKE_BONUS_MODES = ("every_pass", "once_per_vehicle", "net_passes")
+"""``reward.overtake_bonus``'s values, as :class:`~lanefree_sumo.rl.rewards.OvertakeLedger` books them."""
 
 BOOKS = ("return", "return_bonus", "return_collision", "collisions", "collision_steps", "background_collisions",
          "speed_dev_sum", "speed_error_sum", "speed_sum", "overtakes", "boundary_contacts",
@@ -76,16 +83,16 @@ def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[Lane
         if cfg.shield.enabled:
             raise ConfigError(f"run {k}: the batched environment has no safety shield; "
                               "use LaneFree-v0 with shield.enabled")
-        if cfg.reward.overtake_bonus != "every_pass":
-            raise ConfigError(f"run {k}: the batched environment books the overtake bonus for every pass "
-                              f"(reward.overtake_bonus = every_pass), not {cfg.reward.overtake_bonus}; "
-                              "use LaneFree-v0 for the others")
+        if cfg.reward.overtake_bonus not in OVERTAKE_BONUS_MODES:
+            raise ConfigError(f"run {k}: reward.overtake_bonus = {cfg.reward.overtake_bonus!r} is not one of "
+                              f"{', '.join(OVERTAKE_BONUS_MODES)}")
         mine = config_to_dict(cfg)
         differ = [s for s in SHARED_SECTIONS if mine[s] != first[s]]
-        differ += ["reward"] if {**mine["reward"], "preset": None} != {**first["reward"], "preset": None} else []
+        unshared = dict.fromkeys(PER_RUN_REWARD)
+        differ += ["reward"] if {**mine["reward"], **unshared} != {**first["reward"], **unshared} else []
         if differ:
             raise ConfigError(f"run {k} differs from run 0 in {', '.join(differ)}: the runs of one batch may differ in "
-                              "seed, density and reward preset only")
+                              "seed, density, reward preset and overtake bonus only")
     WorldParams.of(cfgs)  # the physics' shared parts (driver model, agents' limits)
     return cfgs
 
@@ -137,6 +144,16 @@ class BatchedRingEnv:
         self._prev_dx = xp.zeros((self.runs, 0))
         self._order = xp.zeros((self.runs, 0), dtype=int)
         self._in_range = xp.zeros((self.runs, 0), dtype=bool)
+        bonus = np.array([c.reward.overtake_bonus for c in self.cfgs])
+        self._once = xp.asarray(bonus == "once_per_vehicle")
+        self._net_passes = xp.asarray(bonus == "net_passes")
+        rows = max(self._vehicles)
+        self._net = xp.zeros((self.runs, rows), dtype=int)
+        """Per vehicle row: the agent's passes of it minus its passes of the agent this episode."""
+        self._best = xp.zeros((self.runs, rows), dtype=int)
+        """Per vehicle row: the highest ``_net`` a pass gave it this episode (0 before any)."""
+        self._ever = xp.zeros((self.runs, rows), dtype=bool)
+        """Per vehicle row: passed at least once this episode."""
 
     @property
     def xp(self) -> Any:
@@ -164,6 +181,7 @@ class BatchedRingEnv:
         index = self.xp.asarray(chosen, dtype=int)
         for book in self._books.values():
             book[index] = 0.0
+        self._net[index], self._best[index], self._ever[index] = 0, 0, False
         if self.world is None or len(chosen) == self.runs:
             if len(chosen) != self.runs:
                 raise RuntimeError("the first reset starts every run")
@@ -276,10 +294,11 @@ class BatchedRingEnv:
         background_only = xp.sum(new, axis=(1, 2)) - agent_events
         obs = self._observe()
         dx_row = self._agent_row(world.dx)
-        passed = pass_events(self._prev_dx, dx_row, self._range, world.road_length[:, None])[0]
-        overtakes = xp.count_nonzero(passed & self._in_range, axis=1)
+        passed, passed_by = pass_events(self._prev_dx, dx_row, self._range, world.road_length[:, None])
+        passed, passed_by = passed & self._in_range, passed_by & self._in_range
+        overtakes = xp.count_nonzero(passed, axis=1)
         self._prev_dx = dx_row
-        terms = self._rewards(collided, overtakes > 0)
+        terms = self._rewards(collided, self._earned(passed, passed_by) > 0)
 
         vx_a = self._agent(world.vx)
         error = vx_a - self._agent(world.v_desired)
@@ -310,6 +329,19 @@ class BatchedRingEnv:
                 "overtakes": overtakes, "collision_events": agent_events, "boundary_contact": contact,
                 "ax": accel[:, 0], "ay": accel[:, 1], "episode_metrics": metrics, "stopped": stopped_now}
         return obs, xp.where(active, terms.reward, 0.0), terminated, truncated, info
+
+    def _earned(self, passed: np.ndarray, passed_by: np.ndarray) -> np.ndarray:
+        """How many of this step's passes ``[K, N]`` earn the bonus ``[K]``, each run by its ``overtake_bonus``
+        (:class:`~lanefree_sumo.rl.rewards.OvertakeLedger`, with a vehicle's row as its id: on the ring the rows
+        keep their vehicles through an episode)."""
+        xp = self.xp
+        self._net += xp.astype(passed, int) - xp.astype(passed_by, int)  # never passed and passing at once
+        first = passed & ~self._ever
+        gained = passed & (self._net > self._best)
+        paid = xp.where(self._once[:, None], first, xp.where(self._net_passes[:, None], gained, passed))
+        self._ever |= passed
+        self._best = xp.where(gained, self._net, self._best)
+        return xp.count_nonzero(paid, axis=1)
 
     # -- the agent's view -----------------------------------------------------------------------
     def _agent(self, a: np.ndarray) -> np.ndarray:

@@ -58,6 +58,36 @@ def test_batched_runs_equal_sequential_runs(tmp_path: Path, algo: str) -> None:
     assert results[1][0].name == batch_name(cfgs[1]) == f"{algo}_{cfgs[1].reward.preset}_d120_s1"
 
 
+# the open modelling choices, each in a batch of two runs: per run where the batch allows it, else for both
+OPEN_CHOICES = {
+    "overtake_bonus": ("ddpg", [{"reward": {"overtake_bonus": "once_per_vehicle"}},
+                                {"reward": {"overtake_bonus": "net_passes"}}]),
+    "agent_limits": ("dqn", [{"scenario": {"agent_max_speed_mps": 24.0, "agent_lateral_speed_ratio": 0.3}}] * 2),
+    "discrete_sizes": ("ddqn", [{"action": {"discrete_ax_mps2": 3.0, "discrete_ay_mps2": 0.5}}] * 2),
+    "kerasrl_ddpg": ("ddpg", [{"train": {"profile": "kerasrl"}}] * 2),
+    "kerasrl_dqn": ("dqn", [{"train": {"profile": "kerasrl"}}] * 2),
+}
+
+
+@pytest.mark.parametrize("choice", list(OPEN_CHOICES))
+def test_batched_runs_equal_sequential_runs_under_the_open_choices(tmp_path: Path, choice: str) -> None:
+    """Each open choice: run k of the batch writes ``lanefree train``'s episodes.csv (2 episodes of 60 steps)."""
+    algo, extras = OPEN_CHOICES[choice]
+    cfgs = []
+    for seed, extra in enumerate(extras):
+        cfg = merge_config(merge_config(small(algo, seed), extra), {"train": {"episodes": 2}})
+        # the profile's warm-up is 1000 steps: shortened as every test run's, the profile's other keys kept
+        cfgs.append(merge_config(cfg, {"train": {section: {"learning_starts_steps": 40}
+                                                 for section in ("dqn", "actor_critic")}}))
+    if choice.startswith("kerasrl"):
+        assert (cfgs[0].train.dqn.loss, cfgs[0].train.dqn.max_grad_norm,
+                cfgs[0].train.actor_critic.warmup_actions) == ("squared", None, "policy")
+    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test")
+    for cfg, (folder, done) in zip(cfgs, results):
+        run, _ = train(cfg, run=tmp_path / f"seq_{cfg.seed}", progress=False, command="test")
+        assert done == 2 and rows(folder / "episodes.csv") == rows(run / "episodes.csv")
+
+
 def test_a_run_with_a_non_finite_action_stops_alone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     """Run 1's policy gives NaN in episode 2: run 1 stops there (its folder's session says why, no model.zip),

@@ -19,17 +19,23 @@ TERMS = ("c_x", "c_y", "c_f", "y_d", "v_d_eff", "blocked", "collided", "overtook
          "collision_events", "boundary_contact")
 
 
-def configs(kind: str, observation: str = "vector") -> list[dict]:
-    return [{"seed": seed, "backend": "numpy", "scenario": {"density_veh_per_km": density},
-             "reward": {"preset": preset}, "action": {"kind": kind}, "observation": {"kind": observation},
-             "sim": {"episode_steps": STEPS}} for seed, density, preset in RUNS]
+def configs(kind: str, observation: str = "vector", *, bonuses: tuple[str, ...] = ("every_pass",) * len(RUNS),
+            scenario: dict | None = None, action: dict | None = None, steps: int = STEPS) -> list[dict]:
+    """The runs' configs: ``bonuses`` each run's reward.overtake_bonus; ``scenario`` and ``action`` keys every
+    run's."""
+    return [{"seed": seed, "backend": "numpy", "scenario": {"density_veh_per_km": density, **(scenario or {})},
+             "reward": {"preset": preset, "overtake_bonus": bonus}, "action": {"kind": kind, **(action or {})},
+             "observation": {"kind": observation}, "sim": {"episode_steps": steps}}
+            for (seed, density, preset), bonus in zip(RUNS, bonuses)]
 
 
-def actions(rng: np.random.Generator, kind: str) -> np.ndarray:
-    """Mostly accelerating, so the agents race, overtake and collide."""
+def actions(rng: np.random.Generator, kind: str, step: int = 0, surge: bool = False) -> np.ndarray:
+    """Mostly accelerating, so the agents race, overtake and collide; ``surge``: (continuous) 30 steps at full
+    throttle, 30 braking at half, so the agents pass, are passed back and pass the same vehicles again."""
     if kind == "discrete":
         return rng.choice([1, 5, 7, 0, 3, 4], size=len(RUNS))
-    return np.column_stack([rng.uniform(-0.3, 1.0, len(RUNS)), rng.uniform(-1.0, 1.0, len(RUNS))]).astype(np.float32)
+    ax = rng.uniform(-0.3, 1.0, len(RUNS)) if not surge else np.full(len(RUNS), 1.0 if step // 30 % 2 == 0 else -0.5)
+    return np.column_stack([ax, rng.uniform(-1.0, 1.0, len(RUNS))]).astype(np.float32)
 
 
 def assert_same_obs(batched, k: int, single) -> None:
@@ -47,19 +53,42 @@ def without_wall(row: dict) -> dict:
 @pytest.mark.parametrize(("kind", "observation"), [("continuous", "vector"), ("discrete", "vector"),
                                                    ("continuous", "set")])
 def test_each_run_is_lanefree_v0_with_a_training_runs_episode_seeds(kind, observation):
-    cfgs = configs(kind, observation)
+    assert_runs_are_lanefree_v0(configs(kind, observation), kind)
+
+
+# the open modelling choices: the overtake bonus per run; the agents' limits and the discrete action sizes per batch
+SWITCHES = {
+    "overtake_bonus": ("continuous", {"bonuses": ("once_per_vehicle", "net_passes", "every_pass"), "steps": 120}),
+    "agent_limits": ("continuous", {"scenario": {"agent_max_speed_mps": 24.0, "agent_lateral_speed_ratio": 0.3}}),
+    "discrete_sizes": ("discrete", {"action": {"discrete_ax_mps2": 3.0, "discrete_ay_mps2": 0.5}}),
+}
+
+
+@pytest.mark.parametrize("switch", list(SWITCHES))
+def test_each_run_is_lanefree_v0_under_the_open_choices(switch):
+    kind, options = SWITCHES[switch]
+    seen = assert_runs_are_lanefree_v0(configs(kind, **options), kind, surge=switch == "overtake_bonus")
+    if switch == "overtake_bonus":  # the ledgers refused some passes their bonus (else nothing was compared)
+        assert seen["unpaid"] > 0
+
+
+def assert_runs_are_lanefree_v0(cfgs: list[dict], kind: str, surge: bool = False) -> dict[str, int]:
+    """Two episodes of every run of ``cfgs`` in one batch against LaneFree-v0 alone: the same observations,
+    rewards, terms and episode metrics (``surge``: :func:`actions`'); returns what happened (overtakes, collisions,
+    steps with passes but without a bonus)."""
+    steps = cfgs[0]["sim"]["episode_steps"]
     batch = BatchedRingEnv(cfgs)
     singles = [EpisodeSeeds(LaneFreeEnv(cfg), cfg["seed"], 0, 1) for cfg in cfgs]
     rng = np.random.default_rng(1)
-    seen = {"overtakes": 0, "collision_events": 0, "ended": 0}
+    seen = {"overtakes": 0, "collision_events": 0, "ended": 0, "unpaid": 0}
     for _episode in range(2):
         obs = batch.reset()
         for k, env in enumerate(singles):
             single_obs, info = env.reset()
             assert_same_obs(obs, k, single_obs)
             assert info["episode_seed"] == batch.episode_seeds[k]
-        for _ in range(STEPS):
-            act = actions(rng, kind)
+        for step in range(steps):
+            act = actions(rng, kind, step, surge)
             obs, reward, terminated, truncated, info = batch.step(act)
             for k, env in enumerate(singles):
                 single_obs, single_reward, single_term, single_trunc, single_info = env.step(act[k])
@@ -75,8 +104,10 @@ def test_each_run_is_lanefree_v0_with_a_training_runs_episode_seeds(kind, observ
                     assert info["episode_metrics"][k] is None
                 seen["overtakes"] += single_info["overtakes"]
                 seen["collision_events"] += single_info["collision_events"]
+                seen["unpaid"] += single_info["overtakes"] > 0 and not single_info["overtook"]
     assert seen["ended"] == 2 * len(RUNS)
     assert seen["overtakes"] > 0 and seen["collision_events"] > 0  # the bonuses and penalties were compared too
+    return seen
 
 
 def test_a_run_with_a_nan_action_stops_alone_and_the_others_go_on():
@@ -121,5 +152,7 @@ def test_runs_that_cannot_share_a_batch_are_refused():
         BatchedRingEnv([{**base[0], "shield": {"enabled": True}}])
     with pytest.raises(ConfigError, match="ring"):
         BatchedRingEnv([{**base[0], "road": {"kind": "onramp"}}])
-    with pytest.raises(ConfigError, match="overtake_bonus"):
-        BatchedRingEnv([{**base[0], "reward": {"overtake_bonus": "net_passes"}}])
+    with pytest.raises(ConfigError, match="run 1 differs from run 0 in reward"):
+        BatchedRingEnv([base[0], {**base[1], "reward": {"preset": "collision", "overtake_reward": 0.5}}])
+    with pytest.raises(ConfigError, match="agents' limits; these differ: agent_max_speed_mps"):
+        BatchedRingEnv([base[0], {**base[1], "scenario": {"agent_max_speed_mps": 25.0}}])

@@ -19,6 +19,7 @@ from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
 from lanefree_sumo.experiments.rundir import EPISODES, read_sessions
+from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -92,6 +93,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "if set)")
     sw.add_argument("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, metavar="N",
                     help=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})")
+    sw.add_argument("--batch", type=argtypes.positive(int, "batch"), default=None, metavar="K",
+                    help="train runs of one algorithm that differ only in seed, density, reward preset or overtake "
+                    "bonus as batches of at most K in one task each (the same episodes as one run per task, bit for "
+                    f"bit on CPU); default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; "
+                    "--batch 1 trains one run per task")
     sw.add_argument("--no-progress", action="store_true", help="no progress bar")
     sw.add_argument("--set", type=argtypes.setting, action="append", default=[], metavar="KEY=VALUE",
                     dest="settings", help="a config value for every run of GRID, added to its overrides, e.g. "
@@ -109,7 +115,7 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
         raise UsageError("lanefree sweep: give a GRID (" + ", ".join(BUILTIN_GRIDS) + " or a YAML file), "
                          "--resume DIR, --status DIR or --summary DIR (see 'lanefree sweep --help')")
     budget = [o for o in ("--seeds", "--episodes", "--episode-steps", "--set") if o in given]
-    ray_opts = [o for o in ("--workers", "--address", "--retries", "--no-progress") if o in given]
+    ray_opts = [o for o in ("--workers", "--address", "--retries", "--batch", "--no-progress") if o in given]
     if modes:
         mode = modes[0]
         extra = [o for o in budget if not (mode == "resume" and o == "--seeds")]
@@ -152,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
                                                 nested_overrides(args.settings))
         folder = folder if folder is not None else Path("runs") / f"sweep_{grid.name}"
     address = args.address or os.environ.get("RAY_ADDRESS") or None
-    return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress, extend)
+    return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress, extend,
+                  args.batch)
 
 
 def plan(folder: Path, grid: Grid, extend: bool = False) -> dict[str, RunInfo]:
@@ -186,8 +193,9 @@ def _ray_description(workers: int | None, address: str | None) -> str:
 
 
 def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | None, address: str | None,
-           retries: int, progress: bool, extend: bool = False) -> int:
+           retries: int, progress: bool, extend: bool = False, batch: int | None = None) -> int:
     from lanefree_sumo.experiments.rundir import check_writable
+    from lanefree_sumo.experiments.sweep.batches import batch_size, pack
     from lanefree_sumo.experiments.sweep.runner import check_address, run_sweep
     from lanefree_sumo.experiments.sweep.summary import summarize
 
@@ -197,14 +205,18 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
         check_address(address)
     check_writable(folder, folder=True)
     sweep = SweepDir(folder)
+    cells: dict[str, Cell] = {c.name: c for c in grid.cells()}
+    todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED)]
     with driver_lock(folder, command):
+        size = batch_size(batch, len(todo), workers)
+        packing = pack(sweep, grid, todo, states, size,
+                       "--batch 1" if batch == 1 else "no more runs to train than workers")
         manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)
         manifest.grid = grid  # the same, or with the seeds --seeds added
         manifest.sessions.append({"started": datetime.now().isoformat(timespec="seconds"), "command": command,
-                                  "host": socket.gethostname(), "ray": _ray_description(workers, address)})
+                                  "host": socket.gethostname(), "ray": _ray_description(workers, address),
+                                  "batch": size})
         write_manifest(folder, manifest)
-        cells: dict[str, Cell] = {c.name: c for c in grid.cells()}
-        todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED)]
         busy = [(n, i) for n, i in states.items() if i.state in (BUSY, DAMAGED)]
         counts = {s: sum(1 for i in states.values() if i.state == s) for s in (COMPLETE, PARTIAL, STALE, PENDING)}
         budget = grid.budget()
@@ -216,9 +228,10 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
             print(f"  left alone: runs/{name}: {info.detail}", file=sys.stderr)
         interrupted = False
         if todo:
-            print(f"  {len(todo)} run(s) on the {_ray_description(workers, address)}; logs in {folder / 'logs'}",
-                  flush=True)
-            interrupted = run_sweep(sweep, grid, todo, workers, address, retries, command, progress).interrupted
+            print(f"  {len(todo)} run(s) on the {_ray_description(workers, address)}: {packing.describe()}; logs in "
+                  f"{folder / 'logs'}", flush=True)
+            interrupted = run_sweep(sweep, grid, packing.sequential, workers, address, retries, command, progress,
+                                    packing.batches).interrupted
         else:
             print("  nothing to train", flush=True)
         summarize(folder)

@@ -29,6 +29,8 @@ from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 
 MANIFEST = "sweep.yaml"
 RUNS = "runs"
+BATCHES = "batches"
+"""Batched training's folders (:mod:`.batches`): ``batch.json`` and the batch checkpoints, the runs in ``runs/``."""
 LOGS = "logs"
 STATE = ".sweep"
 SUMMARY_CSV = "summary.csv"
@@ -60,6 +62,13 @@ class SweepDir:
 
     def run(self, cell: Cell | str) -> Path:
         return self.runs / (cell if isinstance(cell, str) else cell.name)
+
+    @property
+    def batches(self) -> Path:
+        return self.path / BATCHES
+
+    def batch(self, name: str) -> Path:
+        return self.batches / name
 
     def log(self, name: str) -> Path:
         return self.path / LOGS / f"{name}.log"

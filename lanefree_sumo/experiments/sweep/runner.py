@@ -10,7 +10,8 @@
 Each run is one task with ``num_cpus`` = its environments (1 by default; torch uses one thread,
 ``train.torch_threads``), ``max_calls=1`` (a fresh process per run: libsumo runs one simulation
 per process) and ``max_retries`` (a worker that dies is retried; the retry resumes from the
-run's newest checkpoint, :mod:`.worker`). Ctrl-C or SIGTERM on the driver cancels the tasks
+run's newest checkpoint, :mod:`.worker`); a batch of runs (:mod:`.batches`) is one such task with one CPU,
+whose retry resumes from the batch's newest checkpoint. Ctrl-C or SIGTERM on the driver cancels the tasks
 without force: Ray raises SIGINT's handler in each running task, ``train()`` saves a checkpoint
 and returns; a second Ctrl-C (or :data:`STOP_TIMEOUT_S`) kills what is left, which then resumes
 from its latest periodic checkpoint next time.
@@ -32,6 +33,7 @@ from typing import Any
 from lanefree_sumo.config import config_to_dict
 from lanefree_sumo.errors import RunError, UsageError
 from lanefree_sumo.experiments.rundir import write_atomic
+from lanefree_sumo.experiments.sweep.batches import Batch
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir
 from lanefree_sumo.experiments.sweep.state import STALE_S, count_rows, heartbeat_age, record_failure
@@ -95,8 +97,14 @@ def start_ray(workers: int | None, address: str | None) -> Any:
         raise UsageError(f"'lanefree sweep' needs Ray ({exc}); pip install -e '.[rl]'") from None
     common: dict[str, Any] = {"log_to_driver": False, "logging_level": logging.WARNING}
     if address is None:
-        ray.init(address="local", num_cpus=workers, num_gpus=0, include_dashboard=False,
-                 object_store_memory=OBJECT_STORE_BYTES, **common)
+        try:
+            ray.init(address="local", num_cpus=workers, num_gpus=0, include_dashboard=False,
+                     object_store_memory=OBJECT_STORE_BYTES, **common)
+        except Exception as exc:  # a node that timed out starting (an overloaded machine), no room for its files
+            reason = " ".join(str(exc).split())[:300]
+            raise RunError(f"the embedded Ray did not start ({type(exc).__name__}: {reason}); nothing was trained: "
+                           "rerun the same command (it resumes) once that is mended (a timeout: when the machine "
+                           "is less loaded)") from None
         return ray
     check_address(address)
     try:
@@ -158,21 +166,23 @@ class Tracker:
         self.sweep, self.names, self.target = sweep, names, target
         self._cache: dict[str, tuple[tuple[int, int], int]] = {}
 
-    def episodes(self) -> int:
-        total = 0
-        for name in self.names:
-            path = self.sweep.run(name) / "episodes.csv"
-            try:
-                st = path.stat()
-            except OSError:
-                continue
-            key = (st.st_size, st.st_mtime_ns)
-            cached = self._cache.get(name)
-            if cached is None or cached[0] != key:
-                cached = (key, count_rows(path))
-                self._cache[name] = cached
-            total += min(cached[1], self.target)
-        return total
+    def episodes(self, names: list[str] | tuple[str, ...] | None = None) -> int:
+        """Episodes done by ``names`` (default: every run)."""
+        return sum(self.done(name) for name in (self.names if names is None else names))
+
+    def done(self, name: str) -> int:
+        """Episodes done by run ``name`` (at most the target)."""
+        path = self.sweep.run(name) / "episodes.csv"
+        try:
+            st = path.stat()
+        except OSError:
+            return 0
+        key = (st.st_size, st.st_mtime_ns)
+        cached = self._cache.get(name)
+        if cached is None or cached[0] != key:
+            cached = (key, count_rows(path))
+            self._cache[name] = cached
+        return min(cached[1], self.target)
 
     def running(self, names: list[str]) -> int:
         return sum(1 for n in names if (age := heartbeat_age(self.sweep, n)) is not None and age < STALE_S)
@@ -184,17 +194,27 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}"[:400]
 
 
-def _collect(ray: Any, sweep: SweepDir, ref: Any, name: str) -> dict[str, Any]:
+def _collect(ray: Any, sweep: SweepDir, ref: Any, names: tuple[str, ...]) -> list[dict[str, Any]]:
+    """The results of the task ``ref`` of runs ``names`` (one run, or a batch's runs)."""
     from ray.exceptions import RayError, TaskCancelledError
 
     try:
-        return dict(ray.get(ref))
+        answer = ray.get(ref)
+        return [dict(r) for r in answer] if isinstance(answer, list) else [dict(answer)]
     except TaskCancelledError:
-        return {"name": name, "status": "cancelled", "detail": "cancelled before it started"}
+        return [{"name": name, "status": "cancelled", "detail": "cancelled before it started"} for name in names]
     except RayError as exc:  # the worker died more often than --retries allows, OOM, a node lost
         detail = f"{_one_line(exc)} (after all retries)"
-        record_failure(sweep, name, detail)
-        return {"name": name, "status": "failed", "detail": detail}
+        for name in names:
+            record_failure(sweep, name, detail)
+        return [{"name": name, "status": "failed", "detail": detail} for name in names]
+
+
+def _batch_text(tracker: Tracker, batch: Batch) -> str:
+    """A batch bar's postfix: each run's episodes, by its seed (``s3:120``) or its name where seeds repeat."""
+    tails = [name.rsplit("_", 1)[-1] for name in batch.runs]
+    labels = tails if len(set(tails)) == len(tails) else list(batch.runs)
+    return " ".join(f"{label}:{tracker.done(name)}" for label, name in zip(labels, batch.runs))
 
 
 def _raise_interrupt(_signum: int, _frame: Any) -> None:
@@ -202,35 +222,51 @@ def _raise_interrupt(_signum: int, _frame: Any) -> None:
 
 
 def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: int, command: str,
-              progress: bool) -> SweepOutcome:
-    """Submit one task per cell of ``todo`` and wait for all of them with a progress bar over the
-    episodes of the whole grid; Ctrl-C/SIGTERM stop the runs cleanly (module docstring)."""
+              progress: bool, batches: list[Batch] | None = None) -> SweepOutcome:
+    """Submit one task per cell of ``todo`` and one per batch of ``batches`` and wait for all of them with a
+    progress bar over the episodes of the whole grid and one per batch (each run's episodes);
+    Ctrl-C/SIGTERM stop the runs cleanly (module docstring)."""
     from tqdm import tqdm
 
+    from lanefree_sumo.experiments.sweep.batches import run_batch
     from lanefree_sumo.experiments.sweep.worker import run_cell
 
     cells = grid.cells()
+    by_name = {c.name: c for c in cells}
     target = grid.episodes
+    batches = batches or []
     tracker = Tracker(sweep, [c.name for c in cells], target)
     task = ray.remote(max_calls=1, max_retries=retries, retry_exceptions=False)(run_cell)
-    refs: dict[Any, str] = {}
+    batch_task = ray.remote(max_calls=1, max_retries=retries, retry_exceptions=False)(run_batch)
+    refs: dict[Any, tuple[str, ...]] = {}
     for cell in todo:
         cfg = grid.config(cell)
         refs[task.options(num_cpus=max(1, cfg.train.envs), name=f"lanefree-sweep:{cell.name}").remote(
-            str(sweep.path), cell.name, config_to_dict(cfg), target, command)] = cell.name
+            str(sweep.path), cell.name, config_to_dict(cfg), target, command)] = (cell.name,)
+    for batch in batches:
+        configs = [config_to_dict(grid.config(by_name[name])) for name in batch.runs]
+        refs[batch_task.options(num_cpus=1, name=f"lanefree-sweep:{batch.name}").remote(
+            str(sweep.path), batch.name, list(batch.runs), configs, target, command)] = batch.runs
     outcome = SweepOutcome()
-    complete_before = len(cells) - len(todo)
+    complete_before = len(cells) - len(todo) - sum(len(b.runs) for b in batches)
     tty = sys.stderr.isatty()
-    bar = tqdm(total=len(cells) * target, initial=tracker.episodes(), unit="ep", desc="sweep", disable=not progress,
-               dynamic_ncols=True, mininterval=1.0 if tty else 60.0, smoothing=0.05)
+    common: dict[str, Any] = {"unit": "ep", "disable": not progress, "dynamic_ncols": True,
+                              "mininterval": 1.0 if tty else 60.0, "smoothing": 0.05}
+    bar = tqdm(total=len(cells) * target, initial=tracker.episodes(), desc="sweep", **common)
+    batch_bars = [tqdm(total=len(b.runs) * target, initial=tracker.episodes(b.runs), desc=b.name, position=i + 1,
+                       leave=False, **common) for i, b in enumerate(batches)]
 
     def refresh() -> None:
         done = complete_before + sum(1 for r in outcome.results.values() if r["status"] == "complete")
         failed = sum(1 for r in outcome.results.values() if r["status"] == "failed")
-        running = tracker.running(list(refs.values()))
+        waiting = [name for names in refs.values() for name in names]
+        running = tracker.running(waiting)
         bar.update(tracker.episodes() - bar.n)
         bar.set_postfix_str(f"runs {done}/{len(cells)} done, {running} running, "
-                            f"{len(refs) - running} queued, {failed} failed", refresh=False)
+                            f"{len(waiting) - running} queued, {failed} failed", refresh=False)
+        for batch, batch_bar in zip(batches, batch_bars):
+            batch_bar.update(tracker.episodes(batch.runs) - batch_bar.n)
+            batch_bar.set_postfix_str(_batch_text(tracker, batch), refresh=False)
 
     # Ctrl-C and SIGTERM stop the sweep, also when it was started with SIGINT ignored (a background job)
     previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -238,10 +274,10 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
         while refs:
             ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=POLL_S)
             for ref in ready:
-                name = refs.pop(ref)
-                outcome.results[name] = _collect(ray, sweep, ref, name)
-                if outcome.results[name]["status"] != "complete":
-                    bar.write(f"{name}: {outcome.results[name]['status']}: {outcome.results[name].get('detail', '')}")
+                for result in _collect(ray, sweep, ref, refs.pop(ref)):
+                    outcome.results[result["name"]] = result
+                    if result["status"] != "complete":
+                        bar.write(f"{result['name']}: {result['status']}: {result.get('detail', '')}")
             refresh()
     except KeyboardInterrupt:
         outcome.interrupted = True
@@ -250,11 +286,13 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         refresh()
+        for batch_bar in batch_bars:
+            batch_bar.close()
         bar.close()
     return outcome
 
 
-def _stop(ray: Any, sweep: SweepDir, refs: dict[Any, str], outcome: SweepOutcome, bar: Any) -> None:
+def _stop(ray: Any, sweep: SweepDir, refs: dict[Any, tuple[str, ...]], outcome: SweepOutcome, bar: Any) -> None:
     """Cancel every task (running ones save a checkpoint and return); force after a second Ctrl-C
     or :data:`STOP_TIMEOUT_S`."""
     bar.write(f"stopping: {len(refs)} run(s) save a checkpoint and stop (Ctrl-C again to kill them at once; "
@@ -269,22 +307,24 @@ def _stop(ray: Any, sweep: SweepDir, refs: dict[Any, str], outcome: SweepOutcome
         while refs and time.monotonic() < deadline:
             ready, _ = ray.wait(list(refs), num_returns=len(refs), timeout=1.0)
             for ref in ready:
-                name = refs.pop(ref)
-                outcome.results[name] = _collect(ray, sweep, ref, name)
+                for result in _collect(ray, sweep, ref, refs.pop(ref)):
+                    outcome.results[result["name"]] = result
     except KeyboardInterrupt:
         pass
-    for ref, name in list(refs.items()):
+    for ref, names in list(refs.items()):
         try:
             ray.cancel(ref, force=True, recursive=False)
         except Exception:
             pass
-        outcome.results[name] = {"name": name, "status": "interrupted", "detail": "killed while stopping"}
+        for name in names:
+            outcome.results[name] = {"name": name, "status": "interrupted", "detail": "killed while stopping"}
         refs.pop(ref)
 
 
 def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None, address: str | None,
-              retries: int, command: str, progress: bool) -> SweepOutcome:
-    """Start or join Ray, check the nodes (cluster), run ``todo``, and always shut Ray down."""
+              retries: int, command: str, progress: bool, batches: list[Batch] | None = None) -> SweepOutcome:
+    """Start or join Ray, check the nodes (cluster), run ``todo`` one run per task and ``batches`` one batch
+    per task, and always shut Ray down."""
     sweep = SweepDir(sweep.path.resolve())  # workers run elsewhere: they get an absolute path
     ray = start_ray(workers, address)
     try:
@@ -292,6 +332,6 @@ def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None
             check_nodes(ray, sweep)
             if cluster_cpus(ray) < 1:
                 raise RunError(f"the Ray cluster at {address} has no CPUs")
-        return run_tasks(ray, sweep, grid, todo, retries, command, progress)
+        return run_tasks(ray, sweep, grid, todo, retries, command, progress, batches)
     finally:
         ray.shutdown()

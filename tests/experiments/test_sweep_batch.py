@@ -1,0 +1,211 @@
+"""``lanefree sweep --batch K``: how runs are packed into batches (fast, no Ray), a batched sweep writes the run
+folders of a sequential one (episodes.csv, config.yaml, the summary), and a batched sweep whose batch worker is
+killed, then interrupted, resumes exactly beside a complete run (slow, the embedded Ray)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, BATCH_FILE, train_batch
+from lanefree_sumo.experiments.sweep.batches import batch_size, pack
+from lanefree_sumo.experiments.sweep.grid import load_grid
+from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
+from lanefree_sumo.experiments.sweep.state import PARTIAL, PENDING, STALE, RunInfo
+
+from conftest import CLI_ENV, lanefree, lanefree_popen, wait_for
+
+
+def write_grid(path: Path, data: dict) -> Path:
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)]
+
+
+def pending(grid) -> dict[str, RunInfo]:
+    return {c.name: RunInfo(PENDING, 0) for c in grid.cells()}
+
+
+# -- packing (pure logic) -------------------------------------------------------------------------------------
+
+def test_runs_that_differ_only_where_a_batch_may_are_packed_together(tmp_path):
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {
+        "algorithms": ["ddpg", "dqn", "ppo"], "reward_presets": ["collision", "fields_collision"],
+        "densities": [70, 90], "seeds": [0, 1], "episodes": 2,
+        "variants": {"default": {}, "once": {"reward.overtake_bonus": "once_per_vehicle"},
+                     "cap25": {"scenario.agent_max_speed_mps": 25.0}}}))
+    sweep = SweepDir(tmp_path / "sweep")
+    cells = list(grid.cells())
+    packing = pack(sweep, grid, cells, pending(grid), 8)
+    # per algorithm: default and once (overtake bonus per run) together, cap25 (the agents' limits) apart;
+    # 16 + 8 runs of each of ddpg and dqn, in batches of at most 8 of near equal size
+    assert sorted(len(b.runs) for b in packing.batches) == [8] * 6
+    for batch in packing.batches:
+        algos = {name.split("_")[0] for name in batch.runs}
+        capped = {"_cap25_" in name for name in batch.runs}
+        assert len(algos) == 1 and len(capped) == 1 and not batch.resumed
+    mixed = [b for b in packing.batches if any("_once_" in n for n in b.runs) and any("_default_" in n for n in b.runs)]
+    assert mixed  # the overtake bonus, the density and the preset differ within a batch
+    assert {c.name.split("_")[0] for c in packing.sequential} == {"ppo"} and len(packing.sequential) == 24
+    assert list(packing.reasons) == ["batched training covers ddpg, dqn, ddqn, dueling, per, not ppo"]
+    assert "48 run(s) in 6 batch(es) of at most 8" in packing.describe()
+    assert sorted([n for b in packing.batches for n in b.runs] + [c.name for c in packing.sequential]) == \
+        sorted(c.name for c in cells)  # every run once
+    # 10 runs at K = 4: 4 + 3 + 3; K = 1: one run per task
+    ten = [c for c in cells if c.name.startswith("ddpg") and "_cap25_" not in c.name][:10]
+    assert [len(b.runs) for b in pack(sweep, grid, ten, pending(grid), 4).batches] == [4, 3, 3]
+    single = pack(sweep, grid, ten, pending(grid), 1)
+    assert not single.batches and len(single.sequential) == 10 and single.reasons == {"--batch 1": 10}
+
+
+def test_the_default_batch_keeps_every_worker_busy():
+    assert batch_size(None, 4, 2) == 2 and batch_size(None, 1, 4) == 1 and batch_size(None, 150, 2) == 8
+    assert batch_size(None, 10, None) == 8 and batch_size(3, 150, 2) == 3
+
+
+def test_an_interrupted_batch_continues_as_that_batch_and_one_without_a_checkpoint_is_packed_afresh(tmp_path):
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0, 1, 2, 3],
+                                                      "episodes": 2}))
+    sweep = SweepDir(tmp_path / "sweep")
+    names = [c.name for c in grid.cells()]
+    for folder, runs, checkpoint in (("old", names[:2], True), ("dead", names[2:], False)):
+        (sweep.batch(folder) / BATCH_CHECKPOINTS).mkdir(parents=True)
+        (sweep.batch(folder) / BATCH_FILE).write_text(json.dumps({"runs": [f"../../runs/{n}" for n in runs]}))
+        if checkpoint:
+            (sweep.batch(folder) / BATCH_CHECKPOINTS / "step_0000000100.pt").write_bytes(b"")
+    states = {**pending(grid), names[0]: RunInfo(PARTIAL, 1), names[1]: RunInfo(STALE, 0)}
+    packing = pack(sweep, grid, list(grid.cells()), states, 1)  # --batch 1: the interrupted batch is still one
+    assert [(b.name, b.runs, b.resumed) for b in packing.batches] == [("old", tuple(names[:2]), True)]
+    assert [c.name for c in packing.sequential] == names[2:] and not sweep.batch("dead").exists()
+    # a finished batched run the grid would extend: refused, nothing can resume it
+    run = sweep.run(names[2])
+    run.mkdir(parents=True)
+    (run / "last_session.json").write_text(json.dumps({"batch": {"run": 0}}))
+    with pytest.raises(RunError, match="trained in a batch .* a batch is not extended"):
+        pack(sweep, grid, list(grid.cells()), {**states, names[2]: RunInfo(PARTIAL, 1, "finished at 1")}, 2)
+
+
+def test_bad_batch_options_are_one_line_errors(tmp_path):
+    grid = write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0], "episodes": 2})
+    for args, said in ((["--batch", "0"], "--batch"), (["--status", str(tmp_path), "--batch", "2"], "--batch")):
+        done = lanefree("sweep", *([str(grid), "--out", str(tmp_path / "out")] if args[0] == "--batch" else []),
+                        *args, timeout=120)
+        assert done.returncode == 2 and said in done.stderr and len(done.stderr.strip().splitlines()) == 1, \
+            done.stderr
+    assert not (tmp_path / "out").exists()
+
+
+# -- real sweeps on the embedded Ray ----------------------------------------------------------------------------
+
+def test_an_embedded_ray_that_cannot_start_is_one_line_and_trains_nothing(tmp_path):
+    """Ray's temp folder is a file here (a start that fails as an overloaded machine's does: no Ray)."""
+    (tmp_path / "file").write_text("")
+    grid = write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0], "episodes": 2})
+    done = subprocess.run([sys.executable, "-m", "lanefree_sumo.cli", "sweep", str(grid), "--out",
+                           str(tmp_path / "out"), "--workers", "1", "--no-progress"], capture_output=True, text=True,
+                          timeout=300, env={**CLI_ENV, "RAY_TMPDIR": str(tmp_path / "file")})
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "the embedded Ray did not start" in done.stderr and "internal error" not in done.stderr
+    assert not (tmp_path / "out" / "runs").exists()
+
+
+TINY = {"algorithms": ["ddpg", "dqn"], "reward_presets": ["collision", "fields_collision"], "seeds": [0],
+        "episodes": 2, "overrides": {"sim": {"episode_steps": 40}, "train": {
+            "checkpoint_every_episodes": 1, "actor_critic": {"learning_starts_steps": 30},
+            "dqn": {"learning_starts_steps": 30, "target_update_steps": 20}}}}
+"""2 algorithms × 2 presets, 2 episodes of 40 steps, updates from step 31: two batches of two at --batch 2."""
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_a_batched_sweep_writes_the_run_folders_of_a_sequential_sweep(tmp_path):
+    grid = write_grid(tmp_path / "tiny.yaml", TINY)
+    batched, sequential = tmp_path / "batched", tmp_path / "sequential"
+    done = lanefree("sweep", str(grid), "--out", str(batched), "--batch", "2", "--workers", "1", "--no-progress",
+                    timeout=900)
+    assert done.returncode == 0, done.stderr
+    assert "4 run(s) in 2 batch(es) of at most 2" in done.stdout and "4/4 runs complete" in done.stdout
+    alone = lanefree("sweep", str(grid), "--out", str(sequential), "--batch", "1", "--workers", "1",
+                     "--no-progress", timeout=900)
+    assert alone.returncode == 0, alone.stderr
+    assert "4 run(s) one per task (--batch 1: 4)" in alone.stdout
+    names = sorted(p.name for p in (sequential / "runs").iterdir())
+    assert sorted(p.name for p in (batched / "runs").iterdir()) == names and len(names) == 4
+    for name in names:
+        a, b = batched / "runs" / name, sequential / "runs" / name
+        assert rows(a / "episodes.csv") == rows(b / "episodes.csv") and len(rows(a / "episodes.csv")) == 2
+        assert (a / "config.yaml").read_text() == (b / "config.yaml").read_text()
+        # the same files, but SB3's TensorBoard log, which the batched learners do not keep
+        assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir() if p.name != "tb")
+    summary = [{k: v for k, v in r.items() if "wall" not in k} for r in csv.DictReader(open(batched / "summary.csv"))]
+    assert summary == [{k: v for k, v in r.items() if "wall" not in k}
+                       for r in csv.DictReader(open(sequential / "summary.csv"))]
+    # a finished batch keeps no batch checkpoint (its replay buffers): nothing is left to resume
+    assert not list((batched / "batches").glob(f"*/{BATCH_CHECKPOINTS}/*"))
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_a_batched_sweep_killed_and_interrupted_resumes_exactly_beside_a_complete_run(tmp_path):
+    """Seed 0 complete (trained alone); seeds 1 and 2 added as a batch, whose worker is SIGKILLed after its first batch
+    checkpoint (Ray's retry continues the batch), then the driver is interrupted; ``--resume --batch 1`` continues
+    the batch as a batch, leaves seed 0 alone, and the batch's runs end with the episodes of an uninterrupted
+    batch."""
+    episodes, every = 100, 5
+    grid = write_grid(tmp_path / "kill.yaml", {
+        "reward_presets": ["collision"], "seeds": [0], "episodes": episodes,
+        "overrides": {"sim": {"episode_steps": 25}, "train": {
+            "checkpoint_every_episodes": every, "actor_critic": {"learning_starts_steps": 10**6}}}})
+    out = tmp_path / "sweep"
+    first = lanefree("sweep", str(grid), "--out", str(out), "--workers", "1", "--no-progress", timeout=600)
+    assert first.returncode == 0, first.stderr
+    sweep = SweepDir(out)
+    before = {p: p.stat().st_mtime_ns for p in sweep.run("ddpg_collision_d70_s0").rglob("*") if p.is_file()}
+
+    proc = lanefree_popen("sweep", "--resume", str(out), "--seeds", "3", "--batch", "2", "--workers", "1",
+                          "--no-progress")
+    try:
+        wait_for(lambda: any(sweep.batches.glob(f"*/{BATCH_CHECKPOINTS}/step_*.pt")), proc, "a batch checkpoint")
+        (batch,) = list(sweep.batches.iterdir())
+        victim = json.loads(sweep.heartbeat("ddpg_collision_d70_s1").read_text())["pid"]
+        os.kill(victim, signal.SIGKILL)
+        log = sweep.log(batch.name)
+        wait_for(lambda: log.read_text().count("continuing batch") == 1 and all(
+            len(rows(sweep.run(f"ddpg_collision_d70_s{s}") / "episodes.csv")) >= 2 * every for s in (1, 2)),
+            proc, "the retried batch's episodes")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    stopped = [len(rows(sweep.run(f"ddpg_collision_d70_s{s}") / "episodes.csv")) for s in (1, 2)]
+    assert all(n < episodes for n in stopped)
+
+    resumed = lanefree("sweep", "--resume", str(out), "--batch", "1", "--no-progress", timeout=900)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "1 complete" in resumed.stdout and "1 interrupted batch(es) continued as batches" in resumed.stdout
+    assert "3/3 runs complete" in resumed.stdout
+    assert {p: p.stat().st_mtime_ns for p in before} == before  # the complete run was not touched
+    saved = read_manifest(out).grid
+    cfgs = [saved.config(c) for c in saved.cells() if c.seed in (1, 2)]
+    whole = train_batch(cfgs, tmp_path / "whole", progress=False, command="test")
+    for cfg, (folder, done) in zip(cfgs, whole):
+        run = sweep.run(f"ddpg_collision_d70_s{cfg.seed}")
+        assert done == episodes and rows(run / "episodes.csv") == rows(folder / "episodes.csv")
+        assert (run / "model.zip").is_file()
+
