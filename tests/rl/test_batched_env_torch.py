@@ -18,19 +18,21 @@ def _host(a):
     return a.numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
 
 
-@pytest.mark.parametrize("kind", ["continuous", "discrete"])
-def test_the_torch_batched_env_is_the_numpy_one_bit_for_bit(kind):
-    cfgs = configs(kind)
+@pytest.mark.parametrize("kind, bonuses", [("continuous", None), ("discrete", None),
+                                            ("continuous", ("once_per_vehicle", "net_passes", "every_pass"))])
+def test_the_torch_batched_env_is_the_numpy_one_bit_for_bit(kind, bonuses):
+    """``bonuses``: each run's reward.overtake_bonus (None: every pass), the ledger on the device too."""
+    cfgs = configs(kind) if bonuses is None else configs(kind, bonuses=bonuses, steps=120)
     reference, twin = BatchedRingEnv(cfgs), BatchedRingEnv(cfgs, device="cpu")
     rng = np.random.default_rng(1)
-    seen = {"ended": 0, "overtakes": 0, "collision_events": 0}
+    seen = {"ended": 0, "overtakes": 0, "collision_events": 0, "unpaid": 0}
     with numpy_transcendentals():
         for _episode in range(2):
             obs, obs_twin = reference.reset(), twin.reset()
             assert isinstance(obs_twin, torch.Tensor) and obs_twin.dtype == torch.float32
             np.testing.assert_array_equal(obs, obs_twin.numpy())
-            for step in range(40):
-                act = actions(rng, kind)
+            for step in range(cfgs[0]["sim"]["episode_steps"]):
+                act = actions(rng, kind, step, surge=bonuses is not None)  # surges: the same cars passed again
                 got, want = twin.step(act), reference.step(act)
                 for i in range(4):
                     np.testing.assert_array_equal(_host(got[i]), _host(want[i]), err_msg=f"step {step}, item {i}")
@@ -44,4 +46,6 @@ def test_the_torch_batched_env_is_the_numpy_one_bit_for_bit(kind):
                         assert {**mine, "wall_s": 0} == {**theirs, "wall_s": 0}
                 for key in ("overtakes", "collision_events"):
                     seen[key] += int(want[4][key].sum())
+                seen["unpaid"] += int(((want[4]["overtakes"] > 0) & (want[4]["overtook"] == 0)).sum())
     assert seen["ended"] == 6 and seen["overtakes"] > 0 and seen["collision_events"] > 0
+    assert (seen["unpaid"] > 0) == (bonuses is not None)  # the ledger withheld some bonus, on both
