@@ -213,11 +213,15 @@ def test_cli_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
                  ["sweep", "table5", "--out", str(out), "--address", f"127.0.0.1:{free_port()}"],
                  ["sweep", "--status", str(out)], ["sweep", "--resume", str(out), "--episodes", "3"],
                  ["sweep", "table5", "--out", str(out), "--workers", "0"],
-                 ["sweep", "table5", "--out", str(out), "--retries", "-1"]):
+                 ["sweep", "table5", "--out", str(out), "--retries", "-1"], ["sweep", "--list", "varobs"],
+                 ["sweep", "--list", "--seeds", "3"]):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("lanefree: error: ") and err.count("\n") == 1, (argv, err)
     assert not out.exists()
+    assert main(["sweep", "--list"]) == 0  # every built-in grid, one line each with what it is
+    listed = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listed] == list(BUILTIN_GRIDS) and "Liu et al." in listed[-1]
 
 
 # -- manifest and run states ----------------------------------------------------------------------
