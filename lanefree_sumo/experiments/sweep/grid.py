@@ -343,23 +343,22 @@ def _cells(where: str, data: Mapping[str, Any]) -> list[tuple[str, str, float]]:
             raise ConfigError(f"{where}: tables must list distinct tables of the paper "
                               f"({', '.join(map(str, TABLES))}), got {data['tables']!r}")
         return list(dict.fromkeys((a, p, round(float(d), 6)) for t, a, p, d, _, _ in PAPER_ROWS if t in tables))
-    else:
-        if "reward_presets" not in data:
-            raise ConfigError(f"{where}: key 'reward_presets' is missing; list the reward presets to train "
-                              "(or the paper's 'tables')")
-        algorithms = _names(f"{where}: algorithms", data.get("algorithms", ["ddpg"]), ALGORITHM_NAMES, "algorithm")
-        presets = _names(f"{where}: reward_presets", data["reward_presets"], tuple(PRESETS), "reward preset")
-        densities = []
-        for d in _as_list(data.get("densities", [70])):
-            try:
-                if isinstance(d, bool):
-                    raise ConfigError(f"density must be a number in veh/km, got {d!r}")
-                densities.append(validate_density(d))
-            except ConfigError as exc:
-                raise ConfigError(f"{where}: densities: {exc}") from None
-        if not densities or len(set(densities)) < len(densities):
-            raise ConfigError(f"{where}: densities must list at least one density, each once")
-        return [(a, p, d) for a in algorithms for p in presets for d in densities]
+    if "reward_presets" not in data:
+        raise ConfigError(f"{where}: key 'reward_presets' is missing; list the reward presets to train "
+                          "(or the paper's 'tables')")
+    algorithms = _names(f"{where}: algorithms", data.get("algorithms", ["ddpg"]), ALGORITHM_NAMES, "algorithm")
+    presets = _names(f"{where}: reward_presets", data["reward_presets"], tuple(PRESETS), "reward preset")
+    densities = []
+    for d in _as_list(data.get("densities", [70])):
+        try:
+            if isinstance(d, bool):
+                raise ConfigError(f"density must be a number in veh/km, got {d!r}")
+            densities.append(validate_density(d))
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: densities: {exc}") from None
+    if not densities or len(set(densities)) < len(densities):
+        raise ConfigError(f"{where}: densities must list at least one density, each once")
+    return [(a, p, d) for a in algorithms for p in presets for d in densities]
 
 
 def _compare(where: str, data: Any, variants: Mapping[str, Any]) -> tuple[str, ...]:
