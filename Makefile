@@ -110,7 +110,7 @@ bench-gpu: $(STAMP)
 
 # make sweep GRID=table7 [OUT=runs/sweep_table7] [SEEDS=3] [EPISODES=625] [WORKERS=2] [ADDRESS=host:6379]
 sweep: system-deps $(STAMP)
-	@test -n "$(GRID)" || { echo "usage: make sweep GRID=table5|table6|table7|table8|paper|FILE.yaml [OUT=DIR] [SEEDS=N] [EPISODES=N] [WORKERS=N] [ADDRESS=HOST:PORT]"; exit 2; }
+	@test -n "$(GRID)" || { echo "usage: make sweep GRID=table5|table6|table7|table8|paper|varobs|FILE.yaml [OUT=DIR] [SEEDS=N] [EPISODES=N] [WORKERS=N] [ADDRESS=HOST:PORT]"; exit 2; }
 	$(BIN)/lanefree sweep $(GRID) $(call opt,OUT,--out) $(call opt,SEEDS,--seeds) $(call opt,EPISODES,--episodes) \
 		$(call opt,WORKERS,--workers) $(call opt,ADDRESS,--address)
 

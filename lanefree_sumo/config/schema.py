@@ -385,6 +385,12 @@ class ActorCriticConfig:
         "paper": "not said (Keras-RL's DDPG acts with its actor and noise from the first step)"})
     """What DDPG does before ``learning_starts_steps``: ``uniform`` random actions (SB3) or ``policy`` (its
     untrained actor with the exploration noise, as Keras-RL's DDPG)."""
+    pre_tanh_penalty: float = field(default=0.0, metadata={
+        "range": (0.0, 1e6),
+        "paper": "not in either paper (neither says how DDPG's actor was kept off its tanh bound)"})
+    """λ of the term λ·mean(u²) added to DDPG's actor loss, u the actor's output before its tanh (–): keeps u
+    where tanh' does not vanish, so the critic's gradient still reaches the actor; 0 (default): SB3's loss.
+    DDPG with the fast learner only (the update of :mod:`lanefree_sumo.rl.algorithms.fast_ddpg`)."""
     ou_sigma: float = field(default=0.2, metadata={"range": (0.0, 100.0)})
     """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
     ou_theta: float = field(default=0.15, metadata={"range": (0.0, 100.0)})

@@ -78,7 +78,7 @@ ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_lea
                                "road.onramp", "observation.road_features",
                                "reward.overtake_bonus", "scenario.agent_lateral_speed_ratio", "train.profile",
                                "train.dqn.loss", "train.dqn.max_grad_norm", "train.actor_critic.warmup_actions",
-                               "train.device")
+                               "train.device", "train.actor_critic.pre_tanh_penalty")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 

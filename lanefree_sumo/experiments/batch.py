@@ -61,7 +61,8 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
                         (cfg.observation.kind != "vector", "the set observation (--obs set)"),
                         (cfg.train.envs != 1, "several environments (--envs)"),
                         (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),
-                        (cfg.train.overlap, "--overlap")):
+                        (cfg.train.overlap, "--overlap"),
+                        (cfg.train.actor_critic.pre_tanh_penalty != 0, "train.actor_critic.pre_tanh_penalty")):
         if wrong:
             raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
     check_device(cfg.train.device)

@@ -164,9 +164,15 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
             kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
+        if ac.pre_tanh_penalty and (algo != "ddpg" or not (spec.fast_learner and own_class and cfg.train.fast_learner)):
+            raise ConfigError(f"train.actor_critic.pre_tanh_penalty = {ac.pre_tanh_penalty:g} is built into the "
+                              f"fast DDPG update only; set it to 0 for {algo}"
+                              + ("" if algo != "ddpg" else " without train.fast_learner"))
         if spec.fast_learner and own_class:
             kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
                           warmup_actions=ac.warmup_actions)
+            if algo == "ddpg":
+                kwargs["pre_tanh_penalty"] = ac.pre_tanh_penalty
         elif ac.warmup_actions != "uniform" and algo != "ppo":
             raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions} is built for ddpg only; "
                               f"{algo} takes SB3's uniform warm-up")
@@ -215,6 +221,8 @@ def build_batched(cfgs: list[LaneFreeConfig], seeds: list[int], observation_spac
         raise ConfigError(f"batched training covers ddpg and {', '.join(FAMILY)}, not {algo}; train it run by run")
     if len(seeds) != len(cfgs):
         raise ConfigError(f"{len(cfgs)} configs but {len(seeds)} seeds: give one seed per run")
+    if any(c.train.actor_critic.pre_tanh_penalty for c in cfgs if algo == "ddpg"):
+        raise ConfigError("batched training has no train.actor_critic.pre_tanh_penalty; train such runs run by run")
     if any(c.observation.kind != "vector" for c in cfgs):
         raise ConfigError("batched training takes the vector observation; train the set observation run by run")
     sections = [getattr(c.train, spec.config_section) for c in cfgs]

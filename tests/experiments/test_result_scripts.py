@@ -18,6 +18,8 @@ from types import ModuleType
 import pandas as pd
 import pytest
 
+from lanefree_sumo.experiments import comparison
+
 from conftest import ROOT, lanefree
 
 SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py",
@@ -130,9 +132,11 @@ def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_lea
 
 
 def test_the_varobs_verdict_page_is_what_the_run_folders_make():
-    """results/varobs/verdict.md is what scripts/varobs_verdict.py makes of the run folders (on a clean checkout:
-    the committed ones), so committing new runs without their verdict fails here."""
-    made = script("varobs_verdict").verdict_markdown(ROOT)
+    """results/varobs/verdict.md is what the package's comparison (through scripts/varobs_verdict.py, which names
+    the committed folders) makes of the run folders (on a clean checkout: the committed ones, the page the
+    script wrote before the comparison moved into the package), so committing new runs without their verdict
+    fails here."""
+    made = script("varobs_verdict").verdict_page(ROOT)
     assert (ROOT / "results" / "varobs" / "verdict.md").read_text() == made
     assert made.count("| DDPG |") == made.count("| DQN |") == 21  # 7 sources x 3 metrics each
 
@@ -181,10 +185,11 @@ def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
     expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[:12].mean() for run in runs) / n_set
     assert early[0] == f"{expected:.2f}"
     assert table[("deterministic, 70 veh/km", "speed deviation (m/s)", f"{n_set}, 3")][-1] == "set worse"
-    assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == verdict.TOO_FEW
-    assert verdict.reading(1, -3.0, -1.0) == verdict.reading(-1, 1.0, 3.0) == "set worse"
-    assert verdict.reading(-1, -3.0, -1.0) == verdict.reading(1, 1.0, 3.0) == "set better"
-    assert verdict.reading(1, -1.0, 2.0) == "no difference detected"
+    assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == comparison.TOO_FEW
+    assert comparison.reading(1, -3.0, -1.0) == comparison.reading(-1, 1.0, 3.0) == "set worse"
+    assert comparison.reading(-1, -3.0, -1.0) == comparison.reading(1, 1.0, 3.0) == "set better"
+    assert comparison.reading(1, -1.0, 2.0) == "no difference detected"
+    assert comparison.reading(1, -3.0, -1.0, "cap25") == "cap25 worse"
     refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "varobs_verdict.py"), str(tmp_path / "none")],
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "none" in refused.stderr

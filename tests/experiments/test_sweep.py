@@ -36,12 +36,21 @@ from lanefree_sumo.errors import ConfigError, RunError, UsageError
 from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.rundir import RunDir, record_session, write_config
 from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
-from lanefree_sumo.experiments.sweep.grid import Cell, Grid, builtin_grid, load_grid, parse_grid
+from lanefree_sumo.experiments.sweep.grid import (
+    BUILTIN_GRIDS,
+    GRIDS_DIR,
+    Cell,
+    Grid,
+    builtin_descriptions,
+    builtin_grid,
+    load_grid,
+    parse_grid,
+)
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
 from lanefree_sumo.experiments.sweep.summary import COLUMNS, RUN_COLUMNS, bootstrap_ci, summarize
 
-from conftest import CLI_ENV, fenced_rows, lanefree, lanefree_popen
+from conftest import CLI_ENV, ROOT, fenced_rows, lanefree, lanefree_popen
 
 TINY = {"reward_presets": ["collision", "fields_collision"], "n_seeds": 2, "episodes": 2,
         "overrides": {"sim": {"episode_steps": 40}, "train": {"checkpoint_every_episodes": 1}}}
@@ -112,6 +121,49 @@ def test_builtin_grids_are_the_papers_tables():
     assert {s.algorithm for s in builtin_grid("table8").settings} == {"ddpg", "dqn", "ddqn", "dueling", "per"}
 
 
+def test_builtin_grids_are_the_package_grid_files_and_the_paper_grid_is_its_manifest():
+    """The names are the files of the package's grids folder, each with what it is; the paper grid at 3 seeds is
+    the grid of the committed 45-run sweep (so that sweep resumes or extends under today's built-in)."""
+    assert BUILTIN_GRIDS == ("paper", "table5", "table6", "table7", "table8", "varobs")
+    assert sorted(p.stem for p in GRIDS_DIR.glob("*.yaml")) == list(BUILTIN_GRIDS)
+    descriptions = builtin_descriptions()
+    assert "Tables 5-8" in descriptions["paper"] and "set encoder" in descriptions["varobs"]
+    committed = read_manifest(ROOT / "results" / "paper").grid
+    assert builtin_grid("paper").with_budget(seeds=3).to_dict() == committed.to_dict()
+
+
+def test_the_varobs_grid_sets_the_set_encoder_against_the_vector_at_the_papers_seeds():
+    grid = builtin_grid("varobs")
+    assert [s.label for s in grid.settings] == [
+        f"{algo} / fields_zones_overtake_collision / d70 / {variant}" for variant in ("default", "set")
+        for algo in ("ddpg", "dqn")]
+    assert grid.seeds == tuple(range(10)) and grid.episodes == 625 and grid.compare == ("set",)
+    assert not grid.budget()["reduced"] and len(grid.cells()) == 40
+    names = [c.name for c in grid.cells()]
+    assert names[:4] == ["ddpg_fields_zones_overtake_collision_d70_default_s0",
+                         "dqn_fields_zones_overtake_collision_d70_default_s0",
+                         "ddpg_fields_zones_overtake_collision_d70_set_s0",
+                         "dqn_fields_zones_overtake_collision_d70_set_s0"]
+    vector, sets = grid.config(grid.cells()[0]), grid.config(grid.cells()[2])
+    assert (vector.observation.kind, sets.observation.kind, sets.observation.encoder) == ("vector", "set", "paper")
+    assert Grid.from_dict(grid.to_dict(), "manifest") == grid  # the manifest keeps what to compare
+    three = grid.with_budget(seeds=3)
+    assert three.compare == ("set",) and three.budget()["notes"] == ["3 seed(s) per setting instead of the paper's 10"]
+
+
+def test_a_grid_of_tables_is_those_tables_settings_with_variants():
+    grid = parse_grid({"tables": [6, 8], "n_seeds": 1, "variants": {"default": {}, "cap25": {
+        "scenario.agent_max_speed_mps": 25}}}, "t", "t.yaml")
+    paper = {s for s in builtin_grid("table6").settings} | {s for s in builtin_grid("table8").settings}
+    assert {s._replace(variant="") for s in grid.settings} == paper and len(grid.settings) == 2 * len(paper)
+    for bad, named in (({"tables": [6], "densities": [70]}, "'densities' is given too"), ({"tables": [4]}, "tables"),
+                       ({"tables": [6, 6]}, "tables"), ({"tables": []}, "tables"),
+                       ({"tables": [6], "compare": ["x"]}, "name one in variants"),
+                       ({"tables": [6], "variants": {"default": {}, "b": {}}, "compare": ["default"]}, "compare")):
+        with pytest.raises(ConfigError, match=re.escape(named)):
+            parse_grid(bad, "bad", "bad.yaml")
+
+
 def test_yaml_grid_and_budget_overrides(tmp_path):
     grid = load_grid(write_grid(tmp_path / "g.yaml", {**TINY, "densities": [70, 90]}))
     assert grid.name == "g" and len(grid.settings) == 4 and grid.seeds == (0, 1)
@@ -161,11 +213,15 @@ def test_cli_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys):
                  ["sweep", "table5", "--out", str(out), "--address", f"127.0.0.1:{free_port()}"],
                  ["sweep", "--status", str(out)], ["sweep", "--resume", str(out), "--episodes", "3"],
                  ["sweep", "table5", "--out", str(out), "--workers", "0"],
-                 ["sweep", "table5", "--out", str(out), "--retries", "-1"]):
+                 ["sweep", "table5", "--out", str(out), "--retries", "-1"], ["sweep", "--list", "varobs"],
+                 ["sweep", "--list", "--seeds", "3"]):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("lanefree: error: ") and err.count("\n") == 1, (argv, err)
     assert not out.exists()
+    assert main(["sweep", "--list"]) == 0  # every built-in grid, one line each with what it is
+    listed = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listed] == list(BUILTIN_GRIDS) and "Liu et al." in listed[-1]
 
 
 # -- manifest and run states ----------------------------------------------------------------------
@@ -777,6 +833,35 @@ def test_variants_are_settings_of_their_own_with_their_own_runs_and_rows(tmp_pat
     effects = (tmp_path / "effects.md").read_text()  # each variant against default, per cell: 2 runs a side
     assert "| cap25 | 2, 2 | too few runs |" in effects and "| keras | 2, 2 | too few runs |" in effects
     assert {r["variant"] for r in csv.DictReader(open(tmp_path / "effects.csv"))} == {"cap25", "keras"}
+
+
+def test_a_grid_that_compares_a_variant_writes_its_verdict_over_every_source(tmp_path):
+    """``compare``: verdict.md sets the variant against ``default`` per setting, over the training windows and each
+    evaluation some run has; a summary of a grid without ``compare`` writes none (and removes an old one)."""
+    data = {"reward_presets": ["collision"], "n_seeds": 3, "episodes": 3,
+            "variants": {"default": {}, "cap": {"scenario.agent_max_speed_mps": 25}}, "compare": ["cap"]}
+    grid = parse_grid(data, "study", "study.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    sweep = SweepDir(tmp_path)
+    for cell in grid.cells():
+        fake_run(sweep.run(cell), grid, cell, 3, collisions=10.0 * (cell.setting.variant == "cap") + cell.seed)
+    evaluation = sweep.run(grid.cells()[0]) / "eval"
+    evaluation.mkdir()
+    shutil.copy2(sweep.run(grid.cells()[0]) / "episodes.csv", evaluation / "episodes.csv")
+    summarize(tmp_path)
+    table = {tuple(cells[:3]): cells[3:] for line in fenced_rows((tmp_path / "verdict.md").read_text())[2:]
+             for cells in [[c.strip() for c in line.strip("|").split("|")]]}
+    label = "ddpg / collision / d70"
+    collisions = table[(label, "training, last 50 episodes", "collisions / episode")]
+    assert collisions[:3] == ["3, 3", "11.00", "1.00"] and collisions[-1] == "cap worse"
+    assert collisions[-2] == f"9/9, p = {2 / 20:.2f}"  # every cap run above every default run
+    assert table[(label, "training, all 3 episodes", "return")][-1] == "no difference detected"
+    assert table[(label, "deterministic, 70 veh/km", "return")][0] == "0, 1"  # one default run has eval/
+    assert table[(label, "deterministic, 70 veh/km", "return")][-1] == "too few runs (< 3 a side)"
+    assert not any("90 veh/km" in key[1] for key in table)  # no run has that evaluation
+    write_manifest(tmp_path, Manifest(parse_grid({**data, "compare": None}, "study", "study.yaml")))
+    summarize(tmp_path)
+    assert not (tmp_path / "verdict.md").exists()
 
 
 @pytest.mark.parametrize(("variants", "named"), [

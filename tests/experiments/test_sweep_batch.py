@@ -71,6 +71,17 @@ def test_runs_that_differ_only_where_a_batch_may_are_packed_together(tmp_path):
     assert not single.batches and len(single.sequential) == 10 and single.reasons == {"--batch 1": 10}
 
 
+def test_a_run_with_a_switch_the_batched_learners_lack_goes_one_per_task(tmp_path):
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {
+        "algorithms": ["ddpg"], "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2,
+        "variants": {"default": {}, "penalty": {"train.actor_critic.pre_tanh_penalty": 0.01}}}))
+    cells = list(grid.cells())
+    packing = pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 8)
+    assert [sorted(b.runs) for b in packing.batches] == [sorted(c.name for c in cells if "_default_" in c.name)]
+    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_penalty_" in c.name)
+    assert list(packing.reasons) == ["batched training does not support train.actor_critic.pre_tanh_penalty"]
+
+
 def test_the_default_batch_keeps_every_worker_busy():
     assert batch_size(None, 4, 2) == 2 and batch_size(None, 1, 4) == 1 and batch_size(None, 150, 2) == 8
     assert batch_size(None, 10, None) == 8 and batch_size(3, 150, 2) == 3

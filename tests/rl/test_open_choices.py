@@ -161,3 +161,34 @@ def test_ddpg_policy_warmup_acts_with_the_actor_from_the_first_step() -> None:
     # with σ = 0 and no update, the policy warm-up stores the untrained actor's (nearly constant) action
     policy, uniform = seen["policy"], seen["uniform"]
     assert np.ptp(policy, axis=0).max() < 0.2 < np.ptp(uniform, axis=0).max()
+
+
+@pytest.mark.slow
+def test_the_pre_tanh_penalty_holds_the_actor_off_its_bound_and_is_refused_where_it_is_not_built() -> None:
+    """``train.actor_critic.pre_tanh_penalty``: λ·mean(u²) in DDPG's actor loss (u before the tanh) keeps the actor's
+    pre-tanh output near 0 where λ = 0 lets it grow; TD3, SB3's own update and batched training refuse a λ > 0."""
+    from lanefree_sumo.rl.models import build_batched, build_model, make_vec_env, training_config
+
+    cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"episode_steps": 50}, "train": {
+        "episodes": 1, "actor_critic": {"learning_starts_steps": 50, "learning_rate": 1e-2}}})
+    pre = {}
+    for penalty in (0.0, 1000.0):
+        c = training_config(merge_config(cfg, {"train": {"actor_critic": {"pre_tanh_penalty": penalty}}}))
+        model = build_model(c, make_vec_env(c), 0, None)
+        assert model.pre_tanh_penalty == penalty
+        model.learn(250)  # 200 updates
+        assert model._n_updates == 200
+        states = th.as_tensor(model.replay_buffer.observations[:250, 0])
+        with th.no_grad():
+            u = model.actor.mu[:-1](model.actor.extract_features(states, model.actor.features_extractor))
+        pre[penalty] = float(u.abs().median())
+    assert pre[1000.0] < 0.05 < pre[0.0]
+    for overrides in ({"train": {"algo": "td3"}}, {"train": {"fast_learner": False}}):
+        c = training_config(merge_config(cfg, {**overrides, "train": {
+            **overrides["train"], "actor_critic": {"pre_tanh_penalty": 0.1}}}))
+        with pytest.raises(ConfigError, match="pre_tanh_penalty"):
+            build_model(c, make_vec_env(c), 0, None)
+    c = training_config(merge_config(cfg, {"train": {"actor_critic": {"pre_tanh_penalty": 0.1}}}))
+    env = make_vec_env(c)
+    with pytest.raises(ConfigError, match="pre_tanh_penalty"):
+        build_batched([c, c], [0, 1], env.observation_space, env.action_space)

@@ -20,7 +20,7 @@ from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
 from lanefree_sumo.experiments.rundir import EPISODES, read_sessions
 from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH
-from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, load_grid
+from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, builtin_descriptions, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
     SweepDir,
@@ -65,9 +65,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Train every (algorithm, reward preset, density, seed) run of GRID, one Ray task per run in a "
         "fresh process with one CPU, into DIR/runs/<algo>_<preset>_d<density>_s<seed>/ (ordinary run folders), "
         "then write DIR/summary.csv and summary.md (last-50-episode means with 95 % bootstrap CIs over runs, the "
-        "paper's values) and learning curves per table. GRID: " + ", ".join(BUILTIN_GRIDS) + " (the paper's "
-        "settings, 10 seeds, 625 episodes) or a YAML file (keys algorithms, reward_presets, densities, seeds or "
-        "n_seeds, episodes, overrides). Rerunning the same command (or --resume DIR) skips complete runs, resumes "
+        "paper's values) and learning curves per table. GRID: a built-in grid, " + ", ".join(BUILTIN_GRIDS) +
+        " (--list says what each is; 10 seeds and 625 episodes each, --seeds N for fewer), or a YAML file (keys "
+        "algorithms, reward_presets, densities or tables, seeds or n_seeds, episodes, overrides, variants, "
+        "compare). Rerunning the same command (or --resume DIR) skips complete runs, resumes "
         "interrupted ones from their newest checkpoint and retries failed ones; existing run folders with the same "
         "config are adopted. Ctrl-C stops every run with a checkpoint.",
     )
@@ -77,6 +78,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     sw.add_argument("--resume", type=Path, default=None, metavar="DIR", help="continue the sweep in DIR")
     sw.add_argument("--status", type=Path, default=None, metavar="DIR",
                     help="print the state of the sweep in DIR (also while it runs elsewhere) and exit")
+    sw.add_argument("--list", action="store_true", help="list the built-in grids with what each is, and exit")
     sw.add_argument("--summary", type=Path, default=None, metavar="DIR",
                     help="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit")
     sw.add_argument("--seeds", type=argtypes.positive(int, "seeds"), default=None, metavar="N",
@@ -108,6 +110,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
     """(mode, folder) after checking which options go together; UsageError otherwise."""
     given: set[str] = getattr(args, "given", set())
+    if args.list:
+        if args.grid is not None or len(given - {"--list"}) > 0:
+            raise UsageError("lanefree sweep: --list goes alone")
+        return "list", Path()
     modes = [m for m in ("resume", "status", "summary") if getattr(args, m) is not None]
     if len(modes) > 1 or (modes and args.grid is not None):
         raise UsageError("lanefree sweep: give one of GRID, --resume DIR, --status DIR, --summary DIR")
@@ -136,6 +142,10 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
 def run(args: argparse.Namespace) -> int:
     """Execute ``lanefree sweep``; LaneFreeError for bad input (the CLI prints it as one line)."""
     mode, folder = _check_args(args)
+    if mode == "list":
+        for name, description in builtin_descriptions().items():
+            print(f"{name:<8} {description}")
+        return EXIT_OK
     if mode == "status":
         print(status_text(folder))
         return EXIT_OK

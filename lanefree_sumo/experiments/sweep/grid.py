@@ -1,14 +1,18 @@
-"""Grids of training runs: the paper's tables (specification §10) built in, or a YAML file.
+"""Grids of training runs: the built-in grid files (the paper's tables, the second paper's comparison) or
+a YAML file.
 
 A grid is a list of *settings* (algorithm, reward preset, density in veh/km) × a list of seeds,
-with an episode budget and config overrides applied to every run. Built-in grids: ``table5`` …
-``table8`` (the settings of that table of :data:`~lanefree_sumo.experiments.paper.PAPER_ROWS`)
-and ``paper`` (their union, each setting once), each with the paper's 10 seeds and 625 episodes.
-A YAML grid::
+with an episode budget and config overrides applied to every run. The built-in grids are the YAML
+files of :data:`GRIDS_DIR`, each selected by its file name: ``table5`` … ``table8`` (the settings of
+that table of :data:`~lanefree_sumo.experiments.paper.PAPER_ROWS`), ``paper`` (their union, each
+setting once) and ``varobs`` (the variable-size observation through the set encoder against the fixed
+vector), each with the paper's 10 seeds and 625 episodes. A YAML grid::
 
     algorithms: [ddpg]                 # registered algorithms (default [ddpg])
     reward_presets: [collision, fields_collision]
     densities: [70, 120]               # veh/km (default [70])
+    # or, instead of the three keys above:
+    # tables: [5, 6, 7, 8]             # the settings of these tables of the paper, each once
     seeds: [0, 1, 2]                   # or  n_seeds: 10  (seeds 0 … 9; the default)
     episodes: 625                      # optional budget override, default the paper's
     overrides: {}                      # optional config overrides applied to every run
@@ -16,6 +20,8 @@ A YAML grid::
       default: {}                      #   dotted config keys applied after ``overrides``
       cap25: {scenario.agent_max_speed_mps: 25}
       once_per_car: {reward.overtake_bonus: once_per_vehicle}
+    compare: [cap25]                   # optional: variants set against ``default`` over every source in
+                                       #   verdict.md (training windows and each evaluation)
 
 A variant's runs are named ``<algo>_<preset>_d<density>_<variant>_s<seed>``; summaries, curves and claims
 group by variant (the claims on the variant named ``default``, or on a grid without variants).
@@ -46,10 +52,15 @@ PAPER_EPISODE_STEPS = LaneFreeConfig().sim.episode_steps
 """Steps per episode in the paper (800 × 0.25 s)."""
 
 TABLES: tuple[int, ...] = tuple(sorted({row[0] for row in PAPER_ROWS}))
-BUILTIN_GRIDS: tuple[str, ...] = (*(f"table{t}" for t in TABLES), "paper")
-GRID_KEYS: tuple[str, ...] = ("algorithms", "reward_presets", "densities", "seeds", "n_seeds", "episodes",
-                              "overrides", "variants")
+GRIDS_DIR = Path(__file__).with_name("grids")
+"""The built-in grid files: ``<name>.yaml`` is the grid ``<name>``; its first comment line says what it is."""
+BUILTIN_GRIDS: tuple[str, ...] = tuple(sorted(path.stem for path in GRIDS_DIR.glob("*.yaml")))
+"""The names of the built-in grids (the files of :data:`GRIDS_DIR`)."""
+GRID_KEYS: tuple[str, ...] = ("algorithms", "reward_presets", "densities", "tables", "seeds", "n_seeds", "episodes",
+                              "overrides", "variants", "compare")
 """Keys a YAML grid may have."""
+SETTING_KEYS: tuple[str, ...] = ("algorithms", "reward_presets", "densities")
+"""The keys ``tables`` stands for."""
 GRID_OWNED: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.density_veh_per_km",
                                "train.episodes")
 """Config keys the grid itself sets per run; ``overrides`` may not set them."""
@@ -111,6 +122,9 @@ class Grid:
     variants: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Variant name → config overrides (nested mapping) applied after ``overrides``; every setting is in the
     grid once per variant (empty: no variants)."""
+    compare: tuple[str, ...] = ()
+    """Variants set against :data:`DEFAULT_VARIANT` over every source (training windows and each evaluation)
+    in the summary's ``verdict.md``."""
 
     def variant_overrides(self, setting: Setting) -> dict[str, Any]:
         """The overrides of ``setting``'s variant (none for "")."""
@@ -167,6 +181,7 @@ class Grid:
             "episodes": self.episodes,
             "overrides": self.overrides,
             **({"variants": self.variants} if self.variants else {}),
+            **({"compare": list(self.compare)} if self.compare else {}),
         }
 
     @classmethod
@@ -177,7 +192,8 @@ class Grid:
                                           str(s.get("variant", ""))) for s in data["settings"])
             grid = cls(str(data["name"]), settings, tuple(int(x) for x in data["seeds"]), int(data["episodes"]),
                        dict(data.get("overrides") or {}), {str(k): dict(v) for k, v in
-                                                           (data.get("variants") or {}).items()})
+                                                           (data.get("variants") or {}).items()},
+                       tuple(str(v) for v in data.get("compare") or ()))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{source}: the grid is unreadable ({type(exc).__name__}: {exc})") from None
         return validate_grid(grid, source)
@@ -190,7 +206,7 @@ class Grid:
         if episode_steps is not None:
             overrides.setdefault("sim", {})["episode_steps"] = episode_steps
         grid = Grid(self.name, self.settings, tuple(range(seeds)) if seeds is not None else self.seeds,
-                    episodes if episodes is not None else self.episodes, overrides, self.variants)
+                    episodes if episodes is not None else self.episodes, overrides, self.variants, self.compare)
         return validate_grid(grid, "command line")
 
     def with_more_seeds(self, count: int, where: str) -> Grid:
@@ -206,7 +222,7 @@ class Grid:
                 seeds.append(candidate)
             candidate += 1
         return validate_grid(Grid(self.name, self.settings, tuple(seeds), self.episodes, self.overrides,
-                                  self.variants), where)
+                                  self.variants, self.compare), where)
 
 
 def _merged(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
@@ -223,12 +239,19 @@ def _merged(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]
 # -- built-in grids -------------------------------------------------------------------------------
 
 def builtin_grid(name: str) -> Grid:
-    """``table5`` … ``table8``: that table's settings; ``paper``: all of them, each once."""
+    """The built-in grid ``name`` (the file ``GRIDS_DIR/<name>.yaml``)."""
     if name not in BUILTIN_GRIDS:
         raise ConfigError(f"unknown grid '{name}'; use one of {', '.join(BUILTIN_GRIDS)} or a YAML file")
-    rows = [r for r in PAPER_ROWS if name == "paper" or name == f"table{r[0]}"]
-    settings = tuple(dict.fromkeys(make_setting(a, p, d) for _, a, p, d, _, _ in rows))
-    return Grid(name, settings, tuple(range(PAPER_SEEDS)))
+    return _grid_file(GRIDS_DIR / f"{name}.yaml")
+
+
+def builtin_descriptions() -> dict[str, str]:
+    """Built-in grid name → what it is (the first comment line of its file, without the ``#``)."""
+    out = {}
+    for name in BUILTIN_GRIDS:
+        first = (GRIDS_DIR / f"{name}.yaml").read_text(encoding="utf-8").splitlines()[0]
+        out[name] = first.lstrip("#").strip()
+    return out
 
 
 def load_grid(spec: str | Path) -> Grid:
@@ -240,6 +263,11 @@ def load_grid(spec: str | Path) -> Grid:
     if not path.is_file():
         raise ConfigError(f"unknown grid '{text}': neither a built-in grid ({', '.join(BUILTIN_GRIDS)}) "
                           "nor a YAML file")
+    return _grid_file(path)
+
+
+def _grid_file(path: Path) -> Grid:
+    """The grid of the YAML file ``path``, named after the file."""
     try:
         data = load_yaml(path.read_text(encoding="utf-8"), f"grid {path}")
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
@@ -270,29 +298,13 @@ def _names(where: str, values: Any, allowed: tuple[str, ...], what: str) -> list
 
 def parse_grid(data: Any, name: str, source: str) -> Grid:
     """A grid from the mapping of a YAML grid file; ConfigError of one line naming the bad key."""
-    from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
-    from lanefree_sumo.rl.rewards import PRESETS
-
     where = f"grid {source}"
     if not isinstance(data, Mapping):
         raise ConfigError(f"{where}: expected a mapping with keys {', '.join(GRID_KEYS)}")
     for key in data:
         if key not in GRID_KEYS:
             raise ConfigError(f"{where}: unknown key '{key}'; allowed keys: {', '.join(GRID_KEYS)}")
-    if "reward_presets" not in data:
-        raise ConfigError(f"{where}: key 'reward_presets' is missing; list the reward presets to train")
-    algorithms = _names(f"{where}: algorithms", data.get("algorithms", ["ddpg"]), ALGORITHM_NAMES, "algorithm")
-    presets = _names(f"{where}: reward_presets", data["reward_presets"], tuple(PRESETS), "reward preset")
-    densities = []
-    for d in _as_list(data.get("densities", [70])):
-        try:
-            if isinstance(d, bool):
-                raise ConfigError(f"density must be a number in veh/km, got {d!r}")
-            densities.append(validate_density(d))
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: densities: {exc}") from None
-    if not densities or len(set(densities)) < len(densities):
-        raise ConfigError(f"{where}: densities must list at least one density, each once")
+    cells = _cells(where, data)
     if "seeds" in data and "n_seeds" in data:
         raise ConfigError(f"{where}: give either 'seeds' or 'n_seeds', not both")
     if "seeds" in data:
@@ -310,9 +322,55 @@ def parse_grid(data: Any, name: str, source: str) -> Grid:
         raise ConfigError(f"{where}: episodes must be a whole number ≥ 1, got {episodes!r}")
     overrides = data.get("overrides") or {}
     variants = _variants(where, data.get("variants"))
-    settings = tuple(make_setting(a, p, d, v) for v in (variants or [""]) for a in algorithms for p in presets
-                     for d in densities)
-    return validate_grid(Grid(name, settings, tuple(seeds), episodes, dict(overrides), variants), source)
+    compare = _compare(where, data.get("compare"), variants)
+    settings = tuple(make_setting(a, p, d, v) for v in (variants or [""]) for a, p, d in cells)
+    return validate_grid(Grid(name, settings, tuple(seeds), episodes, dict(overrides), variants, compare), source)
+
+
+def _cells(where: str, data: Mapping[str, Any]) -> list[tuple[str, str, float]]:
+    """(algorithm, preset, density) of every setting: the paper's ``tables``, or algorithms × reward_presets ×
+    densities."""
+    from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
+    from lanefree_sumo.rl.rewards import PRESETS
+
+    if "tables" in data:
+        given = [key for key in SETTING_KEYS if key in data]
+        if given:
+            raise ConfigError(f"{where}: give either 'tables' or {', '.join(SETTING_KEYS)}, not both "
+                              f"('{given[0]}' is given too)")
+        tables = _as_list(data["tables"])
+        if not tables or any(not _whole(t) or t not in TABLES for t in tables) or len(set(tables)) < len(tables):
+            raise ConfigError(f"{where}: tables must list distinct tables of the paper "
+                              f"({', '.join(map(str, TABLES))}), got {data['tables']!r}")
+        return list(dict.fromkeys((a, p, round(float(d), 6)) for t, a, p, d, _, _ in PAPER_ROWS if t in tables))
+    if "reward_presets" not in data:
+        raise ConfigError(f"{where}: key 'reward_presets' is missing; list the reward presets to train "
+                          "(or the paper's 'tables')")
+    algorithms = _names(f"{where}: algorithms", data.get("algorithms", ["ddpg"]), ALGORITHM_NAMES, "algorithm")
+    presets = _names(f"{where}: reward_presets", data["reward_presets"], tuple(PRESETS), "reward preset")
+    densities = []
+    for d in _as_list(data.get("densities", [70])):
+        try:
+            if isinstance(d, bool):
+                raise ConfigError(f"density must be a number in veh/km, got {d!r}")
+            densities.append(validate_density(d))
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: densities: {exc}") from None
+    if not densities or len(set(densities)) < len(densities):
+        raise ConfigError(f"{where}: densities must list at least one density, each once")
+    return [(a, p, d) for a in algorithms for p in presets for d in densities]
+
+
+def _compare(where: str, data: Any, variants: Mapping[str, Any]) -> tuple[str, ...]:
+    """``compare``: variants of the grid other than :data:`DEFAULT_VARIANT`, each once."""
+    if data is None:
+        return ()
+    names = _as_list(data)
+    if DEFAULT_VARIANT not in variants:
+        raise ConfigError(f"{where}: compare sets variants against the variant '{DEFAULT_VARIANT}'; name one in "
+                          "variants")
+    allowed = tuple(v for v in variants if v != DEFAULT_VARIANT)
+    return tuple(_names(f"{where}: compare", names, allowed, "variant other than 'default'"))
 
 
 def _variants(where: str, data: Any) -> dict[str, dict[str, Any]]:
@@ -399,7 +457,8 @@ def validate_grid(grid: Grid, source: str) -> Grid:
     normal = config_to_dict(base)
     variants = {name: _subset(config_to_dict(merge_config(LaneFreeConfig(), keys)), keys)
                 for name, keys in grid.variants.items()}
-    return Grid(grid.name, grid.settings, grid.seeds, grid.episodes, _subset(normal, grid.overrides), variants)
+    return Grid(grid.name, grid.settings, grid.seeds, grid.episodes, _subset(normal, grid.overrides), variants,
+                grid.compare)
 
 
 def _subset(full: Mapping[str, Any], keys: Mapping[str, Any]) -> dict[str, Any]:

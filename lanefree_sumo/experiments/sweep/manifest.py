@@ -39,6 +39,7 @@ CLAIMS_CSV = "claims.csv"
 CLAIMS_MD = "claims.md"
 EFFECTS_CSV = "effects.csv"
 EFFECTS_MD = "effects.md"
+VERDICT_MD = "verdict.md"
 """Each variant against the grid's ``default`` (:mod:`lanefree_sumo.experiments.effects`), in a grid with variants."""
 RUNS_CSV = "runs.csv"
 CURVES = "curves"
@@ -123,6 +124,10 @@ class SweepDir:
     @property
     def effects_md(self) -> Path:
         return self.path / EFFECTS_MD
+
+    @property
+    def verdict_md(self) -> Path:
+        return self.path / VERDICT_MD
 
     @property
     def curves(self) -> Path:

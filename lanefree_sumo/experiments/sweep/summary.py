@@ -18,6 +18,9 @@ Definitions (specification §8, §10):
 * **Claims**: ``claims.csv``/``claims.md``, the paper's claims that compare two of the grid's
   settings, checked on the complete runs (:mod:`lanefree_sumo.experiments.claims`); neither file
   when no claim does (a grid of one setting).
+* **Verdict**: ``verdict.md`` when the grid names variants in ``compare``: each of them against the variant
+  ``default`` per setting, over training windows and every evaluation the runs have
+  (:mod:`lanefree_sumo.experiments.comparison`).
 * **Curves**: one PNG per table of the paper and metric (``curves/table7_collisions.png``; settings
   in no table in ``curves/other_*.png``) drawn by :func:`curves.plot_curves` (mean ± std over runs).
 
@@ -49,6 +52,7 @@ from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
+from lanefree_sumo.experiments.comparison import Sides, verdict_markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.effects import effect_table, effects_markdown
 from lanefree_sumo.experiments.paper import paper_reference
@@ -289,6 +293,16 @@ def paper_comparisons(grid: Grid) -> tuple[Comparison, ...]:
                      if s.variant == claimed and grid.road(s) == "ring")
 
 
+def verdict_page(grid: Grid, groups: dict[Any, list[RunData]], variant: str) -> str:
+    """``variant`` against :data:`DEFAULT_VARIANT`, per setting of the grid, over every source."""
+    comparisons = [Sides(f"{s.algorithm} / {s.preset} / d{s.density:g}", [r.path for r in groups.get(
+        _key(s)[:3] + (variant,), [])], [r.path for r in groups.get(_key(s), [])])
+        for s in grid.settings if s.variant == DEFAULT_VARIANT]
+    return verdict_markdown(comparisons, grid.episodes, f"{variant} against {DEFAULT_VARIANT}: every source",
+                            f"The complete runs of each setting of the grid {grid.name}", "`lanefree sweep --summary`",
+                            variant, DEFAULT_VARIANT, "setting")
+
+
 def summarize(folder: Path, last: int | None = None, smooth: int | None = None) -> SweepSummary:
     """Write ``summary.csv``, ``runs.csv``, ``summary.md``, ``curves/`` and (when a claim compares two of
     the grid's settings) ``claims.csv``/``claims.md`` of sweep folder ``folder`` from its complete runs
@@ -346,6 +360,11 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
             effects.to_csv(sweep.effects_csv, index=False)
             write_atomic(sweep.effects_md, effects_markdown(effects, last))
             files += [sweep.effects_csv, sweep.effects_md]
+        if grid.compare:
+            write_atomic(sweep.verdict_md, "\n".join(verdict_page(grid, groups, variant) for variant in grid.compare))
+            files.append(sweep.verdict_md)
+        else:
+            sweep.verdict_md.unlink(missing_ok=True)
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
     return SweepSummary(table, files, incomplete, notes + plot_notes)

@@ -181,20 +181,29 @@ class FastDDPG(LeanCollector, DDPG):
         per-step mode switches and ``predict``'s generic path); False runs SB3's own.
     :param overlap: step the environment while updating (with a ``SubprocVecEnv`` of one env, on another
         core): the acting policy lags the learner by one update (:meth:`learn`); not bit-identical to SB3.
+    :param pre_tanh_penalty: λ ≥ 0 of λ·mean(u²) added to the actor loss, u the actor's pre-tanh output
+        (``train.actor_critic.pre_tanh_penalty``); with λ > 0 every update takes the autograd path.
 
     All other parameters are :class:`stable_baselines3.DDPG`'s."""
 
     _fast_plan: _Plan | None = None
 
     def __init__(self, *args: Any, fast_learner: bool = True, lean_loop: bool = True, overlap: bool = False,
-                 warmup_actions: str = "uniform", **kwargs: Any) -> None:
+                 warmup_actions: str = "uniform", pre_tanh_penalty: float = 0.0, **kwargs: Any) -> None:
         if warmup_actions not in WARMUP_ACTIONS:
             raise ValueError(f"unknown warm-up {warmup_actions!r}; valid: {', '.join(WARMUP_ACTIONS)}")
+        if not pre_tanh_penalty >= 0:
+            raise ValueError(f"pre_tanh_penalty must be ≥ 0, got {pre_tanh_penalty!r}")
+        self.pre_tanh_penalty = float(pre_tanh_penalty)
         self.fast_learner = fast_learner
         self.lean_loop = lean_loop
         self.overlap = overlap
         self.warmup_actions = warmup_actions
         super().__init__(*args, **kwargs)
+
+    def _penalty(self) -> float:
+        """λ of the pre-tanh penalty (0 for models saved before it existed)."""
+        return float(getattr(self, "pre_tanh_penalty", 0.0))
 
     def _random_steps(self, learning_starts: int) -> int:
         """Steps that act uniformly at random: SB3's ``learning_starts``, or none with ``warmup_actions =
@@ -299,7 +308,7 @@ class FastDDPG(LeanCollector, DDPG):
         if not self._lean_collecting():
             self.policy.set_training_mode(True)
         self._update_learning_rate([self.actor.optimizer, self.critic.optimizer])
-        step = self._mlp_step if plan.mlp else self._autograd_step
+        step = self._mlp_step if plan.mlp and not self._penalty() else self._autograd_step
         actor_losses, critic_losses = [], []
         for _ in range(gradient_steps):
             self._n_updates += 1
@@ -365,7 +374,13 @@ class FastDDPG(LeanCollector, DDPG):
         with th.no_grad():
             plan.critic_adam.step([p.grad for p in plan.critic_params])
 
-        actor_loss = -self.critic.q1_forward(data.observations, self.actor(data.observations)).mean()
+        penalty = self._penalty()
+        if penalty:  # the actor's forward pass, its pre-tanh output kept: mu = [..., Linear, Tanh]
+            pre = self.actor.mu[:-1](self.actor.extract_features(data.observations, self.actor.features_extractor))
+            actor_loss = (-self.critic.q1_forward(data.observations, th.tanh(pre)).mean()
+                          + penalty * pre.square().mean())
+        else:
+            actor_loss = -self.critic.q1_forward(data.observations, self.actor(data.observations)).mean()
         self.actor.optimizer.zero_grad()
         actor_loss.backward(inputs=plan.actor_params)  # SB3 also fills the critic's .grad, then discards it
         with th.no_grad():

@@ -1,0 +1,139 @@
+"""A variant against a baseline over every source: training windows and each evaluation, run by run.
+
+For each comparison (a label, the variant's runs and the baseline's runs) and each source (training over
+episodes 1–12, about the 10 000 steps over which Liu et al. compare training rewards; over all episodes;
+over the last 50; the last 50 episodes of each evaluation folder the runs have): the difference variant −
+baseline of the per-run means of the return, collisions per episode and speed deviation (m/s), with the
+95 % percentile-bootstrap CI over runs and the two-sided rank test of
+:mod:`lanefree_sumo.experiments.claims` (the paper's claims use the same). Verdicts: *<variant> worse* /
+*<variant> better* when the CI excludes 0 (worse: a lower return, more collisions, a larger speed
+deviation), *no difference detected* when it contains 0 (few runs a side: low power, not equivalence),
+*too few runs* below :data:`MIN_RUNS` runs on a side.
+
+A sweep whose grid names variants in ``compare`` writes this page as ``verdict.md``
+(:func:`lanefree_sumo.experiments.sweep.summary.summarize`); the second paper's comparison is the
+built-in grid ``varobs``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from lanefree_sumo.experiments import markdown
+from lanefree_sumo.experiments.claims import MIN_RUNS, difference_ci, per_run, rank_test
+from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_run
+
+LIU_EPISODES = (1, 12)
+"""Liu et al. compare rewards over 10 000 training steps: episodes 1–12 (800 steps each; 9600 steps)."""
+TRAINING_SOURCES: tuple[tuple[str, str, tuple[int, int] | None], ...] = (
+    ("", "training, episodes 1–12 (Liu et al.'s 10 000 steps)", LIU_EPISODES),
+    ("", "training, all {episodes} episodes", (1, 0)),
+    ("", "training, last 50 episodes", None))
+"""(``""``: the training episodes; label; episodes averaged per run: a window, ``(1, 0)`` for all of them,
+None for the last 50)."""
+EVALUATIONS: tuple[tuple[str, str], ...] = (
+    ("eval", "deterministic, 70 veh/km"),
+    ("eval_d90", "zero-shot, 90 veh/km"),
+    ("eval_d120", "zero-shot, 120 veh/km"),
+    ("eval_onramp", "zero-shot, on-ramp"))
+"""(evaluation folder, label) of the evaluations the comparison reads, in this order, where a run has them
+(``lanefree evaluate RUN --out eval``; ``--density 90 --out eval_d90``; ``--scenario onramp --out eval_onramp``)."""
+METRICS = (("return", "return", 1), ("collisions", "collisions / episode", -1),
+           ("speed_dev_mps", "speed deviation (m/s)", -1))
+"""(column, label, +1 when higher is better)."""
+LAST = 50
+TOO_FEW = f"too few runs (< {MIN_RUNS} a side)"
+
+
+@dataclass(frozen=True)
+class Sides:
+    """One comparison: its label (a table's first column) and the run folders of each side."""
+
+    label: str
+    variant: Sequence[Path]
+    baseline: Sequence[Path]
+
+
+def reading(better: int, low: float, high: float, variant: str = "set") -> str:
+    """The verdict of a variant − baseline difference whose CI is [low, high] (``better`` +1 when higher is
+    better)."""
+    if math.isnan(low):
+        return TOO_FEW
+    if low <= 0 <= high:
+        return "no difference detected"
+    return f"{variant} better" if (low > 0) == (better > 0) else f"{variant} worse"
+
+
+def _mean_text(values: list[float]) -> str:
+    return f"{sum(values) / len(values):.2f}" if values else "–"
+
+
+def readable(runs: Sequence[Path], source: str) -> list[RunData]:
+    """The runs that have ``source`` (``""``: training; an evaluation a machine without the model could not run
+    is absent)."""
+    out = []
+    for run in runs:
+        try:
+            out.append(read_run(run, source))
+        except UnusableRunError:
+            continue
+    return out
+
+
+def sources(comparisons: Sequence[Sides], episodes: int) -> list[tuple[str, str, tuple[int, int] | None]]:
+    """The training windows (``episodes``: the planned episodes per run) and every evaluation of
+    :data:`EVALUATIONS` that some run of ``comparisons`` has."""
+    out = [(folder, label.format(episodes=episodes), (1, episodes) if window == (1, 0) else window)
+           for folder, label, window in TRAINING_SOURCES]
+    runs = [run for sides in comparisons for run in (*sides.variant, *sides.baseline)]
+    for folder, label in EVALUATIONS:
+        if any((run / folder / "episodes.csv").is_file() for run in runs):
+            out.append((folder, label, None))
+    return out
+
+
+def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set") -> list[list[str]]:
+    """One table row per comparison, source and metric: label, source, metric, runs a side, each side's mean,
+    the difference with its CI, the rank test and the verdict (``variant`` names the variant in it)."""
+    out = []
+    every = sources(comparisons, episodes)
+    for sides in comparisons:
+        for source, label, window in every:
+            data = {"variant": readable(sides.variant, source), "baseline": readable(sides.baseline, source)}
+            for column, name, better in METRICS:
+                a = per_run(data["variant"], column, LAST, window)
+                b = per_run(data["baseline"], column, LAST, window)
+                diff, low, high = difference_ci(a, b)
+                above, p = rank_test(a, b, 0)
+                ci = "" if math.isnan(low) else f" [{low:+.2f}, {high:+.2f}]"
+                rank = "–" if math.isnan(p) else f"{above:g}/{len(a) * len(b)}, p = {p:.2f}"
+                out.append([sides.label, label, name, f"{len(a)}, {len(b)}", _mean_text(a), _mean_text(b),
+                            ("–" if math.isnan(diff) else f"{diff:+.2f}") + ci, rank,
+                            reading(better, low, high, variant)])
+    return out
+
+
+def verdict_markdown(comparisons: Sequence[Sides], episodes: int, title: str, setting: str,
+                     written_by: str, variant: str = "set", baseline: str = "vector", label: str = "algorithm") -> str:
+    """The page: how to read it, then the table (``setting``: what every run trained on, a sentence's start;
+    ``label``: the heading of the comparisons' column)."""
+    lines = [f"# {title}", "",
+             f"{setting}; per-run means over the last 50 episodes of "
+             "each source (training also over its first 12 episodes, about the 10 000 steps over which Liu et al. "
+             f"compare training rewards, and over all {episodes}), then {variant} − {baseline} with a 95 % "
+             "percentile-bootstrap CI over runs and the two-sided rank test (pairs of runs with "
+             f"{variant} above {baseline}, ties ½; exact permutation p). "
+             f"Verdict: *{variant} worse* or "
+             f"*{variant} better* when the CI excludes 0 (worse: lower return, more collisions, larger speed "
+             "deviation), *no difference detected* when it contains 0 (3 runs a side: low power, not equivalence), "
+             f"*too few runs* below {MIN_RUNS} runs on a side. With 3 runs against 3 the percentile bootstrap "
+             "resamples few distinct means and its CI is narrow, and the two-sided rank test cannot go below "
+             f"p = 0.10 (every {variant} run on one side of every {baseline} run): read both. Written by "
+             f"{written_by} from the run folders.", ""]
+    lines += markdown.table([label, "source", "metric", f"n ({variant}, {baseline})", variant, baseline,
+                             f"{variant} − {baseline} [95 % CI]", f"rank: {variant} > {baseline}, p", "verdict"],
+                            rows(comparisons, episodes, variant))
+    return "\n".join(lines) + "\n"
