@@ -62,8 +62,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     sw = subparsers.add_parser(
         "sweep",
         help="train a grid of runs (the paper's tables) on Ray, resumable",
-        description="Train every (algorithm, reward preset, density, seed) run of GRID, one Ray task per run in a "
-        "fresh process with one CPU, into DIR/runs/<algo>_<preset>_d<density>_s<seed>/ (ordinary run folders), "
+        description="Train every (algorithm, reward preset, density, seed) run of GRID on Ray, one CPU per task, "
+        "runs of one algorithm packed K to a task (--batch), into DIR/runs/<algo>_<preset>_d<density>_s<seed>/ "
+        "(ordinary run folders, the same as one run per task would write), "
         "then write DIR/summary.csv and summary.md (last-50-episode means with 95 % bootstrap CIs over runs, the "
         "paper's values) and learning curves per table. GRID: a built-in grid, " + ", ".join(BUILTIN_GRIDS) +
         " (--list says what each is; 10 seeds and 625 episodes each, --seeds N for fewer), or a YAML file (keys "
