@@ -10,7 +10,7 @@ import pytest
 from scipy.special import erfc
 
 from lanefree_sumo.config import ConfigError, DriverConfig, LaneFreeConfig, merge_config
-from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
+from lanefree_sumo.sim.collisions import CollisionTracker, count_events, overlap_matrix
 from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
 from lanefree_sumo.sim.forces import (
     driver_accelerations,
@@ -373,6 +373,19 @@ def test_several_collision_events_start_in_one_step_and_each_pair_is_counted_onc
     now[1, 2] = now[2, 1] = True  # old vehicles 2 and 3: the same contact, no new event
     now[0, 3] = now[3, 0] = True  # old vehicle 0 and the newcomer: a new event
     assert tracker.update(now).tolist() == [[0, 3]]
+
+
+def test_one_steps_collision_events_are_split_by_who_took_part():
+    # rows 1 and 4 are agents; vehicle 1's view of six events starting in one step
+    pairs = np.array([[0, 1], [1, 4], [1, 2], [0, 2], [3, 4], [2, 3]])
+    agents = np.array([1, 4])
+    # vehicle 1's: (0,1), (1,4), (1,2); with another agent: (1,4); background only: (0,2), (2,3)
+    assert count_events(pairs, 1, agents) == (3, 1, 2)
+    # agent 4's: (1,4), (3,4); with an agent: (1,4) — the pair (3,4) has one agent, so it is no background event
+    assert count_events(pairs, 4, agents) == (2, 1, 2)
+    assert count_events(pairs, 1, np.array([1])) == (3, 0, 3)  # alone: (0,2), (2,3), (3,4) are background
+    assert count_events(np.zeros((0, 2), dtype=np.int64), 1, agents) == (0, 0, 0)
+    assert count_events(np.array([[2, 3]]), 1, agents) == (0, 0, 1)
 
 
 def test_a_vehicle_exactly_at_the_end_of_an_edge_is_at_the_start_of_the_next():
