@@ -174,6 +174,7 @@ def test_a_heartbeat_names_its_worker_is_refreshed_and_removed(tmp_path, monkeyp
     sweep = SweepDir(tmp_path)
     beat = state.Heartbeat(sweep, "r", {"episodes": 3})
     try:
+        assert beat._thread.daemon  # a worker that dies without stop() is not kept alive by its heartbeat
         data = read_heartbeat(sweep, "r")
         assert (data["pid"], data["host"], data["episodes"]) == (os.getpid(), socket.gethostname(), 3)
         assert time.strptime(data["started"], "%Y-%m-%dT%H:%M:%S")
@@ -225,3 +226,58 @@ def test_an_empty_failure_reason_reads_failed(tmp_path):
     sweep = SweepDir(tmp_path)
     record_failure(sweep, "r", "  ")
     assert failure_reason(sweep, "r") == "failed"
+
+
+def test_checking_a_worker_sends_it_no_signal_and_another_users_process_is_alive(tmp_path, monkeypatch):
+    # the child restores the default action of SIGHUP (nohup ignores it), which ends a process
+    child = subprocess.Popen([sys.executable, "-c", "import signal, sys\n"
+                              "signal.signal(signal.SIGHUP, signal.SIG_DFL)\n"
+                              "print('ready', flush=True); sys.stdin.read()"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        assert state._alive(child.pid) and state._alive(str(child.pid))
+    finally:
+        child.stdin.close()
+        child.wait()
+    assert child.returncode == 0  # it ended on its own: signal 0 only (a SIGHUP would have ended it first)
+    assert not state._alive(child.pid) and not state._alive(None) and not state._alive("pid")
+
+    def denied(pid: int, sig: int) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(state.os, "kill", denied)
+    assert state._alive(1)  # not ours to signal, but there
+
+
+def test_clearing_or_stopping_twice_is_harmless(tmp_path, monkeypatch):
+    sweep = SweepDir(tmp_path)
+    clear_failure(sweep, "never-failed")  # nothing on file: nothing to do
+    monkeypatch.setattr(state, "HEARTBEAT_S", 0.01)
+    beat = state.Heartbeat(sweep, "r", {})
+    beat.path.unlink()  # removed under it (a sweep cleaning up): the beats go on, stop() does not fail
+    misses = []
+    real_utime = os.utime
+
+    def utime(path, *args, **kwargs):
+        if Path(path) == beat.path:
+            misses.append(path)
+        return real_utime(path, *args, **kwargs)
+
+    monkeypatch.setattr(state.os, "utime", utime)
+    deadline = time.monotonic() + 30
+    while len(misses) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)  # polling the state the thread changes
+    assert len(misses) >= 2 and beat._thread.is_alive()  # a beat on a missing file did not end the thread
+    beat.stop()
+    assert not beat.path.exists()
+
+
+def test_a_heartbeat_from_the_future_is_zero_seconds_old(tmp_path):
+    sweep = SweepDir(tmp_path)
+    beat = sweep.heartbeat("r")
+    beat.parent.mkdir(parents=True)
+    beat.write_text("{}")
+    ahead = time.time() + 100  # written on a host whose clock runs ahead
+    os.utime(beat, (ahead, ahead))
+    assert heartbeat_age(sweep, "r") == 0.0
