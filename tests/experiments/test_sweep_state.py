@@ -68,6 +68,7 @@ def test_with_a_model_complete_means_exactly_episodes_one_to_n(tmp_path):
         info = inspect_run(write_run(tmp_path / name, rows, model=True), 3)
         assert (info.state, info.episodes) == (DAMAGED, len(rows)), name
         assert "episodes 1…3" in info.detail
+        assert "inspect it (restore the CSV or delete the folder to retrain)" in info.detail  # what to do
     # fewer, and exactly 1..k: a finished shorter run, extended
     info = inspect_run(write_run(tmp_path / "short", [1, 2], model=True), 3)
     assert info == RunInfo(PARTIAL, 2, "finished at 2 episodes; will be extended to 3")
@@ -281,3 +282,9 @@ def test_a_heartbeat_from_the_future_is_zero_seconds_old(tmp_path):
     ahead = time.time() + 100  # written on a host whose clock runs ahead
     os.utime(beat, (ahead, ahead))
     assert heartbeat_age(sweep, "r") == 0.0
+
+
+def test_the_episode_number_is_the_first_of_many_columns(tmp_path):
+    path = tmp_path / "episodes.csv"
+    path.write_text("episode,return,speed\n1,1.0,20\n2,1.5,21\n")
+    assert episode_numbers(path) == [1, 2]
