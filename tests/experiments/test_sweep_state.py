@@ -96,7 +96,7 @@ def test_a_cut_line_is_damaged_and_rows_are_counted_from_the_file(tmp_path):
 def test_without_a_model_the_last_session_and_the_episode_numbers_decide(tmp_path):
     # committed results: episodes 1..N and a session that ended at N, no model, no checkpoints
     info = inspect_run(write_run(tmp_path / "done", [1, 2, 3], done=3), 3)
-    assert (info.state, info.episodes) == (COMPLETE, 3) and "without models" in info.detail
+    assert info == RunInfo(COMPLETE, 3, "complete; its model is not here (results copied without models)")
     assert inspect_run(write_run(tmp_path / "cut", [1, 2, 3], done=2), 3).state == STALE  # ended earlier
     assert inspect_run(write_run(tmp_path / "more", [1, 2, 3], done=4), 3).state == STALE
     assert inspect_run(write_run(tmp_path / "gap", [1, 2, 4], done=3), 3).state == STALE  # rows, not 1..N
@@ -108,7 +108,7 @@ def test_without_a_model_the_last_session_and_the_episode_numbers_decide(tmp_pat
     died = write_run(tmp_path / "died", [1, 2, 3], done=3)
     (died / "checkpoints").mkdir()
     info = inspect_run(died, 3)
-    assert (info.state, info.detail) == (STALE, "no checkpoint yet; restarts from scratch")
+    assert info == RunInfo(STALE, 3, "no checkpoint yet; restarts from scratch")
 
 
 def test_a_checkpoint_makes_a_run_resumable(tmp_path):
