@@ -3,14 +3,19 @@ and recursive feasibility over random states (numpy only), and zero agent collis
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig
+from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config
 from lanefree_sumo.rl.shield import (
     ShieldParams,
+    _scene,
+    _travel,
+    _travel_inverse,
+    _violations,
     committed_band,
     invariant_holds,
     max_speed_behind,
@@ -67,6 +72,13 @@ def test_stopping_distance_is_the_ballistic_sum_and_at_most_bt2_over_8_above_v2_
         assert stopping_distance(v, B, T) == pytest.approx(simulated, abs=1e-9)
         assert 0.0 <= stopping_distance(v, B, T) - v * v / (2 * B) <= B * T * T / 8 + 1e-12
     assert stopping_distance(20.0, B, T) == pytest.approx(50.0)  # 20 m/s = 20 full steps of bT
+
+
+def test_travel_after_a_step_is_piecewise_linear_with_nodes_at_whole_steps_of_braking():
+    # φ(u) = S_b(u) + u·T/2 is b·T²·n(n + 1)/2 at u = n·b·T (b = 4, T = 0.25: bT = 1 m/s, bT² = 0.25 m), linear between
+    u = np.array([0.0, 0.5, 1.0, 1.5, 2.0, 3.0])
+    assert _travel(u, B, T).tolist() == [0.0, 0.125, 0.25, 0.5, 0.75, 1.5]
+    assert _travel_inverse(np.array([-1.0, 0.0, 0.125, 0.5, 1.5]), B, T).tolist() == [0.0, 0.0, 0.5, 1.5, 3.0]
 
 
 def _rule1_holds(gap: float, v: float, v_leader: float, u: float) -> bool:
@@ -180,6 +192,89 @@ def test_three_vehicles_slow_car_ahead_and_car_alongside():
 def test_params_validate():
     with pytest.raises(ConfigError, match="horizon"):
         ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4, 2, -1, 1), horizon_s=0.1)
+    with pytest.raises(ConfigError, match="horizon"):
+        ShieldParams(0.0, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4, 2, -1, 1))  # no step
+    # a horizon of exactly one step is allowed (assumption A2: H ≥ T)
+    assert ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4, 2, -1, 1),
+                        horizon_s=0.25).horizon_s == 0.25
+
+
+def test_the_fallbacks_violations_are_the_rules_shortfalls_after_a_simulated_step():
+    # agent braking (3) and background braking (4) and accelerating (2.5) differ, so that no two swap unseen
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(-3.0, 2.0, -1.8, 1.8), AccelerationBounds(-4.0, 2.5, -1, 1),
+                     horizon_s=1.5, margin_x_m=0.7, margin_y_m=0.3)
+    v, vl, vf = 14.0, 6.0, 17.0
+    # row 0 ahead (gap 33 m), row 1 behind in another lane (gap 18 m), row 2 alongside, row 3 close behind in the lane
+    state = scene((100.0 + HALF_LEN + 33.0, 5.0, vl, 0.0), (100.0 - HALF_LEN - 18.0, 1.2, vf, 0.0),
+                  (101.0, 8.5, 10.0, 0.0), (100.0 - HALF_LEN - 3.0, 5.0, 20.0, 0.0), agent=(100.0, 5.0, v, 0.0))
+    sc = _scene(4, state, p)
+    assert sc.ahead.tolist() == [True, False, False, False] and sc.alongside.tolist() == [False, False, True, False]
+    assert sc.in_current_corridor.tolist() == [True, False, False, True]
+    assert sc.soon_alongside.tolist() == [False, False, False, True]
+    # reach of a car at y = 5 m: 5 ± ½·1·1.5² ± 0.9 ± 0.3 = [2.675, 7.325]; the agent's band 5 ± 0.8 = [4.2, 5.8]
+    assert sc.depth_now.tolist() == pytest.approx([3.125, 0.0, 0.0, 3.125], abs=1e-12)
+    ax = np.array([-3.0, -1.0, 0.0, 1.0, 2.0])
+    u = np.maximum(v + ax * T, 0.0)
+    s = stopping_distance
+
+    def shortfall_ahead(u: float) -> float:
+        vl_next = max(vl - 4.0 * T, 0.0)
+        gap_next = 33.0 + (vl + vl_next) * T / 2 - (v + u) * T / 2
+        return max(0.0, max(0.0, float(s(u, 3.0, T) - s(vl_next, 4.0, T))) + 0.7 - gap_next)
+
+    def shortfall_behind(u: float) -> float:
+        vf_next = vf + 2.5 * T
+        gap_next = 18.0 + (v + u) * T / 2 - (vf + vf_next) * T / 2
+        return max(0.0, max(0.0, float(s(vf_next, 4.0, T) - s(u, 4.0, T))) + 0.7 - gap_next)
+
+    ahead = np.array([shortfall_ahead(x) for x in u])
+    behind = np.array([shortfall_behind(x) for x in u])
+    assert ahead.min() == 0.0 < ahead.max() and behind.min() == 0.0 < behind.max()  # both rules bind somewhere
+    depth = np.zeros((5, 4))
+    in_corridor = np.zeros((5, 4), bool)
+    for row, expected in ((0, ahead), (1, behind)):
+        corridor = in_corridor.copy()
+        corridor[:, row] = True
+        got = _violations(v, ax, corridor, depth, sc, p)
+        assert got == pytest.approx(expected, abs=1e-12), row
+    # alongside, or behind and about to come alongside: how much deeper the band reaches into the reach band
+    depth[:, 2] = [0.0, 0.25, 0.5, 0.75, 1.0]
+    depth[:, 3] = [0.0, 0.0, 0.0, 4.0, 0.0]
+    corridor = in_corridor.copy()
+    corridor[:, 2] = True
+    got = _violations(v, ax, corridor, depth, sc, p)
+    soon = np.maximum(depth[:, 3] - sc.depth_now[3], 0.0)
+    assert got == pytest.approx(np.maximum(depth[:, 2], soon), abs=1e-12)
+    # a vehicle behind already in the agent's current corridor: its rule-3 shortfall is the follower's own
+    corridor = in_corridor.copy()
+    corridor[:, 3] = True
+    assert _violations(v, ax, corridor, np.zeros((5, 4)), sc, p).tolist() == [0.0] * 5
+
+
+@pytest.mark.parametrize("which", ["agent", "background"])
+@pytest.mark.parametrize("bound", ["ax_min", "ax_max", "ay_min", "ay_max"])
+def test_params_need_every_acceleration_bound_strictly_off_zero(which, bound):
+    asymmetric = AccelerationBounds(-4.0, 2.0, -1.0, 0.5)  # 0.5 < 1: any small non-zero bound is enough
+    assert ShieldParams(0.25, 10.2, 500.0, asymmetric, asymmetric).agent_lateral_brake == 0.5
+    zero = AccelerationBounds(**{**dataclasses.asdict(asymmetric), bound: 0.0})
+    bounds = (zero, asymmetric) if which == "agent" else (asymmetric, zero)
+    with pytest.raises(ConfigError, match="^the shield needs acceleration bounds with braking and accelerating on both"
+                                          " axes$"):
+        ShieldParams(0.25, 10.2, 500.0, *bounds)
+
+
+def test_params_from_a_config_take_every_setting_from_it():
+    cfg = merge_config(LaneFreeConfig(), {
+        "sim": {"step_s": 0.2, "edge_clearance_m": 0.01, "edge_contact_tolerance_m": 1e-4},
+        "road": {"length_m": 400.0, "width_m": 9.0},
+        "scenario": {"agent_bounds": {"ax_min": -5.0, "ax_max": 2.5, "ay_min": -1.5, "ay_max": 1.6},
+                     "agent_max_speed_mps": 28.0,
+                     "driver": {"bounds": {"ax_min": -3.5, "ax_max": 1.5, "ay_min": -0.8, "ay_max": 0.9}}},
+        "shield": {"horizon_s": 1.5, "margin_x_m": 0.7, "margin_y_m": 0.3, "lateral_candidates": 11},
+    })
+    assert ShieldParams.from_config(cfg) == ShieldParams(
+        0.2, 9.0, 400.0, AccelerationBounds(-5.0, 2.5, -1.5, 1.6), AccelerationBounds(-3.5, 1.5, -0.8, 0.9),
+        28.0, 1.5, 0.7, 0.3, 11, 0.01, 1e-4)
     with pytest.raises(ConfigError):
         ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(0.0, 2.0, -1.8, 1.8), AccelerationBounds(-4, 2, -1, 1))
 
