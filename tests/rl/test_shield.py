@@ -134,20 +134,22 @@ def test_a_car_alongside():
     assert not shield_action(1, state, 0.0, -1.8, P).intervened  # steering away is fine
 
 
-def agent_next_band(state: VehicleState, ay: float) -> tuple[np.ndarray, np.ndarray]:
+def agent_next_band(state: VehicleState, ay: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The agent's lateral position and speed after one step with each lateral acceleration ``ay``."""
     a = state.n - 1
-    cmd = plan_step(state.x[a:], state.y[a:], state.vx[a:], state.vy[a:], state.width[a:], np.zeros(1),
-                    np.array([ay]), T, CFG.road.width_m, CFG.sim.edge_clearance_m)
-    return state.y[a:] + cmd.dy, cmd.vy_next
+    ay = np.atleast_1d(np.asarray(ay, dtype=float))
+    k = len(ay)
+    cmd = plan_step(np.repeat(state.x[a:], k), np.repeat(state.y[a:], k), np.repeat(state.vx[a:], k),
+                    np.repeat(state.vy[a:], k), np.repeat(state.width[a:], k), np.zeros(k), ay, T,
+                    CFG.road.width_m, CFG.sim.edge_clearance_m)
+    return state.y[a] + cmd.dy, cmd.vy_next
 
 
 def _largest_ay_below(state: VehicleState, edge: float) -> float:
     """The largest ay (on a fine grid) whose committed band stays below ``edge``."""
-    best = -1.8
-    for ay in np.linspace(-1.8, 1.8, 3601):
-        if committed_band(*agent_next_band(state, ay), A_WID, P)[1][0] <= edge:
-            best = ay
-    return best
+    grid = np.linspace(-1.8, 1.8, 3601)
+    below = committed_band(*agent_next_band(state, grid), A_WID, P)[1] <= edge
+    return float(grid[below][-1]) if below.any() else -1.8
 
 
 def test_a_fast_follower():
