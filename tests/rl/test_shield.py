@@ -253,6 +253,53 @@ def test_the_fallbacks_violations_are_the_rules_shortfalls_after_a_simulated_ste
     assert _violations(v, ax, corridor, np.zeros((5, 4)), sc, p).tolist() == [0.0] * 5
 
 
+@pytest.mark.parametrize("kind,gap,v,v_other", [
+    ("ahead", 0.25, 6.5, 8.0),  # a faster leader: hard braking owes the margin alone (the u·T/2 branch)
+    ("ahead", 0.25, 0.5, 0.5),  # both nearly stopped: speeds floored at 0 after the step
+    ("behind", 0.25, 6.0, 5.5),  # a slower follower: accelerating owes the margin alone
+    ("behind", 2.0, 0.5, 6.0),  # the agent nearly stopped, a follower closing
+])
+def test_the_fallbacks_violations_in_each_branch_of_the_rules(kind, gap, v, v_other):
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(-3.0, 2.0, -1.8, 1.8), AccelerationBounds(-4.0, 2.5, -1, 1),
+                     horizon_s=1.5, margin_x_m=0.7, margin_y_m=0.3)
+    ahead = kind == "ahead"
+    other = (100.0 + HALF_LEN + gap, 5.0, v_other, 0.0) if ahead else (100.0 - HALF_LEN - gap, 1.2, v_other, 0.0)
+    sc = _scene(1, scene(other, agent=(100.0, 5.0, v, 0.0)), p)
+    ax = np.array([-3.0, -1.0, 0.0, 1.0, 2.0])
+    s = stopping_distance
+    expected = []
+    for u in np.maximum(v + ax * T, 0.0):
+        if ahead:
+            vl_next = max(v_other - 4.0 * T, 0.0)
+            gap_next = gap + (v_other + vl_next) * T / 2 - (v + u) * T / 2
+            need = max(0.0, float(s(u, 3.0, T) - s(vl_next, 4.0, T))) + 0.7
+        else:
+            vf_next = v_other + 2.5 * T
+            gap_next = gap + (v + u) * T / 2 - (v_other + vf_next) * T / 2
+            need = max(0.0, float(s(vf_next, 4.0, T) - s(u, 4.0, T))) + 0.7
+        expected.append(max(0.0, need - gap_next))
+    assert max(expected) > 0.0
+    got = _violations(v, ax, np.ones((5, 1), bool), np.zeros((5, 1)), sc, p)
+    assert got == pytest.approx(expected, abs=1e-9)
+
+
+def test_the_invariant_at_exactly_the_gap_rule_1_asks():
+    def two(x_other: float, y_other: float, v: float, v_other: float) -> VehicleState:
+        return VehicleState(["bg", "agent"], np.array([x_other, 100.0]), np.array([y_other, 5.0]),
+                            np.array([v_other, v]), np.zeros(2), np.full(2, 4.0), np.full(2, 2.0), np.full(2, 20.0),
+                            np.array([True, False]))
+
+    # a faster leader in the lane: rule 1 asks the margin alone (0.5 m), bumper to bumper
+    assert invariant_holds(1, two(104.5, 5.0, 10.0, 25.0), P)
+    assert invariant_holds(1, two(104.75, 5.0, 10.0, 25.0), P)
+    assert not invariant_holds(1, two(104.375, 5.0, 10.0, 25.0), P)
+    # a leader as fast as the agent: S_b(v) − S_bL(v) = 0 (b = b_L = 4), again the margin
+    assert invariant_holds(1, two(104.5, 5.0, 20.0, 20.0), P)
+    # 0.25 m behind a stopped car in another lane, outside the corridor: nothing asked
+    assert invariant_holds(1, two(104.25, 9.0, 20.0, 0.0), P)
+    assert not invariant_holds(1, two(104.25, 5.0, 20.0, 0.0), P)
+
+
 @pytest.mark.parametrize("which", ["agent", "background"])
 @pytest.mark.parametrize("bound", ["ax_min", "ax_max", "ay_min", "ay_max"])
 def test_params_need_every_acceleration_bound_strictly_off_zero(which, bound):
