@@ -11,6 +11,7 @@ import pytest
 
 from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config
 from lanefree_sumo.rl.shield import (
+    ShieldDecision,
     ShieldParams,
     _scene,
     _travel,
@@ -99,6 +100,24 @@ def test_rule1_bound_is_the_largest_speed_that_keeps_the_braking_gap(gap, v, v_l
     assert not _rule1_holds(gap, v, v_leader, u_star + 1e-6)
 
 
+def _rule3_holds(gap: float, v: float, v_follower: float, u: float) -> bool:
+    """Rule 3 after a step ending at agent speed u, the follower accelerating at 2 m/s² (worst case)."""
+    vf = v_follower + 2.0 * T
+    gap_next = gap + (v + u) * T / 2 - (v_follower + vf) * T / 2
+    return gap_next >= max(0.0, float(stopping_distance(vf, B, T) - stopping_distance(u, B, T))) + M - 1e-9
+
+
+@pytest.mark.parametrize("gap,v,v_follower", [(60.0, 15.0, 25.0), (20.0, 10.0, 20.0), (0.6, 1.0, 0.0),
+                                               (0.55, 3.0, 2.0), (30.0, 20.0, 10.0), (5.0, 0.0, 12.0),
+                                               (0.25, 1.0, 0.0)])  # the last: u·T/2 ≥ −G binds
+def test_rule3_bound_is_the_smallest_speed_that_leaves_the_follower_its_braking_distance(gap, v, v_follower):
+    u_star = float(min_speed_ahead(gap, v, v_follower, P))
+    assert u_star >= 0.0 and _rule3_holds(gap, v, v_follower, u_star)
+    if u_star > 0.0:  # a bound binds: any slower end speed breaks the rule
+        assert not _rule3_holds(gap, v, v_follower, u_star - 1e-6)
+    assert (u_star == 0.0) == _rule3_holds(gap, v, v_follower, 0.0)  # standing still qualifies: no bound
+
+
 def test_a_car_stopped_ahead():
     # 55 m bumper gap is enough at 20 m/s (S(20) = 50 m): the shield caps ax at the closed-form bound
     state = scene((100 + HALF_LEN + 55.0, 5.0, 0.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
@@ -177,6 +196,55 @@ def test_no_cut_in_before_a_fast_follower():
     assert float(min_speed_ahead(60.0, 15.0, 25.0, P)) == pytest.approx(14.0, abs=0.05)
     state = scene((100 - HALF_LEN - 60.0, 7.9, 25.0, 0.0), agent=(100.0, 5.0, 15.0, 1.0))
     assert not shield_action(1, state, 0.0, 1.8, P).intervened
+
+
+def test_rule3_raises_the_speed_of_a_lane_change_in_front_of_a_follower():
+    # 56 m ahead of a follower at 25 m/s the agent must end the step at 15.0625 m/s or more: ax ≥ 0.25 m/s²
+    state = scene((100 - HALF_LEN - 56.0, 7.9, 25.0, 0.0), agent=(100.0, 5.0, 15.0, 1.0))
+    d = shield_action(1, state, 0.0, 1.8, P)
+    assert d.certified and d.intervened and d.ay == 1.8 and d.ax == pytest.approx(0.25, abs=1e-9)
+
+
+def test_alone_on_the_road_the_policy_is_kept_up_to_its_clip():
+    assert shield_action(0, scene(agent=(100.0, 5.0, 15.0, 1.0)), 0.5, 1.0, P) == ShieldDecision(0.5, 1.0, False, 0.0,
+                                                                                                   True)
+    # 0.25 m/s below the top speed (30 m/s) the agent may gain 1 m/s² at most; above it, it must shed the excess
+    assert shield_action(0, scene(agent=(100.0, 5.0, 29.75, 0.0)), 2.0, 0.0, P) == ShieldDecision(1.0, 0.0, False,
+                                                                                                    0.0, True)
+    assert shield_action(0, scene(agent=(100.0, 5.0, 32.0, 0.0)), 2.0, 0.0, P) == ShieldDecision(-8.0, 0.0, False,
+                                                                                                   0.0, True)
+
+
+def test_stopping_exactly_at_rule_1s_gap_is_certified_and_a_shorter_gap_is_not():
+    def behind_a_stopped_car(gap: float) -> VehicleState:  # 4 m bodies: bumper gaps in exact binary fractions
+        return VehicleState(["bg", "agent"], np.array([104.0 + gap, 100.0]), np.full(2, 5.0), np.array([0.0, 1.0]),
+                            np.zeros(2), np.full(2, 4.0), np.full(2, 2.0), np.full(2, 20.0), np.array([True, False]))
+
+    # at 1 m/s, 0.625 m behind: stopping in this step (ax = −4) covers 0.125 m and leaves the 0.5 m margin
+    d = shield_action(1, behind_a_stopped_car(0.625), 0.0, 0.0, P)
+    assert (d.certified, d.ax, d.ay) == (True, -4.0, 0.0)
+    assert not shield_action(1, behind_a_stopped_car(0.375), 0.0, 0.0, P).certified
+
+
+def test_only_the_candidates_that_reach_a_car_ahead_are_bound_by_it():
+    # a car stopped 25 m ahead in the lane to the left: steering hard left reaches it, a gentler ay does not
+    state = scene((100 + HALF_LEN + 25.0, 7.45, 0.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    d = shield_action(1, state, 0.0, 1.8, P)
+    assert (d.certified, d.ax) == (True, 0.0) and d.ay == pytest.approx(0.7)
+
+
+def test_on_an_open_road_each_vehicles_own_bounds_shape_the_bands():
+    # the agent on a ramp (its body within [0, 4] m) drifting left at 1.5 m/s, a main-road car (within
+    # [4.4, 10.2] m) alongside at 5.5 m: neither can cross the barrier, so steering left is safe
+    state = scene((100.0, 5.5, 20.0, 0.0), agent=(100.0, 3.0, 20.0, 1.5))
+    hi = np.array([10.2, 4.0])
+    assert shield_action(1, state, 0.0, 1.8, P, (np.array([4.4, 0.0]), hi)) == ShieldDecision(0.0, 1.8, False, 0.0,
+                                                                                              True)
+    # without the barrier (the ring's road) the same steer leads into the car: the fallback steers away
+    assert shield_action(1, state, 0.0, 1.8, P) == ShieldDecision(0.0, -1.8, True, 3.6, False)
+    assert shield_action(1, state, 0.0, 1.8, P, (0.0, 10.2)) == ShieldDecision(0.0, -1.8, True, 3.6, False)
+    # the car without the barrier may come down into the agent's band: no certified candidate
+    assert not shield_action(1, state, 0.0, 1.8, P, (np.array([0.0, 0.0]), hi)).certified
 
 
 def test_three_vehicles_slow_car_ahead_and_car_alongside():
