@@ -231,6 +231,14 @@ def test_only_the_candidates_that_reach_a_car_ahead_are_bound_by_it():
     state = scene((100 + HALF_LEN + 25.0, 7.45, 0.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
     d = shield_action(1, state, 0.0, 1.8, P)
     assert (d.certified, d.ax) == (True, 0.0) and d.ay == pytest.approx(0.7)
+    # the same car 5 m ahead at the agent's 20 m/s: hard left is certified braking at 0.4 m/s², 1.4 m/s² from
+    # the policy's +1; a gentler ay (0.7) keeps the +1 and is closer (1.1 m/s²)
+    state = scene((100 + HALF_LEN + 5.0, 7.45, 20.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    d = shield_action(1, state, 1.0, 1.8, P)
+    assert (d.certified, d.ax) == (True, 1.0) and d.ay == pytest.approx(0.7) and d.correction == pytest.approx(1.1)
+    # without a follower nothing stops the agent braking harder than a background vehicle can (rule 4)
+    alone = scene((100 + HALF_LEN + 60.0, 5.0, 0.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    assert shield_action(1, alone, -4.5, 0.0, P) == ShieldDecision(-4.5, 0.0, False, 0.0, True)
 
 
 def test_on_an_open_road_each_vehicles_own_bounds_shape_the_bands():
