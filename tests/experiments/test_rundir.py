@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,6 +22,8 @@ from lanefree_sumo.experiments.rundir import (
     append_command,
     check_new_file,
     check_replaceable,
+    claim,
+    claim_path,
     find_eval_dir,
     fresh_output,
     new_file,
@@ -26,8 +32,15 @@ from lanefree_sumo.experiments.rundir import (
     record_session,
     trajectory_path,
     vehicles_path,
+    write_atomic,
     write_config,
 )
+
+
+def _child_env() -> dict[str, str]:
+    """This process's environment with this checkout first on the child's import path."""
+    root = str(Path(__file__).resolve().parents[2])
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
 
 
 def output_of(folder: Path, verb: str, *files: str) -> Path:
@@ -319,3 +332,112 @@ def test_one_writer_at_a_time(tmp_path):
             pass
     with run.writer_lock():  # released
         pass
+
+
+# -- what dead writers leave, what a live one holds, how outputs are made --------------------------------------
+
+def test_a_claim_clears_what_dead_writers_left_and_puts_an_output_they_moved_aside_back(tmp_path):
+    out = tmp_path / "out"
+    (tmp_path / ".out.new-abcd_123").mkdir()  # a half-written output
+    (tmp_path / ".out.new-abcd_123" / "a.csv").write_text("half")
+    (tmp_path / ".out.new-0000aaaa").write_text("half a file")
+    aside = tmp_path / ".out.old-zz99zz99"  # the earlier output, moved aside by a writer that died before the swap
+    output_of(aside / "out", "simulate", "a.csv")
+    (tmp_path / ".out.new-abc").mkdir()  # not a temporary name (8 characters): someone else's
+    (tmp_path / ".other.new-abcd1234").mkdir()
+    with claim(out, "simulate"):
+        assert (tmp_path / claim_path(out).name).read_text() == f"{os.getpid()} simulate\n"
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".other.new-abcd1234", ".out.lock", ".out.new-abc", "out"]
+        assert (out / "a.csv").read_text() == "data\n"  # put back, nothing lost
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.new-abcd1234", ".out.new-abc", "out"]
+    # an earlier output moved aside while a newer one is in place: the newer one stays, the old is removed
+    output_of(tmp_path / ".out.old-12345678" / "out", "simulate", "old.csv")
+    with claim(out, "simulate"):
+        pass
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "a.csv"]
+    assert not (tmp_path / ".out.old-12345678").exists()
+
+
+def test_a_claim_held_by_another_process_names_it(tmp_path):
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys\n"
+                               "from pathlib import Path\n"
+                               "from lanefree_sumo.experiments.rundir import claim\n"
+                               f"with claim(Path({str(out)!r}), 'evaluate'):\n"
+                               "    print('held', flush=True); sys.stdin.read()"],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_child_env())
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RunError, match=rf"^{re.escape(str(out))} is being written by process {holder.pid} "
+                                           r"\(another 'lanefree evaluate'\); wait for it or choose another output$"):
+            with claim(out, "simulate"):
+                pass
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    assert holder.returncode == 0 and not claim_path(out).exists()  # released and removed on the way out
+    with claim(out, "simulate"):
+        pass
+
+
+def test_outputs_are_ordinary_files_and_folders_under_the_umask(tmp_path):
+    old = os.umask(0o027)
+    try:
+        with new_file(tmp_path / "table.csv", "export") as tmp:
+            tmp.write_text("x")
+        with fresh_output(tmp_path / "out", False, "simulate") as folder:
+            (folder / "a.csv").write_text("x")
+        write_atomic(tmp_path / "sub" / "state.json", "{}\n")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "table.csv").stat().st_mode) == 0o640
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o750
+    assert stat.S_IMODE((tmp_path / "sub" / "state.json").stat().st_mode) == 0o640
+    assert (tmp_path / "sub" / "state.json").read_text() == "{}\n"
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["state.json"]  # no temporary left
+
+
+def test_an_output_made_by_another_program_meanwhile_is_left_alone(tmp_path):
+    out = tmp_path / "out"
+
+    def refused(k: int) -> str:
+        return (rf"^{re.escape(str(out))} was made or replaced by another program while 'lanefree simulate' wrote; "
+                rf"it is left as it is, and this output is in {re.escape(str(out))}.simulate-{k}$")
+
+    with pytest.raises(RunError, match=refused(1)), fresh_output(out, False, "simulate") as folder:
+        (folder / "mine.csv").write_text("1")
+        output_of(out, "simulate", "theirs.csv")  # made meanwhile where nothing was
+    with pytest.raises(RunError, match=refused(2)), fresh_output(out, True, "simulate") as folder:
+        (folder / "mine.csv").write_text("2")
+        out.rename(tmp_path / "moved")  # the earlier output replaced by another one meanwhile
+        output_of(out, "simulate", "newer.csv")
+    assert [(tmp_path / f"out.simulate-{k}" / "mine.csv").read_text() for k in (1, 2)] == ["1", "2"]
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "newer.csv"]
+
+
+def test_a_run_that_never_reached_a_checkpoint_is_told_from_a_users_folder_and_cleared(tmp_path):
+    run = RunDir(tmp_path / "run")
+    assert not run.never_checkpointed()  # no folder
+    run.path.mkdir()
+    for name in ("config.yaml", "episodes.csv", ".lock"):
+        (run.path / name).write_text("x")
+    (run.path / "tb").mkdir()
+    assert run.never_checkpointed() and not run.has_checkpoint()
+    (run.path / ".lock").unlink()
+    assert not run.never_checkpointed()  # no lock: not made by a training
+    (run.path / ".lock").write_text("1\n")
+    (run.path / "notes.md").write_text("mine")
+    assert not run.never_checkpointed()  # a file training never writes
+    (run.path / "notes.md").unlink()
+    (run.path / "model.zip").write_text("m")
+    assert not run.never_checkpointed()  # it finished
+    (run.path / "model.zip").unlink()
+    _checkpoint(run, 1)
+    assert run.has_checkpoint() and not run.never_checkpointed()  # resumable
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    (target / "keep.txt").write_text("keep")
+    (run.path / "link").symlink_to(target)
+    run.clear()
+    assert sorted(p.name for p in run.path.iterdir()) == [".lock"]
+    assert (target / "keep.txt").read_text() == "keep"  # a link is removed, not what it points to
