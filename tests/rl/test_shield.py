@@ -90,7 +90,8 @@ def _rule1_holds(gap: float, v: float, v_leader: float, u: float) -> bool:
 
 
 @pytest.mark.parametrize("gap,v,v_leader", [(40.0, 20.0, 0.0), (60.0, 20.0, 0.0), (10.0, 15.0, 15.0),
-                                             (3.0, 5.0, 25.0), (80.0, 30.0, 10.0), (0.6, 0.0, 0.0)])
+                                             (3.0, 5.0, 25.0), (80.0, 30.0, 10.0), (0.6, 0.0, 0.0),
+                                             (0.2, 30.0, 30.0)])  # the last: u·T/2 ≤ c binds
 def test_rule1_bound_is_the_largest_speed_that_keeps_the_braking_gap(gap, v, v_leader):
     u_star = float(max_speed_behind(gap, v, v_leader, P))
     if u_star < 0:  # no speed qualifies, not even stopping at once
@@ -374,6 +375,44 @@ def test_the_invariant_at_exactly_the_gap_rule_1_asks():
     # 0.25 m behind a stopped car in another lane, outside the corridor: nothing asked
     assert invariant_holds(1, two(104.25, 9.0, 20.0, 0.0), P)
     assert not invariant_holds(1, two(104.25, 5.0, 20.0, 0.0), P)
+
+
+def test_the_scene_at_exactly_its_boundaries():
+    # 4 m × 2 m bodies, H = 1.5 s, a_L = 2.5 and b_L = 4 m/s², margins 0.75 m and 0.25 m: every edge in binary fractions
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4.0, 2.5, -1.0, 1.0), horizon_s=1.5,
+                     margin_x_m=0.75, margin_y_m=0.25)
+    rows = [  # (x, y, vx): the agent at x = 100, y = 5, 20 m/s
+        (104.0, 5.0, 20.0),  # bumper to bumper ahead (gap 0): ahead, not alongside
+        (96.0, 5.0, 20.0),  # bumper to bumper behind: behind, not alongside
+        (100.0 - 4.0 - 11.0625, 5.0, 22.0),  # behind, gap = (22 − 20)·1.5 + ½·6.5·1.5² + 0.75 = 11.0625: soon alongside
+        (100.0 - 4.0 - 11.125, 5.0, 22.0),  # 1/16 m further: not
+        (100.0 - 4.0 - 2.75, 5.0, 4.0),  # gap = S_bL(4 m/s) + margin = 2 + 0.75: a close follower
+        (100.0 - 4.0 - 2.8125, 5.0, 4.0),  # 1/16 m further: not
+        (130.0, 8.375, 20.0),  # its reach starts at 8.375 − ½·1·1.5² − 1 − 0.25 = 6 = the agent's band's top: apart
+        (130.0, 1.625, 20.0),  # its reach ends at 1.625 + 1.125 + 1.25 = 4 = the band's bottom: apart
+    ]
+    n = len(rows) + 1
+    x, y, vx = (np.array([r[i] for r in rows] + [a]) for i, a in zip(range(3), (100.0, 5.0, 20.0)))
+    state = VehicleState([f"v{i}" for i in range(n)], x, y, vx, np.zeros(n), np.full(n, 4.0), np.full(n, 2.0),
+                         np.full(n, 20.0), np.array([True] * (n - 1) + [False]))
+    sc = _scene(n - 1, state, p)
+    assert sc.ahead.tolist() == [True, False, False, False, False, False, True, True]
+    assert sc.alongside.tolist() == [False] * 8
+    assert sc.behind.tolist() == [False, True, True, True, True, True, False, False]
+    assert sc.soon_alongside.tolist() == [False, True, True, False, True, True, False, False]
+    assert sc.close_follower[1:6].tolist() == [True, True, True, True, False]  # S_bL(22 m/s) > 60 m
+    assert sc.in_current_corridor.tolist() == [True] * 6 + [False, False]
+
+
+def test_reach_bands_at_other_lateral_bounds_and_horizons():
+    # a = 2 m/s² (the background's larger lateral bound), H = 1.5 s: ½·a·H² = 2.25 m, vy·H = ±0.75 m
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4.0, 2.0, -2.0, 1.5), horizon_s=1.5,
+                     margin_y_m=0.25)
+    lo, hi = reach_band(np.array([5.0, 5.0]), np.array([0.5, -0.5]), np.array([2.0, 2.0]), p)
+    assert lo.tolist() == [2.25, 0.75] and hi.tolist() == [9.25, 7.75]
+    # within its own bounds [4, 7] (the lines 5.001 and 5.999 m): it reaches no further than they let it
+    lo, hi = reach_band(np.array([5.0]), np.array([0.5]), np.array([2.0]), p, (np.array([4.0]), np.array([7.0])))
+    assert lo.tolist() == [3.75] and hi[0] == pytest.approx(7.249)
 
 
 @pytest.mark.parametrize("which", ["agent", "background"])
