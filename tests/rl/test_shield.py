@@ -388,6 +388,7 @@ def test_the_scene_at_exactly_its_boundaries():
         (100.0 - 4.0 - 11.125, 5.0, 22.0),  # 1/16 m further: not
         (100.0 - 4.0 - 2.75, 5.0, 4.0),  # gap = S_bL(4 m/s) + margin = 2 + 0.75: a close follower
         (100.0 - 4.0 - 2.8125, 5.0, 4.0),  # 1/16 m further: not
+        (100.0 - 4.0 - 8.125, 5.0, 4.0),  # slower than the agent: 1/16 m beyond ½·6.5·1.5² + 0.75, not soon alongside
         (130.0, 8.375, 20.0),  # its reach starts at 8.375 − ½·1·1.5² − 1 − 0.25 = 6 = the agent's band's top: apart
         (130.0, 1.625, 20.0),  # its reach ends at 1.625 + 1.125 + 1.25 = 4 = the band's bottom: apart
     ]
@@ -396,12 +397,12 @@ def test_the_scene_at_exactly_its_boundaries():
     state = VehicleState([f"v{i}" for i in range(n)], x, y, vx, np.zeros(n), np.full(n, 4.0), np.full(n, 2.0),
                          np.full(n, 20.0), np.array([True] * (n - 1) + [False]))
     sc = _scene(n - 1, state, p)
-    assert sc.ahead.tolist() == [True, False, False, False, False, False, True, True]
-    assert sc.alongside.tolist() == [False] * 8
-    assert sc.behind.tolist() == [False, True, True, True, True, True, False, False]
-    assert sc.soon_alongside.tolist() == [False, True, True, False, True, True, False, False]
-    assert sc.close_follower[1:6].tolist() == [True, True, True, True, False]  # S_bL(22 m/s) > 60 m
-    assert sc.in_current_corridor.tolist() == [True] * 6 + [False, False]
+    assert sc.ahead.tolist() == [True] + [False] * 6 + [True, True]
+    assert sc.alongside.tolist() == [False] * 9
+    assert sc.behind.tolist() == [False] + [True] * 6 + [False, False]
+    assert sc.soon_alongside.tolist() == [False, True, True, False, True, True, False, False, False]
+    assert sc.close_follower[1:7].tolist() == [True, True, True, True, False, False]  # S_bL(22 m/s) > 60 m
+    assert sc.in_current_corridor.tolist() == [True] * 7 + [False, False]
 
 
 def test_reach_bands_at_other_lateral_bounds_and_horizons():
