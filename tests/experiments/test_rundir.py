@@ -22,6 +22,7 @@ from lanefree_sumo.experiments.rundir import (
     append_command,
     check_new_file,
     check_replaceable,
+    check_writable,
     claim,
     claim_path,
     find_eval_dir,
@@ -441,3 +442,37 @@ def test_a_run_that_never_reached_a_checkpoint_is_told_from_a_users_folder_and_c
     run.clear()
     assert sorted(p.name for p in run.path.iterdir()) == [".lock"]
     assert (target / "keep.txt").read_text() == "keep"  # a link is removed, not what it points to
+
+
+def test_a_session_line_starts_a_line_of_its_own_only_after_a_cut_one(tmp_path):
+    (tmp_path / "sessions.jsonl").write_text("")  # created, nothing written yet
+    record_session(tmp_path, {"episodes_done": 1})
+    record_session(tmp_path, {"episodes_done": 2})
+    assert (tmp_path / "sessions.jsonl").read_text() == '{"episodes_done": 1}\n{"episodes_done": 2}\n'
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "sessions.jsonl").write_text("{")  # killed after one byte
+    record_session(one, {"episodes_done": 3})
+    assert (one / "sessions.jsonl").read_text() == '{\n{"episodes_done": 3}\n'
+    assert read_sessions(one) == [{"episodes_done": 3}]
+
+
+def test_a_marker_that_is_not_text_names_no_verb(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / OUTPUT_MARKER).write_bytes(b"\xff\xfesimulate\n")
+    with pytest.raises(RunError, match="belongs to the run folder or output"):
+        check_new_file(out / "plot.png", False, "simulate")
+
+
+def test_writability_is_checked_where_the_output_goes(tmp_path):
+    folder = tmp_path / "new" / "deeper"
+    check_writable(folder, folder=True)
+    assert folder.is_dir()  # the folder itself, made now
+    check_writable(tmp_path / "other" / "table.csv")
+    assert (tmp_path / "other").is_dir() and not (tmp_path / "other" / "table.csv").exists()
+    assert list((tmp_path / "other").iterdir()) == []  # the probe leaves nothing behind
+    if not Path("/sys/kernel").is_dir():
+        pytest.skip("no sysfs: no folder that even root cannot write into")
+    with pytest.raises(RunError, match=r"^cannot write /sys/kernel/table.csv: [A-Z][a-z -]+$"):  # the OS reason
+        check_writable(Path("/sys/kernel/table.csv"))  # sysfs makes no files, whoever asks
