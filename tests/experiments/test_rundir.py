@@ -6,9 +6,11 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import stat
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -476,3 +478,37 @@ def test_writability_is_checked_where_the_output_goes(tmp_path):
         pytest.skip("no sysfs: no folder that even root cannot write into")
     with pytest.raises(RunError, match=r"^cannot write /sys/kernel/table.csv: [A-Z][a-z -]+$"):  # the OS reason
         check_writable(Path("/sys/kernel/table.csv"))  # sysfs makes no files, whoever asks
+
+
+def test_atomic_writes_into_an_existing_folder_and_nothing_is_left_when_one_fails(tmp_path, monkeypatch):
+    # the temporaries go beside the file, never to the system's temporary folder (here one that does not exist)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "no-such-folder"))
+    old = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / "state.json", "1\n")  # the folder exists already
+        write_atomic(tmp_path / "state.json", "2\n")  # and so does the file
+    finally:
+        os.umask(old)
+    assert (tmp_path / "state.json").read_text() == "2\n"
+    assert stat.S_IMODE((tmp_path / "state.json").stat().st_mode) == 0o644
+    with pytest.raises(UnicodeEncodeError):
+        write_atomic(tmp_path / "state.json", "\ud800")  # text UTF-8 cannot hold: fails while writing
+    assert (tmp_path / "state.json").read_text() == "2\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]  # its temporary removed
+    # an output replacing an earlier one: the earlier one goes aside under the name a claim can restore it from
+    removed = []
+    real_rmtree = shutil.rmtree
+    monkeypatch.setattr(shutil, "rmtree", lambda p, **kw: (removed.append(Path(p).name), real_rmtree(p, **kw)))
+    with fresh_output(tmp_path / "out", False, "simulate"):
+        pass
+    with fresh_output(tmp_path / "out", True, "simulate"):
+        pass
+    assert len(removed) == 1 and re.fullmatch(r"\.out\.old-[a-z0-9_]{8}", removed[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "state.json"]
+
+
+def test_a_marker_that_is_not_text_is_no_marker_to_replace(tmp_path):
+    out = output_of(tmp_path / "out", "simulate", "a.csv")
+    (out / OUTPUT_MARKER).write_bytes(b"\xff\xfesimulate\n")
+    with pytest.raises(RunError, match=r"\(no marker file\); remove it yourself or choose another --out$"):
+        check_replaceable(out, True, "simulate")
