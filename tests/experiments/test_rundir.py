@@ -214,7 +214,7 @@ def test_config_round_trip_and_a_damaged_config_is_named(tmp_path):
     with pytest.raises(RunError, match=r"is not a run folder \(no config.yaml\)"):
         read_config(tmp_path / "nothing")
     (tmp_path / "config.yaml").write_text("- a list\n")
-    with pytest.raises(RunError, match="it is not a mapping of config keys"):
+    with pytest.raises(RunError, match=r"\(it is not a mapping of config keys\); restore it or start a new run$"):
         read_config(tmp_path)
     del data["reward"]["epsilon_r"], data["seed"]
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
