@@ -512,3 +512,29 @@ def test_a_marker_that_is_not_text_is_no_marker_to_replace(tmp_path):
     (out / OUTPUT_MARKER).write_bytes(b"\xff\xfesimulate\n")
     with pytest.raises(RunError, match=r"\(no marker file\); remove it yourself or choose another --out$"):
         check_replaceable(out, True, "simulate")
+
+
+def test_a_claim_makes_its_folders_and_never_moves_a_half_written_output_into_place(tmp_path):
+    out = tmp_path / "a" / "b" / "out"  # two folders that do not exist yet
+    half = out.parent / ".out.new-abcdefgh" / "out"  # an output being written that holds a folder named like it
+    old = os.umask(0o022)
+    try:
+        with claim(tmp_path / "x" / "y" / "z", "simulate"):
+            assert stat.S_IMODE(claim_path(tmp_path / "x" / "y" / "z").stat().st_mode) == 0o644  # an ordinary file
+        half.mkdir(parents=True)
+        (half / "partial.csv").write_text("half")
+        with claim(out, "simulate"):
+            pass
+    finally:
+        os.umask(old)
+    assert not out.exists() and sorted(p.name for p in out.parent.iterdir()) == []
+
+
+def test_the_reason_a_config_is_unusable_is_cut_at_300_characters(tmp_path):
+    data = config_to_dict(LaneFreeConfig())
+    data["reward"]["no_such_key_" + "x" * 300] = 1
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(RunError) as err:
+        read_config(tmp_path)
+    reason = re.fullmatch(r".* is unusable \((.*)\); restore it or start a new run", str(err.value)).group(1)
+    assert len(reason) == 300 and reason.startswith("unknown config key 'reward.no_such_key_xxx")
