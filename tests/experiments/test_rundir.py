@@ -3,6 +3,7 @@ may replace, which files a run folder owns, and the atomic replacement (files ma
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -538,3 +539,22 @@ def test_the_reason_a_config_is_unusable_is_cut_at_300_characters(tmp_path):
         read_config(tmp_path)
     reason = re.fullmatch(r".* is unusable \((.*)\); restore it or start a new run", str(err.value)).group(1)
     assert len(reason) == 300 and reason.startswith("unknown config key 'reward.no_such_key_xxx")
+
+
+@pytest.mark.parametrize("content,named", [
+    (b"", "process ? (another 'lanefree simulate')"),  # the holder has not written yet: our own verb
+    (b"1234", "process 1234 (another 'lanefree simulate')"),
+    (b"1234 evaluate\n", "process 1234 (another 'lanefree evaluate')"),
+    (b"\xff\xfe evaluate", "process \ufffd\ufffd (another 'lanefree evaluate')"),
+    (b"1234 " + b"v" * 200, f"process 1234 (another 'lanefree {'v' * 95}')"),  # the first 100 bytes only
+])
+def test_a_claim_names_what_the_holders_lock_file_says(tmp_path, content, named):
+    out = tmp_path / "out"
+    lock = claim_path(out)
+    lock.write_bytes(content)
+    with open(lock, "rb") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # another open file: as another process would hold it
+        with pytest.raises(RunError, match=f"^{re.escape(str(out))} is being written by {re.escape(named)}; "):
+            with claim(out, "simulate"):
+                pass
+    assert lock.read_bytes() == content  # the holder's lock file untouched
