@@ -274,7 +274,7 @@ def test_plan_step_clips_at_both_edges_with_a_tolerance_and_the_realised_acceler
     cmd = plan_step(np.zeros(1), np.array([2.75]), np.full(1, 10.0), np.array([-1.0]), np.ones(1), np.zeros(1),
                     np.zeros(1), T, 99.0, 0.125, bounds=(2.0, 5.0))
     assert (cmd.dy[0], bool(cmd.boundary_contact[0])) == (-0.125, True)  # the low bound: 2 + 0.5 + 0.125
-    assert float(ballistic_distance(np.array(8.0), np.array(9.0), T)) == 2.125  # (8 + ½·1)·T
+    assert float(ballistic_distance(np.array(8.0), np.array(10.0), T)) == 2.25  # (8 + ½·2)·T
 
 
 def test_agent_accelerations_are_clipped_to_bounds_top_speed_and_the_lateral_ratio():
@@ -291,6 +291,14 @@ def test_agent_accelerations_are_clipped_to_bounds_top_speed_and_the_lateral_rat
     _, ay = clip_accelerations(np.zeros(2), [9.0, -9.0], bounds, 100.0, 200.0, T, vy=0.0, lateral_ratio=0.1)
     assert ay.tolist() == [8.0, -6.5]
     assert clip_acceleration(-5.0, 9.0, bounds, 10.0, 20.0, T) == (-3.0, 8.0)
+    # one agent: the same clips, vy = 0 unless given
+    assert clip_acceleration(0.0, 5.0, bounds, 10.0, 30.0, T, lateral_ratio=0.1) == (0.0, 4.0)
+    assert clip_acceleration(0.0, -7.0, bounds, 10.0, 30.0, T, vy=-0.5, lateral_ratio=0.1) == (0.0, -2.0)
+    _, ay = clip_accelerations(0.0, 5.0, bounds, 10.0, 30.0, T, lateral_ratio=0.1)
+    assert float(ay) == 4.0
+    # a lateral speed beyond the ratio asks for more than the bound: the bound again (−6.5, not −8)
+    _, ay = clip_accelerations(0.0, 0.0, bounds, 0.0, 30.0, T, vy=2.0, lateral_ratio=0.1)
+    assert float(ay) == -6.5
     assert all(type(v) is float for v in clip_acceleration(0.0, 0.0, bounds, 10.0, 20.0, T))
 
 
