@@ -297,8 +297,9 @@ def test_agent_accelerations_are_clipped_to_bounds_top_speed_and_the_lateral_rat
     _, ay = clip_accelerations(0.0, 5.0, bounds, 10.0, 30.0, T, lateral_ratio=0.1)
     assert float(ay) == 4.0
     # a lateral speed beyond the ratio asks for more than the bound: the bound again (−6.5, not −8)
-    _, ay = clip_accelerations(0.0, 0.0, bounds, 0.0, 30.0, T, vy=2.0, lateral_ratio=0.1)
-    assert float(ay) == -6.5
+    _, ay = clip_accelerations([0.0, 0.0], [0.0, 0.0], bounds, 0.0, 30.0, T, vy=np.array([2.0, -3.0]),
+                               lateral_ratio=0.1)
+    assert ay.tolist() == [-6.5, 8.0]  # the ratio asks for −8 and +12 m/s²
     assert all(type(v) is float for v in clip_acceleration(0.0, 0.0, bounds, 10.0, 20.0, T))
 
 
