@@ -57,6 +57,12 @@ def test_ramp_g_rises_plateaus_falls():
     assert ramp_g(t, 2.0, 3.0, 4.0) == pytest.approx(expected)
 
 
+def test_zero_width_ramps_at_exactly_their_edges():
+    # w = 0, l = 2, c = 0: 0 before and at the rise's edge (t = 0), 1 on the plateau up to and at its end (t = 2)
+    g = ramp_g(np.array([-1.0, 0.0, 1.0, 2.0, 3.0]), 0.0, 2.0, 0.0)
+    assert g.tolist() == [0.0, 0.0, 1.0, 1.0, 0.0]
+
+
 def test_trapezoid_h_is_symmetric_around_zero():
     # H(t, w, l, c) = G(t + w + l, w, 2l, c): plateau |t| <= l, ramps of w before and c after
     t = np.array([-7.0, -5.5, -4.0, 0.0, 4.0, 5.5, 7.0])
@@ -271,9 +277,9 @@ def test_plan_step_clips_at_both_edges_with_a_tolerance_and_the_realised_acceler
     cmd = plan_step(np.zeros(2), np.array([4.25, 8.0]), np.full(2, 10.0), np.array([1.0, 1.0]), np.ones(2),
                     np.zeros(2), np.zeros(2), T, 99.0, 0.125, bounds=(np.array([2.0, 0.0]), np.array([5.0, 9.0])))
     assert cmd.dy.tolist() == [0.125, 0.25] and cmd.boundary_contact.tolist() == [True, False]  # lines 4.375, 8.375
-    cmd = plan_step(np.zeros(1), np.array([2.75]), np.full(1, 10.0), np.array([-1.0]), np.ones(1), np.zeros(1),
+    cmd = plan_step(np.zeros(1), np.array([3.25]), np.full(1, 10.0), np.array([-1.0]), np.full(1, 2.0), np.zeros(1),
                     np.zeros(1), T, 99.0, 0.125, bounds=(2.0, 5.0))
-    assert (cmd.dy[0], bool(cmd.boundary_contact[0])) == (-0.125, True)  # the low bound: 2 + 0.5 + 0.125
+    assert (cmd.dy[0], bool(cmd.boundary_contact[0])) == (-0.125, True)  # the low line, 2 m wide: 2 + 1 + 0.125
     assert float(ballistic_distance(np.array(8.0), np.array(10.0), T)) == 2.25  # (8 + ½·2)·T
 
 
