@@ -63,6 +63,13 @@ def test_zero_width_ramps_at_exactly_their_edges():
     assert g.tolist() == [0.0, 0.0, 1.0, 1.0, 0.0]
 
 
+def test_a_neighbour_exactly_alongside_repels_as_one_ahead():
+    # dx = 0 counts as ahead (specification §3 as read here): its repulsion is summed without nudging
+    state = make_state([100.0, 100.0], [5.0, 6.5], [20.0, 20.0], [20.0, 20.0])
+    _, ay = accel(state)
+    assert ay[0] < 0.0 < ay[1]  # pushed apart
+
+
 def test_trapezoid_h_is_symmetric_around_zero():
     # H(t, w, l, c) = G(t + w + l, w, 2l, c): plateau |t| <= l, ramps of w before and c after
     t = np.array([-7.0, -5.5, -4.0, 0.0, 4.0, 5.5, 7.0])
