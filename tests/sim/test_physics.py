@@ -70,6 +70,15 @@ def test_a_neighbour_exactly_alongside_repels_as_one_ahead():
     assert ay[0] < 0.0 < ay[1]  # pushed apart
 
 
+def test_a_leader_exactly_at_the_neighbour_range_still_counts():
+    # 30 m apart at 30 m/s: the plateau (9.75 + 13.5 + 3.5 + 2.5 = 29.25 m) and its 9.75 m fall reach past 30 m
+    state = make_state([100.0, 130.0], [5.0, 5.0], [30.0, 30.0], [30.0, 30.0])
+    ax, _ = accel(state, neighbour_range_m=30.0)
+    assert ax[0] < 0.0  # braking for it
+    ax, _ = accel(state, neighbour_range_m=29.875)
+    assert ax[0] == 0.0  # just beyond the range: ignored
+
+
 def test_trapezoid_h_is_symmetric_around_zero():
     # H(t, w, l, c) = G(t + w + l, w, 2l, c): plateau |t| <= l, ramps of w before and c after
     t = np.array([-7.0, -5.5, -4.0, 0.0, 4.0, 5.5, 7.0])
