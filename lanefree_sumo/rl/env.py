@@ -33,6 +33,7 @@ from gymnasium import spaces
 from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_config
 from lanefree_sumo.rl.rewards import OvertakeLedger, compute_reward, get_preset, pass_events
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
+from lanefree_sumo.sim.collisions import count_events
 from lanefree_sumo.sim.simulation import Simulation, StepResult
 
 EGO_FEATURES = 4  # y, vx, vy, v_d
@@ -133,12 +134,7 @@ class LearningVehicle:
         dx_row = dx_all[a]
         lo, hi = self.lateral_bounds()
 
-        new_pairs = result.new_collisions
-        mine = (new_pairs == a).any(axis=1) if len(new_pairs) else np.zeros(0, dtype=bool)
-        agent_events = int(np.count_nonzero(mine))
-        others_agents = np.isin(new_pairs, agents)
-        with_agents = int(np.count_nonzero(mine & others_agents.all(axis=1))) if len(new_pairs) else 0
-        background_only = int(np.count_nonzero(~others_agents.any(axis=1))) if len(new_pairs) else 0
+        agent_events, with_agents, background_only = count_events(result.new_collisions, a, agents)
         collided = bool(result.overlap[a].any())
         passed, passed_by = pass_events(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
         passes = int(np.count_nonzero(passed))

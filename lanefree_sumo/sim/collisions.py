@@ -38,6 +38,18 @@ def started_overlaps(overlap: np.ndarray, previous: np.ndarray) -> np.ndarray:
     return namespace(overlap).triu(overlap & ~previous, k=1)
 
 
+def count_events(pairs: np.ndarray, row: int, agents: np.ndarray) -> tuple[int, int, int]:
+    """Of one step's collision events ``pairs`` (``[k, 2]`` rows, as :meth:`CollisionTracker.update` returns):
+    (the events of vehicle ``row``, those of them with another agent, those between two background vehicles).
+    ``agents``: the rows of every agent vehicle, ``row`` among them."""
+    if not len(pairs):
+        return 0, 0, 0
+    mine = (pairs == row).any(axis=1)
+    of_agents = np.isin(pairs, agents)
+    return (int(np.count_nonzero(mine)), int(np.count_nonzero(mine & of_agents.all(axis=1))),
+            int(np.count_nonzero(~of_agents.any(axis=1))))
+
+
 class CollisionTracker:
     """Counts overlap events per pair: a pair that keeps overlapping is counted once.
 

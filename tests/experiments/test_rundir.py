@@ -3,8 +3,15 @@ may replace, which files a run folder owns, and the atomic replacement (files ma
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
+import re
+import shutil
+import stat
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -18,6 +25,9 @@ from lanefree_sumo.experiments.rundir import (
     append_command,
     check_new_file,
     check_replaceable,
+    check_writable,
+    claim,
+    claim_path,
     find_eval_dir,
     fresh_output,
     new_file,
@@ -26,8 +36,15 @@ from lanefree_sumo.experiments.rundir import (
     record_session,
     trajectory_path,
     vehicles_path,
+    write_atomic,
     write_config,
 )
+
+
+def _child_env() -> dict[str, str]:
+    """This process's environment with this checkout first on the child's import path."""
+    root = str(Path(__file__).resolve().parents[2])
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
 
 
 def output_of(folder: Path, verb: str, *files: str) -> Path:
@@ -198,7 +215,7 @@ def test_config_round_trip_and_a_damaged_config_is_named(tmp_path):
     with pytest.raises(RunError, match=r"is not a run folder \(no config.yaml\)"):
         read_config(tmp_path / "nothing")
     (tmp_path / "config.yaml").write_text("- a list\n")
-    with pytest.raises(RunError, match="it is not a mapping of config keys"):
+    with pytest.raises(RunError, match=r"\(it is not a mapping of config keys\); restore it or start a new run$"):
         read_config(tmp_path)
     del data["reward"]["epsilon_r"], data["seed"]
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
@@ -319,3 +336,225 @@ def test_one_writer_at_a_time(tmp_path):
             pass
     with run.writer_lock():  # released
         pass
+
+
+# -- what dead writers leave, what a live one holds, how outputs are made --------------------------------------
+
+def test_a_claim_clears_what_dead_writers_left_and_puts_an_output_they_moved_aside_back(tmp_path):
+    out = tmp_path / "out"
+    (tmp_path / ".out.new-abcd_123").mkdir()  # a half-written output
+    (tmp_path / ".out.new-abcd_123" / "a.csv").write_text("half")
+    (tmp_path / ".out.new-0000aaaa").write_text("half a file")
+    aside = tmp_path / ".out.old-zz99zz99"  # the earlier output, moved aside by a writer that died before the swap
+    output_of(aside / "out", "simulate", "a.csv")
+    (tmp_path / ".out.new-abc").mkdir()  # not a temporary name (8 characters): someone else's
+    (tmp_path / ".other.new-abcd1234").mkdir()
+    with claim(out, "simulate"):
+        assert (tmp_path / claim_path(out).name).read_text() == f"{os.getpid()} simulate\n"
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".other.new-abcd1234", ".out.lock", ".out.new-abc", "out"]
+        assert (out / "a.csv").read_text() == "data\n"  # put back, nothing lost
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.new-abcd1234", ".out.new-abc", "out"]
+    # an earlier output moved aside while a newer one is in place: the newer one stays, the old is removed
+    output_of(tmp_path / ".out.old-12345678" / "out", "simulate", "old.csv")
+    with claim(out, "simulate"):
+        pass
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "a.csv"]
+    assert not (tmp_path / ".out.old-12345678").exists()
+
+
+def test_a_claim_held_by_another_process_names_it(tmp_path):
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys\n"
+                               "from pathlib import Path\n"
+                               "from lanefree_sumo.experiments.rundir import claim\n"
+                               f"with claim(Path({str(out)!r}), 'evaluate'):\n"
+                               "    print('held', flush=True); sys.stdin.read()"],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_child_env())
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(RunError, match=rf"^{re.escape(str(out))} is being written by process {holder.pid} "
+                                           r"\(another 'lanefree evaluate'\); wait for it or choose another output$"):
+            with claim(out, "simulate"):
+                pass
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    assert holder.returncode == 0 and not claim_path(out).exists()  # released and removed on the way out
+    with claim(out, "simulate"):
+        pass
+
+
+def test_outputs_are_ordinary_files_and_folders_under_the_umask(tmp_path):
+    old = os.umask(0o027)
+    try:
+        with new_file(tmp_path / "table.csv", "export") as tmp:
+            tmp.write_text("x")
+        with fresh_output(tmp_path / "out", False, "simulate") as folder:
+            (folder / "a.csv").write_text("x")
+        write_atomic(tmp_path / "sub" / "state.json", "{}\n")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "table.csv").stat().st_mode) == 0o640
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o750
+    assert stat.S_IMODE((tmp_path / "sub" / "state.json").stat().st_mode) == 0o640
+    assert (tmp_path / "sub" / "state.json").read_text() == "{}\n"
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["state.json"]  # no temporary left
+
+
+def test_an_output_made_by_another_program_meanwhile_is_left_alone(tmp_path):
+    out = tmp_path / "out"
+
+    def refused(k: int) -> str:
+        return (rf"^{re.escape(str(out))} was made or replaced by another program while 'lanefree simulate' wrote; "
+                rf"it is left as it is, and this output is in {re.escape(str(out))}.simulate-{k}$")
+
+    with pytest.raises(RunError, match=refused(1)), fresh_output(out, False, "simulate") as folder:
+        (folder / "mine.csv").write_text("1")
+        output_of(out, "simulate", "theirs.csv")  # made meanwhile where nothing was
+    with pytest.raises(RunError, match=refused(2)), fresh_output(out, True, "simulate") as folder:
+        (folder / "mine.csv").write_text("2")
+        out.rename(tmp_path / "moved")  # the earlier output replaced by another one meanwhile
+        output_of(out, "simulate", "newer.csv")
+    assert [(tmp_path / f"out.simulate-{k}" / "mine.csv").read_text() for k in (1, 2)] == ["1", "2"]
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "newer.csv"]
+
+
+def test_a_run_that_never_reached_a_checkpoint_is_told_from_a_users_folder_and_cleared(tmp_path):
+    run = RunDir(tmp_path / "run")
+    assert not run.never_checkpointed()  # no folder
+    run.path.mkdir()
+    for name in ("config.yaml", "episodes.csv", ".lock"):
+        (run.path / name).write_text("x")
+    (run.path / "tb").mkdir()
+    assert run.never_checkpointed() and not run.has_checkpoint()
+    (run.path / ".lock").unlink()
+    assert not run.never_checkpointed()  # no lock: not made by a training
+    (run.path / ".lock").write_text("1\n")
+    (run.path / "notes.md").write_text("mine")
+    assert not run.never_checkpointed()  # a file training never writes
+    (run.path / "notes.md").unlink()
+    (run.path / "model.zip").write_text("m")
+    assert not run.never_checkpointed()  # it finished
+    (run.path / "model.zip").unlink()
+    _checkpoint(run, 1)
+    assert run.has_checkpoint() and not run.never_checkpointed()  # resumable
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    (target / "keep.txt").write_text("keep")
+    (run.path / "link").symlink_to(target)
+    run.clear()
+    assert sorted(p.name for p in run.path.iterdir()) == [".lock"]
+    assert (target / "keep.txt").read_text() == "keep"  # a link is removed, not what it points to
+
+
+def test_a_session_line_starts_a_line_of_its_own_only_after_a_cut_one(tmp_path):
+    (tmp_path / "sessions.jsonl").write_text("")  # created, nothing written yet
+    record_session(tmp_path, {"episodes_done": 1})
+    record_session(tmp_path, {"episodes_done": 2})
+    assert (tmp_path / "sessions.jsonl").read_text() == '{"episodes_done": 1}\n{"episodes_done": 2}\n'
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "sessions.jsonl").write_text("{")  # killed after one byte
+    record_session(one, {"episodes_done": 3})
+    assert (one / "sessions.jsonl").read_text() == '{\n{"episodes_done": 3}\n'
+    assert read_sessions(one) == [{"episodes_done": 3}]
+
+
+def test_a_marker_that_is_not_text_names_no_verb(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / OUTPUT_MARKER).write_bytes(b"\xff\xfesimulate\n")
+    with pytest.raises(RunError, match="belongs to the run folder or output"):
+        check_new_file(out / "plot.png", False, "simulate")
+
+
+def test_writability_is_checked_where_the_output_goes(tmp_path):
+    folder = tmp_path / "new" / "deeper"
+    check_writable(folder, folder=True)
+    assert folder.is_dir()  # the folder itself, made now
+    check_writable(tmp_path / "other" / "table.csv")
+    assert (tmp_path / "other").is_dir() and not (tmp_path / "other" / "table.csv").exists()
+    assert list((tmp_path / "other").iterdir()) == []  # the probe leaves nothing behind
+    if not Path("/sys/kernel").is_dir():
+        pytest.skip("no sysfs: no folder that even root cannot write into")
+    with pytest.raises(RunError, match=r"^cannot write /sys/kernel/table.csv: [A-Z][a-z -]+$"):  # the OS reason
+        check_writable(Path("/sys/kernel/table.csv"))  # sysfs makes no files, whoever asks
+
+
+def test_atomic_writes_into_an_existing_folder_and_nothing_is_left_when_one_fails(tmp_path, monkeypatch):
+    # the temporaries go beside the file, never to the system's temporary folder (here one that does not exist)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "no-such-folder"))
+    old = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / "state.json", "1\n")  # the folder exists already
+        write_atomic(tmp_path / "state.json", "2\n")  # and so does the file
+    finally:
+        os.umask(old)
+    assert (tmp_path / "state.json").read_text() == "2\n"
+    assert stat.S_IMODE((tmp_path / "state.json").stat().st_mode) == 0o644
+    with pytest.raises(UnicodeEncodeError):
+        write_atomic(tmp_path / "state.json", "\ud800")  # text UTF-8 cannot hold: fails while writing
+    assert (tmp_path / "state.json").read_text() == "2\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]  # its temporary removed
+    # an output replacing an earlier one: the earlier one goes aside under the name a claim can restore it from
+    removed = []
+    real_rmtree = shutil.rmtree
+    monkeypatch.setattr(shutil, "rmtree", lambda p, **kw: (removed.append(Path(p).name), real_rmtree(p, **kw)))
+    with fresh_output(tmp_path / "out", False, "simulate"):
+        pass
+    with fresh_output(tmp_path / "out", True, "simulate"):
+        pass
+    assert len(removed) == 1 and re.fullmatch(r"\.out\.old-[a-z0-9_]{8}", removed[0])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "state.json"]
+
+
+def test_a_marker_that_is_not_text_is_no_marker_to_replace(tmp_path):
+    out = output_of(tmp_path / "out", "simulate", "a.csv")
+    (out / OUTPUT_MARKER).write_bytes(b"\xff\xfesimulate\n")
+    with pytest.raises(RunError, match=r"\(no marker file\); remove it yourself or choose another --out$"):
+        check_replaceable(out, True, "simulate")
+
+
+def test_a_claim_makes_its_folders_and_never_moves_a_half_written_output_into_place(tmp_path):
+    out = tmp_path / "a" / "b" / "out"  # two folders that do not exist yet
+    half = out.parent / ".out.new-abcdefgh" / "out"  # an output being written that holds a folder named like it
+    old = os.umask(0o022)
+    try:
+        with claim(tmp_path / "x" / "y" / "z", "simulate"):
+            assert stat.S_IMODE(claim_path(tmp_path / "x" / "y" / "z").stat().st_mode) == 0o644  # an ordinary file
+        half.mkdir(parents=True)
+        (half / "partial.csv").write_text("half")
+        with claim(out, "simulate"):
+            pass
+    finally:
+        os.umask(old)
+    assert not out.exists() and sorted(p.name for p in out.parent.iterdir()) == []
+
+
+def test_the_reason_a_config_is_unusable_is_cut_at_300_characters(tmp_path):
+    data = config_to_dict(LaneFreeConfig())
+    data["reward"]["no_such_key_" + "x" * 300] = 1
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(RunError) as err:
+        read_config(tmp_path)
+    reason = re.fullmatch(r".* is unusable \((.*)\); restore it or start a new run", str(err.value)).group(1)
+    assert len(reason) == 300 and reason.startswith("unknown config key 'reward.no_such_key_xxx")
+
+
+@pytest.mark.parametrize("content,named", [
+    (b"", "process ? (another 'lanefree simulate')"),  # the holder has not written yet: our own verb
+    (b"1234", "process 1234 (another 'lanefree simulate')"),
+    (b"1234 evaluate\n", "process 1234 (another 'lanefree evaluate')"),
+    (b"\xff\xfe evaluate", "process \ufffd\ufffd (another 'lanefree evaluate')"),
+    (b"1234 " + b"v" * 200, f"process 1234 (another 'lanefree {'v' * 95}')"),  # the first 100 bytes only
+])
+def test_a_claim_names_what_the_holders_lock_file_says(tmp_path, content, named):
+    out = tmp_path / "out"
+    lock = claim_path(out)
+    lock.write_bytes(content)
+    with open(lock, "rb") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # another open file: as another process would hold it
+        with pytest.raises(RunError, match=f"^{re.escape(str(out))} is being written by {re.escape(named)}; "):
+            with claim(out, "simulate"):
+                pass
+    assert lock.read_bytes() == content  # the holder's lock file untouched

@@ -68,6 +68,7 @@ def test_with_a_model_complete_means_exactly_episodes_one_to_n(tmp_path):
         info = inspect_run(write_run(tmp_path / name, rows, model=True), 3)
         assert (info.state, info.episodes) == (DAMAGED, len(rows)), name
         assert "episodes 1…3" in info.detail
+        assert "inspect it (restore the CSV or delete the folder to retrain)" in info.detail  # what to do
     # fewer, and exactly 1..k: a finished shorter run, extended
     info = inspect_run(write_run(tmp_path / "short", [1, 2], model=True), 3)
     assert info == RunInfo(PARTIAL, 2, "finished at 2 episodes; will be extended to 3")
@@ -95,7 +96,7 @@ def test_a_cut_line_is_damaged_and_rows_are_counted_from_the_file(tmp_path):
 def test_without_a_model_the_last_session_and_the_episode_numbers_decide(tmp_path):
     # committed results: episodes 1..N and a session that ended at N, no model, no checkpoints
     info = inspect_run(write_run(tmp_path / "done", [1, 2, 3], done=3), 3)
-    assert (info.state, info.episodes) == (COMPLETE, 3) and "without models" in info.detail
+    assert info == RunInfo(COMPLETE, 3, "complete; its model is not here (results copied without models)")
     assert inspect_run(write_run(tmp_path / "cut", [1, 2, 3], done=2), 3).state == STALE  # ended earlier
     assert inspect_run(write_run(tmp_path / "more", [1, 2, 3], done=4), 3).state == STALE
     assert inspect_run(write_run(tmp_path / "gap", [1, 2, 4], done=3), 3).state == STALE  # rows, not 1..N
@@ -107,7 +108,7 @@ def test_without_a_model_the_last_session_and_the_episode_numbers_decide(tmp_pat
     died = write_run(tmp_path / "died", [1, 2, 3], done=3)
     (died / "checkpoints").mkdir()
     info = inspect_run(died, 3)
-    assert (info.state, info.detail) == (STALE, "no checkpoint yet; restarts from scratch")
+    assert info == RunInfo(STALE, 3, "no checkpoint yet; restarts from scratch")
 
 
 def test_a_checkpoint_makes_a_run_resumable(tmp_path):
@@ -174,6 +175,7 @@ def test_a_heartbeat_names_its_worker_is_refreshed_and_removed(tmp_path, monkeyp
     sweep = SweepDir(tmp_path)
     beat = state.Heartbeat(sweep, "r", {"episodes": 3})
     try:
+        assert beat._thread.daemon  # a worker that dies without stop() is not kept alive by its heartbeat
         data = read_heartbeat(sweep, "r")
         assert (data["pid"], data["host"], data["episodes"]) == (os.getpid(), socket.gethostname(), 3)
         assert time.strptime(data["started"], "%Y-%m-%dT%H:%M:%S")
@@ -225,3 +227,64 @@ def test_an_empty_failure_reason_reads_failed(tmp_path):
     sweep = SweepDir(tmp_path)
     record_failure(sweep, "r", "  ")
     assert failure_reason(sweep, "r") == "failed"
+
+
+def test_checking_a_worker_sends_it_no_signal_and_another_users_process_is_alive(tmp_path, monkeypatch):
+    # the child restores the default action of SIGHUP (nohup ignores it), which ends a process
+    child = subprocess.Popen([sys.executable, "-c", "import signal, sys\n"
+                              "signal.signal(signal.SIGHUP, signal.SIG_DFL)\n"
+                              "print('ready', flush=True); sys.stdin.read()"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        assert state._alive(child.pid) and state._alive(str(child.pid))
+    finally:
+        child.stdin.close()
+        child.wait()
+    assert child.returncode == 0  # it ended on its own: signal 0 only (a SIGHUP would have ended it first)
+    assert not state._alive(child.pid) and not state._alive(None) and not state._alive("pid")
+
+    def denied(pid: int, sig: int) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(state.os, "kill", denied)
+    assert state._alive(1)  # not ours to signal, but there
+
+
+def test_clearing_or_stopping_twice_is_harmless(tmp_path, monkeypatch):
+    sweep = SweepDir(tmp_path)
+    clear_failure(sweep, "never-failed")  # nothing on file: nothing to do
+    monkeypatch.setattr(state, "HEARTBEAT_S", 0.01)
+    beat = state.Heartbeat(sweep, "r", {})
+    beat.path.unlink()  # removed under it (a sweep cleaning up): the beats go on, stop() does not fail
+    misses = []
+    real_utime = os.utime
+
+    def utime(path, *args, **kwargs):
+        if Path(path) == beat.path:
+            misses.append(path)
+        return real_utime(path, *args, **kwargs)
+
+    monkeypatch.setattr(state.os, "utime", utime)
+    deadline = time.monotonic() + 30
+    while len(misses) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)  # polling the state the thread changes
+    assert len(misses) >= 2 and beat._thread.is_alive()  # a beat on a missing file did not end the thread
+    beat.stop()
+    assert not beat.path.exists()
+
+
+def test_a_heartbeat_from_the_future_is_zero_seconds_old(tmp_path):
+    sweep = SweepDir(tmp_path)
+    beat = sweep.heartbeat("r")
+    beat.parent.mkdir(parents=True)
+    beat.write_text("{}")
+    ahead = time.time() + 100  # written on a host whose clock runs ahead
+    os.utime(beat, (ahead, ahead))
+    assert heartbeat_age(sweep, "r") == 0.0
+
+
+def test_the_episode_number_is_the_first_of_many_columns(tmp_path):
+    path = tmp_path / "episodes.csv"
+    path.write_text("episode,return,speed\n1,1.0,20\n2,1.5,21\n")
+    assert episode_numbers(path) == [1, 2]

@@ -3,14 +3,20 @@ and recursive feasibility over random states (numpy only), and zero agent collis
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig
+from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config
 from lanefree_sumo.rl.shield import (
+    ShieldDecision,
     ShieldParams,
+    _scene,
+    _travel,
+    _travel_inverse,
+    _violations,
     committed_band,
     invariant_holds,
     max_speed_behind,
@@ -69,6 +75,13 @@ def test_stopping_distance_is_the_ballistic_sum_and_at_most_bt2_over_8_above_v2_
     assert stopping_distance(20.0, B, T) == pytest.approx(50.0)  # 20 m/s = 20 full steps of bT
 
 
+def test_travel_after_a_step_is_piecewise_linear_with_nodes_at_whole_steps_of_braking():
+    # φ(u) = S_b(u) + u·T/2 is b·T²·n(n + 1)/2 at u = n·b·T (b = 4, T = 0.25: bT = 1 m/s, bT² = 0.25 m), linear between
+    u = np.array([0.0, 0.5, 1.0, 1.5, 2.0, 3.0])
+    assert _travel(u, B, T).tolist() == [0.0, 0.125, 0.25, 0.5, 0.75, 1.5]
+    assert _travel_inverse(np.array([-1.0, 0.0, 0.125, 0.5, 1.5]), B, T).tolist() == [0.0, 0.0, 0.5, 1.5, 3.0]
+
+
 def _rule1_holds(gap: float, v: float, v_leader: float, u: float) -> bool:
     """Rule 1 after a step ending at agent speed u, the leader braking at 4 m/s² (worst case)."""
     vl = max(v_leader - B * T, 0.0)
@@ -77,7 +90,8 @@ def _rule1_holds(gap: float, v: float, v_leader: float, u: float) -> bool:
 
 
 @pytest.mark.parametrize("gap,v,v_leader", [(40.0, 20.0, 0.0), (60.0, 20.0, 0.0), (10.0, 15.0, 15.0),
-                                             (3.0, 5.0, 25.0), (80.0, 30.0, 10.0), (0.6, 0.0, 0.0)])
+                                             (3.0, 5.0, 25.0), (80.0, 30.0, 10.0), (0.6, 0.0, 0.0),
+                                             (0.2, 30.0, 30.0)])  # the last: u·T/2 ≤ c binds
 def test_rule1_bound_is_the_largest_speed_that_keeps_the_braking_gap(gap, v, v_leader):
     u_star = float(max_speed_behind(gap, v, v_leader, P))
     if u_star < 0:  # no speed qualifies, not even stopping at once
@@ -85,6 +99,24 @@ def test_rule1_bound_is_the_largest_speed_that_keeps_the_braking_gap(gap, v, v_l
         return
     assert _rule1_holds(gap, v, v_leader, u_star)
     assert not _rule1_holds(gap, v, v_leader, u_star + 1e-6)
+
+
+def _rule3_holds(gap: float, v: float, v_follower: float, u: float) -> bool:
+    """Rule 3 after a step ending at agent speed u, the follower accelerating at 2 m/s² (worst case)."""
+    vf = v_follower + 2.0 * T
+    gap_next = gap + (v + u) * T / 2 - (v_follower + vf) * T / 2
+    return gap_next >= max(0.0, float(stopping_distance(vf, B, T) - stopping_distance(u, B, T))) + M - 1e-9
+
+
+@pytest.mark.parametrize("gap,v,v_follower", [(60.0, 15.0, 25.0), (20.0, 10.0, 20.0), (0.6, 1.0, 0.0),
+                                               (0.55, 3.0, 2.0), (30.0, 20.0, 10.0), (5.0, 0.0, 12.0),
+                                               (0.25, 1.0, 0.0)])  # the last: u·T/2 ≥ −G binds
+def test_rule3_bound_is_the_smallest_speed_that_leaves_the_follower_its_braking_distance(gap, v, v_follower):
+    u_star = float(min_speed_ahead(gap, v, v_follower, P))
+    assert u_star >= 0.0 and _rule3_holds(gap, v, v_follower, u_star)
+    if u_star > 0.0:  # a bound binds: any slower end speed breaks the rule
+        assert not _rule3_holds(gap, v, v_follower, u_star - 1e-6)
+    assert (u_star == 0.0) == _rule3_holds(gap, v, v_follower, 0.0)  # standing still qualifies: no bound
 
 
 def test_a_car_stopped_ahead():
@@ -122,20 +154,22 @@ def test_a_car_alongside():
     assert not shield_action(1, state, 0.0, -1.8, P).intervened  # steering away is fine
 
 
-def agent_next_band(state: VehicleState, ay: float) -> tuple[np.ndarray, np.ndarray]:
+def agent_next_band(state: VehicleState, ay: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The agent's lateral position and speed after one step with each lateral acceleration ``ay``."""
     a = state.n - 1
-    cmd = plan_step(state.x[a:], state.y[a:], state.vx[a:], state.vy[a:], state.width[a:], np.zeros(1),
-                    np.array([ay]), T, CFG.road.width_m, CFG.sim.edge_clearance_m)
-    return state.y[a:] + cmd.dy, cmd.vy_next
+    ay = np.atleast_1d(np.asarray(ay, dtype=float))
+    k = len(ay)
+    cmd = plan_step(np.repeat(state.x[a:], k), np.repeat(state.y[a:], k), np.repeat(state.vx[a:], k),
+                    np.repeat(state.vy[a:], k), np.repeat(state.width[a:], k), np.zeros(k), ay, T,
+                    CFG.road.width_m, CFG.sim.edge_clearance_m)
+    return state.y[a] + cmd.dy, cmd.vy_next
 
 
 def _largest_ay_below(state: VehicleState, edge: float) -> float:
     """The largest ay (on a fine grid) whose committed band stays below ``edge``."""
-    best = -1.8
-    for ay in np.linspace(-1.8, 1.8, 3601):
-        if committed_band(*agent_next_band(state, ay), A_WID, P)[1][0] <= edge:
-            best = ay
-    return best
+    grid = np.linspace(-1.8, 1.8, 3601)
+    below = committed_band(*agent_next_band(state, grid), A_WID, P)[1] <= edge
+    return float(grid[below][-1]) if below.any() else -1.8
 
 
 def test_a_fast_follower():
@@ -165,6 +199,63 @@ def test_no_cut_in_before_a_fast_follower():
     assert not shield_action(1, state, 0.0, 1.8, P).intervened
 
 
+def test_rule3_raises_the_speed_of_a_lane_change_in_front_of_a_follower():
+    # 56 m ahead of a follower at 25 m/s the agent must end the step at 15.0625 m/s or more: ax ≥ 0.25 m/s²
+    state = scene((100 - HALF_LEN - 56.0, 7.9, 25.0, 0.0), agent=(100.0, 5.0, 15.0, 1.0))
+    d = shield_action(1, state, 0.0, 1.8, P)
+    assert d.certified and d.intervened and d.ay == 1.8 and d.ax == pytest.approx(0.25, abs=1e-9)
+
+
+def test_alone_on_the_road_the_policy_is_kept_up_to_its_clip():
+    assert shield_action(0, scene(agent=(100.0, 5.0, 15.0, 1.0)), 0.5, 1.0, P) == ShieldDecision(0.5, 1.0, False, 0.0,
+                                                                                                   True)
+    # 0.25 m/s below the top speed (30 m/s) the agent may gain 1 m/s² at most; above it, it must shed the excess
+    assert shield_action(0, scene(agent=(100.0, 5.0, 29.75, 0.0)), 2.0, 0.0, P) == ShieldDecision(1.0, 0.0, False,
+                                                                                                    0.0, True)
+    assert shield_action(0, scene(agent=(100.0, 5.0, 32.0, 0.0)), 2.0, 0.0, P) == ShieldDecision(-8.0, 0.0, False,
+                                                                                                   0.0, True)
+
+
+def test_stopping_exactly_at_rule_1s_gap_is_certified_and_a_shorter_gap_is_not():
+    def behind_a_stopped_car(gap: float) -> VehicleState:  # 4 m bodies: bumper gaps in exact binary fractions
+        return VehicleState(["bg", "agent"], np.array([104.0 + gap, 100.0]), np.full(2, 5.0), np.array([0.0, 1.0]),
+                            np.zeros(2), np.full(2, 4.0), np.full(2, 2.0), np.full(2, 20.0), np.array([True, False]))
+
+    # at 1 m/s, 0.625 m behind: stopping in this step (ax = −4) covers 0.125 m and leaves the 0.5 m margin
+    d = shield_action(1, behind_a_stopped_car(0.625), 0.0, 0.0, P)
+    assert (d.certified, d.ax, d.ay) == (True, -4.0, 0.0)
+    assert not shield_action(1, behind_a_stopped_car(0.375), 0.0, 0.0, P).certified
+
+
+def test_only_the_candidates_that_reach_a_car_ahead_are_bound_by_it():
+    # a car stopped 25 m ahead in the lane to the left: steering hard left reaches it, a gentler ay does not
+    state = scene((100 + HALF_LEN + 25.0, 7.45, 0.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    d = shield_action(1, state, 0.0, 1.8, P)
+    assert (d.certified, d.ax) == (True, 0.0) and d.ay == pytest.approx(0.7)
+    # the same car 5 m ahead at the agent's 20 m/s: hard left is certified braking at 0.4 m/s², 1.4 m/s² from
+    # the policy's +1; a gentler ay (0.7) keeps the +1 and is closer (1.1 m/s²)
+    state = scene((100 + HALF_LEN + 5.0, 7.45, 20.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    d = shield_action(1, state, 1.0, 1.8, P)
+    assert (d.certified, d.ax) == (True, 1.0) and d.ay == pytest.approx(0.7) and d.correction == pytest.approx(1.1)
+    # without a follower nothing stops the agent braking harder than a background vehicle can (rule 4)
+    alone = scene((100 + HALF_LEN + 60.0, 5.0, 0.0, 0.0), agent=(100.0, 5.0, 20.0, 0.0))
+    assert shield_action(1, alone, -4.5, 0.0, P) == ShieldDecision(-4.5, 0.0, False, 0.0, True)
+
+
+def test_on_an_open_road_each_vehicles_own_bounds_shape_the_bands():
+    # the agent on a ramp (its body within [0, 4] m) drifting left at 1.5 m/s, a main-road car (within
+    # [4.4, 10.2] m) alongside at 5.5 m: neither can cross the barrier, so steering left is safe
+    state = scene((100.0, 5.5, 20.0, 0.0), agent=(100.0, 3.0, 20.0, 1.5))
+    hi = np.array([10.2, 4.0])
+    assert shield_action(1, state, 0.0, 1.8, P, (np.array([4.4, 0.0]), hi)) == ShieldDecision(0.0, 1.8, False, 0.0,
+                                                                                              True)
+    # without the barrier (the ring's road) the same steer leads into the car: the fallback steers away
+    assert shield_action(1, state, 0.0, 1.8, P) == ShieldDecision(0.0, -1.8, True, 3.6, False)
+    assert shield_action(1, state, 0.0, 1.8, P, (0.0, 10.2)) == ShieldDecision(0.0, -1.8, True, 3.6, False)
+    # the car without the barrier may come down into the agent's band: no certified candidate
+    assert not shield_action(1, state, 0.0, 1.8, P, (np.array([0.0, 0.0]), hi)).certified
+
+
 def test_three_vehicles_slow_car_ahead_and_car_alongside():
     # a car at 10 m/s 40 m ahead in the agent's lane (S(20) − S(10) = 37.5 m), a car alongside on
     # the left; the policy accelerates and steers left: the shield caps ax and keeps off the left car
@@ -180,6 +271,175 @@ def test_three_vehicles_slow_car_ahead_and_car_alongside():
 def test_params_validate():
     with pytest.raises(ConfigError, match="horizon"):
         ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4, 2, -1, 1), horizon_s=0.1)
+    with pytest.raises(ConfigError, match="horizon"):
+        ShieldParams(0.0, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4, 2, -1, 1))  # no step
+    # a horizon of exactly one step is allowed (assumption A2: H ≥ T)
+    assert ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4, 2, -1, 1),
+                        horizon_s=0.25).horizon_s == 0.25
+
+
+def test_the_fallbacks_violations_are_the_rules_shortfalls_after_a_simulated_step():
+    # agent braking (3) and background braking (4) and accelerating (2.5) differ, so that no two swap unseen
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(-3.0, 2.0, -1.8, 1.8), AccelerationBounds(-4.0, 2.5, -1, 1),
+                     horizon_s=1.5, margin_x_m=0.7, margin_y_m=0.3)
+    v, vl, vf = 14.0, 6.0, 17.0
+    # row 0 ahead (gap 33 m), row 1 behind in another lane (gap 18 m), row 2 alongside, row 3 close behind in the lane
+    state = scene((100.0 + HALF_LEN + 33.0, 5.0, vl, 0.0), (100.0 - HALF_LEN - 18.0, 1.2, vf, 0.0),
+                  (101.0, 8.5, 10.0, 0.0), (100.0 - HALF_LEN - 3.0, 5.0, 20.0, 0.0), agent=(100.0, 5.0, v, 0.0))
+    sc = _scene(4, state, p)
+    assert sc.ahead.tolist() == [True, False, False, False] and sc.alongside.tolist() == [False, False, True, False]
+    assert sc.in_current_corridor.tolist() == [True, False, False, True]
+    assert sc.soon_alongside.tolist() == [False, False, False, True]
+    # reach of a car at y = 5 m: 5 ± ½·1·1.5² ± 0.9 ± 0.3 = [2.675, 7.325]; the agent's band 5 ± 0.8 = [4.2, 5.8]
+    assert sc.depth_now.tolist() == pytest.approx([3.125, 0.0, 0.0, 3.125], abs=1e-12)
+    ax = np.array([-3.0, -1.0, 0.0, 1.0, 2.0])
+    u = np.maximum(v + ax * T, 0.0)
+    s = stopping_distance
+
+    def shortfall_ahead(u: float) -> float:
+        vl_next = max(vl - 4.0 * T, 0.0)
+        gap_next = 33.0 + (vl + vl_next) * T / 2 - (v + u) * T / 2
+        return max(0.0, max(0.0, float(s(u, 3.0, T) - s(vl_next, 4.0, T))) + 0.7 - gap_next)
+
+    def shortfall_behind(u: float) -> float:
+        vf_next = vf + 2.5 * T
+        gap_next = 18.0 + (v + u) * T / 2 - (vf + vf_next) * T / 2
+        return max(0.0, max(0.0, float(s(vf_next, 4.0, T) - s(u, 4.0, T))) + 0.7 - gap_next)
+
+    ahead = np.array([shortfall_ahead(x) for x in u])
+    behind = np.array([shortfall_behind(x) for x in u])
+    assert ahead.min() == 0.0 < ahead.max() and behind.min() == 0.0 < behind.max()  # both rules bind somewhere
+    depth = np.zeros((5, 4))
+    in_corridor = np.zeros((5, 4), bool)
+    for row, expected in ((0, ahead), (1, behind)):
+        corridor = in_corridor.copy()
+        corridor[:, row] = True
+        got = _violations(v, ax, corridor, depth, sc, p)
+        assert got == pytest.approx(expected, abs=1e-12), row
+    # alongside, or behind and about to come alongside: how much deeper the band reaches into the reach band
+    depth[:, 2] = [0.0, 0.25, 0.5, 0.75, 1.0]
+    depth[:, 3] = [0.0, 0.0, 0.0, 4.0, 0.0]
+    corridor = in_corridor.copy()
+    corridor[:, 2] = True
+    got = _violations(v, ax, corridor, depth, sc, p)
+    soon = np.maximum(depth[:, 3] - sc.depth_now[3], 0.0)
+    assert got == pytest.approx(np.maximum(depth[:, 2], soon), abs=1e-12)
+    # a vehicle behind already in the agent's current corridor: its rule-3 shortfall is the follower's own
+    corridor = in_corridor.copy()
+    corridor[:, 3] = True
+    assert _violations(v, ax, corridor, np.zeros((5, 4)), sc, p).tolist() == [0.0] * 5
+
+
+@pytest.mark.parametrize("kind,gap,v,v_other", [
+    ("ahead", 0.25, 6.5, 8.0),  # a faster leader: hard braking owes the margin alone (the u·T/2 branch)
+    ("ahead", 0.25, 0.5, 0.5),  # both nearly stopped: speeds floored at 0 after the step
+    ("behind", 0.25, 6.0, 5.5),  # a slower follower: accelerating owes the margin alone
+    ("behind", 2.0, 0.5, 6.0),  # the agent nearly stopped, a follower closing
+])
+def test_the_fallbacks_violations_in_each_branch_of_the_rules(kind, gap, v, v_other):
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(-3.0, 2.0, -1.8, 1.8), AccelerationBounds(-4.0, 2.5, -1, 1),
+                     horizon_s=1.5, margin_x_m=0.7, margin_y_m=0.3)
+    ahead = kind == "ahead"
+    other = (100.0 + HALF_LEN + gap, 5.0, v_other, 0.0) if ahead else (100.0 - HALF_LEN - gap, 1.2, v_other, 0.0)
+    sc = _scene(1, scene(other, agent=(100.0, 5.0, v, 0.0)), p)
+    ax = np.array([-3.0, -1.0, 0.0, 1.0, 2.0])
+    s = stopping_distance
+    expected = []
+    for u in np.maximum(v + ax * T, 0.0):
+        if ahead:
+            vl_next = max(v_other - 4.0 * T, 0.0)
+            gap_next = gap + (v_other + vl_next) * T / 2 - (v + u) * T / 2
+            need = max(0.0, float(s(u, 3.0, T) - s(vl_next, 4.0, T))) + 0.7
+        else:
+            vf_next = v_other + 2.5 * T
+            gap_next = gap + (v + u) * T / 2 - (v_other + vf_next) * T / 2
+            need = max(0.0, float(s(vf_next, 4.0, T) - s(u, 4.0, T))) + 0.7
+        expected.append(max(0.0, need - gap_next))
+    assert max(expected) > 0.0
+    got = _violations(v, ax, np.ones((5, 1), bool), np.zeros((5, 1)), sc, p)
+    assert got == pytest.approx(expected, abs=1e-9)
+
+
+def test_the_invariant_at_exactly_the_gap_rule_1_asks():
+    def two(x_other: float, y_other: float, v: float, v_other: float) -> VehicleState:
+        return VehicleState(["bg", "agent"], np.array([x_other, 100.0]), np.array([y_other, 5.0]),
+                            np.array([v_other, v]), np.zeros(2), np.full(2, 4.0), np.full(2, 2.0), np.full(2, 20.0),
+                            np.array([True, False]))
+
+    # a faster leader in the lane: rule 1 asks the margin alone (0.5 m), bumper to bumper
+    assert invariant_holds(1, two(104.5, 5.0, 10.0, 25.0), P)
+    assert invariant_holds(1, two(104.75, 5.0, 10.0, 25.0), P)
+    assert not invariant_holds(1, two(104.375, 5.0, 10.0, 25.0), P)
+    # a leader as fast as the agent: S_b(v) − S_bL(v) = 0 (b = b_L = 4), again the margin
+    assert invariant_holds(1, two(104.5, 5.0, 20.0, 20.0), P)
+    # 0.25 m behind a stopped car in another lane, outside the corridor: nothing asked
+    assert invariant_holds(1, two(104.25, 9.0, 20.0, 0.0), P)
+    assert not invariant_holds(1, two(104.25, 5.0, 20.0, 0.0), P)
+
+
+def test_the_scene_at_exactly_its_boundaries():
+    # 4 m × 2 m bodies, H = 1.5 s, a_L = 2.5 and b_L = 4 m/s², margins 0.75 m and 0.25 m: every edge in binary fractions
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4.0, 2.5, -1.0, 1.0), horizon_s=1.5,
+                     margin_x_m=0.75, margin_y_m=0.25)
+    rows = [  # (x, y, vx): the agent at x = 100, y = 5, 20 m/s
+        (104.0, 5.0, 20.0),  # bumper to bumper ahead (gap 0): ahead, not alongside
+        (96.0, 5.0, 20.0),  # bumper to bumper behind: behind, not alongside
+        (100.0 - 4.0 - 11.0625, 5.0, 22.0),  # behind, gap = (22 − 20)·1.5 + ½·6.5·1.5² + 0.75 = 11.0625: soon alongside
+        (100.0 - 4.0 - 11.125, 5.0, 22.0),  # 1/16 m further: not
+        (100.0 - 4.0 - 2.75, 5.0, 4.0),  # gap = S_bL(4 m/s) + margin = 2 + 0.75: a close follower
+        (100.0 - 4.0 - 2.8125, 5.0, 4.0),  # 1/16 m further: not
+        (100.0 - 4.0 - 8.125, 5.0, 4.0),  # slower than the agent: 1/16 m beyond ½·6.5·1.5² + 0.75, not soon alongside
+        (130.0, 8.375, 20.0),  # its reach starts at 8.375 − ½·1·1.5² − 1 − 0.25 = 6 = the agent's band's top: apart
+        (130.0, 1.625, 20.0),  # its reach ends at 1.625 + 1.125 + 1.25 = 4 = the band's bottom: apart
+    ]
+    n = len(rows) + 1
+    x, y, vx = (np.array([r[i] for r in rows] + [a]) for i, a in zip(range(3), (100.0, 5.0, 20.0)))
+    state = VehicleState([f"v{i}" for i in range(n)], x, y, vx, np.zeros(n), np.full(n, 4.0), np.full(n, 2.0),
+                         np.full(n, 20.0), np.array([True] * (n - 1) + [False]))
+    sc = _scene(n - 1, state, p)
+    assert sc.ahead.tolist() == [True] + [False] * 6 + [True, True]
+    assert sc.alongside.tolist() == [False] * 9
+    assert sc.behind.tolist() == [False] + [True] * 6 + [False, False]
+    assert sc.soon_alongside.tolist() == [False, True, True, False, True, True, False, False, False]
+    assert sc.close_follower[1:7].tolist() == [True, True, True, True, False, False]  # S_bL(22 m/s) > 60 m
+    assert sc.in_current_corridor.tolist() == [True] * 7 + [False, False]
+
+
+def test_reach_bands_at_other_lateral_bounds_and_horizons():
+    # a = 2 m/s² (the background's larger lateral bound), H = 1.5 s: ½·a·H² = 2.25 m, vy·H = ±0.75 m
+    p = ShieldParams(T, 10.2, 500.0, AccelerationBounds(), AccelerationBounds(-4.0, 2.0, -2.0, 1.5), horizon_s=1.5,
+                     margin_y_m=0.25)
+    lo, hi = reach_band(np.array([5.0, 5.0]), np.array([0.5, -0.5]), np.array([2.0, 2.0]), p)
+    assert lo.tolist() == [2.25, 0.75] and hi.tolist() == [9.25, 7.75]
+    # within its own bounds [4, 7] (the lines 5.001 and 5.999 m): it reaches no further than they let it
+    lo, hi = reach_band(np.array([5.0]), np.array([0.5]), np.array([2.0]), p, (np.array([4.0]), np.array([7.0])))
+    assert lo.tolist() == [3.75] and hi[0] == pytest.approx(7.249)
+
+
+@pytest.mark.parametrize("which", ["agent", "background"])
+@pytest.mark.parametrize("bound", ["ax_min", "ax_max", "ay_min", "ay_max"])
+def test_params_need_every_acceleration_bound_strictly_off_zero(which, bound):
+    asymmetric = AccelerationBounds(-4.0, 2.0, -1.0, 0.5)  # 0.5 < 1: any small non-zero bound is enough
+    assert ShieldParams(0.25, 10.2, 500.0, asymmetric, asymmetric).agent_lateral_brake == 0.5
+    zero = AccelerationBounds(**{**dataclasses.asdict(asymmetric), bound: 0.0})
+    bounds = (zero, asymmetric) if which == "agent" else (asymmetric, zero)
+    with pytest.raises(ConfigError, match="^the shield needs acceleration bounds with braking and accelerating on both"
+                                          " axes$"):
+        ShieldParams(0.25, 10.2, 500.0, *bounds)
+
+
+def test_params_from_a_config_take_every_setting_from_it():
+    cfg = merge_config(LaneFreeConfig(), {
+        "sim": {"step_s": 0.2, "edge_clearance_m": 0.01, "edge_contact_tolerance_m": 1e-4},
+        "road": {"length_m": 400.0, "width_m": 9.0},
+        "scenario": {"agent_bounds": {"ax_min": -5.0, "ax_max": 2.5, "ay_min": -1.5, "ay_max": 1.6},
+                     "agent_max_speed_mps": 28.0,
+                     "driver": {"bounds": {"ax_min": -3.5, "ax_max": 1.5, "ay_min": -0.8, "ay_max": 0.9}}},
+        "shield": {"horizon_s": 1.5, "margin_x_m": 0.7, "margin_y_m": 0.3, "lateral_candidates": 11},
+    })
+    assert ShieldParams.from_config(cfg) == ShieldParams(
+        0.2, 9.0, 400.0, AccelerationBounds(-5.0, 2.5, -1.5, 1.6), AccelerationBounds(-3.5, 1.5, -0.8, 0.9),
+        28.0, 1.5, 0.7, 0.3, 11, 0.01, 1e-4)
     with pytest.raises(ConfigError):
         ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(0.0, 2.0, -1.8, 1.8), AccelerationBounds(-4, 2, -1, 1))
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.special import erfc
 
-from lanefree_sumo.config import ConfigError, DriverConfig, LaneFreeConfig, merge_config
-from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
-from lanefree_sumo.sim.dynamics import ballistic_distance, plan_step
+from lanefree_sumo.config import AccelerationBounds, ConfigError, DriverConfig, LaneFreeConfig, merge_config
+from lanefree_sumo.sim.collisions import CollisionTracker, count_events, overlap_matrix
+from lanefree_sumo.sim.dynamics import ballistic_distance, clip_acceleration, clip_accelerations, plan_step
 from lanefree_sumo.sim.forces import (
     driver_accelerations,
     edge_bound,
@@ -55,6 +55,28 @@ def test_ramp_g_rises_plateaus_falls():
     t = np.array([-1.0, 0.0, 1.0, 2.0, 4.0, 5.0, 7.0, 9.0, 10.0])
     expected = [0.0, 0.0, 0.5, 1.0, 1.0, 1.0, 1 - 2 / 4, 0.0, 0.0]
     assert ramp_g(t, 2.0, 3.0, 4.0) == pytest.approx(expected)
+
+
+def test_zero_width_ramps_at_exactly_their_edges():
+    # w = 0, l = 2, c = 0: 0 before and at the rise's edge (t = 0), 1 on the plateau up to and at its end (t = 2)
+    g = ramp_g(np.array([-1.0, 0.0, 1.0, 2.0, 3.0]), 0.0, 2.0, 0.0)
+    assert g.tolist() == [0.0, 0.0, 1.0, 1.0, 0.0]
+
+
+def test_a_neighbour_exactly_alongside_repels_as_one_ahead():
+    # dx = 0 counts as ahead (specification §3 as read here): its repulsion is summed without nudging
+    state = make_state([100.0, 100.0], [5.0, 6.5], [20.0, 20.0], [20.0, 20.0])
+    _, ay = accel(state)
+    assert ay[0] < 0.0 < ay[1]  # pushed apart
+
+
+def test_a_leader_exactly_at_the_neighbour_range_still_counts():
+    # 30 m apart at 30 m/s: the plateau (9.75 + 13.5 + 3.5 + 2.5 = 29.25 m) and its 9.75 m fall reach past 30 m
+    state = make_state([100.0, 130.0], [5.0, 5.0], [30.0, 30.0], [30.0, 30.0])
+    ax, _ = accel(state, neighbour_range_m=30.0)
+    assert ax[0] < 0.0  # braking for it
+    ax, _ = accel(state, neighbour_range_m=29.875)
+    assert ax[0] == 0.0  # just beyond the range: ignored
 
 
 def test_trapezoid_h_is_symmetric_around_zero():
@@ -248,6 +270,61 @@ def test_plan_step_is_ballistic_and_clips_at_the_edge():
     assert float(ballistic_distance(np.array(20.0), np.array(21.0), T)) == pytest.approx(20 * T + 0.5 * 4 * T * T)
 
 
+def test_plan_step_clips_at_both_edges_with_a_tolerance_and_the_realised_accelerations():
+    # T = 0.25 s, width 2 m, clearance 0.125 m, tolerance 0.0625 m on an 8 m road: lines at 1.125 and 6.875 m
+    cmd = plan_step(
+        np.zeros(5), np.array([1.25, 6.78125, 6.8125, 4.0, 4.0]), np.array([1.0, 10.0, 10.0, 10.0, 0.5]),
+        np.array([-1.0, 0.5, 0.5, 0.5, 0.0]), np.full(5, 2.0), np.array([-6.0, 0.5, 0.0, -1.0, 0.0]),
+        np.array([-2.0, 0.0, 0.0, 1.0, 0.0]), T, 8.0, 0.125, contact_tolerance=0.0625,
+    )
+    # 0: 1.25 − 0.25 − 0.0625 = 0.9375 m, past the right line: clipped there, a contact, vy' = 0, and the
+    # realised ay the one giving dy = −0.125 m: 2·(−0.125 + 0.25)/T² = 4 m/s²; vx floored: ax = −1/T = −4
+    assert (cmd.dy[0], cmd.vy_next[0], cmd.ay[0], bool(cmd.boundary_contact[0])) == (-0.125, 0.0, 4.0, True)
+    assert (cmd.vx_next[0], cmd.ax[0]) == (0.0, -4.0)
+    # 1: 0.03125 m past the left line, within the tolerance: clipped, no contact, vy and ay kept
+    assert (cmd.dy[1], cmd.vy_next[1], cmd.ay[1], bool(cmd.boundary_contact[1])) == (0.09375, 0.5, 0.0, False)
+    assert (cmd.vx_next[1], cmd.ax[1]) == (10.125, 0.5)
+    # 2: exactly the tolerance past the line: still no contact
+    assert (cmd.dy[2], bool(cmd.boundary_contact[2])) == (0.0625, False)
+    # 3: inside the road: dy = vy·T + ½·ay·T², vy' = vy + ay·T
+    assert (cmd.dy[3], cmd.vy_next[3], cmd.ay[3], cmd.ax[3]) == (0.15625, 0.75, 1.0, -1.0)
+    assert (cmd.vx_next[4], cmd.dy[4], bool(cmd.boundary_contact.any())) == (0.5, 0.0, True)
+    # per-vehicle bounds instead of the road: vehicle 0 within [2, 5], vehicle 1 within [0, 9] (1 m wide)
+    cmd = plan_step(np.zeros(2), np.array([4.25, 8.0]), np.full(2, 10.0), np.array([1.0, 1.0]), np.ones(2),
+                    np.zeros(2), np.zeros(2), T, 99.0, 0.125, bounds=(np.array([2.0, 0.0]), np.array([5.0, 9.0])))
+    assert cmd.dy.tolist() == [0.125, 0.25] and cmd.boundary_contact.tolist() == [True, False]  # lines 4.375, 8.375
+    cmd = plan_step(np.zeros(1), np.array([3.25]), np.full(1, 10.0), np.array([-1.0]), np.full(1, 2.0), np.zeros(1),
+                    np.zeros(1), T, 99.0, 0.125, bounds=(2.0, 5.0))
+    assert (cmd.dy[0], bool(cmd.boundary_contact[0])) == (-0.125, True)  # the low line, 2 m wide: 2 + 1 + 0.125
+    assert float(ballistic_distance(np.array(8.0), np.array(10.0), T)) == 2.25  # (8 + ½·2)·T
+
+
+def test_agent_accelerations_are_clipped_to_bounds_top_speed_and_the_lateral_ratio():
+    bounds = AccelerationBounds(ax_min=-3.0, ax_max=2.0, ay_min=-6.5, ay_max=8.0)
+    ax, ay = clip_accelerations([-5.0, 3.0, 3.0, 1.0], [9.0, -9.0, 1.0, 0.0], bounds,
+                                [10.0, 10.0, 19.75, 20.0], 20.0, T)
+    # ax within [−3, 2] and no faster than 20 m/s after the step: (20 − 19.75)/T = 1, (20 − 20)/T = 0
+    assert ax.tolist() == [-3.0, 2.0, 1.0, 0.0] and ay.tolist() == [8.0, -6.5, 1.0, 0.0]
+    # |vy'| ≤ 0.1·vx = 1 m/s: with vy = 0.5, ay ∈ [−(1 + 0.5)/T, (1 − 0.5)/T] = [−6, 2]; with vy = −0.5, [−2, 6]
+    _, ay = clip_accelerations(np.zeros(4), [5.0, -7.0, 7.0, -5.0], bounds, 10.0, 30.0, T,
+                               vy=np.array([0.5, 0.5, -0.5, -0.5]), lateral_ratio=0.1)
+    assert ay.tolist() == [2.0, -6.0, 6.0, -2.0]
+    # the ratio never widens the bounds: at 100 m/s it allows ±40 m/s², the bounds keep [−6.5, 8]
+    _, ay = clip_accelerations(np.zeros(2), [9.0, -9.0], bounds, 100.0, 200.0, T, vy=0.0, lateral_ratio=0.1)
+    assert ay.tolist() == [8.0, -6.5]
+    assert clip_acceleration(-5.0, 9.0, bounds, 10.0, 20.0, T) == (-3.0, 8.0)
+    # one agent: the same clips, vy = 0 unless given
+    assert clip_acceleration(0.0, 5.0, bounds, 10.0, 30.0, T, lateral_ratio=0.1) == (0.0, 4.0)
+    assert clip_acceleration(0.0, -7.0, bounds, 10.0, 30.0, T, vy=-0.5, lateral_ratio=0.1) == (0.0, -2.0)
+    _, ay = clip_accelerations(0.0, 5.0, bounds, 10.0, 30.0, T, lateral_ratio=0.1)
+    assert float(ay) == 4.0
+    # a lateral speed beyond the ratio asks for more than the bound: the bound again (−6.5, not −8)
+    _, ay = clip_accelerations([0.0, 0.0], [0.0, 0.0], bounds, 0.0, 30.0, T, vy=np.array([2.0, -3.0]),
+                               lateral_ratio=0.1)
+    assert ay.tolist() == [-6.5, 8.0]  # the ratio asks for −8 and +12 m/s²
+    assert all(type(v) is float for v in clip_acceleration(0.0, 0.0, bounds, 10.0, 20.0, T))
+
+
 def test_negative_speed_is_floored():
     cmd = plan_step(np.zeros(1), np.full(1, 5.0), np.full(1, 0.5), np.zeros(1), np.full(1, 1.8),
                     np.full(1, -4.5), np.zeros(1), T, W, 0.001)
@@ -377,6 +454,19 @@ def test_several_collision_events_start_in_one_step_and_each_pair_is_counted_onc
     assert tracker.update(now).tolist() == [[0, 3]]
 
 
+def test_one_steps_collision_events_are_split_by_who_took_part():
+    # rows 1 and 4 are agents; vehicle 1's view of six events starting in one step
+    pairs = np.array([[0, 1], [1, 4], [1, 2], [0, 2], [3, 4], [2, 3]])
+    agents = np.array([1, 4])
+    # vehicle 1's: (0,1), (1,4), (1,2); with another agent: (1,4); background only: (0,2), (2,3)
+    assert count_events(pairs, 1, agents) == (3, 1, 2)
+    # agent 4's: (1,4), (3,4); with an agent: (1,4) — the pair (3,4) has one agent, so it is no background event
+    assert count_events(pairs, 4, agents) == (2, 1, 2)
+    assert count_events(pairs, 1, np.array([1])) == (3, 0, 3)  # alone: (0,2), (2,3), (3,4) are background
+    assert count_events(np.zeros((0, 2), dtype=np.int64), 1, agents) == (0, 0, 0)
+    assert count_events(np.array([[2, 3]]), 1, agents) == (0, 0, 1)
+
+
 def test_a_vehicle_exactly_at_the_end_of_an_edge_is_at_the_start_of_the_next():
     # 500 m ring, 4 edges of 125 m
     assert EDGES == 4
@@ -390,3 +480,110 @@ def test_a_vehicle_exactly_at_the_end_of_an_edge_is_at_the_start_of_the_next():
     assert edge_to_ring(np.array([0, 1, 3, 3]), np.array([0.0, 0.0, 0.0, 125.0]), 500.0).tolist() == \
         [0.0, 125.0, 375.0, 500.0]
     assert float(edge_to_ring(2, 1.5, 300.0)) == 151.5  # 2 × 75 + 1.5
+
+
+# -- the driver model against a plain per-vehicle reading of specification §3 -----------------------------
+
+def _trapezoid(abs_t: float, rise: float, plateau: float) -> float:
+    """H from |t| with equal rise and fall: 1 on [0, plateau], linear to 0 over ``rise``; a step when rise = 0."""
+    if rise == 0.0:
+        return 1.0 if abs_t <= plateau else 0.0
+    return min(max((rise + plateau - abs_t) / rise, 0.0), 1.0)
+
+
+class _TieError(Exception):
+    """Two forces of equal magnitude compete for the last place among the summed ones."""
+
+
+def _reference_accelerations(state: VehicleState, cfg: DriverConfig, ring: float, road: float, t: float,
+                             clearance: float, lateral_target: float) -> tuple[list[float], list[float]]:
+    """Specification §3 one vehicle and one neighbour at a time, in plain floats (the module's independent twin)."""
+    n = len(state.x)
+    k = cfg.effective_gain_x
+    ax_all, ay_all = [], []
+    for i in range(n):
+        xi, yi, vxi, vyi = (float(a[i]) for a in (state.x, state.y, state.vx, state.vy))
+        li, wi, vdi = float(state.length[i]), float(state.width[i]), float(state.v_desired[i])
+        reps, nudges = [], []
+        for j in range(n):
+            if j == i:
+                continue
+            dx = float(wrap(np.array([state.x[j] - xi]), ring)[0])
+            dy = float(state.y[j]) - yi
+            ahead = dx >= 0.0
+            uy = abs(vyi - float(state.vy[j]))
+            mag_y = _trapezoid(abs(dy), uy * cfg.time_headway_y_s + cfg.lateral_ramp_offset_m,
+                               0.5 * (wi + float(state.width[j])) + cfg.lateral_margin_m)
+            vxj = float(state.vx[j])
+            ux = max(0.0, vxi - (1.0 - cfg.speed_share_ahead) * vxj) if ahead else vxj
+            lxh = 0.5 * cfg.time_headway_x_s * vxi
+            plateau = lxh + ux * ux / (2.0 * k) + 0.5 * (li + float(state.length[j])) + cfg.longitudinal_margin_m
+            mag = _trapezoid(abs(dx), lxh, plateau) * mag_y
+            if abs(dx) > cfg.neighbour_range_m or mag <= 0.0:
+                continue
+            dist = math.hypot(dx, dy)
+            entry = (mag, -dx / dist * mag, -dy / dist * mag, j)
+            (reps if ahead else nudges).append(entry)
+        for group, most in ((reps, cfg.max_repulsions), (nudges, cfg.max_nudges)):
+            group.sort(reverse=True)
+            if len(group) > most and group[most - 1][0] == group[most][0]:
+                raise _TieError  # which of two equally strong forces is summed is not specified
+        reps = reps[:cfg.max_repulsions]
+        sum_fx, sum_fy = sum(e[1] for e in reps), sum(e[2] for e in reps)
+        if cfg.nudging:
+            nudges = nudges[:cfg.max_nudges]
+            sum_fx += cfg.nudge_scale_x * sum(e[1] for e in nudges)
+            sum_fy += cfg.nudge_scale_y * sum(e[2] for e in nudges)
+        ax = k * sum_fx + math.erfc(vxi - vdi) - 1.0
+        ay = cfg.coef_fy * sum_fy + math.erfc(vyi - lateral_target) - 1.0
+        lead = min(reps, key=lambda e: e[1], default=None)
+        if lead is not None and lead[1] < 0.0:  # 1. the x-wall
+            j = lead[3]
+            degree = abs(min(max(lead[1], -1.0), 1.0)) ** cfg.wall_exponent
+            gap = float(wrap(np.array([(state.x[j] - 0.5 * state.length[j]) - (xi + 0.5 * li)]), ring)[0])
+            v_safe = min(gap / cfg.wall_time_gap_s, float(state.vx[j]) - cfg.wall_speed_margin_mps)
+            ax = min(ax, ((1.0 - degree) * (vdi - vxi) + degree * (v_safe - vxi)) / t)
+        room_left = max(0.0, road - clearance - yi - 0.5 * wi)  # 2. the road edges
+        room_right = max(0.0, yi - clearance - 0.5 * wi)
+        u, f = cfg.edge_decel_mps2, cfg.edge_speed_factor
+        ay = min(ay, float(edge_bound(np.array(f * vyi), np.array(room_left), t, u)))
+        ay = max(ay, -float(edge_bound(np.array(-f * vyi), np.array(room_right), t, u)))
+        b = cfg.bounds  # 3.–5.
+        ax = min(max(ax, b.ax_min), b.ax_max)
+        ay = min(max(ay, b.ay_min), b.ay_max)
+        ax = min(max(ax, -vxi / t), (cfg.overspeed_factor * vdi - vxi) / t)
+        r = cfg.lateral_speed_ratio
+        ay = max(min(ay, (r * vxi - vyi) / t), -(r * vxi + vyi) / t)
+        ay_all.append(min(max(ay, b.ay_min), b.ay_max))
+        ax_all.append(ax)
+    return ax_all, ay_all
+
+
+@pytest.mark.parametrize("nudging", [False, True])
+def test_driver_accelerations_equal_a_per_vehicle_reading_of_the_specification(nudging):
+    # every parameter off its default, so that a dropped factor or a swapped one shows
+    cfg = merge_config(DriverConfig(), {
+        "neighbour_range_m": 30.0, "speed_share_ahead": 0.4, "time_headway_x_s": 0.8, "time_headway_y_s": 0.35,
+        "gain_x": 2.5, "gain_x_nudging": 4.0, "longitudinal_margin_m": 1.5, "lateral_ramp_offset_m": 0.7,
+        "lateral_margin_m": 0.3, "coef_fy": 1.3, "max_repulsions": 2, "nudging": nudging, "max_nudges": 2,
+        "nudge_scale_x": 0.7, "nudge_scale_y": 1.2, "wall_exponent": 0.5, "wall_time_gap_s": 0.4,
+        "wall_speed_margin_mps": 0.3, "edge_decel_mps2": -1.5, "edge_speed_factor": 1.1, "overspeed_factor": 1.3,
+        "lateral_speed_ratio": 0.4, "bounds": {"ax_min": -6.0, "ax_max": 5.0, "ay_min": -2.5, "ay_max": 3.0},
+    })
+    ring, road, clearance, target = 150.0, 10.0, 0.05, 0.15
+    rng = np.random.default_rng(7 + nudging)
+    checked = 0
+    while checked < 8:
+        n = 9
+        state = VehicleState(
+            [f"v{i}" for i in range(n)], rng.uniform(0.0, ring, n), rng.uniform(1.2, road - 1.2, n),
+            rng.uniform(0.0, 25.0, n), rng.uniform(-1.5, 1.5, n), rng.uniform(3.0, 5.0, n),
+            rng.uniform(1.5, 2.2, n), rng.uniform(15.0, 28.0, n), np.ones(n, bool))
+        ax, ay = driver_accelerations(state, cfg, ring, road, T, edge_clearance=clearance, lateral_target=target)
+        try:
+            ax_ref, ay_ref = _reference_accelerations(state, cfg, ring, road, T, clearance, target)
+        except _TieError:
+            continue
+        checked += 1
+        assert ax.tolist() == pytest.approx(ax_ref, rel=1e-12, abs=1e-12)
+        assert ay.tolist() == pytest.approx(ay_ref, rel=1e-12, abs=1e-12)
