@@ -111,10 +111,10 @@ def batch_key(cfg: LaneFreeConfig) -> str:
 
 def batch_size(requested: int | None, batchable: int, workers: int | None) -> int:
     """K: ``requested`` (``--batch``), else as many runs per batch as keep every worker busy, at most
-    :data:`DEFAULT_BATCH` (``workers`` None: a cluster, whose size the driver learns later)."""
+    :data:`DEFAULT_BATCH` (``workers``: the embedded Ray's workers or the cluster's CPUs; None or 0: unknown)."""
     if requested is not None:
         return requested
-    if workers is None:
+    if not workers:
         return DEFAULT_BATCH
     return max(1, min(DEFAULT_BATCH, math.ceil(batchable / workers)))
 

@@ -207,7 +207,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
            retries: int, progress: bool, extend: bool = False, batch: int | None = None) -> int:
     from lanefree_sumo.experiments.rundir import check_writable
     from lanefree_sumo.experiments.sweep.batches import batch_size, pack
-    from lanefree_sumo.experiments.sweep.runner import check_address, run_sweep
+    from lanefree_sumo.experiments.sweep.runner import check_address, cluster_size, run_sweep
     from lanefree_sumo.experiments.sweep.summary import summarize
 
     workers = (workers or default_workers()) if address is None else None
@@ -219,7 +219,8 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     cells: dict[str, Cell] = {c.name: c for c in grid.cells()}
     todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED)]
     with driver_lock(folder, command):
-        size = batch_size(batch, len(todo), workers)
+        cpus = workers if address is None or batch is not None or not todo else cluster_size(address)
+        size = batch_size(batch, len(todo), cpus)
         packing = pack(sweep, grid, todo, states, size,
                        "--batch 1" if batch == 1 else "no more runs to train than workers")
         manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)

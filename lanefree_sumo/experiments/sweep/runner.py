@@ -119,6 +119,16 @@ def cluster_cpus(ray: Any) -> int:
     return int(ray.cluster_resources().get("CPU", 0))
 
 
+def cluster_size(address: str) -> int:
+    """The CPUs of the Ray cluster at ``address``, read over a short connection (the default batch size keeps
+    them all busy)."""
+    ray = start_ray(None, address)
+    try:
+        return cluster_cpus(ray)
+    finally:
+        ray.shutdown()
+
+
 def check_nodes(ray: Any, sweep: SweepDir) -> list[dict[str, Any]]:
     """Run :func:`.worker.probe` on every alive node with CPUs; UsageError naming the first node
     that cannot import lanefree_sumo, see the sweep folder or write into it."""
