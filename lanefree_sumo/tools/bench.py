@@ -410,24 +410,14 @@ def batched_rate(algo: str, runs: int, seed: int, steps: int, density: float = P
     from lanefree_sumo.rl.batched_env import BatchedRingEnv
     from lanefree_sumo.rl.env import action_space, observation_space
     from lanefree_sumo.rl.models import build_batched, training_config
+    from lanefree_sumo.tools.bench_gpu import lockstep_rate
 
     cfgs = [training_config(merge_config(LaneFreeConfig(), {
         "seed": seed + k, "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}})) for k in range(runs)]
     torch.set_num_threads(cfgs[0].train.torch_threads)
     env = BatchedRingEnv(cfgs)
     learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]))
-    obs = env.reset()
-    t0 = 0.0
-    for step in range(learner.learning_starts + steps):
-        if step == learner.learning_starts:
-            t0 = time.perf_counter()
-        actions = learner.act(obs, explore=True)
-        new_obs, reward, terminated, truncated, _ = env.step(actions)
-        learner.store(obs, actions, reward, new_obs, terminated | truncated, truncated & ~terminated)
-        learner.update()
-        ended = np.flatnonzero(terminated | truncated)
-        obs = env.reset(list(ended)) if len(ended) else new_obs
-    rate = steps / (time.perf_counter() - t0)
+    rate = lockstep_rate(env, learner, learner.learning_starts, steps)
     replay = sum(v.nbytes for v in learner.replay.state_dict().values() if isinstance(v, torch.Tensor))
     return rate, replay / runs
 

@@ -31,6 +31,8 @@ what is measured, and the warm-up before it costs the budget nothing it need not
 
 
 def _sync(device: Any) -> None:
+    if device is None:
+        return
     import torch
 
     if torch.device(device).type == "cuda":
@@ -76,9 +78,15 @@ def train_rate(runs: int, steps: int, device: str, seed: int = 0) -> float:
     env = BatchedRingEnv(cfgs, device=device)
     learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]),
                             device=device)
+    return lockstep_rate(env, learner, learner.learning_starts + 2, steps, device)
+
+
+def lockstep_rate(env: Any, learner: Any, warm: int, steps: int, device: Any = None) -> float:
+    """Lockstep iterations/s of a batched ``learner`` on its ``env`` (act, env step, store, update, reset the runs
+    whose episode ended, as :mod:`lanefree_sumo.experiments.batch` trains), timed over ``steps`` iterations after
+    ``warm`` untimed ones; ``device``: the torch device to wait for around the timing (None: the CPU, numpy)."""
     obs = env.reset()
     t0 = 0.0
-    warm = learner.learning_starts + 2
     for step in range(warm + steps):
         if step == warm:
             _sync(device)
