@@ -109,15 +109,18 @@ class _Batch:
     """One session of a batch: its folders, environment, learner and books."""
 
     def __init__(self, batch_dir: Path, cfgs: list[LaneFreeConfig], folders: list[RunDir],
-                 device: str | None = None) -> None:
+                 device: str | None = None, lockstep: bool | None = None) -> None:
         self.batch_dir, self.cfgs, self.folders = batch_dir, cfgs, folders
         self.device = device
         """The torch device of the simulation and the learners (None: the numpy simulation, learners on the CPU)."""
+        self.lockstep = lockstep
+        """Run the lockstep loop (:mod:`~lanefree_sumo.rl.lockstep`: device streams, CUDA graphs on a GPU);
+        None: on CUDA where the batch allows it."""
         self.runs = len(cfgs)
         self._ended = np.zeros(self.runs, dtype=bool)
 
     # -- checkpoints ------------------------------------------------------------------------------------
-    def save(self, env: Any, learner: Any, obs: Any, books: _Books) -> Path:
+    def save(self, env: Any, learner: Any, obs: Any, books: _Books, loop: Any = None) -> Path:
         """The whole batch after a complete step, and each unfinished run's ``checkpoints/ep_N`` naming it."""
         import torch
 
@@ -126,7 +129,7 @@ class _Batch:
         path = folder / f"step_{books.steps:010d}.pt"
         tmp = path.with_name(path.name + ".tmp")
         torch.save({"learner": learner.state_dict(), "env": pickle.dumps(env), "obs": obs,
-                    "books": pickle.dumps(books)}, tmp)
+                    "books": pickle.dumps(books), "lockstep": None if loop is None else loop.state_dict()}, tmp)
         os.replace(tmp, path)
         saved = datetime.now().isoformat(timespec="seconds")
         for k, run in enumerate(self.folders):
@@ -163,6 +166,7 @@ class _Batch:
         started, session_versions = datetime.now(timezone.utc).isoformat(timespec="seconds"), versions()
         learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]),
                                 device=self.device or "cpu")
+        state: dict[str, Any] = {}
         if resume:
             path = self.newest()
             try:
@@ -178,6 +182,7 @@ class _Batch:
             env = BatchedRingEnv(cfgs, device=self.device)
             obs = env.reset()
             books = _Books([0] * self.runs, [c.train.episodes for c in cfgs], [False] * self.runs)
+        loop = self._lockstep(env, learner, state.get("lockstep"))
         first = list(books.done)
         steps0 = books.steps
         logs = [EpisodeLog(run.episodes, episode_columns(c)) for run, c in zip(self.folders, cfgs)]
@@ -190,7 +195,9 @@ class _Batch:
         previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
         t0 = time.perf_counter()
         try:
-            while any(books.active(k) for k in range(self.runs)) and not stop.requested:
+            if loop is not None:
+                self._run_lockstep(loop, env, learner, obs, books, logs, bar, stop, names)
+            while loop is None and any(books.active(k) for k in range(self.runs)) and not stop.requested:
                 checkpoint = self._step(env, learner, obs, books, logs, bar)
                 obs = env.reset([k for k in range(self.runs) if self._ended[k] and books.active(k)])
                 if self._ended.any():
@@ -214,6 +221,80 @@ class _Batch:
                 "batch": {"folder": os.path.relpath(self.batch_dir, run.path), "run": k, "runs": self.runs}})
         return [(run.path, books.done[k]) for k, run in enumerate(self.folders)]
 
+    def _lockstep(self, env: Any, learner: Any, state: dict[str, Any] | None) -> Any:
+        """The lockstep loop of this batch, or None (the exact loop)."""
+        from lanefree_sumo.rl.lockstep import Lockstep, lockstep_refusal
+
+        wanted = self.lockstep if self.lockstep is not None else self.device == "cuda"
+        if not wanted:
+            return None
+        why = lockstep_refusal(env, learner)
+        if why is not None:
+            if self.lockstep:
+                raise ConfigError(f"this batch cannot run the lockstep loop: {why}")
+            return None
+        seed = int(np.random.SeedSequence([c.seed for c in self.cfgs]).generate_state(1)[0])
+        loop = Lockstep(env, learner, seed)
+        if state is not None:
+            loop.load_state_dict(state)
+        return loop
+
+    def _run_lockstep(self, loop: Any, env: Any, learner: Any, obs: Any, books: _Books, logs: list[EpisodeLog],
+                      bar: Any, stop: Any, names: list[str]) -> None:
+        """The loop of :meth:`run` with the lockstep loop: whole iterations on the device; episode rows, resets and
+        checkpoints between episodes (a stop checkpoints after the current iteration)."""
+        loop.start(obs)
+        while any(books.active(k) for k in range(self.runs)) and not stop.requested:
+            loop.iterate()
+            books.steps += 1
+            if not loop.episode_over():
+                continue
+            flagged = loop.take_flagged()
+            host = env.host_books()
+            ended = np.zeros(self.runs, dtype=bool)
+            checkpoint = False
+            for k in range(self.runs):
+                if not books.active(k):
+                    continue
+                if flagged[k]:
+                    books.stopped[k] = (f"run {k}: an action was not finite in episode {int(env.episode[k])}; a "
+                                        "diverged policy must not drive the car")
+                    env.stopped[k] = True
+                    print(f"{self.folders[k].path}: stopped: {books.stopped[k]}", file=sys.stderr)
+                    continue
+                ended[k] = True
+                checkpoint |= self._episode_done(k, env.episode_metrics(k, host), learner.num_timesteps, learner,
+                                                 env, books, logs, bar)
+            learner.episodes_ended(ended)
+            loop.start(env.reset([k for k in range(self.runs) if books.active(k)]))
+            bar.set_postfix_str(_bar_text(books, names))
+            if checkpoint:
+                self.save(env, learner, loop.obs, books, loop)
+        if stop.requested and any(books.active(k) for k in range(self.runs)):
+            self.save(env, learner, loop.obs, books, loop)
+
+    def _episode_done(self, k: int, metrics: dict[str, Any], timesteps: int, learner: Any, env: Any,
+                      books: _Books, logs: list[EpisodeLog], bar: Any) -> bool:
+        """Run k ended an episode: its row, and its final model when it is done; returns whether it reached a
+        checkpoint episode."""
+        books.done[k] += 1
+        cfg = self.cfgs[k]
+        logs[k].append({**metrics, "episode": books.done[k], "algorithm": cfg.train.algo, "timesteps": timesteps})
+        bar.update(1)
+        if books.done[k] >= books.target[k]:
+            books.finished[k] = True  # the sequential run stops here: its final model is this one
+            run = self.folders[k]
+            ckpt = run.checkpoint(books.done[k])
+            ckpt.mkdir(parents=True, exist_ok=True)
+            learner.export(k, ckpt / "model.zip")
+            run.write_checkpoint_state(ckpt, {
+                "episodes": books.done[k], "timesteps": timesteps, "algo": cfg.train.algo,
+                "saved": datetime.now().isoformat(timespec="seconds"), "batch": None, "batch_run": k})
+            learner.export(k, run.model)
+            env.stopped[k] = True  # finished: never reset nor scored again
+            return False
+        return books.done[k] % cfg.train.checkpoint_every_episodes == 0
+
     def _step(self, env: Any, learner: Any, obs: Any, books: _Books, logs: list[EpisodeLog], bar: Any) -> bool:
         """One step of every run in SB3's order; returns whether a run reached a checkpoint episode."""
         actions = learner.act(obs, explore=True)
@@ -229,25 +310,7 @@ class _Batch:
             if metrics is None or not books.active(k):
                 continue
             self._ended[k] = True
-            books.done[k] += 1
-            cfg = self.cfgs[k]
-            logs[k].append({**metrics, "episode": books.done[k], "algorithm": cfg.train.algo,
-                            "timesteps": timesteps})
-            bar.update(1)
-            every = cfg.train.checkpoint_every_episodes
-            if books.done[k] >= books.target[k]:
-                books.finished[k] = True  # the sequential run stops here: its final model is this one
-                run = self.folders[k]
-                ckpt = run.checkpoint(books.done[k])
-                ckpt.mkdir(parents=True, exist_ok=True)
-                learner.export(k, ckpt / "model.zip")
-                run.write_checkpoint_state(ckpt, {
-                    "episodes": books.done[k], "timesteps": timesteps, "algo": cfg.train.algo,
-                    "saved": datetime.now().isoformat(timespec="seconds"), "batch": None, "batch_run": k})
-                learner.export(k, run.model)
-                env.stopped[k] = True  # finished: never reset nor scored again
-            elif books.done[k] % every == 0:
-                checkpoint = True
+            checkpoint |= self._episode_done(k, metrics, timesteps, learner, env, books, logs, bar)
         done = terminated | truncated
         learner.store(obs, actions, reward, new_obs, done, truncated & ~terminated)
         learner.update()
@@ -262,11 +325,13 @@ def batch_name(cfg: LaneFreeConfig) -> str:
 
 def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path] | None = None,
                 progress: bool = True, command: str | None = None,
-                device: str | None | Literal["config"] = "config") -> list[tuple[Path, int]]:
+                device: str | None | Literal["config"] = "config",
+                lockstep: bool | None = None) -> list[tuple[Path, int]]:
     """Train the runs ``cfgs`` as one batch into ``folders`` (default ``batch_dir/<batch_name>``); return each
     run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early. ``device``: the torch
     device to simulate and learn on (None: numpy on the CPU; ``"config"``: ``train.device``, :func:`torch_device`);
-    a torch device named here — ``"cpu"`` included — runs the torch simulation there."""
+    a torch device named here — ``"cpu"`` included — runs the torch simulation there. ``lockstep``: run the lockstep
+    loop (:mod:`~lanefree_sumo.rl.lockstep`; None: on CUDA where the batch allows it)."""
     from lanefree_sumo.rl.models import training_config
     from lanefree_sumo.sim.spawn import check_fits
 
@@ -294,8 +359,8 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
             run.versions.write_text(json.dumps(versions(), indent=2) + "\n")
         (batch_dir / BATCH_FILE).write_text(json.dumps(
             {"runs": [os.path.relpath(r.path, batch_dir) for r in runs]}, indent=2) + "\n")
-        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device).run(
-            False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device,
+                      lockstep).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")
 
 
@@ -304,7 +369,8 @@ def is_batch(folder: Path) -> bool:
     return (folder / BATCH_FILE).is_file()
 
 
-def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = None) -> list[tuple[Path, int]]:
+def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = None,
+                 lockstep: bool | None = None) -> list[tuple[Path, int]]:
     """Continue the batch in ``batch_dir`` from its newest batch checkpoint (the same episodes as uninterrupted)."""
     try:
         listed = json.loads((batch_dir / BATCH_FILE).read_text())["runs"]
@@ -318,6 +384,6 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
         check_device(cfgs[0].train.device)
         for run in runs:
             stack.enter_context(run.writer_lock())
-        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0])).run(
+        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]), lockstep).run(
             True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")

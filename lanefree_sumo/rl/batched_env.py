@@ -133,6 +133,9 @@ class BatchedRingEnv:
         self._ego_scale, self._neighbour_scale = (xp.asarray(np.array(s))
                                                   for s in zip(*(feature_scales(c) for c in self.cfgs)))
         self._terminate = np.array([c.episode.terminate_on_collision for c in self.cfgs])
+        self._discrete_accel = xp.asarray(DISCRETE_ACTIONS * np.array([cfg.action.discrete_ax_mps2,
+                                                                      cfg.action.discrete_ay_mps2]))
+        """The discrete actions' (ax, ay) in m/s², on the device (:meth:`device_accelerations`)."""
         self._density = [c.scenario.density_veh_per_km for c in self.cfgs]
         self._range = cfg.observation.range_m
         self._books = {name: xp.zeros(self.runs) for name in BOOKS}
@@ -266,6 +269,34 @@ class BatchedRingEnv:
                                      a[:, 1] * bounds.ay_max])
         return np.where(bad[:, None], 0.0, accel), bad
 
+    def device_accelerations(self, actions: Any) -> tuple[Any, Any]:
+        """:meth:`accelerations` for actions already on the simulation's device, with no host read: (ax, ay)
+        ``[K, 1, 2]`` in m/s² (0 where an action is not finite) and ``[K]`` True where it is not finite. A discrete
+        action must be a valid index (it is not checked here)."""
+        xp, cfg = self.xp, self.cfg
+        if cfg.action.kind == "discrete":
+            accel = self._discrete_accel[xp.astype(actions, int).reshape(self.runs)]
+            return accel[:, None, :], xp.zeros(self.runs, dtype=bool)
+        values = xp.astype(actions, float).reshape(self.runs, 2)
+        bad = ~xp.all(xp.isfinite(values), axis=1)
+        a = xp.minimum(1.0, xp.maximum(-1.0, xp.where(bad[:, None], 0.0, values)))
+        bounds = cfg.scenario.agent_bounds
+        accel = xp.column_stack([xp.where(a[:, 0] >= 0.0, a[:, 0] * bounds.ax_max, -a[:, 0] * bounds.ax_min),
+                                 a[:, 1] * bounds.ay_max])
+        return xp.where(bad[:, None], 0.0, accel)[:, None, :], bad
+
+    def step_on_device(self, actions: Any, active: Any) -> tuple[Any, Any, Any]:
+        """One step of every run with no host read (a CUDA graph can hold it): ``actions`` a tensor on the device,
+        ``active`` ``[K]`` bool, the runs scored. Returns (observation, reward, ``[K]`` True where the action was not
+        finite). The host's books — :attr:`stopped`, the steps since the reset, the episode ends — are the
+        caller's (:class:`~lanefree_sumo.rl.lockstep.Lockstep`); the episode books are kept as :meth:`step` keeps
+        them."""
+        if self.world is None:
+            raise RuntimeError("call reset() before step_on_device()")
+        accel, bad = self.device_accelerations(actions)
+        obs, reward, *_ = self._advance(accel, active & ~bad)
+        return obs, reward, bad
+
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One step of every run (class docstring). Stopped runs report reward 0 and no episode end."""
         if self.world is None:
@@ -277,15 +308,38 @@ class BatchedRingEnv:
                        f"{int(self._steps[k]) + 1} of episode {int(self.episode[k])} is not finite; a diverged policy "
                        "must not drive the car" for k in np.flatnonzero(newly)}
         self.stopped |= bad
-        before = self.world
-        self.world, out = step_world(before, self.params, xp.asarray(accel[:, None, :]))
-        self._steps += 1
-        world = self.world
         active_host = ~self.stopped
         if self._active is None or not np.array_equal(self._active[0], active_host):  # copied when it changes
             self._active = (active_host, xp.asarray(active_host))
-        active = self._active[1]
+        obs, reward, terms, overtakes, agent_events, contact, collided = self._advance(
+            xp.asarray(accel[:, None, :]), self._active[1])
+        self._steps += 1
+        if self._terminate.any():  # the one value read from the device every step, where collisions end episodes
+            terminated = active_host & self._terminate & np.asarray(xp.to_numpy(collided), dtype=bool)
+        else:
+            terminated = np.zeros(self.runs, dtype=bool)
+        truncated = active_host & (self._steps >= self.cfg.sim.episode_steps)
+        ended = np.flatnonzero(terminated | truncated)
+        books = self.host_books() if len(ended) else {}
+        metrics: list[dict[str, Any] | None] = [None] * self.runs
+        for k in ended:
+            metrics[k] = self.episode_metrics(int(k), books)
+        info = {**{name: getattr(terms, name) for name in Rewards.__dataclass_fields__},
+                "overtakes": overtakes, "collision_events": agent_events, "boundary_contact": contact,
+                "ax": accel[:, 0], "ay": accel[:, 1], "episode_metrics": metrics, "stopped": stopped_now}
+        return obs, reward, terminated, truncated, info
 
+    def _advance(self, accel: Any, active: Any) -> tuple[Any, Any, Rewards, Any, Any, Any, Any]:
+        """The array part of a step, on the simulation's device with no host read: the world advanced with the
+        agents' accelerations ``accel`` ``[K, 1, 2]`` (m/s²), the observation, the reward terms and the books of the
+        ``active`` runs (``[K]`` bool); returns (the observation, the reward — 0 where not active —, the reward terms,
+        overtakes, the agent's collision events, its boundary contact, whether it overlaps another vehicle), each
+        ``[K]`` but the observation."""
+        xp = self.xp
+        assert self.world is not None
+        before = self.world
+        self.world, out = step_world(before, self.params, accel)
+        world = self.world
         a = world.agent_rows[:, :1]
         collided = xp.any(xp.take_along_axis(out.overlap, a[..., None], 1)[:, 0], axis=1)
         new = out.new_collisions
@@ -314,21 +368,7 @@ class BatchedRingEnv:
                             ("overtakes", overtakes), ("boundary_contacts", contact), ("sum_c_x", terms.c_x),
                             ("sum_c_y", terms.c_y), ("sum_c_f", terms.c_f), ("sum_reward", terms.reward)):
             b[name] = xp.where(active, b[name] + value, b[name])
-
-        if self._terminate.any():  # the one value read from the device every step, where collisions end episodes
-            terminated = active_host & self._terminate & np.asarray(xp.to_numpy(collided), dtype=bool)
-        else:
-            terminated = np.zeros(self.runs, dtype=bool)
-        truncated = active_host & (self._steps >= self.cfg.sim.episode_steps)
-        ended = np.flatnonzero(terminated | truncated)
-        books = self.host_books() if len(ended) else {}
-        metrics: list[dict[str, Any] | None] = [None] * self.runs
-        for k in ended:
-            metrics[k] = self.episode_metrics(int(k), books)
-        info = {**{name: getattr(terms, name) for name in Rewards.__dataclass_fields__},
-                "overtakes": overtakes, "collision_events": agent_events, "boundary_contact": contact,
-                "ax": accel[:, 0], "ay": accel[:, 1], "episode_metrics": metrics, "stopped": stopped_now}
-        return obs, xp.where(active, terms.reward, 0.0), terminated, truncated, info
+        return obs, xp.where(active, terms.reward, 0.0), terms, overtakes, agent_events, contact, collided
 
     def _earned(self, passed: np.ndarray, passed_by: np.ndarray) -> np.ndarray:
         """How many of this step's passes ``[K, N]`` earn the bonus ``[K]``, each run by its ``overtake_bonus``

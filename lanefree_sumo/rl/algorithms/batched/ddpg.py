@@ -77,8 +77,6 @@ class BatchedDDPG(BatchedLearner):
         self.ou_sigma, self.ou_theta = per_run(ou_sigma, k, "ou_sigma"), per_run(ou_theta, k, "ou_theta")
         self.actor_layers, self.critic_layers = tuple(actor_layers), tuple(critic_layers)
         self.warmup_actions = warmup_actions
-        self.random_steps = self.learning_starts if warmup_actions == "uniform" else 0
-        """Steps that act uniformly at random (:meth:`~..fast_ddpg.FastDDPG._random_steps`)."""
         policies = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers)
                     for seed, lr in zip(self.seeds, self.learning_rate)]
         self._policy = policies[0]  # scale/unscale of actions (the same for all runs)
@@ -97,9 +95,17 @@ class BatchedDDPG(BatchedLearner):
         self._one = th.tensor(1.0, device=self.device)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
 
+    @property
+    def random_steps(self) -> int:
+        """Steps that act uniformly at random (:meth:`~..fast_ddpg.FastDDPG._random_steps`)."""
+        return self.learning_starts if self.warmup_actions == "uniform" else 0
+
+    def optimisers(self) -> list[StackedAdam]:
+        return [self.actor_adam, self.critic_adam]
+
     # -- acting -----------------------------------------------------------------------------------------------
 
-    def actor_output(self, obs: np.ndarray) -> th.Tensor:
+    def actor_output(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
         """μ(s) of every run, ``[K, actions]`` in [−1, 1] (obs ``[K, obs]``)."""
         with th.no_grad():
             return mlp_forward(self.mm, self.actor.layers(), self._obs(obs), True)[-1].reshape(self.runs, -1)
@@ -120,6 +126,36 @@ class BatchedDDPG(BatchedLearner):
         self._last = (actions, scaled)
         return actions
 
+    def use_device_streams(self, generator: th.Generator | None) -> None:
+        super().use_device_streams(generator)
+        d = self.device
+        self._ou_prev = th.as_tensor(self.noise.prev, dtype=th.float64).to(d)
+        self._ou_sigma = th.as_tensor(self.noise.sigma, dtype=th.float64).to(d)
+        self._ou_theta = th.as_tensor(self.noise.theta, dtype=th.float64).to(d)
+        low, high = (th.as_tensor(np.asarray(b, dtype=np.float32)).to(d) for b in
+                     (self.action_space.low, self.action_space.high))  # type: ignore[attr-defined]
+        self._low, self._span = low, high - low
+
+    def act_on_device(self, obs: th.Tensor, random: bool) -> tuple[th.Tensor, th.Tensor]:
+        """:meth:`act` (exploring) with device streams: (the env's actions, the buffer's scaled ones) ``[K, A]``;
+        the OU noise as SB3's (dt = 0.01, float64 state) from device normals."""
+        if random:
+            scaled = (self._rand(self.runs, self._low.shape[0]) * 2.0 - 1.0).float()
+        else:
+            normal = th.randn(self._ou_prev.shape, generator=self.generator, dtype=th.float64, device=self.device)
+            noise = (self._ou_prev - self._ou_theta * self._ou_prev * OUNoise.DT
+                     + self._ou_sigma * OUNoise.DT ** 0.5 * normal)
+            self._ou_prev.copy_(noise)
+            scaled = th.clamp(self.actor_output(obs) + noise.float(), -1.0, 1.0)
+        return self._low + 0.5 * (scaled + 1.0) * self._span, scaled
+
+    def device_state(self) -> dict[str, Any]:
+        return {**super().device_state(), "ou": self._ou_prev.cpu()}
+
+    def load_device_state(self, state: dict[str, Any]) -> None:
+        super().load_device_state(state)
+        self._ou_prev.copy_(state["ou"])
+
     def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
         """The scaled action SB3 stores: the one :meth:`act` computed for ``action``, else ``action`` scaled."""
         if self._last is not None and action is self._last[0]:
@@ -128,12 +164,16 @@ class BatchedDDPG(BatchedLearner):
 
     def _episodes_ended(self, done: np.ndarray) -> None:
         self.noise.reset(done)
+        if self.device_streams:
+            self._ou_prev[th.as_tensor(done).to(self.device)] = 0.0
 
     # -- the update -------------------------------------------------------------------------------------------
 
     def _update(self) -> None:
+        self._learn(self.streams.sample_indices(self.replay.size(), self.batch_size))
+
+    def _learn(self, indices: np.ndarray | th.Tensor) -> None:
         mm = self.mm
-        indices = self.streams.sample_indices(self.replay.size(), self.batch_size)
         obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
         actor, critic = self.actor.layers(), self.critic.layers()
         with th.no_grad():

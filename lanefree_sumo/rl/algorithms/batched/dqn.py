@@ -144,9 +144,12 @@ class BatchedDQN(BatchedLearner):
         self.priorities = ([RunPriorities(self.buffer_size, per_alpha, per_eps) for _ in range(k)]
                            if algo == "per" else [])
 
+    def optimisers(self) -> list[StackedAdam]:
+        return [self.adam]
+
     # -- acting -----------------------------------------------------------------------------------------------
 
-    def q_values(self, obs: np.ndarray) -> th.Tensor:
+    def q_values(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
         """Q(s, ·) of every run, ``[K, actions]`` (obs ``[K, obs]``)."""
         with th.no_grad():
             return self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.runs, -1)
@@ -166,6 +169,31 @@ class BatchedDQN(BatchedLearner):
             best = self.q_values(obs).argmax(dim=1).cpu().numpy()
             actions[greedy] = best[greedy]
         return actions
+
+    def use_device_streams(self, generator: th.Generator | None) -> None:
+        if self.priorities:
+            raise ValueError("prioritised replay keeps its trees on the host: it has no device streams")
+        super().use_device_streams(generator)
+        d = self.device
+        start, end, fraction = (th.tensor([getattr(s, name) for s in self.exploration], dtype=th.float64).to(d)
+                                for name in ("start", "end", "end_fraction"))
+        self._eps = (start, end, fraction)
+
+    def act_on_device(self, obs: th.Tensor, random: bool) -> tuple[th.Tensor, th.Tensor]:
+        """:meth:`act` (exploring) with device streams: (the env's actions ``[K]``, the buffer's ``[K, 1]``); ε from
+        the run's schedule at the device's step count (SB3's ``LinearSchedule``)."""
+        n = int(self.action_space.n)  # type: ignore[attr-defined]
+        draws = self._rand(self.runs, 2)
+        uniform = th.clamp((draws[:, 1] * n).long(), max=n - 1)
+        if random:
+            actions = uniform
+        else:
+            start, end, fraction = self._eps
+            done = self._count / float(self.total_timesteps)
+            eps = th.where(done > fraction, end, start + done * (end - start) / fraction)
+            greedy = self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.runs, -1).argmax(dim=1)
+            actions = th.where(draws[:, 0] < eps, uniform, greedy)
+        return actions, actions.reshape(self.runs, 1)
 
     def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
         return np.asarray(action).reshape(self.runs, 1)
@@ -199,8 +227,10 @@ class BatchedDQN(BatchedLearner):
         return indices, weights
 
     def _update(self) -> None:
+        self._learn(*self._sample())
+
+    def _learn(self, indices: np.ndarray | th.Tensor, weights: th.Tensor | None = None) -> None:
         mm = self.mm
-        indices, weights = self._sample()
         obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
         with th.no_grad():
             if self.double_q:

@@ -18,7 +18,7 @@ import torch as th
 from gymnasium import spaces
 
 from lanefree_sumo.rl.algorithms.batched.replay import BatchedReplay, RunStreams
-from lanefree_sumo.rl.algorithms.batched.stack import Products
+from lanefree_sumo.rl.algorithms.batched.stack import Products, StackedAdam
 
 
 def per_run(value: float | Sequence[float], runs: int, name: str) -> list[float]:
@@ -86,6 +86,9 @@ class BatchedLearner:
         self.num_timesteps = 0
         self.n_updates = 0
         self.progress_remaining = 1.0
+        self.generator: th.Generator | None = None
+        self.device_streams = False
+        """Whether the random numbers and counts live on the device (:meth:`use_device_streams`)."""
         self.losses: dict[str, th.Tensor] = {}
         """The last update's losses per run (``[K]`` tensors on the device; read them when logging)."""
 
@@ -122,7 +125,87 @@ class BatchedLearner:
         self._update()
         return True
 
+    # -- device streams: the lockstep loop (:mod:`lanefree_sumo.rl.lockstep`) -------------------------------
+
+    def use_device_streams(self, generator: th.Generator | None) -> None:
+        """From now on draw every random number on the learner's device from ``generator`` (None: the device's
+        default generator, the one a CUDA graph can hold) and keep the step counts there too, so that acting,
+        storing and updating read nothing from the host (:meth:`act_on_device`, :meth:`store_on_device`,
+        :meth:`update_on_device`). Run k then no longer draws the single run's numbers: it agrees with the
+        sequential run in distribution, not bit for bit."""
+        d = self.device
+        self.generator = generator
+        self.device_streams = True
+        self._count = th.full((), float(self.num_timesteps), dtype=th.float64, device=d)
+        """The steps stored (SB3's ``num_timesteps``) on the device."""
+        self._pos = th.full((), self.replay.pos, dtype=th.int64, device=d)
+        self._size = th.full((), float(self.replay.size()), dtype=th.float64, device=d)
+        for adam in self.optimisers():
+            adam.count_on_device()
+
+    def _rand(self, *shape: int) -> th.Tensor:
+        """Uniform [0, 1) float64 numbers ``shape`` from the device stream."""
+        return th.rand(shape, generator=self.generator, dtype=th.float64, device=self.device)
+
+    def store_on_device(self, obs: th.Tensor, action: th.Tensor, reward: th.Tensor, next_obs: th.Tensor) -> None:
+        """:meth:`store` with device streams, for an episode that goes on or ends by the time limit (``action``:
+        the buffer's, as :meth:`act_on_device` returns it); the host's counts are :meth:`stepped_on_device`'s."""
+        self.replay.add_at(self._pos, obs, next_obs, action, reward)
+        self._pos.add_(1).remainder_(self.buffer_size)
+        self._size.add_(1.0).clamp_(max=float(self.buffer_size))
+        self._count.add_(1.0)
+
+    def update_on_device(self) -> None:
+        """One gradient step for every run with device streams (indices drawn uniformly over what is stored)."""
+        indices = (self._rand(self.runs, self.batch_size) * self._size).long()
+        self._learn(indices)
+
+    def stepped_on_device(self, updated: bool) -> None:
+        """The host's side of a device iteration: what :meth:`store` and :meth:`update` count (the step count,
+        the replay position, the progress, SB3's ``_on_step``; the update count where ``updated``)."""
+        self.num_timesteps += 1
+        self.replay.pos += 1
+        if self.replay.pos == self.buffer_size:
+            self.replay.full, self.replay.pos = True, 0
+        self.progress_remaining = 1.0 - float(self.num_timesteps) / float(self.total_timesteps)
+        self._on_step()
+        if updated:
+            self.n_updates += 1
+            for adam in self.optimisers():
+                adam.steps += 1
+
+    def episodes_ended(self, done: np.ndarray) -> None:
+        """Runs ``done`` (bool ``[K]``) ended an episode outside :meth:`store` (the lockstep loop: noise reset)."""
+        self._episodes_ended(np.asarray(done, dtype=bool))
+
+    def device_state(self) -> dict[str, Any]:
+        """What device streams keep beyond :meth:`state_dict` (on the host)."""
+        return {"count": float(self._count), "pos": int(self._pos), "size": float(self._size)}
+
+    def load_device_state(self, state: dict[str, Any]) -> None:
+        self._count.fill_(state["count"])
+        self._pos.fill_(state["pos"])
+        self._size.fill_(state["size"])
+
     # -- what each algorithm supplies -------------------------------------------------------------------------
+
+    @property
+    def random_steps(self) -> int:
+        """Steps that act uniformly at random (SB3: before ``learning_starts``)."""
+        return self.learning_starts
+
+    def optimisers(self) -> list[StackedAdam]:
+        raise NotImplementedError
+
+    def act_on_device(self, obs: th.Tensor, random: bool) -> tuple[th.Tensor, th.Tensor]:
+        """(the env's actions, the buffer's) for observations on the device, from the device streams:
+        uniformly random where ``random``, else the exploring policy."""
+        raise NotImplementedError
+
+    def _learn(self, indices: np.ndarray | th.Tensor) -> None:
+        """One gradient step for every run on the minibatch at ``indices`` ``[K, batch]``."""
+        raise NotImplementedError
+
 
     def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
         raise NotImplementedError

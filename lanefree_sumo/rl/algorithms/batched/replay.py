@@ -124,10 +124,24 @@ class BatchedReplay:
             self.full, self.pos = True, 0
         return pos
 
-    def gather(self, indices: np.ndarray) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+    def add_at(self, pos: th.Tensor, obs: th.Tensor, next_obs: th.Tensor, actions: th.Tensor,
+               rewards: th.Tensor) -> None:
+        """Store one transition per run at the device position ``pos`` (a 0-d int64 tensor), with no host read:
+        the lockstep loop's store (its episodes end by the time limit only, so done · (1 − timeout) is 0: both
+        are stored as 0). The caller moves ``pos`` and the host's :attr:`pos`."""
+        at = pos.reshape(1)
+        for target, values in ((self.observations, obs), (self.next_observations, next_obs),
+                               (self.actions, actions), (self.rewards, rewards)):
+            target.index_copy_(1, at, values.to(target.dtype).reshape(target.shape[0], 1, *target.shape[2:]))
+        self.dones.index_fill_(1, at, 0.0)
+        self.timeouts.index_fill_(1, at, 0.0)
+
+    def gather(self, indices: np.ndarray | th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         """(observations, actions, next observations, dones · (1 − timeouts), rewards) at ``indices``
-        ``[K, batch]``: ``[K, batch, …]``, the last two ``[K, batch, 1]``."""
-        index = th.from_numpy(indices).to(self.observations.device, non_blocking=True)
+        ``[K, batch]`` (host positions, or a tensor on the device): ``[K, batch, …]``, the last two
+        ``[K, batch, 1]``."""
+        index = (indices if isinstance(indices, th.Tensor)
+                 else th.from_numpy(indices).to(self.observations.device, non_blocking=True))
         runs = self._runs
         dones = self.dones[runs, index] * (1 - self.timeouts[runs, index])
         return (self.observations[runs, index], self.actions[runs, index], self.next_observations[runs, index],

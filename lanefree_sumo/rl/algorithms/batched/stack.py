@@ -171,15 +171,31 @@ class StackedAdam:
         self.exp_avg = th.zeros_like(params.flat)
         self.exp_avg_sq = th.zeros_like(params.flat)
         self.steps = 0
+        self.count: th.Tensor | None = None
+        """The step count on the device (:meth:`count_on_device`), else None."""
+
+    def count_on_device(self) -> None:
+        """Count the steps on the device from now on (float64, from :attr:`steps`): a step then reads nothing
+        from the host, so a CUDA graph can hold it; :attr:`steps` is the caller's to advance."""
+        device = self.params.flat.device
+        self.count = th.full((), float(self.steps), dtype=th.float64, device=device)
+        self._betas = th.tensor([self.beta1, self.beta2], dtype=th.float64).to(device)
 
     def step(self, grads: Sequence[th.Tensor]) -> None:
         """One step with the gradients of the stack's tensors (in order, each ``[K, …]``)."""
         k = self.params.flat.shape[0]
         grad = th.cat([g.reshape(k, -1) for g in grads], dim=1)
-        self.steps += 1
-        n = self.steps
         self.exp_avg.lerp_(grad, 1 - self.beta1)
         self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
+        if self.count is not None:  # the bias corrections from the device's count, in float64
+            self.count.add_(1.0)
+            corrections = 1.0 - th.pow(self._betas, self.count)
+            denom = self.exp_avg_sq.sqrt().div_(corrections[1].sqrt().float()).add_(self.eps)
+            step_size = (self.lrs / corrections[0]).neg_().to(th.float32)
+            self.params.flat.addcdiv_(self.exp_avg * step_size, denom)
+            return
+        self.steps += 1
+        n = self.steps
         denom = self.exp_avg_sq.sqrt().div_((1 - self.beta2**n) ** 0.5).add_(self.eps)
         if self.shared_lr is not None:  # torch's addcdiv_(m, denom, value=(lr / (1 − β1ⁿ)) · −1)
             self.params.flat.addcdiv_(self.exp_avg, denom, value=(self.shared_lr / (1 - self.beta1**n)) * -1)
@@ -195,6 +211,8 @@ class StackedAdam:
         self.exp_avg.copy_(state["exp_avg"])  # type: ignore[arg-type]
         self.exp_avg_sq.copy_(state["exp_avg_sq"])  # type: ignore[arg-type]
         self.steps = int(state["steps"])  # type: ignore[call-overload]
+        if self.count is not None:
+            self.count.fill_(float(self.steps))
 
     def sb3_state(self, k: int, params: Sequence[th.Tensor]) -> dict[int, dict[str, th.Tensor]]:
         """Run k's state as ``torch.optim.Adam.state_dict()["state"]`` for ``params`` (its tensors, in order)."""
