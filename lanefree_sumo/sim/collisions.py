@@ -27,8 +27,7 @@ def overlap_matrix(
     xp = namespace(dx)
     overlap = (xp.abs(dx) < half_len) & (xp.abs(dy) < half_wid)
     if present is None:
-        n = overlap.shape[-1]
-        overlap[..., xp.arange(n), xp.arange(n)] = False
+        xp.fill_diagonal(overlap, False)
         return overlap
     return overlap & pair_mask(present)
 

@@ -134,9 +134,8 @@ def driver_accelerations(
     plateau = lx_half + (ux * ux) / (2.0 * gain_x) + half_len + cfg.longitudinal_margin_m
     mag = symmetric_trapezoid(abs_dx, lx_half, plateau) * mag_y
     xp.fill_where(mag, abs_dx > cfg.neighbour_range_m, 0.0)
-    n = x.shape[-1]
     if present is None:
-        mag[..., xp.arange(n), xp.arange(n)] = 0.0
+        xp.fill_diagonal(mag, 0.0)
         count = None
     else:
         xp.fill_where(mag, ~pair_mask(present), 0.0)

@@ -104,8 +104,7 @@ def pair_mask(present: np.ndarray) -> np.ndarray:
     """``[..., N, N]``: True where both vehicles of a pair are present and they are two (the diagonal is False)."""
     xp = namespace(present)
     both = present[..., :, None] & present[..., None, :]
-    n = present.shape[-1]
-    both[..., xp.arange(n), xp.arange(n)] = False
+    xp.fill_diagonal(both, False)
     return both
 
 

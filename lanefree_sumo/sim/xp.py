@@ -11,7 +11,8 @@ scalars beside arrays), in float64 on the tensors' device. The physics (:mod:`.f
 The helpers stand for numpy idioms without a portable spelling: ``erfc`` (scipy's for numpy), ``power``,
 ``divide_where`` (``np.divide`` with ``out``/``where``), ``put_along_axis`` (in place), ``accumulate_max``,
 ``argsort_stable``, ``largest_k`` (``argpartition``), ``fill_where`` (``a[mask] = value``; torch's boolean
-indexing would synchronise with the device), ``errstate``, ``copy``, ``astype``, and the flag
+indexing would synchronise with the device), ``fill_diagonal`` (``a[..., i, i] = value``; torch would copy the
+number from the host, which a CUDA graph cannot hold), ``errstate``, ``copy``, ``astype``, and the flag
 ``is_numpy`` for result-preserving shortcuts that branch on values (taken on numpy only: on a GPU a branch on a
 value is a host synchronisation).
 
@@ -68,6 +69,12 @@ def _numpy_fill_where(a: np.ndarray, mask: np.ndarray, value: Any) -> None:
     a[mask] = value
 
 
+def _numpy_fill_diagonal(a: np.ndarray, value: Any) -> None:
+    """The diagonal of the last two axes set to ``value``, in place (``a[..., i, i] = value``)."""
+    n = a.shape[-1]
+    a[..., np.arange(n), np.arange(n)] = value
+
+
 def _numpy_namespace() -> SimpleNamespace:
     ns = SimpleNamespace(**{name: getattr(np, name) for name in dir(np) if not name.startswith("_")})
     ns.is_numpy = True
@@ -80,6 +87,7 @@ def _numpy_namespace() -> SimpleNamespace:
     ns.take_along_axis = _numpy_take_along_axis
     ns.put_along_axis = _numpy_put_along_axis
     ns.fill_where = _numpy_fill_where
+    ns.fill_diagonal = _numpy_fill_diagonal
     ns.copy = lambda a: a.copy()
     ns.astype = lambda a, dtype: a.astype(dtype)
     ns.float64 = np.float64

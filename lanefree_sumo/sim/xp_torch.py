@@ -224,6 +224,10 @@ class TorchNamespace:
         """``a[mask] = value`` in place, without the host synchronisation of boolean indexing."""
         a.masked_fill_(mask, value)
 
+    def fill_diagonal(self, a: Any, value: Any) -> None:
+        """The diagonal of the last two axes set to ``value``, in place, by a fill on the device."""
+        a.diagonal(dim1=-2, dim2=-1).fill_(value)
+
     def put_along_axis(self, a: Any, index: Any, values: Any, axis: int) -> None:
         """``a[..., index] = values`` along ``axis``, in place (numpy's ``put_along_axis``)."""
         values = self.asarray(values, a.dtype)
