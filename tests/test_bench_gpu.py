@@ -16,19 +16,23 @@ pytestmark = [pytest.mark.slow]
 
 def test_the_gpu_bench_runs_on_the_cpu_and_prints_rows_that_parse():
     res = subprocess.run([sys.executable, "-m", "lanefree_sumo.tools.bench", "--gpu", "--device", "cpu",
-                          "--env-sizes", "1,3", "--train-sizes", "1,2", "--env-steps", "3", "--train-steps", "2"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+                          "--env-sizes", "1,3", "--train-sizes", "1,2", "--dqn-sizes", "1,2", "--env-steps", "3",
+                          "--train-steps", "2"], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     lines = res.stdout.splitlines()
     assert re.match(r"device: cpu — .+; torch \S+; CUDA \S+", lines[0])
-    rows = [re.fullmatch(r"\| (env|train) \| (\d+) \| (\d+) \| ([\d.]+) \|", line) for line in lines]
-    measured = [(m[1], int(m[2]), int(m[3]), float(m[4])) for m in rows if m]
-    assert [(section, k) for section, k, _, _ in measured] == [("env", 1), ("env", 3), ("train", 1), ("train", 2)]
-    assert all(rate > 0 for *_, rate in measured) and [s for _, _, s, _ in measured] == [3, 3, 2, 2]
-    grid = next(line for line in lines if line.startswith("projected grid:"))
-    minutes = float(re.search(r": ([\d.]+) min$", grid)[1])  # type: ignore[index]
-    train_2 = measured[3][3]
-    assert minutes == pytest.approx(75 * 625 * 800 / train_2 / 60, rel=0.1)  # 150 runs in batches of 2 (rate rounded)
+    assert lines[1].startswith("host reads inside an iteration: not checked")
+    env = [re.fullmatch(r"\| env \| (\d+) \| (\d+) \| ([\d.]+) \|", line) for line in lines]
+    assert [(int(m[1]), int(m[2])) for m in env if m] == [(1, 3), (3, 3)] and all(float(m[3]) > 0 for m in env if m)
+    train = [re.fullmatch(r"\| train \| (\w+) \| (\d+) \| (\d+) \| ([\d.]+) \| ([\d.]+) \|", line) for line in lines]
+    measured = [(m[1], int(m[2]), int(m[3]), float(m[4]), float(m[5])) for m in train if m]
+    assert [(algo, k, n) for algo, k, n, _, _ in measured] == [("ddpg", 1, 2), ("ddpg", 2, 2), ("dqn", 1, 2),
+                                                               ("dqn", 2, 2)]
+    assert all(rate > 0 and ms == pytest.approx(1000 / rate, rel=0.02, abs=0.01) for *_, rate, ms in measured)
+    single = next(line for line in lines if line.startswith("one 625-episode DDPG run"))
+    minutes = float(re.search(r": ([\d.]+) min$", single)[1])  # type: ignore[index]
+    assert minutes == pytest.approx(625 * 800 / measured[0][3] / 60, rel=0.1)
+    assert any(line.startswith("projected grid: not measured") for line in lines)  # K = 110 and 10 not run here
 
 
 def test_the_gpu_bench_without_a_gpu_is_one_line():

@@ -72,8 +72,12 @@ def versions() -> dict[str, str]:
     import stable_baselines3
     import torch
 
-    from lanefree_sumo.sim.backends.sumo import sumo_version
+    try:  # a machine that trains on the numpy simulation or a GPU may have no SUMO
+        from lanefree_sumo.sim.backends.sumo import sumo_version
 
+        sumo = sumo_version()
+    except ImportError:
+        sumo = "not installed"
     try:
         commit = subprocess.run(
             ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False,
@@ -81,7 +85,12 @@ def versions() -> dict[str, str]:
         ).stdout.strip()
     except OSError:
         commit = ""
-    from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        package = version("lanefree_sumo")
+    except PackageNotFoundError:  # run from a source tree on PYTHONPATH
+        package = "not installed (source tree)"
 
     return {
         "python": platform.python_version(),
@@ -92,8 +101,8 @@ def versions() -> dict[str, str]:
         "numpy_simd": numpy_simd(),
         "torch_cpu": torch.backends.cpu.get_cpu_capability(),
         "cpu": cpu_model(),
-        "sumo": sumo_version(),
-        "lanefree_sumo": version("lanefree_sumo"),
+        "sumo": sumo,
+        "lanefree_sumo": package,
         "git_commit": commit or "unknown",
     }
 

@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.sim.backends.sumo import bare_step_rate, sumo_version
 from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import spawn
 
@@ -447,6 +446,8 @@ def batch_speed(seed: int, steps: int = 800) -> str:
 
 
 def run(steps: int, seed: int, out_dir: Path) -> str:
+    from lanefree_sumo.sim.backends.sumo import bare_step_rate
+
     rows = []
     profile = []
     for density in DENSITIES:
@@ -508,7 +509,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
     out_dir.mkdir(parents=True, exist_ok=True)
     text = (
         f"Step rates in steps/s ({steps} steps, median of {REPEATS} for (a) and (b)), "
-        f"SUMO {sumo_version()}, {stamp}\n\n{table}\n"
+        f"SUMO {_sumo_version()}, {stamp}\n\n{table}\n"
     )
     (out_dir / f"bench-{stamp}.md").write_text(text)
     (out_dir / "latest.md").write_text(text)
@@ -526,6 +527,12 @@ def _sizes(text: str) -> tuple[int, ...]:
     return sizes
 
 
+def _sumo_version() -> str:
+    from lanefree_sumo.sim.backends.sumo import sumo_version
+
+    return sumo_version()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m lanefree_sumo.tools.bench", description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=800, help="steps per measurement (default 800)")
@@ -539,7 +546,9 @@ def main() -> None:
     gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
     gpu.add_argument("--device", default="cuda", help="torch device of --gpu (default cuda; cpu runs it on the CPU)")
     gpu.add_argument("--env-sizes", type=_sizes, default=(1, 1024, 16384), help="K of the env rows (1,1024,16384)")
-    gpu.add_argument("--train-sizes", type=_sizes, default=(1, 150, 1024), help="K of the training rows (1,150,1024)")
+    gpu.add_argument("--train-sizes", type=_sizes, default=(1, 110, 150, 1024),
+                     help="K of the DDPG training rows (1,110,150,1024)")
+    gpu.add_argument("--dqn-sizes", type=_sizes, default=(1, 10, 1024), help="K of the DQN training rows (1,10,1024)")
     gpu.add_argument("--env-steps", type=int, default=100, help="steps per env row (default 100)")
     gpu.add_argument("--train-steps", type=int, default=100, help="iterations per training row (default 100)")
     gpu.add_argument("--budget-s", type=float, default=420.0,
@@ -550,8 +559,8 @@ def main() -> None:
         from lanefree_sumo.tools import bench_gpu
 
         try:
-            bench_gpu.run(args.device, args.env_sizes, args.train_sizes, args.env_steps, args.train_steps,
-                          args.budget_s, args.seed)
+            bench_gpu.run(args.device, args.env_sizes, args.train_sizes, args.dqn_sizes, args.env_steps,
+                          args.train_steps, args.budget_s, args.seed)
         except LaneFreeError as exc:
             raise SystemExit(f"error: {exc}") from None
     elif args.batch_only:

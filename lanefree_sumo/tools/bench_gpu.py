@@ -1,13 +1,15 @@
-"""``make bench-gpu`` (``python -m lanefree_sumo.tools.bench --gpu``): the batched path on a torch device.
+"""``make bench-gpu`` (``python -m lanefree_sumo.tools.bench --gpu``): the lockstep loop on a torch device.
 
-Printed in one run, as markdown tables: the card (or CPU), torch's and CUDA's versions; the environment alone
-(:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv` on the device, float64, random actions) in agent-steps/s
-at K = 1, 1024, 16 384 rings; batched DDPG training (the paper's settings: act, env step, store, one update per
-run; :mod:`lanefree_sumo.rl.algorithms.batched`) in lockstep iterations/s at K = 1, 150, 1024 runs; and the
-projected wall time of the paper's 150-run grid (15 settings × 10 seeds × 625 episodes × 800 steps) from the
-K = 150 rate. Each measurement is capped in steps and the whole run in time (``--budget-s``, default 420 s, so
-that it ends within 8 minutes on one card): a row whose turn comes after the budget is printed as skipped.
-``--device cpu`` with small sizes runs the same code on the CPU (a test does).
+Printed in one run, as markdown tables: the card (or CPU), torch's and CUDA's versions; whether an iteration reads
+anything from the host (torch's sync debug mode, on CUDA); the environment alone
+(:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`, float64, uniformly random actions drawn on the device)
+in agent-steps/s at K = 1, 1024, 16 384 rings; training (:mod:`lanefree_sumo.rl.lockstep`: act, env step, store,
+one update per run, the paper's settings) in iterations/s for DDPG at K = 1, 110 (the paper grid's DDPG runs),
+150, 1024 and for DQN at K = 1, 10 (one DQN variant's runs), 1024, each iteration a CUDA graph on a GPU; the same
+DDPG iteration without graphs at K = 110; the projected wall time of a 625-episode run and of the paper's grid.
+Each measurement is capped in steps and the whole run in time (``--budget-s``, default 420 s, so that it ends
+within 8 minutes on one card): a row whose turn comes after the budget is printed as skipped. ``--device cpu``
+with small sizes runs the same code on the CPU, without graphs (a test does).
 """
 
 from __future__ import annotations
@@ -20,8 +22,10 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 
-GRID_RUNS = 150
-"""The paper's grid: 15 settings × 10 seeds."""
+GRID_DDPG_RUNS = 110
+"""The paper grid's DDPG runs: 11 settings × 10 seeds (one batch: they may differ in preset and density)."""
+GRID_DQN_RUNS = 10
+"""Runs of each of the grid's DQN variants (dqn, ddqn, dueling, per): 10 seeds of one setting."""
 RUN_ITERATIONS = 625 * 800
 """Lockstep iterations of a paper run (625 episodes of 800 steps)."""
 DENSITY = 90.0
@@ -39,46 +43,79 @@ def _sync(device: Any) -> None:
         torch.cuda.synchronize()
 
 
-def _configs(runs: int, seed: int) -> list[LaneFreeConfig]:
+def _configs(runs: int, seed: int, algo: str = "ddpg") -> list[LaneFreeConfig]:
     from lanefree_sumo.rl.models import training_config
 
+    section = "actor_critic" if algo == "ddpg" else "dqn"
     return [training_config(merge_config(LaneFreeConfig(), {
         "seed": seed + k, "scenario": {"density_veh_per_km": DENSITY},
-        "train": {"algo": "ddpg", "actor_critic": {"learning_starts_steps": LEARNING_STARTS}}}))
+        "train": {"algo": algo, section: {"learning_starts_steps": LEARNING_STARTS}}}))
         for k in range(runs)]
 
 
-def env_rate(runs: int, steps: int, device: str, seed: int = 0) -> float:
-    """Agent-steps/s of the batched environment alone, ``runs`` rings on ``device`` (random actions drawn on the
-    host, as the learners draw theirs), timed over ``steps`` steps after two untimed ones."""
-    from lanefree_sumo.rl.batched_env import BatchedRingEnv
-
-    env = BatchedRingEnv(_configs(runs, seed), device=device)
-    env.reset()
-    rng = np.random.default_rng(seed)
-    actions = rng.uniform(-1.0, 1.0, (steps + 2, runs, 2)).astype(np.float32)
-    for i in range(2):
-        env.step(actions[i])
-    _sync(device)
-    t0 = time.perf_counter()
-    for i in range(steps):
-        env.step(actions[2 + i])
-    _sync(device)
-    return runs * steps / (time.perf_counter() - t0)
-
-
-def train_rate(runs: int, steps: int, device: str, seed: int = 0) -> float:
-    """Lockstep iterations/s of ``runs`` batched DDPG runs on ``device`` (act, env step, store, one update per
-    run), timed over ``steps`` iterations once updates run."""
+def _loop(runs: int, device: str, seed: int, algo: str | None, graphs: bool | None = None) -> Any:
+    """A started :class:`~lanefree_sumo.rl.lockstep.Lockstep` of ``runs`` rings (``algo`` None: no learner)."""
     from lanefree_sumo.rl.batched_env import BatchedRingEnv
     from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.lockstep import Lockstep
     from lanefree_sumo.rl.models import build_batched
 
-    cfgs = _configs(runs, seed)
+    cfgs = _configs(runs, seed, algo or "ddpg")
     env = BatchedRingEnv(cfgs, device=device)
-    learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]),
-                            device=device)
-    return lockstep_rate(env, learner, learner.learning_starts + 2, steps, device)
+    learner = None if algo is None else build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]),
+                                                      action_space(cfgs[0]), device=device)
+    loop = Lockstep(env, learner, seed, graphs=graphs)
+    loop.start(env.reset())
+    return loop
+
+
+def _timed(loop: Any, warm: int, steps: int, device: str) -> float:
+    """Iterations/s of ``loop`` over ``steps`` iterations after ``warm`` untimed ones."""
+    for _ in range(warm):
+        loop.iterate()
+    _sync(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        loop.iterate()
+    _sync(device)
+    return steps / (time.perf_counter() - t0)
+
+
+def env_rate(runs: int, steps: int, device: str, seed: int = 0) -> float:
+    """Agent-steps/s of the batched environment alone, ``runs`` rings on ``device`` driven by uniformly random
+    actions drawn there (the lockstep loop without a learner), timed over ``steps`` steps after three untimed ones."""
+    return runs * _timed(_loop(runs, device, seed, None), 3, steps, device)
+
+
+def train_rate(runs: int, steps: int, device: str, seed: int = 0, algo: str = "ddpg",
+               graphs: bool | None = None) -> float:
+    """Lockstep iterations/s of ``runs`` batched ``algo`` runs on ``device`` (act, env step, store, one update per
+    run), timed over ``steps`` iterations once updates run (``graphs``: as :class:`~lanefree_sumo.rl.lockstep.
+    Lockstep`'s)."""
+    loop = _loop(runs, device, seed, algo, graphs)
+    return _timed(loop, loop.learner.learning_starts + 3, steps, device)
+
+
+def host_reads(device: str, seed: int = 0) -> str:
+    """Whether a lockstep iteration (DDPG and DQN, with updates, two runs, no graphs) makes torch wait for the
+    device: 'none', or the first operation torch's sync debug mode stopped at (CUDA only)."""
+    import torch
+
+    if torch.device(device).type != "cuda":
+        return "not checked (torch's sync debug mode watches CUDA only)"
+    for algo in ("ddpg", "dqn"):
+        loop = _loop(2, device, seed, algo, graphs=False)
+        for _ in range(loop.learner.learning_starts + 1):
+            loop.iterate()
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            loop._iteration(False, True)
+        except RuntimeError as exc:
+            return f"{algo}: {str(exc).splitlines()[0]}"
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return "none"
 
 
 def lockstep_rate(env: Any, learner: Any, warm: int, steps: int, device: Any = None) -> float:
@@ -112,8 +149,8 @@ def describe(device: str) -> str:
     return f"device: {dev} — {card}; torch {torch.__version__}; CUDA {torch.version.cuda or 'none'}"
 
 
-def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], env_steps: int, train_steps: int,
-        budget_s: float, seed: int = 0) -> str:
+def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_sizes: Sequence[int],
+        env_steps: int, train_steps: int, budget_s: float, seed: int = 0) -> str:
     """The benchmark's text (module docstring); each row is printed as soon as it is measured."""
     import torch
 
@@ -121,9 +158,7 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], env_s
 
     check_device(torch.device(device).type)
     start = time.perf_counter()
-    lines = [describe(device), "", "Environment alone (float64, random actions):", "",
-             "| section | K | steps | agent-steps/s |", "|---|---|---|---|"]
-    print("\n".join(lines), flush=True)
+    lines: list[str] = []
 
     def row(text: str) -> None:
         lines.append(text)
@@ -132,32 +167,48 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], env_s
     def left() -> bool:
         return time.perf_counter() - start < budget_s
 
+    row(describe(device))
+    row(f"host reads inside an iteration: {host_reads(device, seed)}")
+    row("")
+    row("Environment alone (float64, random actions drawn on the device):")
+    row("")
+    row("| section | K | steps | agent-steps/s |")
+    row("|---|---|---|---|")
     for k in env_sizes:
         if not left():
             row(f"| env | {k} | 0 | skipped (time budget) |")
             continue
         row(f"| env | {k} | {env_steps} | {env_rate(k, env_steps, device, seed):.0f} |")
+    graphs = torch.device(device).type == "cuda"
     row("")
-    row(f"Batched DDPG training (the paper's networks, batch 64, buffer 100 000 per run; updates from step "
-        f"{LEARNING_STARTS}):")
+    row(f"Training, one iteration {'a CUDA graph' if graphs else 'eager'} (the paper's networks and batch 64; "
+        f"updates from step {LEARNING_STARTS}):")
     row("")
-    row("| section | K | iterations | iterations/s |")
-    row("|---|---|---|---|")
-    rates: dict[int, float] = {}
-    for k in train_sizes:
-        if not left():
-            row(f"| train | {k} | 0 | skipped (time budget) |")
-            continue
-        rates[k] = train_rate(k, train_steps, device, seed)
-        row(f"| train | {k} | {train_steps} | {rates[k]:.1f} |")
+    row("| section | algo | K | iterations | iterations/s | ms/iteration |")
+    row("|---|---|---|---|---|---|")
+    rates: dict[tuple[str, int], float] = {}
+    for algo, sizes in (("ddpg", train_sizes), ("dqn", dqn_sizes)):
+        for k in sizes:
+            if not left():
+                row(f"| train | {algo} | {k} | 0 | skipped (time budget) | |")
+                continue
+            rates[algo, k] = rate = train_rate(k, train_steps, device, seed, algo)
+            row(f"| train | {algo} | {k} | {train_steps} | {rate:.1f} | {1000 / rate:.2f} |")
+    if graphs and left():
+        rate = train_rate(GRID_DDPG_RUNS, min(train_steps, 30), device, seed, "ddpg", graphs=False)
+        row(f"| train, no graph | ddpg | {GRID_DDPG_RUNS} | {min(train_steps, 30)} | {rate:.1f} | {1000 / rate:.2f} |")
     row("")
-    basis = GRID_RUNS if GRID_RUNS in rates else (max(rates) if rates else None)
-    if basis is None:
-        row("projected grid: not measured (time budget)")
+    if ("ddpg", 1) in rates:
+        row(f"one 625-episode DDPG run (K = 1): {RUN_ITERATIONS / rates['ddpg', 1] / 60:.1f} min")
+    ddpg = rates.get(("ddpg", GRID_DDPG_RUNS))
+    dqn = rates.get(("dqn", GRID_DQN_RUNS))
+    if ddpg is None or dqn is None:
+        row("projected grid: not measured (its batch sizes were not among the rows, or the time budget ran out)")
     else:
-        batches = -(-GRID_RUNS // basis)
-        minutes = batches * RUN_ITERATIONS / rates[basis] / 60.0
-        row(f"projected grid: {GRID_RUNS} runs × 625 episodes × 800 steps = {batches} batch(es) of {basis} × "
-            f"{RUN_ITERATIONS} iterations at {rates[basis]:.1f} iterations/s: {minutes:.1f} min")
+        minutes_ddpg = RUN_ITERATIONS / ddpg / 60.0
+        minutes_dqn = 3 * RUN_ITERATIONS / dqn / 60.0
+        row(f"projected grid: DDPG's {GRID_DDPG_RUNS} runs as one batch {minutes_ddpg:.1f} min + dqn, ddqn and "
+            f"dueling ({GRID_DQN_RUNS} runs each, one batch after another, at DQN's rate) {minutes_dqn:.1f} min = "
+            f"{minutes_ddpg + minutes_dqn:.1f} min (per's {GRID_DQN_RUNS} runs are not on the lockstep path)")
     row(f"(bench took {time.perf_counter() - start:.0f} s)")
     return "\n".join(lines)
