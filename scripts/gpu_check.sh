@@ -3,9 +3,10 @@
 # (docs/performance.md, "On a GPU"). Writes into $OUT (default runs/gpu_check):
 #   quick: nvidia-smi, `make bench-gpu` with a shorter budget, and a 2-seed × 2-episode batch trained on CUDA
 #          whose model.zip files load on the CPU;
-#   full:  the whole bench, then the learning check's runs: three settings × 10 seeds × $EPISODES episodes
-#          trained on CUDA (the three batches at once), packed as learn.tar.gz; compare them with the CPU runs
-#          of results/paper by scripts/learning_check.py.
+#   full:  the whole bench, a profile of a DDPG iteration at K = 110, then the learning check's runs: three
+#          settings × 10 seeds × $EPISODES episodes trained on CUDA (the three batches at once, stopped with a
+#          checkpoint after $LEARN_LIMIT_S s), packed as learn.tar.gz; compare them with the CPU runs of
+#          results/paper by scripts/learning_check.py.
 # Packages the machine lacks (gymnasium, stable-baselines3) are installed from wheels in .whl/ when present.
 set -uo pipefail
 mode=${1:-quick}
@@ -38,15 +39,37 @@ EOF
 fi
 
 $PY -m lanefree_sumo.tools.bench --gpu --budget-s "${BUDGET_S:-300}" 2>&1 | tee "$OUT/bench_gpu.md"
+# where an iteration's GPU time goes: DDPG, K = 110, no graph (every kernel seen), 5 iterations
+$PY - > "$OUT/profile_ddpg_k110.txt" 2>&1 <<'PROFILE'
+import torch
+from torch.profiler import ProfilerActivity, profile
+from lanefree_sumo.tools.bench_gpu import _loop
+loop = _loop(110, "cuda", 0, "ddpg", graphs=False)
+for _ in range(70):
+    loop.iterate()
+torch.cuda.synchronize()
+with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+    for _ in range(5):
+        loop.iterate()
+    torch.cuda.synchronize()
+events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
+print(f"kernels per iteration: {len(events) / 5:.0f}; GPU busy per iteration: "
+      f"{sum(e.device_time for e in events) / 5 / 1000:.3f} ms")
+print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25))
+PROFILE
+LEARN=${LEARN:-/tmp/learn}  # outside $OUT: only 8 files come back from a device call
+LIMIT=${LEARN_LIMIT_S:-330}  # the batches get SIGTERM (a checkpoint, then they stop) after this many seconds
 start=$(date +%s)
-lanefree train --seeds 0-9 --device cuda --algo ddpg --reward fields_zones_overtake_collision --density 70 \
-  --episodes "$EPISODES" --out "$OUT/learn/ddpg_fzoc70" > "$OUT/learn_ddpg_fzoc70.log" 2>&1 &
-lanefree train --seeds 0-9 --device cuda --algo ddpg --reward collision --density 70 \
-  --episodes "$EPISODES" --out "$OUT/learn/ddpg_collision70" > "$OUT/learn_ddpg_collision70.log" 2>&1 &
-lanefree train --seeds 0-9 --device cuda --algo dqn --reward fields_zones_overtake_collision --density 70 \
-  --episodes "$EPISODES" --out "$OUT/learn/dqn_fzoc70" > "$OUT/learn_dqn_fzoc70.log" 2>&1 &
+learn() {  # NAME, then train's options
+  local name=$1; shift
+  timeout -s TERM "$LIMIT" $PY -m lanefree_sumo.cli train --seeds 0-9 --device cuda --episodes "$EPISODES" \
+    --out "$LEARN/$name" "$@" > "$OUT/learn_$name.log" 2>&1
+}
+learn ddpg_fzoc70 --algo ddpg --reward fields_zones_overtake_collision --density 70 &
+learn ddpg_collision70 --algo ddpg --reward collision --density 70 &
+learn dqn_fzoc70 --algo dqn --reward fields_zones_overtake_collision --density 70 &
 wait
 echo "learning-check runs: $(( $(date +%s) - start )) s for 3 batches of 10 runs × $EPISODES episodes, at once"
 tar czf "$OUT/learn.tar.gz" --exclude='*.zip' --exclude='*.pt' --exclude='tb' --exclude='checkpoints' \
-  -C "$OUT" learn
+  -C "$(dirname "$LEARN")" "$(basename "$LEARN")"
 tail -n 3 "$OUT"/learn_*.log

@@ -115,7 +115,8 @@ def row_sum(a: np.ndarray, count: np.ndarray | None = None) -> np.ndarray:
     equal to 0.0; None: every entry. numpy sums a row pairwise (eight running sums over blocks of eight, combined
     as a tree, then the remainder one by one; halves first beyond 128 entries), so the grouping depends on the
     row's length: a padded row summed by numpy would round differently from the same row unpadded. This
-    reproduces numpy's grouping for each row's own length, so a run padded in a batch sums as it does alone."""
+    reproduces numpy's grouping for each row's own length, so a run padded in a batch sums as it does alone. On a
+    GPU (the torch namespace's ``numpy_order_sums`` off) the row is summed in torch's order: equal to rounding."""
     xp = namespace(a)
     if xp.is_numpy:  # numpy's own sum where it is the one wanted
         if count is None:
@@ -123,6 +124,8 @@ def row_sum(a: np.ndarray, count: np.ndarray | None = None) -> np.ndarray:
         count = np.broadcast_to(count, a.shape[:-1])
         if (count == a.shape[-1]).all():
             return a.sum(axis=-1)
+    elif not xp.numpy_order_sums:  # torch's own order (a GPU's): the padding is 0.0, so the same sum to rounding
+        return xp.sum(a, axis=-1)
     else:  # other libraries sum in their own order: numpy's order, formed step by step
         count = xp.broadcast_to(a.shape[-1] if count is None else count, a.shape[:-1])
     return _pairwise(a, None, count, a.shape[-1])

@@ -26,6 +26,11 @@ def numpy_transcendentals() -> Iterator[None]:
         _HOST_TRANSCENDENTALS = saved
 
 
+_DTYPES: dict[Any, Any] = {float: torch.float64, np.float64: torch.float64, bool: torch.bool, np.bool_: torch.bool,
+                           int: torch.int64, np.int64: torch.int64, np.float32: torch.float32}
+"""numpy's dtypes (as the physics names them) and torch's."""
+
+
 class TorchNamespace:
     """numpy's names over torch tensors on one device (float64 for real numbers, int64 for indices)."""
 
@@ -37,20 +42,23 @@ class TorchNamespace:
     def __init__(self, device: Any = "cpu") -> None:
         self.device = torch.device(device)
         self.float64, self.int64, self.bool_ = torch.float64, torch.int64, torch.bool
+        self.numpy_order_sums = self.device.type == "cpu"
+        """Sum rows over vehicles in numpy's order (:func:`~lanefree_sumo.sim.state.row_sum`; on the CPU, where the
+        torch simulation is proven equal to numpy's) or in torch's own (on a GPU: one kernel instead of ~40 per sum,
+        the same sums to rounding)."""
+        self._constants: dict[tuple[Any, Any, Any], Any] = {}
+        """The numbers beside tensors as 0-d tensors on the device (:meth:`_number`), made once; never written."""
 
     # -- conversions --------------------------------------------------------------------------------------
     def _dtype(self, dtype: Any) -> Any:
         if dtype is None or isinstance(dtype, torch.dtype):
             return dtype
-        if dtype is float or dtype == np.float64:
-            return torch.float64
-        if dtype is bool or dtype == np.bool_:
-            return torch.bool
-        if dtype is int or dtype == np.int64:
-            return torch.int64
-        if dtype == np.float32:
-            return torch.float32
-        raise TypeError(f"no torch dtype for {dtype!r}")
+        found = _DTYPES.get(dtype)
+        if found is None and isinstance(dtype, np.dtype):
+            found = _DTYPES.get(dtype.type)
+        if found is None:
+            raise TypeError(f"no torch dtype for {dtype!r}")
+        return found
 
     def asarray(self, a: Any, dtype: Any = None) -> Any:
         """A tensor on this namespace's device (numpy float arrays and Python floats become float64)."""
@@ -89,7 +97,11 @@ class TorchNamespace:
             dtype = like.dtype
         else:
             dtype = torch.bool if isinstance(x, bool) else torch.int64 if isinstance(x, int) else torch.float64
-        return torch.full((), x, dtype=dtype, device=self.device)
+        key = (type(x), x, dtype)
+        constant = self._constants.get(key)
+        if constant is None:  # made once: a step then launches no fill per number
+            constant = self._constants[key] = torch.full((), x, dtype=dtype, device=self.device)
+        return constant
 
     def _pair(self, a: Any, b: Any) -> tuple[Any, Any]:
         """Both as tensors (:meth:`_number` for a Python number)."""
