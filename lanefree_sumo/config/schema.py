@@ -467,9 +467,10 @@ class TrainConfig:
     ``tests/experiments/test_train_backends.py``), ~2.6× faster; ``libsumo``/``traci`` train inside SUMO.
     Evaluation, rollout and replay of the run can use any backend."""
     device: Device = "cpu"
-    """Where batched training (``train --seeds``) keeps the simulation and the learners: ``cpu`` (the numpy
-    simulation, bit for bit the single runs) or ``cuda`` (the same functions as torch on the GPU, float64; the
-    networks float32). Single runs train on the CPU."""
+    """Where batched training (``train --seeds``, a sweep's batches) keeps the simulation and the learners:
+    ``cpu`` (the numpy simulation, bit for bit the single runs) or ``cuda`` (the same functions as torch on the GPU,
+    float64, the networks float32; each iteration one CUDA graph, the random numbers drawn on the GPU, so equal to
+    the single runs in distribution, not bit for bit). Single runs train on the CPU."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
 

@@ -57,3 +57,13 @@ def test_cuda_without_a_gpu_is_one_line_and_a_nonzero_exit(tmp_path: Path, capsy
     assert code != 0 and len(err.splitlines()) == 1 and "--seeds" in err
     assert not (tmp_path / "one").exists()
 
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA GPU")
+def test_a_sweep_on_cuda_without_a_gpu_is_one_line_before_anything_is_written(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["sweep", "table5", "--seeds", "1", "--episodes", "1", "--set", "train.device=cuda",
+                 "--out", str(tmp_path / "sweep")])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1 and "no CUDA GPU" in err
+    assert not (tmp_path / "sweep").exists()

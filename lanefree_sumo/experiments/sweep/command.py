@@ -214,6 +214,10 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     states = plan(folder, grid, extend)  # every check before the first write
     if address is not None:
         check_address(address)
+    elif any(grid.config(c).train.device == "cuda" for c in grid.cells()):
+        from lanefree_sumo.experiments.batch import check_device
+
+        check_device("cuda")  # the embedded Ray's batches train on this machine's GPU
     check_writable(folder, folder=True)
     sweep = SweepDir(folder)
     cells: dict[str, Cell] = {c.name: c for c in grid.cells()}

@@ -88,8 +88,9 @@ def _prepare_environment(address: str | None) -> None:
         os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(16)
 
 
-def start_ray(workers: int | None, address: str | None) -> Any:
-    """``ray`` connected to a new embedded Ray (``address`` None) or to the cluster at ``address``."""
+def start_ray(workers: int | None, address: str | None, gpus: int = 0) -> Any:
+    """``ray`` connected to a new embedded Ray (``address`` None; ``gpus``: the GPUs it may hand out) or to the
+    cluster at ``address``."""
     _prepare_environment(address)
     try:
         import ray
@@ -98,7 +99,7 @@ def start_ray(workers: int | None, address: str | None) -> Any:
     common: dict[str, Any] = {"log_to_driver": False, "logging_level": logging.WARNING}
     if address is None:
         try:
-            ray.init(address="local", num_cpus=workers, num_gpus=0, include_dashboard=False,
+            ray.init(address="local", num_cpus=workers, num_gpus=gpus, include_dashboard=False,
                      object_store_memory=OBJECT_STORE_BYTES, **common)
         except Exception as exc:  # a node that timed out starting (an overloaded machine), no room for its files
             reason = " ".join(str(exc).split())[:300]
@@ -255,7 +256,8 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
             str(sweep.path), cell.name, config_to_dict(cfg), target, command)] = (cell.name,)
     for batch in batches:
         configs = [config_to_dict(grid.config(by_name[name])) for name in batch.runs]
-        refs[batch_task.options(num_cpus=1, name=f"lanefree-sweep:{batch.name}").remote(
+        on_gpu = grid.config(by_name[batch.runs[0]]).train.device == "cuda"  # one batch per GPU at a time
+        refs[batch_task.options(num_cpus=1, num_gpus=1 if on_gpu else 0, name=f"lanefree-sweep:{batch.name}").remote(
             str(sweep.path), batch.name, list(batch.runs), configs, target, command)] = batch.runs
     outcome = SweepOutcome()
     complete_before = len(cells) - len(todo) - sum(len(b.runs) for b in batches)
@@ -336,7 +338,12 @@ def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None
     """Start or join Ray, check the nodes (cluster), run ``todo`` one run per task and ``batches`` one batch
     per task, and always shut Ray down."""
     sweep = SweepDir(sweep.path.resolve())  # workers run elsewhere: they get an absolute path
-    ray = start_ray(workers, address)
+    gpus = 0
+    if address is None and batches and any(grid.config(c).train.device == "cuda" for c in grid.cells()):
+        import torch  # the embedded Ray hands this machine's GPUs to the batches, one batch per GPU
+
+        gpus = torch.cuda.device_count()
+    ray = start_ray(workers, address, gpus)
     try:
         if address is not None:
             check_nodes(ray, sweep)
