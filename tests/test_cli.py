@@ -179,6 +179,12 @@ def test_rollout_takes_set_too():
     assert res.returncode == 2 and "shield.nope" in res.stderr
 
 
+def test_rollouts_summary_line_counts_one_episode_in_the_singular():
+    res = lanefree("rollout", "--episodes", "1", "--backend", "numpy", "--set", "sim.episode_steps=20")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.splitlines()[-1].startswith("1 episode at 70 veh/km, policy random"), res.stdout
+
+
 def test_sigterm_stops_rollout_with_the_summary_of_complete_episodes():
     proc = lanefree_popen("rollout", "--episodes", "100000", "--backend", "numpy", "--json")
     assert proc.stdout is not None

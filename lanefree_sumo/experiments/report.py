@@ -249,8 +249,8 @@ def _group_notes(groups: dict[RunKey, list[RunData]], last: int, where: str = ""
     for key, members in groups.items():
         for member in members:
             if len(member.episodes) < last:
-                notes.append(f"{member.path}{where} has {len(member.episodes)} episodes (< {last}); its mean uses all "
-                             "of them")
+                notes.append(f"{member.path}{where} has {markdown.count(len(member.episodes), 'episode')} (< {last}); "
+                             "its mean uses all of them")
         seeds = [r.seed for r in members]
         if len(set(seeds)) < len(seeds):
             notes.append(f"group {group_label(key)}{where} has runs with the same seed ({seeds}); each counts "

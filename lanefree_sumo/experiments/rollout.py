@@ -30,6 +30,7 @@ import numpy as np
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig
 from lanefree_sumo.errors import EXIT_INTERRUPTED
+from lanefree_sumo.experiments.markdown import count
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 from lanefree_sumo.options import DENSITY, Option, add_options, verb_config
 
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"{summary['episodes']} episodes at {summary['density']:g} veh/km, policy {policy}, shield "
+        print(f"{count(summary['episodes'], 'episode')} at {summary['density']:g} veh/km, policy {policy}, shield "
               f"{'on' if summary['shield'] else 'off'}: {summary['collisions_per_episode']:.2f} agent collisions, "
               f"{summary['background_collisions']} background collisions, "
               f"{summary['shield_interventions_per_episode']:.1f} interventions per episode, speed deviation "

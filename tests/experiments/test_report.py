@@ -386,3 +386,11 @@ def test_curves_use_trailing_moving_average_and_std_over_seeds() -> None:
     shorter = smoothed_curve([_run_data([1, 2, 3, 4], 0), _run_data([3, 4, 5, 6, 7, 8], 1)], "collisions", 2)
     assert shorter["n"].tolist() == [2, 2, 2, 2, 1, 1]  # episodes 5–6 only from the longer run
     assert shorter["mean"].iloc[-1] == pytest.approx(7.5) and math.isnan(shorter["std"].iloc[-1])
+
+
+def test_a_short_runs_note_counts_its_episodes_in_words(tmp_path):
+    runs = [make_run(tmp_path / "runs", "one", collisions=[1.0], episodes=1),
+            make_run(tmp_path / "runs", "two", seed=1, collisions=[1.0] * 2, episodes=2)]
+    notes = report(runs, tmp_path / "out").notes
+    assert f"{runs[0]} has 1 episode (< 50); its mean uses all of them" in notes
+    assert f"{runs[1]} has 2 episodes (< 50); its mean uses all of them" in notes
