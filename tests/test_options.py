@@ -113,6 +113,18 @@ def test_every_verb_is_in_the_parser_and_its_help_has_units():
     assert "default 70 veh/km" in sub.choices["train"].format_help().replace("\n", " ").replace("  ", " ")
 
 
+def test_every_verb_declares_each_of_its_options_once_as_an_option():
+    """No verb adds an argument of its own: each is an :class:`Option` of its ``OPTIONS`` (``--config`` and
+    ``--set`` come from :func:`~lanefree_sumo.argtypes.add_config_options`)."""
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name, verb in sub.choices.items():
+        declared = [spelling for option in DECLARED[name] for spelling in option.names]
+        assert len(declared) == len(set(declared)), name
+        parsed = {spelling for action in verb._actions if not isinstance(action, argparse._HelpAction)
+                  for spelling in (action.option_strings or [action.dest])}
+        assert parsed - {"--config", "--set"} <= set(declared) <= parsed, name
+
+
 def test_the_architecture_pages_option_table_is_the_declarations():
     from lanefree_sumo.options import option_table
 

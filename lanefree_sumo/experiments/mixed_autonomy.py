@@ -32,9 +32,11 @@ from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config
 from lanefree_sumo.errors import EXIT_INTERRUPTED, RunError
 from lanefree_sumo.experiments.rundir import MIXED_AUTONOMY, RunDir, fresh_output, write_config
 from lanefree_sumo.experiments.signals import StopRequest, stop_requested
+from lanefree_sumo.options import Option, add_options
 
 EVALUATION = EvaluationConfig()
 DEFAULT_AGENTS = (0, 2, 5, 10)
+DEFAULT_EPISODES = 10
 COLUMNS = ("agents", "episode", "seed", "vehicles", "ring_collisions", "agent_collisions", "mean_speed_mps",
            "agent_speed_mps", "background_speed_mps", "throughput_veh_per_h")
 SUMMARY_METRICS = (
@@ -42,6 +44,30 @@ SUMMARY_METRICS = (
     ("agent_collisions", "… with an agent in them"),
     ("mean_speed_mps", "mean speed, all vehicles (m/s)"),
     ("throughput_veh_per_h", "throughput (veh/h)"),
+)
+
+
+def _counts(text: str) -> tuple[int, ...]:
+    """``0,2,5,10`` → (0, 2, 5, 10): distinct whole numbers ≥ 0."""
+    try:
+        counts = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected whole numbers separated by commas, got {text!r}") from None
+    if any(k < 0 for k in counts) or len(set(counts)) != len(counts):
+        raise argparse.ArgumentTypeError(f"expected distinct numbers >= 0, got {text!r}")
+    return counts
+
+
+OPTIONS: tuple[Option, ...] = (
+    Option("run", type=Path, extra={"metavar": "RUN"}, note="run folder made by 'lanefree train' (any --agents)"),
+    Option("--agents", type=_counts, default=DEFAULT_AGENTS, extra={"metavar": "K,K,…"},
+           note=f"numbers of vehicles driven by the policy (default {','.join(map(str, DEFAULT_AGENTS))})"),
+    Option("--vehicles", type=argtypes.positive(int, "vehicles"),
+           note="vehicles on the ring, agents included (default: RUN's density × ring length, 45 at 90 veh/km)"),
+    Option("--episodes", type=argtypes.positive(int, "episodes"), default=DEFAULT_EPISODES,
+           note=f"episodes per k, the same traffic seeds for every k (default {DEFAULT_EPISODES})"),
+    Option("--out", type=Path, note="output folder (default RUN/mixed_autonomy)"),
+    Option("--overwrite", extra={"action": "store_true"}, note="replace an earlier mixed-autonomy output"),
 )
 
 
@@ -54,28 +80,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "model, for each k of --agents, and measure the whole ring: collisions, mean speed, throughput. Writes "
         "RUN/mixed_autonomy/ (episodes.csv, summary.csv, summary.md, mixed_autonomy.png).",
     )
-    p.add_argument("run", type=Path, metavar="RUN", help="run folder made by 'lanefree train' (any --agents)")
-    p.add_argument("--agents", type=_counts, default=DEFAULT_AGENTS, metavar="K,K,…",
-                   help=f"numbers of vehicles driven by the policy (default {','.join(map(str, DEFAULT_AGENTS))})")
-    p.add_argument("--vehicles", type=argtypes.positive(int, "vehicles"), default=None,
-                   help="vehicles on the ring, agents included (default: RUN's density × ring length, 45 at 90 "
-                   "veh/km)")
-    p.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=10,
-                   help="episodes per k, the same traffic seeds for every k (default 10)")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default RUN/mixed_autonomy)")
-    p.add_argument("--overwrite", action="store_true", help="replace an earlier mixed-autonomy output")
+    add_options(p, OPTIONS)
     return p
-
-
-def _counts(text: str) -> tuple[int, ...]:
-    """``0,2,5,10`` → (0, 2, 5, 10): distinct whole numbers ≥ 0."""
-    try:
-        counts = tuple(int(part) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected whole numbers separated by commas, got {text!r}") from None
-    if any(k < 0 for k in counts) or len(set(counts)) != len(counts):
-        raise argparse.ArgumentTypeError(f"expected distinct numbers >= 0, got {text!r}")
-    return counts
 
 
 class _InterruptedError(Exception):

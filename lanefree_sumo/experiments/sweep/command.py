@@ -45,6 +45,7 @@ from lanefree_sumo.experiments.sweep.state import (
     overlay,
     writers_elsewhere,
 )
+from lanefree_sumo.options import Option, add_options
 
 EXIT_OK, EXIT_INCOMPLETE = 0, 1
 DEFAULT_RETRIES = 3
@@ -55,6 +56,43 @@ def default_workers() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:
         return os.cpu_count() or 1
+
+
+OPTIONS: tuple[Option, ...] = (
+    Option("grid", extra={"nargs": "?", "metavar": "GRID"}, note="built-in grid name or YAML grid file"),
+    Option("--out", type=Path, extra={"metavar": "DIR"},
+           note="sweep folder (default runs/sweep_<grid>); on a cluster, storage every node mounts"),
+    Option("--resume", type=Path, extra={"metavar": "DIR"}, note="continue the sweep in DIR"),
+    Option("--status", type=Path, extra={"metavar": "DIR"},
+           note="print the state of the sweep in DIR (also while it runs elsewhere) and exit"),
+    Option("--list", extra={"action": "store_true"}, note="list the built-in grids with what each is, and exit"),
+    Option("--summary", type=Path, extra={"metavar": "DIR"},
+           note="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit"),
+    Option("--seeds", type=argtypes.positive(int, "seeds"), extra={"metavar": "N"},
+           note="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported); with --resume "
+           "DIR, add seeds to DIR's sweep until it has N per setting (its runs are kept)"),
+    Option("--episodes", "train.episodes", unit="episodes", default=None, extra={"metavar": "N"},
+           note="for every run of GRID instead of the grid's (paper: 625)"),
+    Option("--episode-steps", "sim.episode_steps", unit="steps", default=None, extra={"metavar": "N"},
+           note="for every run of GRID instead of the grid's (paper: 800; fewer for quick tests)"),
+    Option("--workers", type=argtypes.positive(int, "workers"), extra={"metavar": "N"},
+           note=f"runs at a time on the embedded local Ray (default: the cores, {default_workers()} here)"),
+    Option("--address", extra={"metavar": "HOST:PORT"},
+           note="join the Ray cluster at HOST:PORT instead of starting a local one (default: $RAY_ADDRESS if set)"),
+    Option("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, extra={"metavar": "N"},
+           note=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})"),
+    Option("--batch", type=argtypes.positive(int, "batch"), extra={"metavar": "K"},
+           note="train runs of one algorithm that differ only in seed, density, reward preset or overtake bonus as "
+           "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU); "
+           f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
+           "one run per task"),
+    Option("--no-progress", extra={"action": "store_true"}, note="no progress bar"),
+    Option("--set", type=argtypes.setting, default=[], extra={"action": "append", "metavar": "KEY=VALUE",
+                                                              "dest": "settings"},
+           note="a config value for every run of GRID, added to its overrides, e.g. --set "
+           "reward.broad_stretch=absolute (repeatable; not the keys the grid sets per run)"),
+)
+"""``lanefree sweep``'s options: the run-folder options, then the budget, then Ray's."""
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -73,38 +111,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "interrupted ones from their newest checkpoint and retries failed ones; existing run folders with the same "
         "config are adopted. Ctrl-C stops every run with a checkpoint.",
     )
-    sw.add_argument("grid", nargs="?", metavar="GRID", help="built-in grid name or YAML grid file")
-    sw.add_argument("--out", type=Path, default=None, metavar="DIR",
-                    help="sweep folder (default runs/sweep_<grid>); on a cluster, storage every node mounts")
-    sw.add_argument("--resume", type=Path, default=None, metavar="DIR", help="continue the sweep in DIR")
-    sw.add_argument("--status", type=Path, default=None, metavar="DIR",
-                    help="print the state of the sweep in DIR (also while it runs elsewhere) and exit")
-    sw.add_argument("--list", action="store_true", help="list the built-in grids with what each is, and exit")
-    sw.add_argument("--summary", type=Path, default=None, metavar="DIR",
-                    help="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit")
-    sw.add_argument("--seeds", type=argtypes.positive(int, "seeds"), default=None, metavar="N",
-                    help="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported); "
-                    "with --resume DIR, add seeds to DIR's sweep until it has N per setting (its runs are kept)")
-    sw.add_argument("--episodes", type=argtypes.positive(int, "episodes"), default=None, metavar="N",
-                    help="training episodes per run instead of the grid's (paper: 625)")
-    sw.add_argument("--episode-steps", type=argtypes.positive(int, "steps"), default=None, metavar="N",
-                    help="steps per episode instead of 800 (0.25 s each; for quick tests)")
-    sw.add_argument("--workers", type=argtypes.positive(int, "workers"), default=None, metavar="N",
-                    help=f"runs at a time on the embedded local Ray (default: the cores, {default_workers()} here)")
-    sw.add_argument("--address", default=None, metavar="HOST:PORT",
-                    help="join the Ray cluster at HOST:PORT instead of starting a local one (default: $RAY_ADDRESS "
-                    "if set)")
-    sw.add_argument("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, metavar="N",
-                    help=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})")
-    sw.add_argument("--batch", type=argtypes.positive(int, "batch"), default=None, metavar="K",
-                    help="train runs of one algorithm that differ only in seed, density, reward preset or overtake "
-                    "bonus as batches of at most K in one task each (the same episodes as one run per task, bit for "
-                    f"bit on CPU); default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; "
-                    "--batch 1 trains one run per task")
-    sw.add_argument("--no-progress", action="store_true", help="no progress bar")
-    sw.add_argument("--set", type=argtypes.setting, action="append", default=[], metavar="KEY=VALUE",
-                    dest="settings", help="a config value for every run of GRID, added to its overrides, e.g. "
-                    "--set reward.broad_stretch=absolute (repeatable; not the keys the grid sets per run)")
+    add_options(sw, OPTIONS)
     return sw
 
 
