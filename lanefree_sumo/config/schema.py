@@ -2,18 +2,20 @@
 
 Every number the simulation, the driver model, the rewards, the observations and the algorithms
 use lives here, with its unit, and nowhere else (specification §1–§9). Allowed values are ``Literal``
-types or a field's ``range`` metadata; :mod:`.validation` checks them.
+types or a field's ``range`` metadata; :mod:`.validation` checks them. Every section is frozen: a config
+changes only by :func:`~.validation.merge_config`, which makes a new one. A run resolves its config once
+(:class:`ResolvedConfig`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Literal, get_args
 
 RoadKind = Literal["ring", "onramp"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class OnRampConfig:
     """The open road with an on-ramp (``road.kind: onramp``).
 
@@ -52,7 +54,7 @@ class OnRampConfig:
     ``spawn.gap_x_m`` + this time × the entry speed of bumper gap; otherwise it waits (s)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class RoadConfig:
     """The road hosted by SUMO: the ring (one lane as wide as the road) or the open road with an on-ramp."""
 
@@ -75,7 +77,7 @@ class RoadConfig:
         return o.upstream_m + o.ramp_m + o.downstream_m
 
 
-@dataclass
+@dataclass(frozen=True)
 class SimulationConfig:
     """Time stepping and SUMO options."""
 
@@ -98,7 +100,7 @@ class SimulationConfig:
     """How many times the looping route repeats the ring; must exceed the laps of any run."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class VehicleClassConfig:
     """Dimensions and desired speeds of one vehicle class."""
 
@@ -118,7 +120,7 @@ def _agent_class() -> VehicleClassConfig:
     return VehicleClassConfig(3.2, 1.6, 20.0, 20.0, (0, 200, 0))
 
 
-@dataclass
+@dataclass(frozen=True)
 class AccelerationBounds:
     """Acceleration limits (m/s²)."""
 
@@ -132,7 +134,7 @@ class AccelerationBounds:
     """Strongest lateral acceleration to the left (m/s², ≥ 0)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class DriverConfig:
     """The force-based lane-free background driver (specification §3, Papageorgiou et al. 2021)."""
 
@@ -190,7 +192,7 @@ class DriverConfig:
         return self.gain_x_nudging if self.nudging else self.gain_x
 
 
-@dataclass
+@dataclass(frozen=True)
 class SpawnConfig:
     """Initial placement of vehicles at a density (specification §1).
 
@@ -227,7 +229,7 @@ OBSERVATION_KINDS: tuple[str, ...] = get_args(ObservationKind)
 ACTION_KINDS: tuple[str, ...] = get_args(ActionKind)
 
 
-@dataclass
+@dataclass(frozen=True)
 class ScenarioConfig:
     """What is on the road."""
 
@@ -256,7 +258,7 @@ class ScenarioConfig:
     spawn: SpawnConfig = field(default_factory=SpawnConfig)
 
 
-@dataclass
+@dataclass(frozen=True)
 class RewardConfig:
     """Reward components (specification §7, paper Tables 3–4). Weights are set by the preset."""
 
@@ -295,7 +297,7 @@ class RewardConfig:
     """Floor of v_d,eff in c_x (m/s)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ObservationConfig:
     """Agent observation (specification §5)."""
 
@@ -322,7 +324,7 @@ class ObservationConfig:
     on the on-ramp (``lanefree evaluate RUN --scenario onramp``)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ActionConfig:
     """Agent actions (specification §6)."""
 
@@ -336,7 +338,7 @@ class ActionConfig:
     """|ay| of the discrete left/right actions (m/s²)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class EpisodeConfig:
     """Episode handling of the environment."""
 
@@ -344,7 +346,7 @@ class EpisodeConfig:
     """End the episode when the agent collides (the paper does not: collisions only cost)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ShieldConfig:
     """The agent's safety shield (:mod:`lanefree_sumo.rl.shield`); off by default."""
 
@@ -365,7 +367,7 @@ class ShieldConfig:
     besides the policy's own (–)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ActorCriticConfig:
     """DDPG (paper Table 1) and the other continuous-action algorithms (TD3, SAC, PPO)."""
 
@@ -400,7 +402,7 @@ class ActorCriticConfig:
     """PPO rollout length per environment (steps)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class DQNConfig:
     """The DQN family (paper Table 1 and §4.1)."""
 
@@ -430,7 +432,7 @@ class DQNConfig:
     """Clip the gradient's global norm at this (SB3's default 10); null: no clip."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
     """A training run (specification §9)."""
 
@@ -487,7 +489,7 @@ from the first step, ``nb_steps_warmup_critic = nb_steps_warmup_actor = 1000``).
 batch size, learning rate, layers, ε schedule) are not part of a profile."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class LaneFreeConfig:
     """Everything: road, simulation, scenario, rewards, observations."""
 
@@ -513,6 +515,25 @@ class LaneFreeConfig:
     def background_vehicles(self) -> int:
         """round(density · L / 1000): on the ring, and at the start on the on-ramp's main road."""
         return int(round(self.scenario.density_veh_per_km * self.road.main_length_m / 1000.0))
+
+
+@dataclass(frozen=True)
+class ResolvedConfig(LaneFreeConfig):
+    """A run's config resolved once, at the top of the run: validated whole, with what the run derives fixed
+    in it (the agent on the road; for training, the algorithm's action kind and the backend). Made only by
+    :func:`lanefree_sumo.rl.env.resolve_config` (and :func:`lanefree_sumo.rl.models.training_config`, through it);
+    the environments, the simulation and the learners take it as it is — also in a worker process, which
+    receives it pickled. Change a value with :func:`~.validation.merge_config`, which gives a plain
+    :class:`LaneFreeConfig` again, to be resolved anew (``dataclasses.replace`` would keep the mark)."""
+
+    @classmethod
+    def of(cls, cfg: LaneFreeConfig) -> ResolvedConfig:
+        """``cfg``'s values, marked resolved (the last step of a resolution; ``cfg`` validated whole)."""
+        return cls(**{f.name: getattr(cfg, f.name) for f in fields(cfg)})
+
+    def unresolved(self) -> LaneFreeConfig:
+        """The same values as a plain :class:`LaneFreeConfig`."""
+        return LaneFreeConfig(**{f.name: getattr(self, f.name) for f in fields(self)})
 
 
 @dataclass(frozen=True)

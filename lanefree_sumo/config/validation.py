@@ -19,13 +19,16 @@ from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
 
+from lanefree_sumo.config.schema import ResolvedConfig
 from lanefree_sumo.errors import ConfigError
 
 
 def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any:
     """Return a copy of dataclass ``base`` with ``overrides`` merged in recursively.
 
-    Unknown keys raise :class:`ConfigError` naming the valid ones.
+    Unknown keys raise :class:`ConfigError` naming the valid ones. A
+    :class:`~.schema.ResolvedConfig` merged with overrides is a plain :class:`~.schema.LaneFreeConfig`: what the
+    run derived from its values may no longer hold, so it is resolved again.
     """
     if not isinstance(overrides, Mapping):
         raise ConfigError(f"config{path or ''} must be a mapping, got {type(overrides).__name__}")
@@ -55,7 +58,8 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
             if isinstance(current, tuple) and isinstance(value, list):
                 value = tuple(value)
             changes[key] = check_value(where, _field_types(type(base))[key], value, valid[key].metadata.get("range"))
-    return dataclasses.replace(base, **changes)
+    merged = dataclasses.replace(base, **changes)
+    return merged.unresolved() if isinstance(merged, ResolvedConfig) else merged
 
 
 def _profile_of(overrides: Mapping[str, Any]) -> Any:

@@ -34,7 +34,7 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from lanefree_sumo.config import LaneFreeConfig, config_to_dict  # noqa: E402
+from lanefree_sumo.config import LaneFreeConfig  # noqa: E402
 from lanefree_sumo.errors import LaneFreeError, RunError  # noqa: E402
 from lanefree_sumo.experiments import markdown  # noqa: E402
 from lanefree_sumo.experiments.rundir import CHECKPOINTS, MODEL, read_config, write_atomic  # noqa: E402
@@ -76,7 +76,7 @@ def probe_states(cfg: LaneFreeConfig, states: int = 256) -> Any:
 
     from lanefree_sumo.rl.env import LaneFreeEnv
 
-    env = LaneFreeEnv(config_to_dict(cfg))
+    env = LaneFreeEnv(cfg)
     rng = np.random.default_rng(PROBE_SEED)
     box = env.action_space
     if not isinstance(box, spaces.Box):

@@ -35,6 +35,7 @@ from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
+from lanefree_sumo.rl.env import resolve_config
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import check_fits
 
@@ -287,7 +288,7 @@ def train(
             if run is None:
                 raise RunError("resuming needs the run folder")
             folder = RunDir(run)
-            cfg = folder.load_config()  # a run folder at all, before anything (even the lock file) is written
+            cfg = resolve_config(folder.load_config())  # a run folder at all, before anything is written
             stack.enter_context(folder.writer_lock())  # one writer: a second resume is refused here
             ckpt, target = _resume_point(folder, cfg, episodes)
             timesteps = ckpt.timesteps

@@ -24,13 +24,20 @@ from __future__ import annotations
 import numbers
 import time
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, overload
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from lanefree_sumo.config import ConfigError, LaneFreeConfig, config_to_dict, merge_config, validate_config
+from lanefree_sumo.config import (
+    ConfigError,
+    LaneFreeConfig,
+    ResolvedConfig,
+    config_to_dict,
+    merge_config,
+    validate_config,
+)
 from lanefree_sumo.rl.rewards import OvertakeLedger, compute_reward, get_preset, pass_events
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.collisions import count_events
@@ -47,15 +54,27 @@ DISCRETE_ACTIONS = np.array(
 METRIC_TERMS = ("c_x", "c_y", "c_f", "reward")
 
 
+@overload
+def resolve_config(config: ResolvedConfig) -> ResolvedConfig: ...
+
+
+@overload
+def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFreeConfig: ...
+
+
 def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFreeConfig:
-    """A full config with the agent on the road; a dict is merged into the defaults."""
+    """The config an environment runs, always a :class:`~lanefree_sumo.config.ResolvedConfig`: one given as it is
+    (resolved once, at the top of its run; an environment in a worker process receives it so); else ``config``
+    (a dict merged into the defaults) with the agent on the road, validated whole, marked resolved."""
+    if isinstance(config, ResolvedConfig):
+        return config
     if config is None:
         cfg = LaneFreeConfig()
     elif isinstance(config, LaneFreeConfig):
         cfg = config
     else:
         cfg = merge_config(LaneFreeConfig(), config)
-    return validate_config(merge_config(cfg, {"scenario": {"with_agent": True}}))
+    return ResolvedConfig.of(validate_config(merge_config(cfg, {"scenario": {"with_agent": True}})))
 
 
 class LearningVehicle:

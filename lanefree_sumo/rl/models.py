@@ -12,13 +12,13 @@ from __future__ import annotations
 import math
 import os
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
+from lanefree_sumo.config import LaneFreeConfig, ResolvedConfig, merge_config
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms import get_algorithm
 
@@ -26,9 +26,11 @@ MAX_ENVS_PER_CORE = 4
 """Parallel environments (one process each) allowed per core: more only thrash and exhaust memory."""
 
 
-def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
-    """Fix the parts of the config training decides: the action kind from the algorithm, the backend
-    from ``train.backend``."""
+def training_config(base: LaneFreeConfig) -> ResolvedConfig:
+    """``base`` resolved for training, once: the parts training decides fixed (the action kind from the
+    algorithm, the backend from ``train.backend``), then :func:`~lanefree_sumo.rl.env.resolve_config`; what the
+    environments would refuse is refused here, not inside their processes. A config this resolved already is
+    returned as it is."""
     kind = get_algorithm(base.train.algo).actions
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
@@ -40,14 +42,15 @@ def training_config(base: LaneFreeConfig) -> LaneFreeConfig:
     if base.scenario.agents > 1 and (t.envs > 1 or t.overlap):
         raise ConfigError(f"--agents {base.scenario.agents} trains one shared policy in one simulation: "
                           "use --envs 1 and no --overlap with it")
-    from lanefree_sumo.rl.env import resolve_config
-
-    resolved = resolve_config(base)  # what the environments would refuse, refused here: not inside their processes
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
     if base.train.envs > most:
         raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
                           f"{os.cpu_count()} cores: use at most {most}")
-    return merge_config(resolved, {"action": {"kind": kind}, "backend": base.train.backend})
+    if isinstance(base, ResolvedConfig) and base.action.kind == kind and base.backend == t.backend:
+        return base
+    from lanefree_sumo.rl.env import resolve_config
+
+    return resolve_config(merge_config(base, {"action": {"kind": kind}, "backend": t.backend}))
 
 
 def total_timesteps(cfg: LaneFreeConfig) -> int:
@@ -79,8 +82,11 @@ class EpisodeSeeds(gym.Wrapper):
         return self.env.reset(seed=chosen, options=options)
 
 
-def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, first_episode: int,
+def _env_factory(cfg: LaneFreeConfig, rank: int, seed: int, first_episode: int,
                  subprocess_env: bool) -> Callable[[], Any]:
+    """Makes environment ``rank``; in a worker process too, from ``cfg`` as resolved (pickled, not resolved
+    again)."""
+
     def make() -> Any:
         from stable_baselines3.common.monitor import Monitor
 
@@ -91,7 +97,7 @@ def _env_factory(cfg_dict: dict[str, Any], rank: int, seed: int, first_episode: 
             # then closing the workers); a worker dying first would lose the checkpoint.
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
-        return Monitor(EpisodeSeeds(LaneFreeEnv(cfg_dict), seed, rank, first_episode))
+        return Monitor(EpisodeSeeds(LaneFreeEnv(cfg), seed, rank, first_episode))
 
     return make
 
@@ -113,11 +119,13 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
 
         return SharedPolicyVecEnv(LaneFreeParallelEnv(cfg), seeds=lambda k: episode_seed(cfg.seed, 0, k),
                                   first_episode=episodes_done + 1)
+    from lanefree_sumo.rl.env import resolve_config
+
+    resolved = resolve_config(cfg)  # as it is when the run resolved it (training_config)
     n_envs = cfg.train.envs
     own_process = n_envs > 1 or (cfg.train.overlap and get_algorithm(cfg.train.algo).overlap)
-    cfg_dict = config_to_dict(cfg)
     first = episodes_done // n_envs + 1
-    factories = [_env_factory(cfg_dict, rank, cfg.seed, first, own_process) for rank in range(n_envs)]
+    factories = [_env_factory(resolved, rank, cfg.seed, first, own_process) for rank in range(n_envs)]
     vec: VecEnv = SubprocVecEnv(factories, start_method="spawn") if own_process else DummyVecEnv(factories)
     return vec
 
@@ -206,7 +214,7 @@ _BATCH_SHARED = {"actor_critic": ("actor_layers", "critic_layers", "batch_size",
 """What the runs of one batch must share (network shapes and replay sizes); the rest may differ per run."""
 
 
-def build_batched(cfgs: list[LaneFreeConfig], seeds: list[int], observation_space: Any, action_space: Any,
+def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_space: Any, action_space: Any,
                   device: str = "cpu") -> Any:
     """The batched learner of runs ``cfgs`` (run k seeded ``seeds[k]``): for each run the hyperparameters
     :func:`build_model` gives it; ConfigError when the runs cannot share a batch."""

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lanefree_sumo.config import ConfigError, LaneFreeConfig, validate_config
+from lanefree_sumo.config import ConfigError, LaneFreeConfig, ResolvedConfig, validate_config
 from lanefree_sumo.sim.backends.numpy import Backend, OpenRoadNumpyBackend
 from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.sim.dynamics import ballistic_distance, clip_acceleration, plan_step
@@ -35,8 +35,10 @@ from lanefree_sumo.sim.world import World, WorldParams, step_world, world_of
 
 def make_backend(cfg: LaneFreeConfig) -> Backend | None:
     """The backend named by ``cfg.backend`` (``cfg.gui`` implies TraCI); None for the ring on ``numpy``, which
-    the batched core executes (:mod:`.world`)."""
-    validate_config(cfg)
+    the batched core executes (:mod:`.world`). A config not resolved (:class:`~lanefree_sumo.config.ResolvedConfig`)
+    is validated first."""
+    if not isinstance(cfg, ResolvedConfig):
+        validate_config(cfg)
     if cfg.backend == "numpy":
         if cfg.gui:
             raise ConfigError("the numpy backend has no GUI; use --backend traci (or libsumo) with --gui")

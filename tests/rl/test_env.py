@@ -49,9 +49,8 @@ def test_gymnasium_and_sb3_checkers_pass(make, obs_kind, action_kind):
 
 
 def test_random_policy_runs_full_episodes_at_every_density(make):
-    env = make({"backend": "libsumo"})
     for density in (70, 90, 120):
-        env.cfg.scenario.density_veh_per_km = density
+        env = make({"backend": "libsumo", "scenario": {"density_veh_per_km": density}})
         obs, _ = env.reset(seed=density)
         assert env.sim.state.n == round(density / 2) + 1
         steps, collided_steps, info = 0, 0, {}
@@ -74,6 +73,7 @@ def test_random_policy_runs_full_episodes_at_every_density(make):
         assert metrics["steps"] == 800 and metrics["density"] == density
         assert metrics["collision_steps"] == collided_steps
         assert metrics["collisions"] <= collided_steps
+        env.close()  # libsumo runs one simulation per process
 
 
 def test_reset_with_seed_is_reproducible(make):
