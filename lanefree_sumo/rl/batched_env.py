@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from lanefree_sumo.config import LaneFreeConfig, config_to_dict
+from lanefree_sumo.config import LaneFreeConfig, ResolvedConfig, config_to_dict
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.env import (
     DISCRETE_ACTIONS,
@@ -70,7 +70,7 @@ class Rewards:
     reward: np.ndarray
 
 
-def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[LaneFreeConfig]:
+def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[ResolvedConfig]:
     """The runs' full configs; ConfigError for what the batch cannot run together."""
     cfgs = [resolve_config(c) for c in configs]
     if not cfgs:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numbers
 import time
 from collections.abc import Mapping
-from typing import Any, overload
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -54,15 +54,7 @@ DISCRETE_ACTIONS = np.array(
 METRIC_TERMS = ("c_x", "c_y", "c_f", "reward")
 
 
-@overload
-def resolve_config(config: ResolvedConfig) -> ResolvedConfig: ...
-
-
-@overload
-def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFreeConfig: ...
-
-
-def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> LaneFreeConfig:
+def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> ResolvedConfig:
     """The config an environment runs, always a :class:`~lanefree_sumo.config.ResolvedConfig`: one given as it is
     (resolved once, at the top of its run; an environment in a worker process receives it so); else ``config``
     (a dict merged into the defaults) with the agent on the road, validated whole, marked resolved."""
