@@ -244,8 +244,14 @@ class _Batch:
         """The loop of :meth:`run` with the lockstep loop: whole iterations on the device; episode rows, resets and
         checkpoints between episodes (a stop checkpoints after the current iteration)."""
         loop.start(obs)
+        episode_steps = self.cfgs[0].sim.episode_steps
         while any(books.active(k) for k in range(self.runs)) and not stop.requested:
-            loop.iterate()
+            live = [k for k in range(self.runs) if books.active(k)]
+            # the step that ends every live run's last episode takes no update: SB3 stops before it (the final
+            # models are those of the sequential runs)
+            last = all(books.done[k] + 1 >= books.target[k] for k in live) and \
+                int(env._steps[live].max()) + 1 >= episode_steps
+            loop.iterate(update=not last)
             books.steps += 1
             if not loop.episode_over():
                 continue

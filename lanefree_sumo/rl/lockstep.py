@@ -101,9 +101,9 @@ class Lockstep:
             for name, value in current.items():
                 target = self._static[name]
                 if value is not target:
-                    if value.shape != target.shape:
-                        raise RuntimeError(f"the lockstep state {name} changed its shape "
-                                           f"{tuple(target.shape)} -> {tuple(value.shape)}")
+                    if value.shape != target.shape or value.dtype != target.dtype:
+                        raise RuntimeError(f"the lockstep state {name} changed from {tuple(target.shape)} "
+                                           f"{target.dtype} to {tuple(value.shape)} {value.dtype}")
                     target.copy_(value)
         static, env = self._static, self.env
         if self._world is None:
@@ -139,13 +139,19 @@ class Lockstep:
         self.obs = obs
         self._pin()
 
-    def iterate(self) -> None:
-        """One lockstep iteration of every run, and the host's counts after it."""
+    def iterate(self, update: bool = True) -> None:
+        """One lockstep iteration of every run (``update`` False: no gradient step even past ``learning_starts``,
+        as for the last step of a batch's last episode, whose final models are taken before it). The host's counts
+        and SB3's ``_on_step`` (DQN's target copy) come first: in SB3 they follow storing the transition and precede
+        the update, and storing changes no network."""
         if self.obs is None:
             raise RuntimeError("call start() with the observations of a reset first")
         learner = self.learner
         t = learner.num_timesteps if learner is not None else 0
-        key = (True, False) if learner is None else (t < learner.random_steps, t + 1 > learner.learning_starts)
+        key = (True, False) if learner is None else (t < learner.random_steps,
+                                                     update and t + 1 > learner.learning_starts)
+        if learner is not None:
+            learner.stepped_on_device(key[1])
         if not self.graphs:
             self._iteration(*key)
         elif key in self._graphs:
@@ -153,8 +159,6 @@ class Lockstep:
         else:
             self._capture(key)
         self.env._steps += 1
-        if learner is not None:
-            learner.stepped_on_device(key[1])
 
     def _capture(self, key: tuple[bool, bool]) -> None:
         """Run the phase's iteration once for real (on a side stream, as capture wants its first use there), then
@@ -187,12 +191,14 @@ class Lockstep:
     def state_dict(self) -> dict[str, Any]:
         """The device streams' state (the generator, the learner's device counts and noise)."""
         rng = th.cuda.get_rng_state(self.active.device) if self.cuda else self.generator.get_state()  # type: ignore[union-attr]
-        return {"rng": rng, "learner": None if self.learner is None else self.learner.device_state()}
+        return {"rng": rng, "flagged": self.flagged.cpu(),
+                "learner": None if self.learner is None else self.learner.device_state()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if self.cuda:
             th.cuda.set_rng_state(state["rng"], self.active.device)
         else:
             self.generator.set_state(state["rng"])  # type: ignore[union-attr]
+        self.flagged.copy_(state["flagged"])
         if self.learner is not None:
             self.learner.load_device_state(state["learner"])

@@ -97,7 +97,7 @@ class TorchNamespace:
             dtype = like.dtype
         else:
             dtype = torch.bool if isinstance(x, bool) else torch.int64 if isinstance(x, int) else torch.float64
-        key = (type(x), x, dtype)
+        key = (type(x), repr(x), dtype)  # repr: −0.0 is not 0.0
         constant = self._constants.get(key)
         if constant is None:  # made once: a step then launches no fill per number
             constant = self._constants[key] = torch.full((), x, dtype=dtype, device=self.device)

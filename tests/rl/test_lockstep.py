@@ -102,14 +102,42 @@ def test_an_iteration_reads_nothing_from_the_host_and_writes_no_host_number(algo
         assert seen.found == [], seen.found[0]
 
 
+def tensors_of(obj: Any, path: str = "", depth: int = 2) -> dict[str, int]:
+    """``id`` of every tensor an object holds (its attributes, their dicts, lists and tuples, and the attributes of
+    the project's objects it holds, ``depth`` levels down), by attribute path."""
+    found: dict[str, int] = {}
+
+    def visit(value: Any, where: str, level: int) -> None:
+        if isinstance(value, th.Tensor):
+            found[where] = id(value)
+        elif isinstance(value, dict):
+            for key, item in value.items():
+                visit(item, f"{where}[{key!r}]", level)
+        elif isinstance(value, (list, tuple)):
+            for i, item in enumerate(value):
+                visit(item, f"{where}[{i}]", level)
+        elif level > 0 and type(value).__module__.startswith("lanefree_sumo") and hasattr(value, "__dict__"):
+            for name, item in vars(value).items():
+                if name != "losses":  # the last update's outputs, read after it (a graph's outputs on a GPU)
+                    visit(item, f"{where}.{name}", level - 1)
+
+    visit(obj, path, depth + 1)
+    return found
+
+
 def test_the_state_is_copied_back_into_the_same_buffers() -> None:
-    """A graph replays on the buffers it captured: after iterations and a reset the env's arrays, its books and
-    the observation are the same tensor objects, and pinning them changes no number (a loop whose state moves
-    freely from step to step gives the same books)."""
+    """A graph replays on the buffers it captured: after iterations and a reset every tensor the env and the
+    learner hold (the world, the books, the replay, the weights, Adam, the counts) is the same tensor object as
+    before — a step that replaced one the loop does not copy back would show here — and pinning changes no number
+    (a loop whose state moves freely from step to step gives the same books and weights)."""
     pinned, free = loop_of("ddpg", seed=3), loop_of("ddpg", seed=3)
-    buffers = {name: id(t) for name, t in pinned._current().items()}
+    for _ in range(8):  # past learning_starts: every tensor of an update exists
+        pinned.iterate()
+        free.iterate()
+    held = {**tensors_of(pinned.env, "env"), **tensors_of(pinned.learner, "learner"), "obs": id(pinned.obs)}
+    assert any(".world." in k for k in held) and any("replay" in k for k in held) and any("_count" in k for k in held)
     free._pin = lambda: None  # type: ignore[method-assign]
-    for _ in range(12):
+    for _ in range(6):
         pinned.iterate()
         free.iterate()
     pinned.start(pinned.env.reset([1]))
@@ -117,7 +145,7 @@ def test_the_state_is_copied_back_into_the_same_buffers() -> None:
     for _ in range(5):
         pinned.iterate()
         free.iterate()
-    assert {name: id(t) for name, t in pinned._current().items()} == buffers
+    assert {**tensors_of(pinned.env, "env"), **tensors_of(pinned.learner, "learner"), "obs": id(pinned.obs)} == held
     for name in pinned.env._books:
         assert th.equal(pinned.env._books[name], free.env._books[name]), name
     assert th.equal(pinned.obs, free.obs)
@@ -189,12 +217,13 @@ def test_the_device_epsilon_follows_the_schedule() -> None:
     obs = th.zeros(2, 24)
     q_greedy = learner.q_values(obs).argmax(dim=1)
     draws = []
-    for count in (0, learner.total_timesteps):  # ε = start (1.0), then ε = end
+    for count in (0, 1, learner.total_timesteps):  # ε = 0 before SB3's first _on_step, ≈ start (1.0), then end
         learner._count.fill_(float(count))
         draws.append(th.stack([learner.act_on_device(obs, False)[0] for _ in range(200)]))
-    assert (draws[0] != q_greedy).float().mean() > 0.8  # ε = 1: 8 in 9 random actions differ from the greedy one
+    assert th.equal(draws[0], q_greedy.expand(200, 2))
+    assert (draws[1] != q_greedy).float().mean() > 0.8  # ε = 1: 8 in 9 random actions differ from the greedy one
     end = learner.exploration[0].end
-    assert (draws[1] != q_greedy).float().mean() < end + 0.05
+    assert (draws[2] != q_greedy).float().mean() < end + 0.05
 
 
 def test_the_lockstep_loop_refuses_what_it_cannot_run() -> None:
@@ -231,3 +260,22 @@ def test_sums_in_torchs_order_agree_with_numpys_to_rounding(monkeypatch: pytest.
         assert th.allclose(got_obs, obs, rtol=1e-6, atol=1e-6) and th.allclose(got_reward, reward, rtol=1e-9)
         differ += int(not th.equal(got_reward, reward))
     assert differ > 0  # the orders do differ in the last bits somewhere: the fast sums ran
+
+
+def test_dqns_target_is_copied_before_the_update_of_its_step() -> None:
+    """SB3's order at a target step: store, _on_step (the target copy), then the update. So after step
+    n · target_update_steps the target holds the weights from before that step's update."""
+    cfgs = [training_config(merge_config(LaneFreeConfig(), {"seed": k, "train": {"algo": "dqn", "dqn": {
+        "learning_starts_steps": 4, "buffer_size": 50, "target_update_steps": 10}}})) for k in range(2)]
+    env = BatchedRingEnv(cfgs, device="cpu")
+    learner = build_batched(cfgs, [0, 1], observation_space(cfgs[0]), action_space(cfgs[0]), device="cpu")
+    loop = Lockstep(env, learner, 0)
+    loop.start(env.reset())
+    for _ in range(9):
+        loop.iterate()
+    before = learner.q_net.stack.flat.clone()
+    assert not th.equal(learner.q_net_target.stack.flat, before)  # the target: the initial weights still
+    loop.iterate()  # step 10
+    assert learner.num_timesteps == 10
+    assert th.equal(learner.q_net_target.stack.flat, before)
+    assert not th.equal(learner.q_net.stack.flat, before)

@@ -338,8 +338,9 @@ def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None
     """Start or join Ray, check the nodes (cluster), run ``todo`` one run per task and ``batches`` one batch
     per task, and always shut Ray down."""
     sweep = SweepDir(sweep.path.resolve())  # workers run elsewhere: they get an absolute path
+    on_gpu = bool(batches) and any(grid.config(c).train.device == "cuda" for c in grid.cells())
     gpus = 0
-    if address is None and batches and any(grid.config(c).train.device == "cuda" for c in grid.cells()):
+    if on_gpu and address is None:
         import torch  # the embedded Ray hands this machine's GPUs to the batches, one batch per GPU
 
         gpus = torch.cuda.device_count()
@@ -349,6 +350,9 @@ def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None
             check_nodes(ray, sweep)
             if cluster_cpus(ray) < 1:
                 raise RunError(f"the Ray cluster at {address} has no CPUs")
+            if on_gpu and ray.cluster_resources().get("GPU", 0) < 1:
+                raise RunError(f"the batches train on a GPU (train.device = cuda), but the Ray cluster at {address} "
+                               "has none; start its nodes on GPU machines or train on the CPU")
         return run_tasks(ray, sweep, grid, todo, retries, command, progress, batches)
     finally:
         ray.shutdown()

@@ -137,16 +137,16 @@ class BatchedDDPG(BatchedLearner):
         self._low, self._span = low, high - low
 
     def act_on_device(self, obs: th.Tensor, random: bool) -> tuple[th.Tensor, th.Tensor]:
-        """:meth:`act` (exploring) with device streams: (the env's actions, the buffer's scaled ones) ``[K, A]``;
-        the OU noise as SB3's (dt = 0.01, float64 state) from device normals."""
-        if random:
-            scaled = (self._rand(self.runs, self._low.shape[0]) * 2.0 - 1.0).float()
-        else:
-            normal = th.randn(self._ou_prev.shape, generator=self.generator, dtype=th.float64, device=self.device)
-            noise = (self._ou_prev - self._ou_theta * self._ou_prev * OUNoise.DT
-                     + self._ou_sigma * OUNoise.DT ** 0.5 * normal)
-            self._ou_prev.copy_(noise)
-            scaled = th.clamp(self.actor_output(obs) + noise.float(), -1.0, 1.0)
+        """:meth:`act` (exploring) with device streams: (the env's actions, the buffer's scaled ones) ``[K, A]``:
+        uniform random actions where ``random``, else μ(s), plus the OU noise as SB3's (dt = 0.01, float64 state,
+        from device normals; added to the random actions too, as SB3 adds it), clipped to [−1, 1]."""
+        normal = th.randn(self._ou_prev.shape, generator=self.generator, dtype=th.float64, device=self.device)
+        noise = (self._ou_prev - self._ou_theta * self._ou_prev * OUNoise.DT
+                 + self._ou_sigma * OUNoise.DT ** 0.5 * normal)
+        self._ou_prev.copy_(noise)
+        base = ((self._rand(self.runs, self._low.shape[0]) * 2.0 - 1.0).float() if random  # SB3: uniform, noise too
+                else self.actor_output(obs))
+        scaled = th.clamp(base + noise.float(), -1.0, 1.0)
         return self._low + 0.5 * (scaled + 1.0) * self._span, scaled
 
     def device_state(self) -> dict[str, Any]:

@@ -191,6 +191,7 @@ class BatchedDQN(BatchedLearner):
             start, end, fraction = self._eps
             done = self._count / float(self.total_timesteps)
             eps = th.where(done > fraction, end, start + done * (end - start) / fraction)
+            eps = eps * (self._count > 0)  # SB3's ε is 0 before its first _on_step
             greedy = self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.runs, -1).argmax(dim=1)
             actions = th.where(draws[:, 0] < eps, uniform, greedy)
         return actions, actions.reshape(self.runs, 1)

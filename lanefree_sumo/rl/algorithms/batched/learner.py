@@ -161,8 +161,9 @@ class BatchedLearner:
         self._learn(indices)
 
     def stepped_on_device(self, updated: bool) -> None:
-        """The host's side of a device iteration: what :meth:`store` and :meth:`update` count (the step count,
-        the replay position, the progress, SB3's ``_on_step``; the update count where ``updated``)."""
+        """The host's side of a device iteration (called before its device work): what :meth:`store` and
+        :meth:`update` count (the step count, the replay position, the progress, SB3's ``_on_step``; the update
+        count where ``updated``)."""
         self.num_timesteps += 1
         self.replay.pos += 1
         if self.replay.pos == self.buffer_size:
