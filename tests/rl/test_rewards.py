@@ -661,3 +661,58 @@ def test_zone_edges_are_clipped_to_the_road():
     assert target(12.0) == pytest.approx(5.0)
     # one beyond the right edge likewise
     assert target(-2.0) == pytest.approx(5.0)
+
+
+def test_zone_targets_of_many_agents_are_each_agents_zone_target_from_its_present_rows():
+    """The batched scan ``[2, 12, M]`` (agents of several runs, each with its own speed, size, desired speed and
+    road width; rows absent or non-finite) gives bit for bit what zone_target gives each agent alone."""
+    from lanefree_sumo.rl.fields_zones import zone_targets
+
+    rng = np.random.default_rng(7)
+    shape, m = (2, 12), 7
+    dx = rng.uniform(-8.0, 30.0, shape + (m,))
+    dy = rng.uniform(-6.0, 6.0, shape + (m,))
+    vxs = rng.choice([12.0, 15.0, 18.0], shape + (m,))
+    lens = rng.uniform(3.0, 5.0, shape + (m,))
+    wids = rng.uniform(1.5, 2.5, shape + (m,))
+    present = rng.random(shape + (m,)) < 0.8
+    dx[0, 3, 2] = dy[1, 5, 0] = vxs[1, 7, 4] = np.nan  # non-finite rows are absent too
+    agent_y, agent_vx = rng.uniform(1.0, 9.0, shape), rng.uniform(5.0, 25.0, shape)
+    agent_len, agent_wid = rng.uniform(3.0, 4.5, shape), rng.uniform(1.4, 2.0, shape)
+    v_desired, width = rng.uniform(14.0, 30.0, shape), np.where(rng.random(shape) < 0.5, 10.2, 8.0)
+    y_d, v_d, blocked = zone_targets(dx, dy, vxs, lens, wids, agent_y, agent_vx, agent_len, agent_wid, v_desired,
+                                     width, time_gap=0.8, margin=0.3, present=present)
+    assert y_d.shape == v_d.shape == blocked.shape == shape
+    outcomes = set()
+    for i in np.ndindex(*shape):
+        rows = present[i]
+        alone = zone_target(dx[i][rows], dy[i][rows], vxs[i][rows], lens[i][rows], wids[i][rows], agent_y[i],
+                            agent_vx[i], agent_len[i], agent_wid[i], v_desired[i], width[i], time_gap=0.8, margin=0.3)
+        assert (float(y_d[i]), float(v_d[i]), bool(blocked[i])) == alone, i
+        outcomes.add("blocked" if alone[2] else "centre" if alone[0] == width[i] / 2 else "zone")
+    assert outcomes == {"blocked", "centre", "zone"}  # free roads, chosen zones and blocked agents were compared
+    # every row absent, or no row at all: the road's centre at the desired speed
+    for rows in (np.zeros(shape + (m,), dtype=bool), None):
+        cut = slice(None) if rows is not None else slice(0, 0)
+        y_d, v_d, blocked = zone_targets(dx[..., cut], dy[..., cut], vxs[..., cut], lens[..., cut], wids[..., cut],
+                                         agent_y, agent_vx, agent_len, agent_wid, v_desired, width, time_gap=0.8,
+                                         margin=0.3, present=rows)
+        assert y_d.tolist() == (width / 2).tolist() and v_d.tolist() == v_desired.tolist() and not blocked.any()
+
+
+def test_field_terms_compute_as_torch_on_tensors():
+    """The batched environment on a device evaluates the fields on tensors: the same values, as tensors."""
+    torch = pytest.importorskip("torch")
+    from lanefree_sumo.rl.fields_zones import field_terms
+
+    rng = np.random.default_rng(4)
+    arrays = [rng.uniform(-20.0, 20.0, (3, 5)), rng.uniform(-4.0, 4.0, (3, 5)), rng.uniform(-5.0, 5.0, (3, 5)),
+              rng.uniform(-1.0, 1.0, (3, 5))]
+    sizes = (np.full((3, 1), A_LEN), np.full((3, 1), A_WID), np.full((3, 5), B_LEN), np.full((3, 5), B_WID))
+    options = {"magnitude": 0.7, "critical_exponents": (4.0, 3.0, 1.5), "broad_exponents": (2.0, 2.5, 1.0),
+               "k_r": 0.6, "e_v": 0.3, "stretch": "closing"}
+    want = field_terms(*arrays, *sizes, **options)
+    got = field_terms(*(torch.from_numpy(a) for a in (*arrays, *sizes)), **options)
+    for g, w in zip(got, want):
+        assert isinstance(g, torch.Tensor)
+        np.testing.assert_allclose(g.numpy(), w, rtol=1e-12, atol=0.0)

@@ -525,13 +525,16 @@ def test_config_rejects_unknown_keys_with_the_valid_ones():
 
 
 def test_fast_symmetric_trapezoid_equals_the_general_h():
-
     rng = np.random.default_rng(0)
     t = rng.uniform(-30, 30, 500)
     w = rng.uniform(0.0, 8.0, 500)
     w[:50] = 0.0  # zero-width ramps: steps
     l = rng.uniform(0.0, 15.0, 500)
     assert symmetric_trapezoid(np.abs(t), w, l) == pytest.approx(trapezoid_h(t, w, l, w), abs=1e-12)
+    # a step (w = 0, a standing vehicle's longitudinal ramp) at exactly its edge |t| = l is 1, as H's
+    steps = symmetric_trapezoid(np.array([2.0, 2.0, 2.5]), np.zeros(3), np.array([2.5, 2.0, 2.0]))
+    assert steps.tolist() == [1.0, 1.0, 0.0] == trapezoid_h(np.array([2.0, 2.0, 2.5]), 0.0, np.array([2.5, 2.0, 2.0]),
+                                                            0.0).tolist()
 
 
 def test_force_details_report_the_wall_leader_and_its_gap():
