@@ -236,9 +236,11 @@ def test_the_numpy_backend_moves_vehicles_sideways_and_onto_the_main_road_as_sum
 def test_the_numpy_backend_adds_and_removes_vehicles_in_order():
     from lanefree_sumo.sim.backends.numpy import OpenRoadNumpyBackend
 
-    backend = OpenRoadNumpyBackend(onramp())  # a new backend's road is empty
-    assert [a.tolist() for a in _step(backend, [], [])] == [[], [], []]
+    empty = OpenRoadNumpyBackend(onramp())  # a new backend's road is empty
+    assert [(a.tolist(), a.dtype.kind) for a in _step(empty, [], [])] == [([], "f")] * 3
+    backend = OpenRoadNumpyBackend(onramp())
     backend.add(_rows([100.0, 1200.0], [5.1, -1.0], [8.0, 4.0]))
+    assert backend._pos.tolist() == [100.0, 200.0] and backend._vx.dtype.kind == "f"
     assert backend._edge.tolist() == [0, 1] and backend._lane.tolist() == [0, 0]
     backend.add(_rows([1010.0, 0.0], [6.1, 3.1], [2.0, 0.0]))
     x, y, vx = _step(backend, [8.0, 4.0, 2.0, 0.0], np.zeros(4))
