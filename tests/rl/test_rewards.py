@@ -698,6 +698,33 @@ def test_zone_targets_of_many_agents_are_each_agents_zone_target_from_its_presen
                                          agent_y, agent_vx, agent_len, agent_wid, v_desired, width, time_gap=0.8,
                                          margin=0.3, present=rows)
         assert y_d.tolist() == (width / 2).tolist() and v_d.tolist() == v_desired.tolist() and not blocked.any()
+    # one size, desired speed and road for every agent (numbers): each agent's values all the same
+    y_d, v_d, blocked = zone_targets(dx[..., :0], dy[..., :0], vxs[..., :0], lens[..., :0], wids[..., :0], agent_y,
+                                     agent_vx, 3.5, 1.8, 25.0, 10.2, time_gap=0.8, margin=0.3)
+    assert y_d.shape == v_d.shape == blocked.shape == shape and (y_d == 5.1).all() and (v_d == 25.0).all()
+
+
+def test_zone_targets_compute_as_torch_on_tensors():
+    torch = pytest.importorskip("torch")
+    from lanefree_sumo.rl.fields_zones import zone_targets
+
+    rng = np.random.default_rng(8)
+    shape, m = (3, 6), 5
+    rows = [rng.uniform(-8.0, 30.0, shape + (m,)), rng.uniform(-6.0, 6.0, shape + (m,)),
+            rng.choice([12.0, 15.0], shape + (m,)), rng.uniform(3.0, 5.0, shape + (m,)),
+            rng.uniform(1.5, 2.5, shape + (m,))]
+    agents = [rng.uniform(1.0, 9.0, shape), rng.uniform(5.0, 25.0, shape), np.full(shape, 3.5), np.full(shape, 1.8),
+              rng.uniform(14.0, 30.0, shape), np.full(shape, 10.2)]
+    present = rng.random(shape + (m,)) < 0.8
+    for cut in (slice(None), slice(0, 0)):  # vehicles, and none at all
+        args = [r[..., cut] for r in rows] + agents
+        mask = present[..., cut]
+        want = zone_targets(*args, time_gap=0.8, margin=0.3, present=mask)
+        got = zone_targets(*(torch.from_numpy(a) for a in args), time_gap=0.8, margin=0.3,
+                           present=torch.from_numpy(mask))
+        for g, w in zip(got, want):
+            assert isinstance(g, torch.Tensor)
+            np.testing.assert_array_equal(g.numpy(), w)
 
 
 def test_field_terms_compute_as_torch_on_tensors():
@@ -716,3 +743,16 @@ def test_field_terms_compute_as_torch_on_tensors():
     for g, w in zip(got, want):
         assert isinstance(g, torch.Tensor)
         np.testing.assert_allclose(g.numpy(), w, rtol=1e-12, atol=0.0)
+
+
+def test_zone_of_exactly_the_agents_width_and_margins_fits_and_the_agents_own_zone_wins():
+    # a 3 m long vehicle 5 m ahead (a blocker at 10 m/s, time gap 0.5 s); road 10 m; all exact in binary
+    def zones(y_blocker, width, agent_y, agent_wid, margin):
+        return zone_target(np.array([5.0]), np.array([y_blocker - agent_y]), np.array([8.0]), np.array([3.0]),
+                           np.array([width]), agent_y, 10.0, 3.0, agent_wid, 20.0, 10.0, time_gap=0.5, margin=margin)
+
+    # the blocker takes [3, 7]: both zones 3 m = 2 m + 2 × 0.5 m fit (a tie: the left one); a wider margin: none
+    assert zones(5.0, 4.0, 5.0, 2.0, 0.5) == (8.5, 20.0, False)
+    assert zones(5.0, 4.0, 5.0, 2.0, 0.5625) == (5.0, 8.0, True)
+    # the blocker takes [4, 4.5]: the agent at 3.875 is inside [0, 4] (distance 0), 0.625 m from [4.5, 10]
+    assert zones(4.25, 0.5, 3.875, 1.0, 0.0) == (2.0, 20.0, False)

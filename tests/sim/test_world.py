@@ -92,7 +92,7 @@ def test_runs_that_must_share_a_parameter_are_refused():
     with pytest.raises(ConfigError, match="these differ: agent_max_speed_mps$"):
         WorldParams.of([ring(0, 70.0), ring(1, 70.0),
                         merge_config(ring(2, 70.0), {"scenario": {"agent_max_speed_mps": 25.0}})])
-    with pytest.raises(ConfigError, match="at least one run"):
+    with pytest.raises(ConfigError, match="^a batch needs at least one run$"):
         WorldParams.of([])
     with pytest.raises(ConfigError, match="ring"):
         WorldParams.of([ring(0, 70.0, road={"kind": "onramp"})])
@@ -213,9 +213,9 @@ def test_a_world_pads_its_runs_to_the_rows_asked_and_refuses_what_does_not_fit()
     with pytest.raises(ValueError, match="more vehicles than the world's 4 rows"):
         world_of(states, *ROADS, rows=4)
     two_agents = replace(states[1], controlled=np.array([False, True, False, True]))
-    with pytest.raises(ConfigError, match="same number of agents"):
+    with pytest.raises(ConfigError, match="^the runs of one batch must have the same number of agents$"):
         world_of([states[0], two_agents], *ROADS)
-    with pytest.raises(ConfigError, match="same number of agents"):
+    with pytest.raises(ConfigError, match="^the runs of one batch must have the same number of agents$"):
         replace_runs(world, [1], [two_agents])
     assert replace_runs(world, [], []) is world
 
@@ -250,3 +250,26 @@ def test_a_world_moved_to_torch_and_back_holds_the_same_numbers():
         for f in fields(World):
             assert isinstance(getattr(back, f.name), np.ndarray), f.name
             np.testing.assert_array_equal(getattr(back, f.name), getattr(numpy_world, f.name), err_msg=f.name)
+
+
+def test_a_step_on_torch_is_the_numpy_step_and_a_lateral_move_of_one_metre_is_driven():
+    torch = pytest.importorskip("torch")
+    from lanefree_sumo.sim.world import world_to
+    from lanefree_sumo.sim.xp_torch import numpy_transcendentals
+
+    cfgs, states, accel = _hand_built_batch()
+    params = WorldParams.of(cfgs)
+    world = world_of(states, *ROADS)
+    new, out = step_world(world, params, accel)
+    with numpy_transcendentals():
+        twin, twin_out = step_world(world_to(world, "cpu"), params, torch.from_numpy(accel))
+    assert isinstance(twin.x, torch.Tensor) and isinstance(twin_out.ax, torch.Tensor)
+    for name in ("x", "y", "vx", "vy", "edge", "pos", "lat", "overlap", "steps"):
+        np.testing.assert_array_equal(getattr(twin, name).numpy(), getattr(new, name), err_msg=name)
+    for name in ("ax", "ay", "boundary_contact", "new_collisions"):
+        np.testing.assert_array_equal(getattr(twin_out, name).numpy(), getattr(out, name), err_msg=name)
+    # one agent moving exactly 1 m sideways (2 m/s for 0.5 s): driven, as any move but none at all
+    cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"step_s": 0.5}, "scenario": {"with_agent": True}})
+    alone = world_of([_state([100.0], [2.0], [10.0], [2.0], [10.0], [False])], [500.0], [10.2])
+    moved, _ = step_world(alone, WorldParams.of([cfg]), np.zeros((1, 2)))
+    assert (moved.y[0, 0], moved.lat[0, 0]) == (3.0, 3.0 - 5.1)
