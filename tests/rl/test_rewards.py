@@ -661,3 +661,99 @@ def test_zone_edges_are_clipped_to_the_road():
     assert target(12.0) == pytest.approx(5.0)
     # one beyond the right edge likewise
     assert target(-2.0) == pytest.approx(5.0)
+
+
+def test_zone_targets_of_many_agents_are_each_agents_zone_target_from_its_present_rows():
+    """The batched scan ``[2, 12, M]`` (agents of several runs, each with its own speed, size, desired speed and
+    road width; rows absent or non-finite) gives bit for bit what zone_target gives each agent alone."""
+    from lanefree_sumo.rl.fields_zones import zone_targets
+
+    rng = np.random.default_rng(7)
+    shape, m = (2, 12), 7
+    dx = rng.uniform(-8.0, 30.0, shape + (m,))
+    dy = rng.uniform(-6.0, 6.0, shape + (m,))
+    vxs = rng.uniform(8.0, 22.0, shape + (m,))
+    lens = rng.uniform(3.0, 5.0, shape + (m,))
+    wids = rng.uniform(1.5, 2.5, shape + (m,))
+    present = rng.random(shape + (m,)) < 0.8
+    dx[0, 3, 2] = dy[1, 5, 0] = vxs[1, 7, 4] = np.nan  # non-finite rows are absent too
+    present[0, :2] = present[1, 4] = False  # agents alone on the road among others that are not
+    agent_y, agent_vx = rng.uniform(1.0, 9.0, shape), rng.uniform(5.0, 25.0, shape)
+    agent_len, agent_wid = rng.uniform(3.0, 4.5, shape), rng.uniform(1.4, 2.0, shape)
+    v_desired, width = rng.uniform(14.0, 30.0, shape), np.where(rng.random(shape) < 0.5, 10.2, 8.0)
+    y_d, v_d, blocked = zone_targets(dx, dy, vxs, lens, wids, agent_y, agent_vx, agent_len, agent_wid, v_desired,
+                                     width, time_gap=0.8, margin=0.3, present=present)
+    assert y_d.shape == v_d.shape == blocked.shape == shape
+    outcomes = set()
+    for i in np.ndindex(*shape):
+        rows = present[i]
+        alone = zone_target(dx[i][rows], dy[i][rows], vxs[i][rows], lens[i][rows], wids[i][rows], agent_y[i],
+                            agent_vx[i], agent_len[i], agent_wid[i], v_desired[i], width[i], time_gap=0.8, margin=0.3)
+        assert (float(y_d[i]), float(v_d[i]), bool(blocked[i])) == alone, i
+        outcomes.add("alone" if not rows.any() else "blocked" if alone[2] else "zone")
+    assert outcomes == {"alone", "blocked", "zone"}  # free roads, chosen zones and blocked agents were compared
+    # every row absent, or no row at all: the road's centre at the desired speed
+    for rows in (np.zeros(shape + (m,), dtype=bool), None):
+        cut = slice(None) if rows is not None else slice(0, 0)
+        y_d, v_d, blocked = zone_targets(dx[..., cut], dy[..., cut], vxs[..., cut], lens[..., cut], wids[..., cut],
+                                         agent_y, agent_vx, agent_len, agent_wid, v_desired, width, time_gap=0.8,
+                                         margin=0.3, present=rows)
+        assert y_d.tolist() == (width / 2).tolist() and v_d.tolist() == v_desired.tolist() and not blocked.any()
+    # one size, desired speed and road for every agent (numbers): each agent's values all the same
+    y_d, v_d, blocked = zone_targets(dx[..., :0], dy[..., :0], vxs[..., :0], lens[..., :0], wids[..., :0], agent_y,
+                                     agent_vx, 3.5, 1.8, 25.0, 10.2, time_gap=0.8, margin=0.3)
+    assert y_d.shape == v_d.shape == blocked.shape == shape and (y_d == 5.1).all() and (v_d == 25.0).all()
+
+
+def test_zone_targets_compute_as_torch_on_tensors():
+    torch = pytest.importorskip("torch")
+    from lanefree_sumo.rl.fields_zones import zone_targets
+
+    rng = np.random.default_rng(8)
+    shape, m = (3, 6), 5
+    rows = [rng.uniform(-8.0, 30.0, shape + (m,)), rng.uniform(-6.0, 6.0, shape + (m,)),
+            rng.choice([12.0, 15.0], shape + (m,)), rng.uniform(3.0, 5.0, shape + (m,)),
+            rng.uniform(1.5, 2.5, shape + (m,))]
+    agents = [rng.uniform(1.0, 9.0, shape), rng.uniform(5.0, 25.0, shape), np.full(shape, 3.5), np.full(shape, 1.8),
+              rng.uniform(14.0, 30.0, shape), np.full(shape, 10.2)]
+    present = rng.random(shape + (m,)) < 0.8
+    for cut in (slice(None), slice(0, 0)):  # vehicles, and none at all
+        args = [r[..., cut] for r in rows] + agents
+        mask = present[..., cut]
+        want = zone_targets(*args, time_gap=0.8, margin=0.3, present=mask)
+        got = zone_targets(*(torch.from_numpy(a) for a in args), time_gap=0.8, margin=0.3,
+                           present=torch.from_numpy(mask))
+        for g, w in zip(got, want):
+            assert isinstance(g, torch.Tensor)
+            np.testing.assert_array_equal(g.numpy(), w)
+
+
+def test_field_terms_compute_as_torch_on_tensors():
+    """The batched environment on a device evaluates the fields on tensors: the same values, as tensors."""
+    torch = pytest.importorskip("torch")
+    from lanefree_sumo.rl.fields_zones import field_terms
+
+    rng = np.random.default_rng(4)
+    arrays = [rng.uniform(-20.0, 20.0, (3, 5)), rng.uniform(-4.0, 4.0, (3, 5)), rng.uniform(-5.0, 5.0, (3, 5)),
+              rng.uniform(-1.0, 1.0, (3, 5))]
+    sizes = (np.full((3, 1), A_LEN), np.full((3, 1), A_WID), np.full((3, 5), B_LEN), np.full((3, 5), B_WID))
+    options = {"magnitude": 0.7, "critical_exponents": (4.0, 3.0, 1.5), "broad_exponents": (2.0, 2.5, 1.0),
+               "k_r": 0.6, "e_v": 0.3, "stretch": "closing"}
+    want = field_terms(*arrays, *sizes, **options)
+    got = field_terms(*(torch.from_numpy(a) for a in (*arrays, *sizes)), **options)
+    for g, w in zip(got, want):
+        assert isinstance(g, torch.Tensor)
+        np.testing.assert_allclose(g.numpy(), w, rtol=1e-12, atol=0.0)
+
+
+def test_zone_of_exactly_the_agents_width_and_margins_fits_and_the_agents_own_zone_wins():
+    # a 3 m long vehicle 5 m ahead (a blocker at 10 m/s, time gap 0.5 s); road 10 m; all exact in binary
+    def zones(y_blocker, width, agent_y, agent_wid, margin):
+        return zone_target(np.array([5.0]), np.array([y_blocker - agent_y]), np.array([8.0]), np.array([3.0]),
+                           np.array([width]), agent_y, 10.0, 3.0, agent_wid, 20.0, 10.0, time_gap=0.5, margin=margin)
+
+    # the blocker takes [3, 7]: both zones 3 m = 2 m + 2 × 0.5 m fit (a tie: the left one); a wider margin: none
+    assert zones(5.0, 4.0, 5.0, 2.0, 0.5) == (8.5, 20.0, False)
+    assert zones(5.0, 4.0, 5.0, 2.0, 0.5625) == (5.0, 8.0, True)
+    # the blocker takes [4, 4.5]: the agent at 3.875 is inside [0, 4] (distance 0), 0.625 m from [4.5, 10]
+    assert zones(4.25, 0.5, 3.875, 1.0, 0.0) == (2.0, 20.0, False)

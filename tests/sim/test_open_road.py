@@ -153,3 +153,102 @@ def test_an_arrival_behind_a_queue_at_the_entry_enters_slowly_and_stops_in_time(
     for _ in range(80):  # 20 s; the queue wants to stand still (desired speed 0), arrivals keep coming
         collisions += len(sim.step().new_collisions)
     assert collisions == 0
+
+
+def _backend_at(x, y, vx, **sim):
+    """An :class:`OpenRoadNumpyBackend` of the default on-ramp (edges up [0, 1000), merge [1000, 1480) with the
+    ramp at y −3…0 beside the main road, down from 1480; step 0.25 s) reset to vehicles at ``x``, ``y``, ``vx``."""
+    from lanefree_sumo.sim.backends.numpy import OpenRoadNumpyBackend
+
+    cfg = merge_config(onramp(), {"sim": sim})
+    backend = OpenRoadNumpyBackend(cfg)
+    backend.reset(_rows(x, y, vx))
+    return backend
+
+
+def _rows(x, y, vx):
+    from lanefree_sumo.sim.state import VehicleState
+
+    n = len(x)
+    return VehicleState([f"v{i}" for i in range(n)], np.array(x, float), np.array(y, float), np.array(vx, float),
+                        np.zeros(n), np.full(n, 4.0), np.full(n, 1.8), np.full(n, 30.0), np.ones(n, dtype=bool))
+
+
+def _step(backend, vx_next, dy):
+    from lanefree_sumo.sim.dynamics import StepCommand
+
+    n = len(vx_next)
+    zeros = np.zeros(n)
+    return backend.step(StepCommand(np.array(vx_next, float), np.array(dy, float), zeros, zeros, zeros,
+                                    np.zeros(n, dtype=bool)))
+
+
+def test_the_numpy_backend_places_vehicles_on_edges_and_lanes_as_sumo_does():
+    """Edge by x (an edge begins at its offset), the ramp's lane 0 only beside it (y < 0), the position on the
+    edge and the offset from the lane's centre (the ramp's at −1.5 m, the main road's at 5.1 m)."""
+    backend = _backend_at([999.0, 1000.0, 1000.0, 1480.0, 1300.0, 1479.0],
+                          [5.1, -1.0, 0.0, 6.1, -2.0, 5.1], np.zeros(6))
+    assert backend._edge.tolist() == [0, 1, 1, 2, 1, 1]
+    assert backend._lane.tolist() == [0, 0, 1, 0, 0, 1]
+    assert backend._pos.tolist() == [999.0, 0.0, 0.0, 0.0, 300.0, 479.0]
+    assert backend._lat == pytest.approx([0.0, 0.5, -5.1, 1.0, -0.5, 0.0], abs=1e-12)
+    x, y, vx = _step(backend, np.zeros(6), np.zeros(6))  # standing still: every vehicle where it was
+    assert x.tolist() == [999.0, 1000.0, 1000.0, 1480.0, 1300.0, 1479.0]
+    assert y == pytest.approx([5.1, -1.0, 0.0, 6.1, -2.0, 5.1], abs=1e-12) and vx.tolist() == [0.0] * 6
+
+
+def test_the_numpy_backend_hands_vehicles_over_to_the_next_edge_as_sumo_does():
+    """The ballistic distance (v + ½(v' − v))·T along the edge; past the edge's end (not at it) the vehicle is on
+    the next edge, on the main road's lane; the last edge never ends. A ramp vehicle carried past the merge edge
+    keeps its offset from the lane centre — now the main road's — unless its lateral move is tiny: then its y."""
+    backend = _backend_at(
+        [999.0, 999.0, 1479.5, 1479.5, 2179.5, 1479.5, 1479.5, 1479.5, 1479.5],
+        [5.1, 5.1, -1.0, 6.1, 5.1, -1.0, -1.0, -1.0, -1.0],
+        np.full(9, 4.0), sumo_min_lateral_speed_mps=0.4)  # lateral moves shorter than 0.1 m are set
+    x, y, vx = _step(backend, [4.0, 6.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0],
+                     [0.0, 0.0, 0.0, 0.0, 0.0, 0.05, -0.05, 0.1, -0.5])
+    assert x.tolist() == [1000.0, 1000.25, 1480.5, 1480.5, 2180.5, 1480.5, 1480.5, 1480.5, 1480.5]
+    assert backend._edge.tolist() == [0, 1, 2, 2, 2, 2, 2, 2, 2]
+    assert backend._lane.tolist() == [0, 1, 0, 0, 0, 0, 0, 0, 0]
+    assert backend._pos.tolist() == [1000.0, 0.25, 0.5, 0.5, 700.5, 0.5, 0.5, 0.5, 0.5]
+    assert y == pytest.approx([5.1, 5.1, 5.6, 6.1, 5.1, -0.95, -1.05, 5.7, 5.1], abs=1e-9)
+    assert vx.tolist() == [4.0, 6.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0, 4.0]
+
+
+def test_the_numpy_backend_moves_vehicles_sideways_and_onto_the_main_road_as_sumo_does():
+    """A lateral move shifts the offset from the lane centre (a tiny one sets y); a ramp vehicle whose centre
+    passes the ramp's edge (1.5 m from its centre, not at it) changes to the main road's lane and keeps its y;
+    on every other lane an offset beyond 1.5 m changes nothing."""
+    backend = _backend_at([500.0, 1200.0, 1200.0, 1200.0, 1600.0, 1200.0],
+                          [5.1, -1.0, -1.0, 5.1, 5.1, -1.0], np.zeros(6), sumo_min_lateral_speed_mps=0.4)
+    x, y, vx = _step(backend, np.zeros(6), [2.0, 1.0, 1.25, 2.0, 2.0, 0.05])
+    assert x.tolist() == [500.0, 1200.0, 1200.0, 1200.0, 1600.0, 1200.0]
+    assert y == pytest.approx([7.1, 0.0, 0.25, 7.1, 7.1, -0.95], abs=1e-9)
+    assert backend._lane.tolist() == [0, 0, 1, 1, 0, 0]
+    assert backend._lat == pytest.approx([2.0, 1.5, 0.25 - 5.1, 2.0, 2.0, 0.55], abs=1e-9)
+    returned = y.copy()
+    y[:] = 0.0  # the arrays returned are the caller's: the backend keeps its own
+    x, y, vx = _step(backend, [2.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(6))
+    assert x.tolist() == [500.25, 1200.0, 1200.0, 1200.0, 1600.0, 1200.0] and vx.tolist() == [2.0] + [0.0] * 5
+    assert y == pytest.approx(returned, abs=1e-9)  # the new lane's centre and offset give the same y
+
+
+def test_the_numpy_backend_adds_and_removes_vehicles_in_order():
+    from lanefree_sumo.sim.backends.numpy import OpenRoadNumpyBackend
+
+    empty = OpenRoadNumpyBackend(onramp())  # a new backend's road is empty
+    assert [(a.tolist(), a.dtype.kind) for a in _step(empty, [], [])] == [([], "f")] * 3
+    backend = OpenRoadNumpyBackend(onramp())
+    backend.add(_rows([100.0, 1200.0], [5.1, -1.0], [8.0, 4.0]))
+    assert backend._pos.tolist() == [100.0, 200.0] and backend._vx.dtype.kind == "f"
+    assert backend._edge.tolist() == [0, 1] and backend._lane.tolist() == [0, 0]
+    backend.add(_rows([1010.0, 0.0], [6.1, 3.1], [2.0, 0.0]))
+    x, y, vx = _step(backend, [8.0, 4.0, 2.0, 0.0], np.zeros(4))
+    assert x.tolist() == [102.0, 1201.0, 1010.5, 0.0] and vx.tolist() == [8.0, 4.0, 2.0, 0.0]
+    assert y == pytest.approx([5.1, -1.0, 6.1, 3.1], abs=1e-12)
+    assert backend._lane.tolist() == [0, 0, 1, 0]
+    backend.remove(np.array([False, True, False, True]))
+    x, y, vx = _step(backend, [4.0, 4.0], [0.0, 0.5])
+    assert x.tolist() == [1202.0, 0.5] and vx.tolist() == [4.0, 4.0]  # (0 + ½·4)·0.25 from rest
+    assert y == pytest.approx([-1.0, 3.6], abs=1e-12)
+    assert backend._edge.tolist() == [1, 0] and backend._lane.tolist() == [0, 0]

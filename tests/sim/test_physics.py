@@ -3,6 +3,7 @@ dynamics, collisions counted once per contact, spawning."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -16,6 +17,8 @@ from lanefree_sumo.sim.forces import (
     driver_accelerations,
     edge_bound,
     ramp_g,
+    strongest_mask,
+    symmetric_trapezoid,
     trapezoid_h,
 )
 from lanefree_sumo.sim.network import EDGES, edge_to_ring, ring_to_edge
@@ -97,6 +100,12 @@ def test_standstill_gives_finite_forces():
         ax, ay = accel(state)
     assert np.isfinite(ax).all() and np.isfinite(ay).all()
     assert ax[1] > 0  # nobody ahead within reach: accelerates towards its desired speed
+
+
+def test_edge_bound_at_a_discriminant_of_exactly_zero_is_the_root():
+    # T = 0.25, ū = −1: disc = T²ū² − 4Tūv + 8ū(Tv − d) = 0 at v = 4.0625, d = 0.5 (exact in binary); the double
+    # root (Tū − 2v)/(2T) = −16.75, where a negative discriminant gives ū
+    assert edge_bound(np.array([4.0625, 4.0625]), np.array([0.5, 0.4]), T, -1.0).tolist() == [-16.75, -1.0]
 
 
 def test_edge_bound_stops_exactly_at_the_edge():
@@ -325,6 +334,128 @@ def test_agent_accelerations_are_clipped_to_bounds_top_speed_and_the_lateral_rat
     assert all(type(v) is float for v in clip_acceleration(0.0, 0.0, bounds, 10.0, 20.0, T))
 
 
+def test_the_dynamics_and_the_strongest_forces_compute_as_torch_on_tensors():
+    """The batched environment on a device passes tensors — to the agents' clip some of its arrays as tensors and
+    others as numbers: the namespace is the tensor's, whichever argument it is, and the numbers numpy's."""
+    torch = pytest.importorskip("torch")
+    bounds = AccelerationBounds(ax_min=-3.0, ax_max=2.0, ay_min=-6.5, ay_max=8.0)
+    for ax, ay, vx in ((torch.tensor([5.0]), 9.0, 19.75), (5.0, torch.tensor([9.0]), 19.75),
+                       (5.0, 9.0, torch.tensor([19.75]))):
+        got = clip_accelerations(ax, ay, bounds, vx, 20.0, T)
+        assert all(isinstance(v, torch.Tensor) for v in got)
+        assert [v.flatten().tolist() for v in got] == [[1.0], [8.0]]
+    arrays = [np.array([0.0, 1.0]), np.array([5.0, 9.5]), np.array([2.0, 0.5]), np.array([1.0, 1.0]),
+              np.full(2, 1.8), np.array([-10.0, 1.0]), np.array([0.5, 2.0])]
+    want = plan_step(*arrays, T, W, 0.001)
+    got = plan_step(*(torch.from_numpy(a) for a in arrays), T, W, 0.001)
+    for f in dataclasses.fields(want):
+        assert isinstance(getattr(got, f.name), torch.Tensor), f.name
+        np.testing.assert_array_equal(getattr(got, f.name).numpy(), getattr(want, f.name), err_msg=f.name)
+    assert want.boundary_contact.tolist() == [False, True] and want.vx_next.tolist() == [0.0, 0.75]
+    # the strongest forces: fewer rows than k (every non-zero one), and rows with more non-zero ones than k
+    rng = np.random.default_rng(2)
+    for mag, k in ((np.array([[[0.0, 0.5, 0.2], [0.3, 0.0, 0.0], [0.1, 0.4, 0.0]]] * 2), 6),
+                   (rng.permutation(np.linspace(0.0, 1.0, 2 * 8 * 8)).reshape(2, 8, 8), 3)):
+        chosen = strongest_mask(torch.from_numpy(mag), k)
+        assert isinstance(chosen, torch.Tensor)
+        np.testing.assert_array_equal(chosen.numpy(), strongest_mask(mag, k))
+    assert strongest_mask(mag, 3).sum(axis=-1).tolist() == [[3] * 8, [3] * 8]
+    # the road-edge bound and the force ramps: the tensor's namespace whichever argument is one
+    for v, d in ((torch.tensor([4.0]), 0.5), (4.0, torch.tensor([0.5]))):
+        bound = edge_bound(v, d, T, -1.0)
+        assert isinstance(bound, torch.Tensor) and bound.tolist() == edge_bound(np.array([4.0]), 0.5, T, -1.0).tolist()
+    for t, w, l in ((torch.tensor([2.5]), 1.0, 2.0), (2.5, torch.tensor([1.0]), 2.0), (2.5, 1.0, torch.tensor([2.0]))):
+        h = symmetric_trapezoid(t, w, l)
+        assert isinstance(h, torch.Tensor) and h.tolist() == [0.5]
+    # the driver model over a padded batch of runs, and over runs without padding (the diagonal cleared alone)
+    from lanefree_sumo.sim.xp_torch import numpy_transcendentals
+
+    cfg = merge_config(DriverConfig(), {"neighbour_range_m": 40.0})  # k = 6: no forces tie for the last place
+    n = 9
+    columns = [rng.uniform(0.0, 120.0, (2, n)), rng.uniform(1.2, 8.8, (2, n)), rng.uniform(0.0, 25.0, (2, n)),
+               rng.uniform(-1.0, 1.0, (2, n)), np.full((2, n), 4.0), np.full((2, n), 1.8), np.full((2, n), 22.0)]
+    present = np.ones((2, n), dtype=bool)
+    present[1, 7:] = False
+    ring = np.array([[120.0], [100.0]])
+    for mask in (present, None):
+        want = driver_accelerations(VehicleState([], *columns, present), cfg, ring, W, T, 0.05, present=mask)
+        twin = VehicleState([], *(torch.from_numpy(c) for c in columns), torch.from_numpy(present))
+        with numpy_transcendentals():
+            got = driver_accelerations(twin, cfg, torch.from_numpy(ring), W, T, 0.05,
+                                       present=None if mask is None else torch.from_numpy(mask))
+        rows = present if mask is not None else slice(None)  # padded rows' values are no one's
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g.numpy()[rows], w[rows])
+
+
+def test_a_padded_batch_of_runs_is_driven_as_each_run_alone_bit_for_bit():
+    """Runs of 9, 13 and 20 vehicles padded to 24 rows, with nudging on: every sum over neighbours (repulsions,
+    nudges, the diagnostics) rounds as the run's own, and the x-wall's leader is each row's."""
+    cfg = merge_config(DriverConfig(), {"nudging": True, "neighbour_range_m": 60.0})
+    rng = np.random.default_rng(11)
+    sizes, rows, rings = [9, 13, 20], 24, [150.0, 120.0, 200.0]
+    runs = [VehicleState([f"v{i}" for i in range(n)], rng.uniform(0.0, ring, n), rng.uniform(1.2, W - 1.2, n),
+                         rng.uniform(5.0, 25.0, n), rng.uniform(-1.0, 1.0, n), rng.uniform(3.0, 5.0, n),
+                         rng.uniform(1.5, 2.2, n), rng.uniform(15.0, 28.0, n), np.ones(n, bool))
+            for n, ring in zip(sizes, rings)]
+    present = np.arange(rows)[None, :] < np.array(sizes)[:, None]
+    columns = []
+    for name in ("x", "y", "vx", "vy", "length", "width", "v_desired"):
+        column = np.zeros((3, rows)) if name != "y" else np.full((3, rows), W / 2)
+        for k, run in enumerate(runs):
+            column[k, :run.n] = getattr(run, name)
+        columns.append(column)
+    details: dict[str, np.ndarray] = {}
+    ax, ay = driver_accelerations(VehicleState([], *columns, present), cfg, np.array(rings)[:, None], W, T, 0.05,
+                                  details=details, present=present)
+    for k, (run, ring) in enumerate(zip(runs, rings)):
+        alone: dict[str, np.ndarray] = {}
+        ax_k, ay_k = driver_accelerations(run, cfg, ring, W, T, 0.05, details=alone)
+        np.testing.assert_array_equal(ax[k, :run.n], ax_k)
+        np.testing.assert_array_equal(ay[k, :run.n], ay_k)
+        for name, value in alone.items():
+            np.testing.assert_array_equal(details[name][k, :run.n], value, err_msg=name)
+    assert details["wall_binds"].any() and np.isfinite(details["leader_gap_m"]).any()
+
+
+def test_the_driver_keeps_to_each_vehicles_own_bounds():
+    """A vehicle between bounds 2 and 5 m (an open road's part) drives as one at y − 2 on a road 3 m wide."""
+    cfg = DriverConfig()
+    inside = make_state([100.0], [3.0], [20.0], [20.0], vy=[-1.0], width=1.5)  # 0.25 m from its right bound
+    shifted = make_state([100.0], [1.0], [20.0], [20.0], vy=[-1.0], width=1.5)
+    ay = driver_accelerations(inside, cfg, L, W, T, bounds=(np.array([2.0]), np.array([5.0])))[1]
+    assert ay.tolist() == driver_accelerations(shifted, cfg, L, 3.0, T)[1].tolist()
+    assert ay[0] > driver_accelerations(inside, cfg, L, W, T)[1][0]  # the bound pushes it back to the left
+
+
+def test_a_vehicle_without_a_leader_has_no_wall_and_no_leader_gap():
+    # alone and faster than desired: the target-speed force brakes it, no x-wall (whatever the wall would be)
+    details: dict[str, np.ndarray] = {}
+    driver_accelerations(make_state([100.0, 300.0], [5.0, 5.0], [21.0, 21.0], [20.0, 20.0]), DriverConfig(), L, W,
+                         T, details=details)
+    assert details["wall_binds"].tolist() == [False, False] and np.isnan(details["leader_gap_m"]).all()
+
+
+def test_the_strongest_forces_are_chosen_row_by_row_in_a_batch_of_runs():
+    mag = np.zeros((2, 8, 8))
+    mag[0, 0, 1:6] = [0.5, 0.4, 0.3, 0.2, 0.1]  # a row with more than k = 3 forces, no column with more than 1
+    mag[1, 3, [0, 2, 7]] = [0.2, 0.9, 0.4]  # exactly k
+    mag[1, 5, [1, 4]] = [0.3, 0.6]
+    expected = np.zeros(mag.shape, dtype=bool)
+    expected[0, 0, [1, 2, 3]] = expected[1, 3, [0, 2, 7]] = expected[1, 5, [1, 4]] = True
+    np.testing.assert_array_equal(strongest_mask(mag, 3), expected)
+    for k in range(2):
+        np.testing.assert_array_equal(strongest_mask(mag[k], 3), expected[k])
+
+
+def test_the_road_edge_bound_keeps_no_clearance_unless_one_is_given():
+    state = make_state([100.0], [W - 0.9 - 0.3], [20.0], [20.0], vy=[0.4])  # 0.3 m from the left edge, drifting left
+    cfg = DriverConfig()
+    ay = driver_accelerations(state, cfg, L, W, T)[1]
+    assert ay.tolist() == driver_accelerations(state, cfg, L, W, T, edge_clearance=0.0)[1].tolist()
+    assert ay[0] > driver_accelerations(state, cfg, L, W, T, edge_clearance=0.2)[1][0]
+
+
 def test_negative_speed_is_floored():
     cmd = plan_step(np.zeros(1), np.full(1, 5.0), np.full(1, 0.5), np.zeros(1), np.full(1, 1.8),
                     np.full(1, -4.5), np.zeros(1), T, W, 0.001)
@@ -394,14 +525,16 @@ def test_config_rejects_unknown_keys_with_the_valid_ones():
 
 
 def test_fast_symmetric_trapezoid_equals_the_general_h():
-    from lanefree_sumo.sim.forces import symmetric_trapezoid
-
     rng = np.random.default_rng(0)
     t = rng.uniform(-30, 30, 500)
     w = rng.uniform(0.0, 8.0, 500)
     w[:50] = 0.0  # zero-width ramps: steps
     l = rng.uniform(0.0, 15.0, 500)
     assert symmetric_trapezoid(np.abs(t), w, l) == pytest.approx(trapezoid_h(t, w, l, w), abs=1e-12)
+    # a step (w = 0, a standing vehicle's longitudinal ramp) at exactly its edge |t| = l is 1, as H's
+    steps = symmetric_trapezoid(np.array([2.0, 2.0, 2.5]), np.zeros(3), np.array([2.5, 2.0, 2.0]))
+    assert steps.tolist() == [1.0, 1.0, 0.0] == trapezoid_h(np.array([2.0, 2.0, 2.5]), 0.0, np.array([2.5, 2.0, 2.0]),
+                                                            0.0).tolist()
 
 
 def test_force_details_report_the_wall_leader_and_its_gap():
