@@ -73,6 +73,9 @@ def check_device(device: str) -> None:
     if device == "cuda":
         import torch
 
+        if torch.version.cuda is None:  # `make venv` installs torch's CPU build
+            raise ConfigError(f"train.device = cuda, but this torch ({torch.__version__}) is a CPU-only build; "
+                              "install a CUDA build of torch to train on a GPU, or train on the CPU with --device cpu")
         if not torch.cuda.is_available():
             raise ConfigError("train.device = cuda, but torch finds no CUDA GPU on this machine; "
                               "train on the CPU with --device cpu")
