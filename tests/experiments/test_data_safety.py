@@ -260,7 +260,7 @@ def test_a_second_writer_of_the_same_output_is_refused_while_the_first_runs(tmp_
     """Two simulations into one --out: the second is refused at once (with --overwrite too), naming the first's
     process; the first one's output is what ends up there."""
     out = tmp_path / "s"
-    first = lanefree_popen("simulate", "--seconds", "400", "--seed", "1", "--backend", "numpy", "--out", str(out))
+    first = lanefree_popen("simulate", "--seconds", "4000", "--seed", "1", "--backend", "numpy", "--out", str(out))
     wait_for(lambda: any(tmp_path.glob(".s.new-*/trajectory.csv")), first, "the first simulation writing")
     for extra in ((), ("--overwrite",)):
         res = lanefree("simulate", "--seconds", "5", "--seed", "2", "--backend", "numpy", "--out", str(out), *extra)
