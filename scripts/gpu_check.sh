@@ -10,6 +10,7 @@
 # Packages the machine lacks (gymnasium, stable-baselines3) are installed from wheels in .whl/ when present.
 set -uo pipefail
 mode=${1:-quick}
+began=$(date +%s)
 OUT=${OUT:-runs/gpu_check}
 PY=${PYTHON:-python3}
 EPISODES=${EPISODES:-100}
@@ -38,9 +39,11 @@ EOF
   exit 0
 fi
 
-$PY -m lanefree_sumo.tools.bench --gpu --budget-s "${BUDGET_S:-300}" 2>&1 | tee "$OUT/bench_gpu.md"
-# where an iteration's GPU time goes: DDPG, K = 110, no graph (every kernel seen), 5 iterations
-$PY - > "$OUT/profile_ddpg_k110.txt" 2>&1 <<'PROFILE'
+# BENCH_ARGS: other rows than the bench's defaults (each K compiles the step and the update anew)
+$PY -m lanefree_sumo.tools.bench --gpu --budget-s "${BUDGET_S:-300}" ${BENCH_ARGS:-} 2>&1 | tee "$OUT/bench_gpu.md"
+# where an iteration's GPU time goes: DDPG, K = 110, no graph (every kernel seen; compiled as the loop runs), 5
+# iterations
+[ "${PROFILE:-1}" = 1 ] && $PY - > "$OUT/profile_ddpg_k110.txt" 2>&1 <<'PROFILE'
 import torch
 from torch.profiler import ProfilerActivity, profile
 from lanefree_sumo.tools.bench_gpu import _loop
@@ -59,6 +62,10 @@ print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25))
 PROFILE
 LEARN=${LEARN:-/tmp/learn}  # outside $OUT: only 8 files come back from a device call
 LIMIT=${LEARN_LIMIT_S:-330}  # the batches get SIGTERM (a checkpoint, then they stop) after this many seconds
+if [ -n "${DEADLINE_S:-}" ]; then  # or: what is left until DEADLINE_S seconds after the script began, less 25 s
+  LIMIT=$(( DEADLINE_S - ($(date +%s) - began) - 25 ))
+fi
+echo "learning check: $LIMIT s"
 start=$(date +%s)
 learn() {  # NAME, then train's options
   local name=$1; shift

@@ -22,6 +22,7 @@ def test_the_gpu_bench_runs_on_the_cpu_and_prints_rows_that_parse():
     lines = res.stdout.splitlines()
     assert re.match(r"device: cpu — .+; torch \S+; CUDA \S+", lines[0])
     assert lines[1].startswith("host reads inside an iteration: not checked")
+    assert lines[2] == "compiled ring step against the step as written: not compiled on this device"
     env = [re.fullmatch(r"\| env \| (\d+) \| (\d+) \| ([\d.]+) \|", line) for line in lines]
     assert [(int(m[1]), int(m[2])) for m in env if m] == [(1, 3), (3, 3)] and all(float(m[3]) > 0 for m in env if m)
     train = [re.fullmatch(r"\| train \| (\w+) \| (\d+) \| (\d+) \| ([\d.]+) \| ([\d.]+) \|", line) for line in lines]

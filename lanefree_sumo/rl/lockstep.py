@@ -2,11 +2,15 @@
 
 An iteration: every run acts (:meth:`~.algorithms.batched.learner.BatchedLearner.act_on_device`), the batched
 ring steps (:meth:`~.batched_env.BatchedRingEnv.step_on_device`), the transition is stored and, past
-``learning_starts``, every run takes one gradient step (:meth:`~.algorithms.batched.learner.BatchedLearner.
-update_on_device`). Nothing in it reads the device from the host: the random numbers come from the device's
-generator and the step counts live there too. On CUDA the iteration of each phase (random actions; acting;
-acting and updating) runs once eagerly, is then captured as one CUDA graph and replayed from then on; on the CPU
-the same functions run eagerly (the tests run them there).
+``learning_starts``, every run takes one gradient step on a minibatch drawn on the device
+(:meth:`~.algorithms.batched.learner.BatchedLearner.sample_on_device`). Nothing in it reads the device from the
+host: the random numbers come from the device's generator and the step counts live there too. On CUDA the
+iteration of each phase (random actions; acting; acting and updating) runs once eagerly, is then captured as one
+CUDA graph and replayed from then on; on the CPU the same functions run eagerly (the tests run them there).
+
+A graph removes the launch cost of the iteration's ~870 small kernels, not their own cost. So on CUDA the ring's
+step and the gradient step are also compiled (``torch.compile``, each as one graph: its elementwise work fused into
+a few kernels) before the capture; the acting and storing, which draw random numbers, stay as they are.
 
 The host keeps its own counts (steps, the replay position, the update count) in step with the device's. Episodes
 end by the time limit only, all runs of a batch together (they share the episode length); between episodes the
@@ -20,6 +24,8 @@ for bit; prioritised replay and ``episode.terminate_on_collision`` are not run h
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
 from dataclasses import fields, replace
 from typing import Any
 
@@ -51,9 +57,13 @@ class Lockstep:
     :param learner: None: every run drives uniformly random actions and nothing learns (the environment
         alone, as the GPU benchmark times it).
     :param seed: seeds the device's random numbers (on CUDA the device's default generator, which a graph holds).
-    :param graphs: capture each phase's iteration as a CUDA graph (default: on CUDA)."""
+    :param graphs: capture each phase's iteration as a CUDA graph (default: on CUDA).
+    :param compile: the ``torch.compile`` backend the ring's step and the gradient step are compiled with
+        (``"inductor"``: fused kernels; ``"aot_eager"``: traced but the same operations, as the CPU tests use it);
+        None: not compiled. Default: ``"inductor"`` on CUDA, None elsewhere."""
 
-    def __init__(self, env: Any, learner: Any, seed: int, graphs: bool | None = None) -> None:
+    def __init__(self, env: Any, learner: Any, seed: int, graphs: bool | None = None,
+                 compile: str | None | bool = True) -> None:
         why = lockstep_refusal(env, learner)
         if why is not None:
             raise ConfigError(f"the lockstep loop cannot run this batch: {why}")
@@ -72,6 +82,11 @@ class Lockstep:
         self.generator = generator
         if learner is not None:
             learner.use_device_streams(generator)
+        backend = ("inductor" if self.cuda else None) if compile is True else compile or None
+        self.compiled = backend
+        """The backend the ring's step and the gradient step are compiled with (None: run as written)."""
+        self._step = self._compiled(env.step_on_device)
+        self._learn = None if learner is None else self._compiled(learner._learn)  # the gradient step on indices
         self.active = th.zeros(env.runs, dtype=th.bool, device=device)
         """The runs scored (not stopped, not finished), on the device; :meth:`start` sets it."""
         self.flagged = th.zeros(env.runs, dtype=th.bool, device=device)
@@ -81,6 +96,34 @@ class Lockstep:
         self._world: World | None = None
         self._graphs: dict[tuple[bool, bool], Any] = {}
         self._pool: Any = None
+
+    def _compiled(self, fn: Callable[..., Any]) -> Callable[..., Any]:
+        """``fn`` compiled with :attr:`compiled`'s backend as one graph. Where its first call fails (a machine
+        without the compiler's tools), a warning, and every function of the loop runs as written from then on
+        (an error of ``fn`` itself then shows as it does uncompiled)."""
+        if self.compiled is None:
+            return fn
+        compiled = th.compile(fn, backend=self.compiled, fullgraph=True)
+        tried = [False]
+
+        def call(*args: Any) -> Any:
+            if self.compiled is None:
+                return fn(*args)
+            if tried[0]:
+                return compiled(*args)
+            try:
+                out = compiled(*args)
+            except Exception as exc:  # noqa: BLE001 - any failure of the compiler's tool chain
+                cause = getattr(exc, "inner_exception", None) or exc.__cause__ or exc
+                warnings.warn(f"torch.compile ({self.compiled}) failed, so the lockstep loop runs uncompiled: "
+                              f"{type(cause).__name__}: {(str(cause).splitlines() or [''])[0]}",
+                              RuntimeWarning, stacklevel=2)
+                self.compiled = None
+                return fn(*args)
+            tried[0] = True
+            return out
+
+        return call
 
     # -- the iteration's buffers ------------------------------------------------------------------------------
     def _current(self) -> dict[str, th.Tensor]:
@@ -128,13 +171,14 @@ class Lockstep:
         assert self.obs is not None
         if learner is None:
             draws = th.rand((env.runs, 2), generator=self.generator, dtype=th.float64, device=self.active.device)
-            obs, reward, bad = env.step_on_device(draws * 2.0 - 1.0, self.active)
+            obs, reward, bad = self._step(draws * 2.0 - 1.0, self.active)
         else:
             actions, stored = learner.act_on_device(self.obs, random)
-            obs, reward, bad = env.step_on_device(actions, self.active)
+            obs, reward, bad = self._step(actions, self.active)
             learner.store_on_device(self.obs, stored, reward.to(th.float32), obs)
             if update:
-                learner.update_on_device()
+                assert self._learn is not None
+                self._learn(learner.sample_on_device())
         self.flagged |= bad
         self.obs = obs
         self._pin()

@@ -51,6 +51,11 @@ _DEFAULTS = RewardConfig()
 # --------------------------------------------------------------------------------------------
 
 
+def _ndim(value: Any) -> int:
+    """The number of axes of an array, a tensor or a number (0)."""
+    return value.ndim if hasattr(value, "ndim") else int(np.ndim(value))
+
+
 def longitudinal_cost(
     vx: Any,
     v_d_eff: Any,
@@ -94,7 +99,7 @@ def reciprocal_reward(
     vehicle).  ``use_collision`` / ``use_overtake`` switch the r_c / r_o terms off (presets; one per
     row when runs differ). Arrays broadcast; scalar inputs give a ``float``.
     """
-    if all(np.ndim(v) == 0 for v in (c_x, c_y, c_f, collided, overtook, w_x, use_collision)):  # plain floats
+    if max(_ndim(v) for v in [c_x, c_y, c_f, collided, overtook, w_x, use_collision]) == 0:  # plain floats
         r0 = epsilon_r / (epsilon_r + float(w_x) * float(c_x) + float(w_y) * float(c_y)  # type: ignore[arg-type]
                           + float(w_f) * float(c_f))  # type: ignore[arg-type]
         hit, passed = bool(collided), bool(overtook)

@@ -78,7 +78,7 @@ def wrap(dx: np.ndarray | float, ring_length: np.ndarray | float) -> np.ndarray:
 def per_pair(value: np.ndarray | float) -> np.ndarray | float:
     """A per-run value of shape ``[..., 1]`` (broadcasting against ``[..., N]``) as ``[..., 1, 1]`` for ``[..., N, N]``
     pair matrices; a scalar stays a scalar."""
-    return value if isinstance(value, float | int) or not value.ndim else value[..., None]
+    return value if isinstance(value, (float, int)) or not value.ndim else value[..., None]
 
 
 def pairwise_offsets(state: Bodies, ring_length: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:

@@ -65,10 +65,10 @@ class TorchNamespace:
         dtype = self._dtype(dtype)
         if isinstance(a, torch.Tensor):
             return a if dtype is None or a.dtype == dtype else a.to(dtype)
-        if isinstance(a, bool | int | float):  # filled on the device: no copy from the host
+        if isinstance(a, (bool, int, float)):  # filled on the device: no copy from the host
             return torch.full((), a, dtype=dtype or (torch.bool if isinstance(a, bool) else torch.int64
                                                      if isinstance(a, int) else torch.float64), device=self.device)
-        if dtype is None and isinstance(a, float | np.floating) or (isinstance(a, np.ndarray) and a.dtype.kind == "f"
+        if dtype is None and isinstance(a, (float, np.floating)) or (isinstance(a, np.ndarray) and a.dtype.kind == "f"
                                                                     and dtype is None):
             dtype = torch.float64
         return torch.as_tensor(np.asarray(a) if isinstance(a, np.generic) else a, dtype=dtype, device=self.device)
@@ -91,12 +91,14 @@ class TorchNamespace:
         device, not copied from the host (a copy would synchronise with the device)."""
         if isinstance(x, torch.Tensor):
             return x
-        if isinstance(x, np.ndarray | np.generic):
+        if isinstance(x, (np.ndarray, np.generic)):
             return self.asarray(x)
         if like is not None and like.is_floating_point():
             dtype = like.dtype
         else:
             dtype = torch.bool if isinstance(x, bool) else torch.int64 if isinstance(x, int) else torch.float64
+        if torch.compiler.is_compiling():  # a traced constant: the compiler folds it into its kernels
+            return torch.full((), x, dtype=dtype, device=self.device)
         key = (type(x), repr(x), dtype)  # repr: −0.0 is not 0.0
         constant = self._constants.get(key)
         if constant is None:  # made once: a step then launches no fill per number
@@ -147,16 +149,16 @@ class TorchNamespace:
         return torch.isfinite(self.asarray(a))
 
     def maximum(self, a: Any, b: Any) -> Any:
-        if isinstance(a, torch.Tensor) and isinstance(b, float | int) and a.is_floating_point():
+        if isinstance(a, torch.Tensor) and isinstance(b, (float, int)) and a.is_floating_point():
             return torch.clamp(a, min=b)  # max(a, b) with the number as a kernel argument: the same values
-        if isinstance(b, torch.Tensor) and isinstance(a, float | int) and b.is_floating_point():
+        if isinstance(b, torch.Tensor) and isinstance(a, (float, int)) and b.is_floating_point():
             return torch.clamp(b, min=a)
         return torch.maximum(*self._pair(a, b))
 
     def minimum(self, a: Any, b: Any) -> Any:
-        if isinstance(a, torch.Tensor) and isinstance(b, float | int) and a.is_floating_point():
+        if isinstance(a, torch.Tensor) and isinstance(b, (float, int)) and a.is_floating_point():
             return torch.clamp(a, max=b)
-        if isinstance(b, torch.Tensor) and isinstance(a, float | int) and b.is_floating_point():
+        if isinstance(b, torch.Tensor) and isinstance(a, (float, int)) and b.is_floating_point():
             return torch.clamp(b, max=a)
         return torch.minimum(*self._pair(a, b))
 
@@ -164,10 +166,10 @@ class TorchNamespace:
         return self.minimum(self.maximum(a, lo), hi)
 
     def where(self, cond: Any, a: Any, b: Any) -> Any:
-        if isinstance(a, torch.Tensor) and isinstance(b, float | int) and (a.is_floating_point() or
+        if isinstance(a, torch.Tensor) and isinstance(b, (float, int)) and (a.is_floating_point() or
                                                                            isinstance(b, int)):
             return torch.where(cond, a, b)  # the number as a kernel argument, in the tensor's dtype
-        if isinstance(b, torch.Tensor) and isinstance(a, float | int) and (b.is_floating_point() or
+        if isinstance(b, torch.Tensor) and isinstance(a, (float, int)) and (b.is_floating_point() or
                                                                            isinstance(a, int)):
             return torch.where(cond, a, b)
         a, b = self._pair(a, b)

@@ -53,7 +53,8 @@ def _configs(runs: int, seed: int, algo: str = "ddpg") -> list[LaneFreeConfig]:
         for k in range(runs)]
 
 
-def _loop(runs: int, device: str, seed: int, algo: str | None, graphs: bool | None = None) -> Any:
+def _loop(runs: int, device: str, seed: int, algo: str | None, graphs: bool | None = None,
+          compile: str | None | bool = True) -> Any:
     """A started :class:`~lanefree_sumo.rl.lockstep.Lockstep` of ``runs`` rings (``algo`` None: no learner)."""
     from lanefree_sumo.rl.batched_env import BatchedRingEnv
     from lanefree_sumo.rl.env import action_space, observation_space
@@ -64,16 +65,23 @@ def _loop(runs: int, device: str, seed: int, algo: str | None, graphs: bool | No
     env = BatchedRingEnv(cfgs, device=device)
     learner = None if algo is None else build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]),
                                                       action_space(cfgs[0]), device=device)
-    loop = Lockstep(env, learner, seed, graphs=graphs)
+    loop = Lockstep(env, learner, seed, graphs=graphs, compile=compile)
     loop.start(env.reset())
     return loop
 
 
+WARM_S: list[float] = []
+"""The seconds the untimed iterations of each timed loop took (on CUDA: compiling and capturing), in order."""
+
+
 def _timed(loop: Any, warm: int, steps: int, device: str) -> float:
-    """Iterations/s of ``loop`` over ``steps`` iterations after ``warm`` untimed ones."""
+    """Iterations/s of ``loop`` over ``steps`` iterations after ``warm`` untimed ones (their time is appended to
+    :data:`WARM_S`)."""
+    t0 = time.perf_counter()
     for _ in range(warm):
         loop.iterate()
     _sync(device)
+    WARM_S.append(time.perf_counter() - t0)
     t0 = time.perf_counter()
     for _ in range(steps):
         loop.iterate()
@@ -88,11 +96,11 @@ def env_rate(runs: int, steps: int, device: str, seed: int = 0) -> float:
 
 
 def train_rate(runs: int, steps: int, device: str, seed: int = 0, algo: str = "ddpg",
-               graphs: bool | None = None) -> float:
+               graphs: bool | None = None, compile: str | None | bool = True) -> float:
     """Lockstep iterations/s of ``runs`` batched ``algo`` runs on ``device`` (act, env step, store, one update per
-    run), timed over ``steps`` iterations once updates run (``graphs``: as :class:`~lanefree_sumo.rl.lockstep.
-    Lockstep`'s)."""
-    loop = _loop(runs, device, seed, algo, graphs)
+    run), timed over ``steps`` iterations once updates run (``graphs``, ``compile``: as :class:`~lanefree_sumo.rl.
+    lockstep.Lockstep`'s)."""
+    loop = _loop(runs, device, seed, algo, graphs, compile)
     return _timed(loop, loop.learner.learning_starts + 3, steps, device)
 
 
@@ -104,7 +112,7 @@ def host_reads(device: str, seed: int = 0) -> str:
     if torch.device(device).type != "cuda":
         return "not checked (torch's sync debug mode watches CUDA only)"
     for algo in ("ddpg", "dqn"):
-        loop = _loop(2, device, seed, algo, graphs=False)
+        loop = _loop(2, device, seed, algo, graphs=False, compile=None)
         for _ in range(loop.learner.learning_starts + 1):
             loop.iterate()
         torch.cuda.synchronize()
@@ -116,6 +124,31 @@ def host_reads(device: str, seed: int = 0) -> str:
         finally:
             torch.cuda.set_sync_debug_mode("default")
     return "none"
+
+
+def compiled_drift(device: str, runs: int = 64, steps: int = 100, seed: int = 0) -> str:
+    """How far the compiled ring step (:class:`~lanefree_sumo.rl.lockstep.Lockstep`'s default on CUDA) strays from
+    the step as written, the same rings under the same random actions: the largest |Δx| (m) and |Δvx| (m/s) after
+    one step and after ``steps`` (fused kernels may round otherwise; the rings are chaotic, so the gap grows)."""
+    import torch
+
+    loops = [_loop(runs, device, seed, None, graphs=False, compile=c) for c in (True, None)]
+    if loops[0].compiled is None:
+        return "not compiled on this device"
+    out = []
+    for step in range(1, steps + 1):
+        state = torch.cuda.get_rng_state(loops[0].active.device) if loops[0].cuda else None
+        for loop in loops:
+            if state is not None:
+                torch.cuda.set_rng_state(state, loop.active.device)
+            else:
+                loop.generator.manual_seed(seed + step)
+            loop.iterate()
+        if step in (1, steps):
+            a, b = (loop.env.world for loop in loops)
+            out.append(f"after {step} step(s) |Δx| ≤ {float((a.x - b.x).abs().max()):.1e} m, "
+                       f"|Δvx| ≤ {float((a.vx - b.vx).abs().max()):.1e} m/s")
+    return f"{loops[0].compiled}, K = {runs}: " + "; ".join(out)
 
 
 def lockstep_rate(env: Any, learner: Any, warm: int, steps: int, device: Any = None) -> float:
@@ -157,6 +190,10 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
     from lanefree_sumo.experiments.batch import check_device
 
     check_device(torch.device(device).type)
+    import torch._dynamo
+
+    # every row is a new K, so a new compilation of the same functions (K is a size the code specialises on)
+    torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     start = time.perf_counter()
     lines: list[str] = []
 
@@ -169,6 +206,8 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
 
     row(describe(device))
     row(f"host reads inside an iteration: {host_reads(device, seed)}")
+    drift_runs = max(env_sizes, default=64)  # the env row of that size then reuses the compiled step
+    row(f"compiled ring step against the step as written: {compiled_drift(device, drift_runs, seed=seed)}")
     row("")
     row("Environment alone (float64, random actions drawn on the device):")
     row("")
@@ -181,8 +220,8 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
         row(f"| env | {k} | {env_steps} | {env_rate(k, env_steps, device, seed):.0f} |")
     graphs = torch.device(device).type == "cuda"
     row("")
-    row(f"Training, one iteration {'a CUDA graph' if graphs else 'eager'} (the paper's networks and batch 64; "
-        f"updates from step {LEARNING_STARTS}):")
+    row(f"Training, one iteration {'a CUDA graph, the ring step and the update compiled' if graphs else 'eager'} "
+        f"(the paper's networks and batch 64; updates from step {LEARNING_STARTS}):")
     row("")
     row("| section | algo | K | iterations | iterations/s | ms/iteration |")
     row("|---|---|---|---|---|---|")
@@ -195,8 +234,9 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
             rates[algo, k] = rate = train_rate(k, train_steps, device, seed, algo)
             row(f"| train | {algo} | {k} | {train_steps} | {rate:.1f} | {1000 / rate:.2f} |")
     if graphs and left():
-        rate = train_rate(GRID_DDPG_RUNS, min(train_steps, 30), device, seed, "ddpg", graphs=False)
-        row(f"| train, no graph | ddpg | {GRID_DDPG_RUNS} | {min(train_steps, 30)} | {rate:.1f} | {1000 / rate:.2f} |")
+        rate = train_rate(GRID_DDPG_RUNS, train_steps, device, seed, "ddpg", compile=None)
+        row(f"| train, graph, not compiled | ddpg | {GRID_DDPG_RUNS} | {train_steps} | {rate:.1f} | "
+            f"{1000 / rate:.2f} |")
     row("")
     if ("ddpg", 1) in rates:
         row(f"one 625-episode DDPG run (K = 1): {RUN_ITERATIONS / rates['ddpg', 1] / 60:.1f} min")
@@ -210,5 +250,6 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
         row(f"projected grid: DDPG's {GRID_DDPG_RUNS} runs as one batch {minutes_ddpg:.1f} min + dqn, ddqn and "
             f"dueling ({GRID_DQN_RUNS} runs each, one batch after another, at DQN's rate) {minutes_dqn:.1f} min = "
             f"{minutes_ddpg + minutes_dqn:.1f} min (per's {GRID_DQN_RUNS} runs are not on the lockstep path)")
-    row(f"(bench took {time.perf_counter() - start:.0f} s)")
+    row(f"(bench took {time.perf_counter() - start:.0f} s; the untimed first iterations of each row, compiling and "
+        f"capturing included: {', '.join(f'{w:.0f}' for w in WARM_S)} s)")
     return "\n".join(lines)

@@ -131,8 +131,8 @@ class BatchedLearner:
         """From now on draw every random number on the learner's device from ``generator`` (None: the device's
         default generator, the one a CUDA graph can hold) and keep the step counts there too, so that acting,
         storing and updating read nothing from the host (:meth:`act_on_device`, :meth:`store_on_device`,
-        :meth:`update_on_device`). Run k then no longer draws the single run's numbers: it agrees with the
-        sequential run in distribution, not bit for bit."""
+        :meth:`sample_on_device` and the gradient step on its indices). Run k then no longer draws the single
+        run's numbers: it agrees with the sequential run in distribution, not bit for bit."""
         d = self.device
         self.generator = generator
         self.device_streams = True
@@ -155,10 +155,9 @@ class BatchedLearner:
         self._size.add_(1.0).clamp_(max=float(self.buffer_size))
         self._count.add_(1.0)
 
-    def update_on_device(self) -> None:
-        """One gradient step for every run with device streams (indices drawn uniformly over what is stored)."""
-        indices = (self._rand(self.runs, self.batch_size) * self._size).long()
-        self._learn(indices)
+    def sample_on_device(self) -> th.Tensor:
+        """Each run's minibatch: ``[K, batch]`` indices drawn uniformly over what is stored, from the device stream."""
+        return (self._rand(self.runs, self.batch_size) * self._size).long()
 
     def stepped_on_device(self, updated: bool) -> None:
         """The host's side of a device iteration (called before its device work): what :meth:`store` and

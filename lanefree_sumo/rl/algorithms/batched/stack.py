@@ -61,7 +61,11 @@ class ParamStack:
                 for i in range(0, len(tensors), 2)]
 
     def layers(self) -> list[Linear]:
-        """The tensors as linear layers (weight, bias, weight, bias, … in order)."""
+        """The tensors as linear layers (weight, bias, weight, bias, … in order). Compiled code takes new views of
+        the buffer (a compiled function must not see the buffer and its views as separate inputs: it would update
+        one and read the other's stale copy)."""
+        if th.compiler.is_compiling():
+            return self._linear(self._views(self.flat))
         return self._layers
 
     def row(self, k: int) -> list[th.Tensor]:
@@ -84,10 +88,14 @@ class Products:
     def _use_batched(self, key: tuple[object, ...], operands: Sequence[th.Tensor],
                      batched: Callable[..., th.Tensor], single: Callable[..., th.Tensor]) -> bool:
         """Whether ``batched`` gives ``single``'s bits for operands of these shapes and strides (probed once
-        with random values of the same layout)."""
+        with random values of the same layout). Compiled code cannot probe: it takes the batched kernel where the
+        shape was not probed before (the lockstep loop, which compiles, matches the single runs in distribution
+        only)."""
         if not self.exact:
             return True
         known = self._batched.get(key)
+        if known is None and th.compiler.is_compiling():
+            return True
         if known is None:
             probes = []
             for t in operands:
@@ -178,7 +186,8 @@ class StackedAdam:
         """Count the steps on the device from now on (float64, from :attr:`steps`): a step then reads nothing
         from the host, so a CUDA graph can hold it; :attr:`steps` is the caller's to advance."""
         device = self.params.flat.device
-        self.count = th.full((), float(self.steps), dtype=th.float64, device=device)
+        self.count = th.full((1,), float(self.steps), dtype=th.float64, device=device)  # not 0-d: compiled code
+        # would not write a 0-d input back
         self._betas = th.tensor([self.beta1, self.beta2], dtype=th.float64).to(device)
 
     def step(self, grads: Sequence[th.Tensor]) -> None:
