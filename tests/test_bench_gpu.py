@@ -47,3 +47,19 @@ def test_the_gpu_bench_without_a_gpu_is_one_line():
     res = subprocess.run([sys.executable, "-m", "lanefree_sumo.tools.bench", "--gpu"], cwd=ROOT,
                          capture_output=True, text=True, timeout=300)
     assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1 and "cuda" in res.stderr
+
+
+def test_the_drift_of_a_traced_step_is_zero_and_measured_along_the_ring():
+    """The bench's drift line, with the step traced but not fused (``aot_eager``, the CPU's bit-for-bit trace):
+    both gaps 0 after 1 and after 5 steps; and a gap across the ring's seam counts as the distance along it."""
+    import torch
+
+    from lanefree_sumo.tools.bench_gpu import compiled_drift, ring_gap
+
+    gaps = ring_gap(torch.tensor([0.1, 250.0, 10.0], dtype=torch.float64),
+                    torch.tensor([499.9, 0.0, 12.5], dtype=torch.float64), torch.tensor(500.0, dtype=torch.float64))
+    assert torch.allclose(gaps, torch.tensor([0.2, 250.0, 2.5], dtype=torch.float64))
+
+    line = compiled_drift("cpu", runs=2, steps=5, compile="aot_eager")
+    assert line == ("aot_eager, K = 2: after 1 step(s) |Δx| ≤ 0.0e+00 m (along the ring), |Δvx| ≤ 0.0e+00 m/s; "
+                    "after 5 step(s) |Δx| ≤ 0.0e+00 m (along the ring), |Δvx| ≤ 0.0e+00 m/s")
