@@ -219,12 +219,13 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
     """The batched learner of runs ``cfgs`` (run k seeded ``seeds[k]``): for each run the hyperparameters
     :func:`build_model` gives it; ConfigError when the runs cannot share a batch."""
     from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN
-    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
+    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY, batch_group
 
     algo = cfgs[0].train.algo
     spec = get_algorithm(algo)
-    if any(c.train.algo != algo for c in cfgs):
-        raise ConfigError("the runs of one batch must share train.algo")
+    if any(batch_group(c.train.algo) != batch_group(algo) for c in cfgs):
+        raise ConfigError("the runs of one batch must share train.algo (dqn and ddqn may mix); "
+                          f"got {', '.join(sorted({c.train.algo for c in cfgs}))}")
     if algo != "ddpg" and algo not in FAMILY:
         raise ConfigError(f"batched training covers ddpg and {', '.join(FAMILY)}, not {algo}; train it run by run")
     if len(seeds) != len(cfgs):
@@ -250,9 +251,9 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
             learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
             total_timesteps=total_timesteps(cfgs[0]), device=device)
     return BatchedDQN(
-        algo, observation_space, action_space, seeds, learning_rate=[s.learning_rate for s in sections],
-        gamma=[s.gamma for s in sections], layers=first.layers, batch_size=first.batch_size,
-        buffer_size=first.buffer_size, learning_starts=first.learning_starts_steps,
+        [c.train.algo for c in cfgs], observation_space, action_space, seeds,
+        learning_rate=[s.learning_rate for s in sections], gamma=[s.gamma for s in sections], layers=first.layers,
+        batch_size=first.batch_size, buffer_size=first.buffer_size, learning_starts=first.learning_starts_steps,
         target_update_interval=first.target_update_steps,
         exploration_fraction=[exploration_fraction(c) for c in cfgs],
         exploration_initial_eps=[s.epsilon_start for s in sections],

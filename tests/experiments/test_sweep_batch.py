@@ -71,6 +71,20 @@ def test_runs_that_differ_only_where_a_batch_may_are_packed_together(tmp_path):
     assert not single.batches and len(single.sequential) == 10 and single.reasons == {"--batch 1": 10}
 
 
+def test_dqn_and_ddqn_runs_share_batches_and_the_other_variants_do_not(tmp_path):
+    """dqn and ddqn have one network (their targets differ run by run): their runs pack together, the batch named
+    after both; dueling (another network) and per (trees on the host) stay in batches of their own."""
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {
+        "algorithms": ["dqn", "ddqn", "dueling", "per"], "reward_presets": ["collision"], "densities": [70],
+        "seeds": [0, 1, 2], "episodes": 2}))
+    packing = pack(SweepDir(tmp_path / "sweep"), grid, list(grid.cells()), pending(grid), 8)
+    together = {frozenset(name.split("_")[0] for name in b.runs): (len(b.runs), b.name.split("_")[1])
+                for b in packing.batches}
+    assert together == {frozenset({"dqn", "ddqn"}): (6, "ddqn+dqn"), frozenset({"dueling"}): (3, "dueling"),
+                        frozenset({"per"}): (3, "per")}
+    assert not packing.sequential
+
+
 def test_a_run_with_a_switch_the_batched_learners_lack_goes_one_per_task(tmp_path):
     grid = load_grid(write_grid(tmp_path / "g.yaml", {
         "algorithms": ["ddpg"], "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2,

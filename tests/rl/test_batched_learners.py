@@ -42,6 +42,9 @@ HYPER = {"per-run": ((1e-3, 1e-3, 5e-4), (0.98, 0.98, 0.95), (0.001, 0.001, 0.00
 LR, GAMMA, TAU = HYPER["per-run"]
 DQN_ALGOS: dict[str, type[FastDQN]] = {"dqn": FastDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN,
                                        "per": PrioritizedDoubleDQN}
+MIXED = ("dqn", "ddqn", "dqn")
+"""The variants of the three runs of a mixed batch ("dqn+ddqn"): one network, each run its own target."""
+VARIANTS = [*DQN_ALGOS, "dqn+ddqn"]
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -96,19 +99,21 @@ def _batched_ddpg(learning_starts: int = 100, total: int = 1, hyper: str = "per-
 def _dqn(algo: str, k: int, total: int, learning_starts: int = 100, hyper: str = "per-run",
          loss: str = "huber") -> FastDQN:
     lr, gamma, _ = (values[k] for values in HYPER[hyper])
-    return DQN_ALGOS[algo]("MlpPolicy", ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
-                           gamma=gamma, loss=loss, max_grad_norm=math.inf if loss == "squared" else 10.0,
-                           learning_starts=learning_starts, target_update_interval=50,
-                           exploration_fraction=0.3, exploration_initial_eps=1.0, exploration_final_eps=0.1,
-                           train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
-                           policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
+    cls = DQN_ALGOS[MIXED[k] if algo == "dqn+ddqn" else algo]
+    return cls("MlpPolicy", ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
+               gamma=gamma, loss=loss, max_grad_norm=math.inf if loss == "squared" else 10.0,
+               learning_starts=learning_starts, target_update_interval=50,
+               exploration_fraction=0.3, exploration_initial_eps=1.0, exploration_final_eps=0.1,
+               train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
+               policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
 
 
 def _batched_dqn(algo: str, total: int, learning_starts: int = 100, hyper: str = "per-run",
                  loss: str = "huber") -> BatchedDQN:
     env = ToyEnv(True)
     lr, gamma, _ = HYPER[hyper]
-    return BatchedDQN(algo, env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma,
+    return BatchedDQN(list(MIXED) if algo == "dqn+ddqn" else algo, env.observation_space, env.action_space, SEEDS,
+                      learning_rate=lr, gamma=gamma,
                       loss=loss, max_grad_norm=math.inf if loss == "squared" else 10.0,
                       layers=(128, 64), batch_size=BATCH, buffer_size=5000, learning_starts=learning_starts,
                       target_update_interval=50, exploration_fraction=0.3, exploration_initial_eps=1.0,
@@ -288,7 +293,7 @@ def _per_trees(single: Any, batched: BatchedDQN, k: int) -> None:
 
 
 @pytest.mark.parametrize(("hyper", "loss"), [("per-run", "huber"), ("shared", "huber"), ("per-run", "squared")])
-@pytest.mark.parametrize("algo", list(DQN_ALGOS))
+@pytest.mark.parametrize("algo", VARIANTS)
 def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str, hyper: str, loss: str) -> None:
     """Huber loss with the gradient clip (SB3's), or ½·δ² without a clip (Keras-RL's profile)."""
     transitions = _transitions(True)
@@ -314,7 +319,7 @@ def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str,
         _per_trees(single, batched, k)
 
 
-@pytest.mark.parametrize("algo", list(DQN_ALGOS))
+@pytest.mark.parametrize("algo", VARIANTS)
 def test_dqn_family_act_store_update_equals_single_learn(algo: str) -> None:
     """The whole cycle (random warm-up, ε-greedy with its schedule, target copies every 50 steps, terminal
     observations, timeouts, PER's β schedule and priorities) equals the single run's ``learn``."""
@@ -330,7 +335,7 @@ def test_dqn_family_act_store_update_equals_single_learn(algo: str) -> None:
         _per_trees(single, batched, k)
 
 
-@pytest.mark.parametrize("algo", ["dqn", "dueling"])
+@pytest.mark.parametrize("algo", ["dqn", "dueling", "dqn+ddqn"])
 def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_path: Path) -> None:
     batched = _batched_dqn(algo, total=100, learning_starts=10)
     for obs, action, reward, next_obs, done, truncated in _transitions(True, 40):
@@ -343,6 +348,7 @@ def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_
         batched.export(k, tmp_path / f"run{k}.zip")
         model = DQN.load(tmp_path / f"run{k}.zip", device="cpu")
         assert type(model.q_net) is type(_dqn(algo, k, 100).q_net)  # the dueling network comes back
+        assert type(batched.sb3_model(k)) is type(_dqn(algo, k, 100))  # each run's variant (a mixed batch's too)
         action, _ = model.predict(obs[k], deterministic=True)
         assert int(action) == greedy[k]
         with th.no_grad():

@@ -26,10 +26,12 @@ PHASES = ((True, False), (False, False), (False, True))
 
 
 def configs(algo: str, runs: int = 2, **extra: Any) -> list[LaneFreeConfig]:
+    """``runs`` runs of ``algo`` ("dqn+ddqn": dqn, ddqn, dqn, …), densities 70 and 90 by turns."""
     section = "actor_critic" if algo == "ddpg" else "dqn"
     return [training_config(merge_config(LaneFreeConfig(), {
         "seed": k, "scenario": {"density_veh_per_km": 90.0 if k % 2 else 70.0}, **extra,
-        "train": {"algo": algo, section: {"learning_starts_steps": 6, "buffer_size": 50}}})) for k in range(runs)]
+        "train": {"algo": ("dqn", "ddqn")[k % 2] if algo == "dqn+ddqn" else algo,
+                  section: {"learning_starts_steps": 6, "buffer_size": 50}}})) for k in range(runs)]
 
 
 def loop_of(algo: str | None, seed: int = 0, runs: int = 2, compile: str | None = None, **extra: Any) -> Lockstep:
@@ -89,7 +91,7 @@ def test_the_host_number_detector_sees_a_scalar_written_by_index() -> None:
     assert seen.found == []
 
 
-@pytest.mark.parametrize("algo", [None, "ddpg", "dqn"])
+@pytest.mark.parametrize("algo", [None, "ddpg", "dqn", "dqn+ddqn"])
 def test_an_iteration_reads_nothing_from_the_host_and_writes_no_host_number(algo: str | None) -> None:
     """What a CUDA graph needs: each phase's iteration (random actions; acting; acting and updating) runs with
     every host read refused and writes no number from the host into a tensor."""
@@ -191,7 +193,7 @@ def test_a_compiler_that_fails_leaves_the_loop_uncompiled_with_a_warning() -> No
     assert th.equal(broken.obs, plain.obs) and th.equal(broken.learner.q_net.stack.flat, plain.learner.q_net.stack.flat)
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn"])
+@pytest.mark.parametrize("algo", ["ddpg", "dqn", "dqn+ddqn"])
 def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_eager_one(algo: str) -> None:
     """The gradient step traced as one graph (``aot_eager``) moves the weights, the targets and Adam's moments as
     the eager step does, to float32 rounding (the traced graph runs the in-place updates in functional form: the

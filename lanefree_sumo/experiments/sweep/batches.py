@@ -1,9 +1,9 @@
 """Batched sweeps (``lanefree sweep --batch K``): runs packed into batches, each trained in one Ray task.
 
-A batch is :mod:`lanefree_sumo.experiments.batch`'s: K runs of one algorithm in one process (the batched
-simulation and learners), run k bit for bit the sequential ``lanefree train`` of its config on CPU. Its run
-folders stay ``DIR/runs/<name>/``, the same folders with the same contents a sequential sweep writes; the batch's
-own files (``batch.json``, ``batch_checkpoints/``) live in ``DIR/batches/<batch>/`` and its log is
+A batch is :mod:`lanefree_sumo.experiments.batch`'s: K runs of one algorithm (dqn and ddqn as one) in one process (the
+batched simulation and learners), run k bit for bit the sequential ``lanefree train`` of its config on CPU. Its run
+folders stay ``DIR/runs/<name>/``, the same folders with the same contents a sequential sweep writes; the batch's own
+files (``batch.json``, ``batch_checkpoints/``) live in ``DIR/batches/<batch>/`` and its log is
 ``DIR/logs/<batch>.log``. The batch checkpoints (every member's replay buffer among them) are deleted once every
 member is complete.
 
@@ -26,6 +26,7 @@ import shutil
 import socket
 import time
 import traceback
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,8 @@ DEFAULT_BATCH = 8
 
 PER_RUN_KEYS = ("seed", "scenario.density_veh_per_km", "reward.preset", "reward.overtake_bonus")
 """The config keys (dotted) the runs of one batch may differ in (:class:`~lanefree_sumo.rl.batched_env.
-BatchedRingEnv`); every other key they share."""
+BatchedRingEnv`); every other key they share, but ``train.algo`` only up to its batch group (dqn and ddqn
+mix: :func:`~lanefree_sumo.rl.algorithms.batched.dqn.batch_group`)."""
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,7 @@ def batch_key(cfg: LaneFreeConfig) -> str:
     """What the runs of one batch share, as text (the config without :data:`PER_RUN_KEYS`); ConfigError (one
     line, the reason) for a run the batched path cannot train."""
     from lanefree_sumo.experiments.batch import check_batchable
+    from lanefree_sumo.rl.algorithms.batched.dqn import batch_group
 
     check_batchable(cfg)
     data = config_to_dict(cfg)
@@ -106,6 +109,7 @@ def batch_key(cfg: LaneFreeConfig) -> str:
         for part in path:
             section = section[part]
         section.pop(last)
+    data["train"]["algo"] = batch_group(cfg.train.algo)  # dqn and ddqn runs share batches
     return json.dumps(data, sort_keys=True, default=str)
 
 
@@ -119,10 +123,11 @@ def batch_size(requested: int | None, batchable: int, workers: int | None) -> in
     return max(1, min(DEFAULT_BATCH, math.ceil(batchable / workers)))
 
 
-def batch_name(algo: str, runs: list[str]) -> str:
-    """A batch folder's name: its algorithm, size and a digest of its runs (the same runs, the same name)."""
+def batch_name(algos: Sequence[str], runs: list[str]) -> str:
+    """A batch folder's name: its runs' algorithms (``ddqn+dqn`` where they mix), size and a digest of its runs
+    (the same runs, the same name)."""
     digest = hashlib.sha1("\n".join(runs).encode()).hexdigest()[:8]
-    return f"batch_{algo}_k{len(runs)}_{digest}"
+    return f"batch_{'+'.join(sorted(set(algos)))}_k{len(runs)}_{digest}"
 
 
 def members(folder: Path) -> list[str]:
@@ -215,8 +220,8 @@ def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInf
                 packing.sequential.append(chunk[0])
                 packing.reasons["alone in its batch"] = packing.reasons.get("alone in its batch", 0) + 1
             else:
-                packing.batches.append(Batch(batch_name(chunk[0].setting.algorithm, [c.name for c in chunk]),
-                                             tuple(c.name for c in chunk)))
+                names = [c.name for c in chunk]
+                packing.batches.append(Batch(batch_name([c.setting.algorithm for c in chunk], names), tuple(names)))
     return packing
 
 

@@ -82,7 +82,8 @@ OPTIONS: tuple[Option, ...] = (
     Option("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, extra={"metavar": "N"},
            note=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})"),
     Option("--batch", type=argtypes.positive(int, "batch"), extra={"metavar": "K"},
-           note="train runs of one algorithm that differ only in seed, density, reward preset or overtake bonus as "
+           note="train runs of one algorithm (dqn and ddqn count as one) that differ only in seed, density, reward "
+           "preset or overtake bonus as "
            "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU); "
            f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
            "one run per task"),
@@ -101,8 +102,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "sweep",
         help="train a grid of runs (the paper's tables) on Ray, resumable",
         description="Train every (algorithm, reward preset, density, seed) run of GRID on Ray, one CPU per task, "
-        "runs of one algorithm packed K to a task (--batch), into DIR/runs/<algo>_<preset>_d<density>_s<seed>/ "
-        "(ordinary run folders, the same as one run per task would write), "
+        "runs of one algorithm (dqn and ddqn as one) packed K to a task (--batch), into "
+        "DIR/runs/<algo>_<preset>_d<density>_s<seed>/ (ordinary run folders, the same as one run per task would "
+        "write), "
         "then write DIR/summary.csv and summary.md (last-50-episode means with 95 % bootstrap CIs over runs, the "
         "paper's values) and learning curves per table. GRID: a built-in grid, " + ", ".join(BUILTIN_GRIDS) +
         " (--list says what each is; 10 seeds and 625 episodes each, --seeds N for fewer), or a YAML file (keys "

@@ -1,6 +1,6 @@
-"""Off-policy learners for K runs of one algorithm in one process: weights stacked ``[K, …]``, one batched
-product per layer for all runs, one Adam buffer ``[K, P]``, per-run replay ``[K, capacity, …]`` and per-run
-random streams.
+"""Off-policy learners for K runs of one algorithm (or dqn and ddqn together) in one process: weights stacked
+``[K, …]``, one batched product per layer for all runs, one Adam buffer ``[K, P]``, per-run replay
+``[K, capacity, …]`` and per-run random streams.
 
 :class:`BatchedDDPG` and :class:`BatchedDQN` (DQN, double, dueling, prioritised) take every run's
 observation and give every run's action (:meth:`~.learner.BatchedLearner.act`), store every run's transition

@@ -2,12 +2,13 @@
 
 ``algo`` is a registry name: ``dqn`` (the target network's argmax), ``ddqn`` (the online network's),
 ``dueling`` (double DQN with the dueling head), ``per`` (double DQN with proportional prioritised replay,
-one :class:`~.replay.RunPriorities` per run). Run k starts from the weights SB3 gives the registry's class with
-seed k, draws its ε-greedy decisions, random actions and replay indices from its own streams in the single run's
-order, and has its own learning rate, γ and ε schedule; the network shape, batch size, buffer size,
-``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU run k equals the single fast
-learner bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay keeps its trees on the host:
-its TD errors come back from the device once per update.
+one :class:`~.replay.RunPriorities` per run); or one name per run, of one :func:`batch_group`: ``dqn`` and
+``ddqn`` runs share a batch (one network shape; each run takes its own target). Run k starts from the weights
+SB3 gives its variant's class with seed k, draws its ε-greedy decisions, random actions and replay indices from
+its own streams in the single run's order, and has its own learning rate, γ and ε schedule; the network shape,
+batch size, buffer size, ``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU
+run k equals the single fast learner bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay
+keeps its trees on the host: its TD errors come back from the device once per update.
 """
 
 from __future__ import annotations
@@ -39,6 +40,12 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
 from lanefree_sumo.rl.algorithms.fast_dqn import HUBER_BETA, LOSSES, NO_REDUCTION
 
 FAMILY = ("dqn", "ddqn", "dueling", "per")
+
+
+def batch_group(algo: str) -> str:
+    """The algorithm whose batches runs of ``algo`` join: ``dqn`` for dqn and ddqn (the same network, their
+    targets differ), else ``algo`` itself."""
+    return "dqn" if algo in ("dqn", "ddqn") else algo
 
 
 class _QNet:
@@ -90,7 +97,7 @@ class BatchedDQN(BatchedLearner):
     (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..fast_dqn.FastDQN`'s, ``huber`` or
     ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s)."""
 
-    def __init__(self, algo: str, observation_space: spaces.Space, action_space: spaces.Space,
+    def __init__(self, algo: str | Sequence[str], observation_space: spaces.Space, action_space: spaces.Space,
                  seeds: Sequence[int], *, learning_rate: float | Sequence[float] = 1e-3,
                  gamma: float | Sequence[float] = 0.98, layers: Sequence[int] = (128, 64), batch_size: int = 64,
                  buffer_size: int = 50_000, learning_starts: int = 800, target_update_interval: int = 10_000,
@@ -100,8 +107,13 @@ class BatchedDQN(BatchedLearner):
                  loss: str = "huber", total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4,
                  per_eps: float = 1e-6,
                  device: str | th.device = "cpu", exact: bool | None = None) -> None:
-        if algo not in FAMILY:
-            raise ValueError(f"unknown DQN variant '{algo}'; choose one of {', '.join(FAMILY)}")
+        algos = [algo] * len(seeds) if isinstance(algo, str) else list(algo)
+        for name in algos:
+            if name not in FAMILY:
+                raise ValueError(f"unknown DQN variant '{name}'; choose one of {', '.join(FAMILY)}")
+        if len(algos) != len(seeds) or len({batch_group(a) for a in algos}) != 1:
+            raise ValueError(f"one DQN variant per run, all of one batch group (dqn and ddqn may mix); got {algos} "
+                             f"for {len(seeds)} run(s)")
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError("batched DQN takes a Discrete action space")
         if loss not in LOSSES:
@@ -112,9 +124,14 @@ class BatchedDQN(BatchedLearner):
         from lanefree_sumo.rl.algorithms import get_algorithm
 
         k = self.runs
-        self.algo = algo
-        self.cls = get_algorithm(algo).cls
-        self.double_q = bool(self.cls.double_q)
+        self.algos = algos
+        """Each run's variant."""
+        self.classes = [get_algorithm(a).cls for a in algos]
+        double = [bool(c.double_q) for c in self.classes]
+        self.double_q = all(double)
+        """Every run takes the double-Q target (none does where False and :attr:`_double` is None)."""
+        self._double = (th.tensor(double, device=self.device).view(k, 1, 1) if len(set(double)) > 1 else None)
+        """Where the runs differ (dqn and ddqn in one batch): ``[K, 1, 1]`` True for a double-Q run."""
         self.learning_rate, self.gamma = per_run(learning_rate, k, "learning_rate"), per_run(gamma, k, "gamma")
         self.exploration = [LinearSchedule(start, end, fraction) for start, end, fraction in zip(
             per_run(exploration_initial_eps, k, "exploration_initial_eps"),
@@ -124,9 +141,9 @@ class BatchedDQN(BatchedLearner):
         self.layers, self.max_grad_norm, self.loss = tuple(layers), float(max_grad_norm), loss
         self.target_update_interval = int(target_update_interval)
         self.per_alpha, self.per_beta0, self.per_eps = float(per_alpha), float(per_beta0), float(per_eps)
-        policy_class = self.cls.policy_aliases["MlpPolicy"]
         policies = []
-        for seed, lr in zip(self.seeds, self.learning_rate):
+        for cls, seed, lr in zip(self.classes, self.seeds, self.learning_rate):
+            policy_class = cls.policy_aliases["MlpPolicy"]
             with th.random.fork_rng(devices=[]):  # as DQN._setup_model builds it after set_random_seed(seed)
                 th.manual_seed(seed)
                 policies.append(policy_class(observation_space, action_space, lambda _, lr=lr: lr,
@@ -142,7 +159,7 @@ class BatchedDQN(BatchedLearner):
         self._one = th.tensor(1.0, device=self.device)
         self._n_calls = 0
         self.priorities = ([RunPriorities(self.buffer_size, per_alpha, per_eps) for _ in range(k)]
-                           if algo == "per" else [])
+                           if algos[0] == "per" else [])
 
     def optimisers(self) -> list[StackedAdam]:
         return [self.adam]
@@ -234,7 +251,12 @@ class BatchedDQN(BatchedLearner):
         mm = self.mm
         obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
         with th.no_grad():
-            if self.double_q:
+            if self._double is not None:  # dqn and ddqn runs: both targets, each run takes its own
+                next_actions = self.q_net.forward(mm, next_obs)[1].argmax(dim=2, keepdim=True)
+                target_next = self.q_net_target.forward(mm, next_obs)[1]
+                next_q = th.where(self._double, th.gather(target_next, dim=2, index=next_actions),
+                                  target_next.max(dim=2, keepdim=True)[0])
+            elif self.double_q:
                 next_actions = self.q_net.forward(mm, next_obs)[1].argmax(dim=2, keepdim=True)
                 next_q = th.gather(self.q_net_target.forward(mm, next_obs)[1], dim=2, index=next_actions)
             else:
@@ -301,11 +323,11 @@ class BatchedDQN(BatchedLearner):
             priorities.load_state(saved)
 
     def sb3_model(self, k: int) -> Any:
-        """Run k as a model of the registry's class for ``algo``: its hyperparameters, networks, Adam state,
+        """Run k as a model of the registry's class for its variant: its hyperparameters, networks, Adam state,
         step counts and ε."""
         schedule = self.exploration[k]
         with kept_random_state():
-            model = self.cls("MlpPolicy", SpacesEnv(self.observation_space, self.action_space),
+            model = self.classes[k]("MlpPolicy", SpacesEnv(self.observation_space, self.action_space),
                              learning_rate=self.learning_rate[k], buffer_size=self.buffer_size,
                              batch_size=self.batch_size, gamma=self.gamma[k], learning_starts=self.learning_starts,
                              target_update_interval=self.target_update_interval,
@@ -315,7 +337,7 @@ class BatchedDQN(BatchedLearner):
                              train_freq=1, gradient_steps=1, seed=self.seeds[k], device="cpu", verbose=0,
                              policy_kwargs={"net_arch": list(self.layers), "activation_fn": nn.ReLU},
                              **({"per_alpha": self.per_alpha, "per_beta0": self.per_beta0, "per_eps": self.per_eps}
-                                if self.algo == "per" else {}))
+                                if self.algos[k] == "per" else {}))
         with th.no_grad():
             for net, stack in ((model.q_net, self.q_net.stack), (model.q_net_target, self.q_net_target.stack)):
                 for p, value in zip(net.parameters(), stack.row(k)):
