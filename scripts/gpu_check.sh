@@ -3,6 +3,8 @@
 # (docs/performance.md, "On a GPU"). Writes into $OUT (default runs/gpu_check):
 #   quick: nvidia-smi, `make bench-gpu` with a shorter budget, and a 2-seed × 2-episode batch trained on CUDA
 #          whose model.zip files load on the CPU;
+#   grid:  the paper grid at 10 seeds (lanefree sweep paper --no-ray --batch 110 on CUDA), resumable across calls
+#          on one warm machine; finished runs packed as grid.tar.gz;
 #   full:  the whole bench, a profile of a DDPG iteration at K = 110, then the learning check's runs: three
 #          settings × 10 seeds × $EPISODES episodes trained on CUDA (the three batches at once, stopped with a
 #          checkpoint after $LEARN_LIMIT_S s), packed as learn.tar.gz; compare them with the CPU runs of
@@ -22,6 +24,20 @@ if ! $PY -c "import gymnasium, stable_baselines3" 2>/dev/null && ls .whl/*.whl >
 fi
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 lanefree() { $PY -m lanefree_sumo.cli "$@"; }
+
+if [ "$mode" = grid ]; then
+  # the paper grid at 10 seeds on the GPU, without Ray: DDPG's 110 runs as one batch, dqn+ddqn as one, dueling
+  # and per as one each. Stopped with a checkpoint after $GRID_LIMIT_S s; run it again on the same warm machine to
+  # continue (the sweep folder, runs/gpu_grid, stays between calls). The finished runs' small files, the summary
+  # and the logs come back as grid.tar.gz.
+  GRID=runs/gpu_grid
+  if [ -f "$GRID/sweep.yaml" ]; then set -- --resume "$GRID"; else set -- paper --out "$GRID" --set train.device=cuda; fi
+  timeout -s TERM "${GRID_LIMIT_S:-480}" $PY -m lanefree_sumo.cli sweep "$@" --batch 110 --no-ray --no-progress \
+    2>&1 | grep -v "Warning\|check(" | tail -n 40 | tee "$OUT/grid.log"
+  tar czf "$OUT/grid.tar.gz" --exclude='*.zip' --exclude='*.pt' --exclude='tb' --exclude='checkpoints' \
+    --exclude='batch_checkpoints' "$GRID"
+  exit 0
+fi
 
 if [ "$mode" = quick ]; then
   $PY -m lanefree_sumo.tools.bench --gpu --budget-s "${BUDGET_S:-150}" --train-sizes 1,110 --dqn-sizes 1,10 \

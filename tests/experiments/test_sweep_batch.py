@@ -125,8 +125,10 @@ def test_an_interrupted_batch_continues_as_that_batch_and_one_without_a_checkpoi
 
 def test_bad_batch_options_are_one_line_errors(tmp_path):
     grid = write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0], "episodes": 2})
-    for args, said in ((["--batch", "0"], "--batch"), (["--status", str(tmp_path), "--batch", "2"], "--batch")):
-        done = lanefree("sweep", *([str(grid), "--out", str(tmp_path / "out")] if args[0] == "--batch" else []),
+    for args, said in ((["--batch", "0"], "--batch"), (["--status", str(tmp_path), "--batch", "2"], "--batch"),
+                       (["--no-ray", "--workers", "2"], "--workers sizes or joins Ray; --no-ray trains without it"),
+                       (["--status", str(tmp_path), "--no-ray"], "--no-ray does not go with --status")):
+        done = lanefree("sweep", *([] if args[0] == "--status" else [str(grid), "--out", str(tmp_path / "out")]),
                         *args, timeout=120)
         assert done.returncode == 2 and said in done.stderr and len(done.stderr.strip().splitlines()) == 1, \
             done.stderr
@@ -178,6 +180,16 @@ def test_a_batched_sweep_writes_the_run_folders_of_a_sequential_sweep(tmp_path):
     summary = [{k: v for k, v in r.items() if "wall" not in k} for r in csv.DictReader(open(batched / "summary.csv"))]
     assert summary == [{k: v for k, v in r.items() if "wall" not in k}
                        for r in csv.DictReader(open(sequential / "summary.csv"))]
+    # --no-ray: the same batches one after another in the driver's process, the same run folders
+    here = lanefree("sweep", str(grid), "--out", str(tmp_path / "here"), "--batch", "2", "--no-ray", "--no-progress",
+                    timeout=900)
+    assert here.returncode == 0, here.stderr
+    assert "4 run(s) in this process (no Ray): 4 run(s) in 2 batch(es) of at most 2" in here.stdout
+    assert here.stdout.count(": 2/2 run(s) complete") == 2 and "4/4 runs complete" in here.stdout
+    for name in names:
+        assert rows(tmp_path / "here" / "runs" / name / "episodes.csv") == rows(batched / "runs" / name /
+                                                                                 "episodes.csv")
+    assert read_manifest(tmp_path / "here").sessions[-1]["ray"] == "this process (no Ray)"
     # a finished batch keeps no batch checkpoint (its replay buffers): nothing is left to resume
     assert not list((batched / "batches").glob(f"*/{BATCH_CHECKPOINTS}/*"))
 

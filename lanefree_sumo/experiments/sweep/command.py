@@ -88,6 +88,9 @@ OPTIONS: tuple[Option, ...] = (
            f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
            "one run per task"),
     Option("--no-progress", extra={"action": "store_true"}, note="no progress bar"),
+    Option("--no-ray", extra={"action": "store_true"},
+           note="train the batches and runs one after another in this process, without Ray (a machine without Ray, "
+           "such as one GPU: each batch then has it alone); not with --workers, --address or --retries"),
     Option("--set", type=argtypes.setting, default=[], extra={"action": "append", "metavar": "KEY=VALUE",
                                                               "dest": "settings"},
            note="a config value for every run of GRID, added to its overrides, e.g. --set "
@@ -131,7 +134,8 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
         raise UsageError("lanefree sweep: give a GRID (" + ", ".join(BUILTIN_GRIDS) + " or a YAML file), "
                          "--resume DIR, --status DIR or --summary DIR (see 'lanefree sweep --help')")
     budget = [o for o in ("--seeds", "--episodes", "--episode-steps", "--set") if o in given]
-    ray_opts = [o for o in ("--workers", "--address", "--retries", "--batch", "--no-progress") if o in given]
+    ray_opts = [o for o in ("--workers", "--address", "--retries", "--batch", "--no-progress", "--no-ray")
+                if o in given]
     if modes:
         mode = modes[0]
         extra = [o for o in budget if not (mode == "resume" and o == "--seeds")]
@@ -143,6 +147,10 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
         folder = getattr(args, mode)
     else:
         mode, folder = "grid", args.out
+    if args.no_ray:
+        clash = [o for o in ("--workers", "--address", "--retries") if o in given]
+        if clash:
+            raise UsageError(f"lanefree sweep: {clash[0]} sizes or joins Ray; --no-ray trains without it")
     if args.workers is not None and (args.address is not None or (os.environ.get("RAY_ADDRESS") and mode != "status")):
         raise UsageError("lanefree sweep: --workers sizes the embedded local Ray; a cluster (--address or RAY_ADDRESS) "
                          "runs as many runs at once as it has CPUs")
@@ -177,9 +185,9 @@ def run(args: argparse.Namespace) -> int:
         grid = load_grid(args.grid).with_budget(args.seeds, args.episodes, args.episode_steps,
                                                 nested_overrides(args.settings))
         folder = folder if folder is not None else Path("runs") / f"sweep_{grid.name}"
-    address = args.address or os.environ.get("RAY_ADDRESS") or None
+    address = None if args.no_ray else args.address or os.environ.get("RAY_ADDRESS") or None
     return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress, extend,
-                  args.batch)
+                  args.batch, args.no_ray)
 
 
 def plan(folder: Path, grid: Grid, extend: bool = False) -> dict[str, RunInfo]:
@@ -209,17 +217,20 @@ def plan(folder: Path, grid: Grid, extend: bool = False) -> dict[str, RunInfo]:
 
 
 def _ray_description(workers: int | None, address: str | None) -> str:
+    if workers == 0:
+        return "this process (no Ray)"
     return f"Ray cluster at {address}" if address else f"embedded local Ray, {workers} worker(s)"
 
 
 def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | None, address: str | None,
-           retries: int, progress: bool, extend: bool = False, batch: int | None = None) -> int:
+           retries: int, progress: bool, extend: bool = False, batch: int | None = None,
+           in_process: bool = False) -> int:
     from lanefree_sumo.experiments.rundir import check_writable
     from lanefree_sumo.experiments.sweep.batches import batch_size, pack
-    from lanefree_sumo.experiments.sweep.runner import check_address, cluster_size, run_sweep
+    from lanefree_sumo.experiments.sweep.runner import check_address, cluster_size, run_in_process, run_sweep
     from lanefree_sumo.experiments.sweep.summary import summarize
 
-    workers = (workers or default_workers()) if address is None else None
+    workers = 0 if in_process else (workers or default_workers()) if address is None else None
     states = plan(folder, grid, extend)  # every check before the first write
     if address is not None:
         check_address(address)
@@ -253,10 +264,14 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
             print(f"  left alone: runs/{name}: {info.detail}", file=sys.stderr)
         interrupted = False
         if todo:
-            print(f"  {len(todo)} run(s) on the {_ray_description(workers, address)}: {packing.describe()}; logs in "
+            print(f"  {len(todo)} run(s) {'in' if in_process else 'on the'} {_ray_description(workers, address)}: "
+                  f"{packing.describe()}; logs in "
                   f"{folder / 'logs'}", flush=True)
-            interrupted = run_sweep(sweep, grid, packing.sequential, workers, address, retries, command, progress,
-                                    packing.batches).interrupted
+            if in_process:
+                interrupted = run_in_process(sweep, grid, packing.sequential, command, packing.batches).interrupted
+            else:
+                interrupted = run_sweep(sweep, grid, packing.sequential, workers, address, retries, command,
+                                        progress, packing.batches).interrupted
         else:
             print("  nothing to train", flush=True)
         summarize(folder)

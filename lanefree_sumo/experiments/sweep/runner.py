@@ -19,6 +19,7 @@ from its latest periodic checkpoint next time.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import secrets
@@ -27,6 +28,7 @@ import socket
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -331,6 +333,66 @@ def _stop(ray: Any, sweep: SweepDir, refs: dict[Any, tuple[str, ...]], outcome: 
         for name in names:
             outcome.results[name] = {"name": name, "status": "interrupted", "detail": "killed while stopping"}
         refs.pop(ref)
+
+
+@contextlib.contextmanager
+def _own_output() -> Iterator[None]:
+    """Within the block a task may send this process's stdout and stderr to its log; after it they are the
+    driver's again."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+
+
+def run_in_process(sweep: SweepDir, grid: Grid, todo: list[Cell], command: str,
+                   batches: list[Batch] | None = None) -> SweepOutcome:
+    """``lanefree sweep --no-ray``: the batches, then the runs of ``todo``, one after another in this process, each
+    as a Ray task would train it (:func:`~.batches.run_batch`, :func:`~.worker.run_cell`, their logs in
+    ``DIR/logs``); one line per task as it ends. Ctrl-C/SIGTERM stop the task at hand with a checkpoint and
+    start no other."""
+    from lanefree_sumo.experiments.sweep.batches import run_batch
+    from lanefree_sumo.experiments.sweep.worker import run_cell
+
+    sweep = SweepDir(sweep.path.resolve())
+    by_name = {c.name: c for c in grid.cells()}
+    tasks: list[tuple[str, Any]] = [
+        (batch.name, lambda b=batch: run_batch(str(sweep.path), b.name, list(b.runs),
+                                               [config_to_dict(grid.config(by_name[n])) for n in b.runs],
+                                               grid.episodes, command)) for batch in batches or []]
+    tasks += [(cell.name, lambda c=cell: [run_cell(str(sweep.path), c.name, config_to_dict(grid.config(c)),
+                                                   grid.episodes, command)]) for cell in todo]
+    outcome = SweepOutcome()
+    previous = {sig: signal.signal(sig, _raise_interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        for i, (name, task) in enumerate(tasks, 1):
+            t0 = time.monotonic()
+            with _own_output():
+                results = task()
+            for result in results:
+                outcome.results[result["name"]] = result
+            done = sum(1 for r in results if r["status"] == "complete")
+            print(f"  [{i}/{len(tasks)}] {name}: {done}/{len(results)} run(s) complete "
+                  f"({time.monotonic() - t0:.0f} s)" + "".join(f"; {r['name']}: {r['status']} {r.get('detail', '')}"
+                                                             for r in results if r["status"] != "complete"),
+                  flush=True)
+            if any(r["status"] == "interrupted" for r in results):
+                outcome.interrupted = True
+                break
+    except KeyboardInterrupt:
+        outcome.interrupted = True
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return outcome
 
 
 def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None, address: str | None,
