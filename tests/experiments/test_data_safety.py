@@ -315,7 +315,7 @@ def test_the_final_swap_never_replaces_what_the_verb_did_not_claim(tmp_path):
 
 def test_a_killed_writers_temporaries_are_removed_by_the_next_writer(tmp_path):
     out = tmp_path / "s"
-    first = lanefree_popen("simulate", "--seconds", "400", "--backend", "numpy", "--out", str(out))
+    first = lanefree_popen("simulate", "--seconds", "4000", "--backend", "numpy", "--out", str(out))
     wait_for(lambda: any(tmp_path.glob(".s.new-*/trajectory.csv")), first, "the simulation writing")
     first.kill()
     first.communicate(timeout=60)
