@@ -234,7 +234,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     states = plan(folder, grid, extend)  # every check before the first write
     if address is not None:
         check_address(address)
-    elif any(grid.config(c).train.device == "cuda" for c in grid.cells()):
+    elif grid.on_cuda():
         from lanefree_sumo.experiments.batch import check_device
 
         check_device("cuda")  # the embedded Ray's batches train on this machine's GPU

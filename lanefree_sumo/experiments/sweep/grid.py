@@ -147,6 +147,10 @@ class Grid:
         })
         return training_config(cfg)
 
+    def on_cuda(self) -> bool:
+        """Whether any run trains on a CUDA GPU (``train.device = cuda``)."""
+        return any(self.config(c).train.device == "cuda" for c in self.cells())
+
     def road(self, setting: Setting) -> str:
         """The road ``setting``'s runs drive on (``road.kind`` after the overrides and its variant's)."""
         return str(merge_config(merge_config(LaneFreeConfig(), self.overrides), self.variant_overrides(setting))

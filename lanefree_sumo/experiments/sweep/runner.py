@@ -400,7 +400,7 @@ def run_sweep(sweep: SweepDir, grid: Grid, todo: list[Cell], workers: int | None
     """Start or join Ray, check the nodes (cluster), run ``todo`` one run per task and ``batches`` one batch
     per task, and always shut Ray down."""
     sweep = SweepDir(sweep.path.resolve())  # workers run elsewhere: they get an absolute path
-    on_gpu = bool(batches) and any(grid.config(c).train.device == "cuda" for c in grid.cells())
+    on_gpu = bool(batches) and grid.on_cuda()
     gpus = 0
     if on_gpu and address is None:
         import torch  # the embedded Ray hands this machine's GPUs to the batches, one batch per GPU
