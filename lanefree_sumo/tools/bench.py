@@ -545,10 +545,12 @@ def main() -> None:
     gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
     gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
     gpu.add_argument("--device", default="cuda", help="torch device of --gpu (default cuda; cpu runs it on the CPU)")
-    gpu.add_argument("--env-sizes", type=_sizes, default=(1, 1024, 16384), help="K of the env rows (1,1024,16384)")
-    gpu.add_argument("--train-sizes", type=_sizes, default=(1, 110, 150, 1024),
-                     help="K of the DDPG training rows (1,110,150,1024)")
-    gpu.add_argument("--dqn-sizes", type=_sizes, default=(1, 10, 1024), help="K of the DQN training rows (1,10,1024)")
+    gpu.add_argument("--env-sizes", type=_sizes, default=(16384, 1024, 1),
+                     help="K of the env rows, measured after the training rows (16384,1024,1)")
+    gpu.add_argument("--train-sizes", type=_sizes, default=(110, 1, 150, 1024),
+                     help="K of the DDPG training rows; the first two are measured first (110,1,150,1024)")
+    gpu.add_argument("--dqn-sizes", type=_sizes, default=(20, 10, 1, 1024),
+                     help="K of the DQN training rows; the first two are measured first (20,10,1,1024)")
     gpu.add_argument("--env-steps", type=int, default=100, help="steps per env row (default 100)")
     gpu.add_argument("--train-steps", type=int, default=100, help="iterations per training row (default 100)")
     gpu.add_argument("--budget-s", type=float, default=420.0,

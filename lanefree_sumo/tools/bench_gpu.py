@@ -1,15 +1,18 @@
 """``make bench-gpu`` (``python -m lanefree_sumo.tools.bench --gpu``): the lockstep loop on a torch device.
 
-Printed in one run, as markdown tables: the card (or CPU), torch's and CUDA's versions; whether an iteration reads
-anything from the host (torch's sync debug mode, on CUDA); the environment alone
-(:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`, float64, uniformly random actions drawn on the device)
-in agent-steps/s at K = 1, 1024, 16 384 rings; training (:mod:`lanefree_sumo.rl.lockstep`: act, env step, store,
-one update per run, the paper's settings) in iterations/s for DDPG at K = 1, 110 (the paper grid's DDPG runs),
-150, 1024 and for DQN at K = 1, 10 (one DQN variant's runs), 1024, each iteration a CUDA graph on a GPU; the same
-DDPG iteration without graphs at K = 110; the projected wall time of a 625-episode run and of the paper's grid.
-Each measurement is capped in steps and the whole run in time (``--budget-s``, default 420 s, so that it ends
-within 8 minutes on one card): a row whose turn comes after the budget is printed as skipped. ``--device cpu``
-with small sizes runs the same code on the CPU, without graphs (a test does).
+Printed in one run: the card (or CPU), torch's and CUDA's versions; whether an iteration reads anything from the
+host (torch's sync debug mode, on CUDA); how far the compiled ring step strays from the step as written; then, as
+markdown tables, training (:mod:`lanefree_sumo.rl.lockstep`: act, env step, store, one update per run, the paper's
+settings; on a GPU each iteration a CUDA graph with the ring step and the update compiled) in iterations/s for
+DDPG at K = 110 (the paper grid's DDPG runs), 1, 150, 1024 and for DQN at K = 20 (the grid's dqn and ddqn runs),
+10 (dueling's), 1, 1024 — the first two of each first —, the same DDPG iteration with graphs but not compiled at
+K = 110; the environment alone (:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`, float64, uniformly random
+actions drawn on the device) in agent-steps/s at K = 16 384, 1024, 1; the projected wall time of a 625-episode run
+and of the paper's grid. On a fresh GPU machine each new K costs a compilation (about 40 s to 200 s for the
+first); inductor's cache on the machine makes a second run's cheap. Each measurement is capped in steps and the
+whole run in time (``--budget-s``, default 420 s, so that it ends within 8 minutes on one card): a row whose turn
+comes after the budget is printed as skipped. ``--device cpu`` with small sizes runs the same code on the CPU,
+without graphs or compiling (a test does).
 """
 
 from __future__ import annotations
@@ -24,8 +27,9 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 
 GRID_DDPG_RUNS = 110
 """The paper grid's DDPG runs: 11 settings × 10 seeds (one batch: they may differ in preset and density)."""
-GRID_DQN_RUNS = 10
-"""Runs of each of the grid's DQN variants (dqn, ddqn, dueling, per): 10 seeds of one setting."""
+GRID_DQN_BATCHES = (20, 10)
+"""The grid's DQN-family batches on the lockstep path: dqn and ddqn's 20 runs together (one network), dueling's
+10 (timed at DQN's rate; its head is a little more work). per's 10 runs are not on that path."""
 RUN_ITERATIONS = 625 * 800
 """Lockstep iterations of a paper run (625 episodes of 800 steps)."""
 DENSITY = 90.0
@@ -218,8 +222,29 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
 
     row(describe(device))
     row(f"host reads inside an iteration: {host_reads(device, seed)}")
-    drift_runs = max(env_sizes, default=64)  # the env row of that size then reuses the compiled step
+    drift_runs = train_sizes[0] if train_sizes else 64  # the first DDPG row then reuses the compiled step
     row(f"compiled ring step against the step as written: {compiled_drift(device, drift_runs, seed=seed)}")
+    graphs = torch.device(device).type == "cuda"
+    row("")
+    row(f"Training, one iteration {'a CUDA graph, the ring step and the update compiled' if graphs else 'eager'} "
+        f"(the paper's networks and batch 64; updates from step {LEARNING_STARTS}; the first two sizes of each "
+        "algorithm first):")
+    row("")
+    row("| section | algo | K | iterations | iterations/s | ms/iteration |")
+    row("|---|---|---|---|---|---|")
+    rates: dict[tuple[str, int], float] = {}
+    order = [("ddpg", k) for k in train_sizes[:2]] + [("dqn", k) for k in dqn_sizes[:2]]
+    order += [("ddpg", k) for k in train_sizes[2:]] + [("dqn", k) for k in dqn_sizes[2:]]
+    for algo, k in order:
+        if not left():
+            row(f"| train | {algo} | {k} | 0 | skipped (time budget) | |")
+            continue
+        rates[algo, k] = rate = train_rate(k, train_steps, device, seed, algo)
+        row(f"| train | {algo} | {k} | {train_steps} | {rate:.1f} | {1000 / rate:.2f} |")
+    if graphs and left():
+        rate = train_rate(GRID_DDPG_RUNS, train_steps, device, seed, "ddpg", compile=None)
+        row(f"| train, graph, not compiled | ddpg | {GRID_DDPG_RUNS} | {train_steps} | {rate:.1f} | "
+            f"{1000 / rate:.2f} |")
     row("")
     row("Environment alone (float64, random actions drawn on the device):")
     row("")
@@ -230,38 +255,18 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
             row(f"| env | {k} | 0 | skipped (time budget) |")
             continue
         row(f"| env | {k} | {env_steps} | {env_rate(k, env_steps, device, seed):.0f} |")
-    graphs = torch.device(device).type == "cuda"
-    row("")
-    row(f"Training, one iteration {'a CUDA graph, the ring step and the update compiled' if graphs else 'eager'} "
-        f"(the paper's networks and batch 64; updates from step {LEARNING_STARTS}):")
-    row("")
-    row("| section | algo | K | iterations | iterations/s | ms/iteration |")
-    row("|---|---|---|---|---|---|")
-    rates: dict[tuple[str, int], float] = {}
-    for algo, sizes in (("ddpg", train_sizes), ("dqn", dqn_sizes)):
-        for k in sizes:
-            if not left():
-                row(f"| train | {algo} | {k} | 0 | skipped (time budget) | |")
-                continue
-            rates[algo, k] = rate = train_rate(k, train_steps, device, seed, algo)
-            row(f"| train | {algo} | {k} | {train_steps} | {rate:.1f} | {1000 / rate:.2f} |")
-    if graphs and left():
-        rate = train_rate(GRID_DDPG_RUNS, train_steps, device, seed, "ddpg", compile=None)
-        row(f"| train, graph, not compiled | ddpg | {GRID_DDPG_RUNS} | {train_steps} | {rate:.1f} | "
-            f"{1000 / rate:.2f} |")
     row("")
     if ("ddpg", 1) in rates:
         row(f"one 625-episode DDPG run (K = 1): {RUN_ITERATIONS / rates['ddpg', 1] / 60:.1f} min")
-    ddpg = rates.get(("ddpg", GRID_DDPG_RUNS))
-    dqn = rates.get(("dqn", GRID_DQN_RUNS))
-    if ddpg is None or dqn is None:
+    needed = [("ddpg", GRID_DDPG_RUNS), *(("dqn", k) for k in GRID_DQN_BATCHES)]
+    if any(key not in rates for key in needed):
         row("projected grid: not measured (its batch sizes were not among the rows, or the time budget ran out)")
     else:
-        minutes_ddpg = RUN_ITERATIONS / ddpg / 60.0
-        minutes_dqn = 3 * RUN_ITERATIONS / dqn / 60.0
-        row(f"projected grid: DDPG's {GRID_DDPG_RUNS} runs as one batch {minutes_ddpg:.1f} min + dqn, ddqn and "
-            f"dueling ({GRID_DQN_RUNS} runs each, one batch after another, at DQN's rate) {minutes_dqn:.1f} min = "
-            f"{minutes_ddpg + minutes_dqn:.1f} min (per's {GRID_DQN_RUNS} runs are not on the lockstep path)")
+        minutes = [RUN_ITERATIONS / rates[key] / 60.0 for key in needed]
+        row(f"projected grid: DDPG's {GRID_DDPG_RUNS} runs as one batch {minutes[0]:.1f} min + dqn and ddqn's "
+            f"{GRID_DQN_BATCHES[0]} runs as one batch {minutes[1]:.1f} min + dueling's {GRID_DQN_BATCHES[1]} at "
+            f"DQN's rate {minutes[2]:.1f} min = {sum(minutes):.1f} min, compiling not counted (per's 10 runs are "
+            "not on the lockstep path)")
     row(f"(bench took {time.perf_counter() - start:.0f} s; the untimed first iterations of each row, compiling and "
         f"capturing included: {', '.join(f'{w:.0f}' for w in WARM_S)} s)")
     return "\n".join(lines)
