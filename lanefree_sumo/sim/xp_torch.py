@@ -32,7 +32,8 @@ _DTYPES: dict[Any, Any] = {float: torch.float64, np.float64: torch.float64, bool
 
 
 class TorchNamespace:
-    """numpy's names over torch tensors on one device (float64 for real numbers, int64 for indices)."""
+    """numpy's names over torch tensors on one device (float64 for real numbers, int64 for indices). Its type tests
+    take tuples (``isinstance(x, (float, int))``), not unions: ``torch.compile`` traces the one, not the other."""
 
     is_numpy = False
     inf = float("inf")
