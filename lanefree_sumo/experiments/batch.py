@@ -240,6 +240,9 @@ class _Batch:
         loop = Lockstep(env, learner, seed)
         if state is not None:
             loop.load_state_dict(state)
+        if loop.compiled is not None:  # the first iterations wait for it, with no episode to show
+            print(f"compiling the ring step and the update for {self.device} ({loop.compiled}; a minute or more "
+                  "on a machine that has not compiled them before)", file=sys.stderr, flush=True)
         return loop
 
     def _run_lockstep(self, loop: Any, env: Any, learner: Any, obs: Any, books: _Books, logs: list[EpisodeLog],
