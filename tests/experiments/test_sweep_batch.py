@@ -135,6 +135,38 @@ def test_bad_batch_options_are_one_line_errors(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_no_ray_runs_the_tasks_in_turn_stops_after_an_interrupted_one_and_gets_its_output_back(
+        tmp_path, monkeypatch, capfd):
+    """``--no-ray``'s loop (the tasks replaced by stand-ins: the loop's logic alone): batches in turn, each task's
+    redirected output back to the driver after it, and nothing started after an interrupted batch."""
+    import lanefree_sumo.experiments.sweep.batches as batches_module
+    from lanefree_sumo.experiments.sweep.runner import run_in_process
+    from lanefree_sumo.experiments.sweep.worker import _redirect_output
+
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0, 1, 2, 3, 4, 5],
+                                                       "episodes": 2}))
+    sweep = SweepDir(tmp_path / "sweep")
+    packing = pack(sweep, grid, list(grid.cells()), pending(grid), 2)
+    assert len(packing.batches) == 3
+    started = []
+
+    def stand_in(out, batch, runs, configs, target, command):
+        started.append(batch)
+        _redirect_output(Path(out) / "logs" / f"{batch}.log")  # as the real task does
+        os.write(1, b"inside the task\n")  # at the descriptor, as SUMO writes
+        status = "interrupted" if len(started) == 2 else "complete"
+        return [{"name": name, "status": status, "episodes": 1, "detail": ""} for name in runs]
+
+    monkeypatch.setattr(batches_module, "run_batch", stand_in)
+    outcome = run_in_process(sweep, grid, [], "lanefree sweep", packing.batches)
+    print("the driver again")
+    assert started == [b.name for b in packing.batches[:2]] and outcome.interrupted
+    assert sorted(r["status"] for r in outcome.results.values()) == ["complete"] * 2 + ["interrupted"] * 2
+    out = capfd.readouterr().out
+    assert "the driver again" in out and "inside the task" not in out and "[1/3]" in out and "[2/3]" in out
+    assert (sweep.path / "logs" / f"{started[0]}.log").read_text() == "inside the task\n"
+
+
 # -- real sweeps on the embedded Ray ----------------------------------------------------------------------------
 
 def test_an_embedded_ray_that_cannot_start_is_one_line_and_trains_nothing(tmp_path):

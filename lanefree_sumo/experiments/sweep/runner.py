@@ -381,8 +381,9 @@ def run_in_process(sweep: SweepDir, grid: Grid, todo: list[Cell], command: str,
                 outcome.results[result["name"]] = result
             done = sum(1 for r in results if r["status"] == "complete")
             print(f"  [{i}/{len(tasks)}] {name}: {done}/{len(results)} run(s) complete "
-                  f"({time.monotonic() - t0:.0f} s)" + "".join(f"; {r['name']}: {r['status']} {r.get('detail', '')}"
-                                                             for r in results if r["status"] != "complete"),
+                  f"({time.monotonic() - t0:.0f} s)" + "".join(
+                      f"; {r['name']}: {r['status']}" + (f" ({r['detail']})" if r.get("detail") else "")
+                      for r in results if r["status"] != "complete"),
                   flush=True)
             if any(r["status"] == "interrupted" for r in results):
                 outcome.interrupted = True
