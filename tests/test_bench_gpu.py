@@ -54,10 +54,11 @@ def test_the_drift_of_a_traced_step_is_zero_and_measured_along_the_ring():
     both gaps 0 after 1 and after 5 steps; and a gap across the ring's seam counts as the distance along it."""
     import torch
 
-    from lanefree_sumo.tools.bench_gpu import compiled_drift, ring_gap
+    from lanefree_sumo.sim.state import wrap
+    from lanefree_sumo.tools.bench_gpu import compiled_drift
 
-    gaps = ring_gap(torch.tensor([0.1, 250.0, 10.0], dtype=torch.float64),
-                    torch.tensor([499.9, 0.0, 12.5], dtype=torch.float64), torch.tensor(500.0, dtype=torch.float64))
+    gaps = wrap(torch.tensor([0.1, 250.0, 10.0], dtype=torch.float64)
+                - torch.tensor([499.9, 0.0, 12.5], dtype=torch.float64), 500.0).abs()
     assert torch.allclose(gaps, torch.tensor([0.2, 250.0, 2.5], dtype=torch.float64))
 
     line = compiled_drift("cpu", runs=2, steps=5, compile="aot_eager")

@@ -130,15 +130,6 @@ def host_reads(device: str, seed: int = 0) -> str:
     return "none"
 
 
-def ring_gap(x: Any, y: Any, length: Any) -> Any:
-    """The distance along a ring of ``length`` (m) between positions x and y (m; tensors): 0.1 m and 499.9 m on
-    the 500 m ring are 0.2 m apart."""
-    import torch
-
-    gap = (x - y).abs() % length
-    return torch.minimum(gap, length - gap)
-
-
 def compiled_drift(device: str, runs: int = 64, steps: int = 100, seed: int = 0,
                    compile: str | bool = True) -> str:
     """How far the compiled ring step (``compile``: :class:`~lanefree_sumo.rl.lockstep.Lockstep`'s; by default
@@ -146,6 +137,8 @@ def compiled_drift(device: str, runs: int = 64, steps: int = 100, seed: int = 0,
     |Δx| along the ring (m) and |Δvx| (m/s) after one step and after ``steps`` (fused kernels may round otherwise;
     the rings are chaotic, so the gap grows)."""
     import torch
+
+    from lanefree_sumo.sim.state import wrap
 
     loops = [_loop(runs, device, seed, None, graphs=False, compile=c) for c in (compile, None)]
     if loops[0].compiled is None:
@@ -161,7 +154,7 @@ def compiled_drift(device: str, runs: int = 64, steps: int = 100, seed: int = 0,
             loop.iterate()
         if step in (1, steps):
             a, b = (loop.env.world for loop in loops)
-            gap = ring_gap(a.x, b.x, a.road_length[:, None])
+            gap = abs(wrap(a.x - b.x, a.road_length[:, None]))  # along the ring: 0.1 m and 499.9 m: 0.2 m
             out.append(f"after {step} step(s) |Δx| ≤ {float(gap.max()):.1e} m (along the ring), "
                        f"|Δvx| ≤ {float((a.vx - b.vx).abs().max()):.1e} m/s")
     return f"{loops[0].compiled}, K = {runs}: " + "; ".join(out)

@@ -234,6 +234,11 @@ def _raise_interrupt(_signum: int, _frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+def _batch_configs(grid: Grid, by_name: dict[str, Cell], batch: Batch) -> list[dict[str, Any]]:
+    """The configs of ``batch``'s runs, as a batch task takes them."""
+    return [config_to_dict(grid.config(by_name[name])) for name in batch.runs]
+
+
 def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: int, command: str,
               progress: bool, batches: list[Batch] | None = None) -> SweepOutcome:
     """Submit one task per cell of ``todo`` and one per batch of ``batches`` and wait for all of them with a
@@ -257,7 +262,7 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
         refs[task.options(num_cpus=max(1, cfg.train.envs), name=f"lanefree-sweep:{cell.name}").remote(
             str(sweep.path), cell.name, config_to_dict(cfg), target, command)] = (cell.name,)
     for batch in batches:
-        configs = [config_to_dict(grid.config(by_name[name])) for name in batch.runs]
+        configs = _batch_configs(grid, by_name, batch)
         on_gpu = grid.config(by_name[batch.runs[0]]).train.device == "cuda"  # one batch per GPU at a time
         refs[batch_task.options(num_cpus=1, num_gpus=1 if on_gpu else 0, name=f"lanefree-sweep:{batch.name}").remote(
             str(sweep.path), batch.name, list(batch.runs), configs, target, command)] = batch.runs
@@ -366,7 +371,7 @@ def run_in_process(sweep: SweepDir, grid: Grid, todo: list[Cell], command: str,
     by_name = {c.name: c for c in grid.cells()}
     tasks: list[tuple[str, Any]] = [
         (batch.name, lambda b=batch: run_batch(str(sweep.path), b.name, list(b.runs),
-                                               [config_to_dict(grid.config(by_name[n])) for n in b.runs],
+                                               _batch_configs(grid, by_name, b),
                                                grid.episodes, command)) for batch in batches or []]
     tasks += [(cell.name, lambda c=cell: [run_cell(str(sweep.path), c.name, config_to_dict(grid.config(c)),
                                                    grid.episodes, command)]) for cell in todo]
