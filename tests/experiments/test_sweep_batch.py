@@ -222,6 +222,9 @@ def test_a_batched_sweep_writes_the_run_folders_of_a_sequential_sweep(tmp_path):
         assert rows(tmp_path / "here" / "runs" / name / "episodes.csv") == rows(batched / "runs" / name /
                                                                                  "episodes.csv")
     assert read_manifest(tmp_path / "here").sessions[-1]["ray"] == "this process (no Ray)"
+    # and no Ray was started on the way (asking an unstarted Ray for its node starts one)
+    logs = sorted((tmp_path / "here" / "logs").glob("*.log"))
+    assert len(logs) == 2 and all(" node -\n" in log.read_text() for log in logs)
     # a finished batch keeps no batch checkpoint (its replay buffers): nothing is left to resume
     assert not list((batched / "batches").glob(f"*/{BATCH_CHECKPOINTS}/*"))
 

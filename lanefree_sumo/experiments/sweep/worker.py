@@ -192,12 +192,12 @@ def _redirect_output(path: Path) -> None:
 
 
 def _node_id() -> str:
-    try:
-        import ray
-
-        return str(ray.get_runtime_context().get_node_id())[:12]
-    except Exception:  # not inside Ray (tests call run_cell directly)
+    """The Ray node this task runs on; ``-`` outside Ray (``sweep --no-ray``, tests calling run_cell directly).
+    Ray is asked only when it is running: its runtime context starts a local Ray where none is."""
+    ray = sys.modules.get("ray")
+    if ray is None or not ray.is_initialized():
         return "-"
+    return str(ray.get_runtime_context().get_node_id())[:12]
 
 
 def probe(out: str, token: str) -> dict[str, Any]:
