@@ -16,8 +16,9 @@ pytestmark = [pytest.mark.slow]
 
 def test_the_gpu_bench_runs_on_the_cpu_and_prints_rows_that_parse():
     res = subprocess.run([sys.executable, "-m", "lanefree_sumo.tools.bench", "--gpu", "--device", "cpu",
-                          "--env-sizes", "1,3", "--train-sizes", "1,2", "--dqn-sizes", "1,2", "--env-steps", "3",
-                          "--train-steps", "2"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+                          "--env-sizes", "1,3", "--train-sizes", "1,2", "--dqn-sizes", "1,2", "--per-sizes", "2",
+                          "--env-steps", "3", "--train-steps", "2"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
     lines = res.stdout.splitlines()
     assert re.match(r"device: cpu — .+; torch \S+; CUDA \S+", lines[0])
@@ -28,7 +29,7 @@ def test_the_gpu_bench_runs_on_the_cpu_and_prints_rows_that_parse():
     train = [re.fullmatch(r"\| train \| (\w+) \| (\d+) \| (\d+) \| ([\d.]+) \| ([\d.]+) \|", line) for line in lines]
     measured = [(m[1], int(m[2]), int(m[3]), float(m[4]), float(m[5])) for m in train if m]
     assert [(algo, k, n) for algo, k, n, _, _ in measured] == [("ddpg", 1, 2), ("ddpg", 2, 2), ("dqn", 1, 2),
-                                                               ("dqn", 2, 2)]
+                                                               ("dqn", 2, 2), ("per", 2, 2)]
     # ms/iteration is 1000 / the rate before the rate was rounded to 0.1
     assert all(rate > 0.05 and 1000 / (rate + 0.05) - 0.01 <= ms <= 1000 / (rate - 0.05) + 0.01
                for *_, rate, ms in measured)

@@ -19,7 +19,8 @@ work) and :meth:`Lockstep.start` copies the new state into the iteration's buffe
 
 What differs from the exact path (:mod:`lanefree_sumo.experiments.batch` on the CPU): run k draws from the device's
 generator, not from its own numpy streams, so it agrees with ``lanefree train --seed k`` in distribution, not bit
-for bit; prioritised replay and ``episode.terminate_on_collision`` are not run here.
+for bit; prioritised replay keeps its priorities on the device (sampled through their running sum rather than the
+host's sum tree: the same distribution); ``episode.terminate_on_collision`` is not run here.
 """
 
 from __future__ import annotations
@@ -45,8 +46,6 @@ def lockstep_refusal(env: Any, learner: Any) -> str | None:
         return "the lockstep loop runs the torch simulation (give the environment a device)"
     if bool(np.any(env._terminate)):
         return "episode.terminate_on_collision ends episodes at different steps"
-    if learner is not None and getattr(learner, "priorities", None):
-        return "prioritised replay keeps its trees on the host"
     return None
 
 
@@ -178,7 +177,7 @@ class Lockstep:
             learner.store_on_device(self.obs, stored, reward.to(th.float32), obs)
             if update:
                 assert self._learn is not None
-                self._learn(learner.sample_on_device())
+                self._learn(*learner.sample_on_device())
         self.flagged |= bad
         self.obs = obs
         self._pin()

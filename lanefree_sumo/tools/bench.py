@@ -551,6 +551,8 @@ def main() -> None:
                      help="K of the DDPG training rows; the first two are measured first (110,1,150,1024)")
     gpu.add_argument("--dqn-sizes", type=_sizes, default=(20, 10, 1, 1024),
                      help="K of the DQN training rows; the first two are measured first (20,10,1,1024)")
+    gpu.add_argument("--per-sizes", type=_sizes, default=(10,),
+                     help="K of the prioritised-replay DQN rows, measured after the first two of each other (10)")
     gpu.add_argument("--env-steps", type=int, default=100, help="steps per env row (default 100)")
     gpu.add_argument("--train-steps", type=int, default=100, help="iterations per training row (default 100)")
     gpu.add_argument("--budget-s", type=float, default=420.0,
@@ -562,7 +564,7 @@ def main() -> None:
 
         try:
             bench_gpu.run(args.device, args.env_sizes, args.train_sizes, args.dqn_sizes, args.env_steps,
-                          args.train_steps, args.budget_s, args.seed)
+                          args.train_steps, args.budget_s, args.seed, per_sizes=args.per_sizes)
         except LaneFreeError as exc:
             raise SystemExit(f"error: {exc}") from None
     elif args.batch_only:

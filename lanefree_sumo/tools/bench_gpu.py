@@ -5,7 +5,8 @@ host (torch's sync debug mode, on CUDA); how far the compiled ring step strays f
 markdown tables, training (:mod:`lanefree_sumo.rl.lockstep`: act, env step, store, one update per run, the paper's
 settings; on a GPU each iteration a CUDA graph with the ring step and the update compiled) in iterations/s for
 DDPG at K = 110 (the paper grid's DDPG runs), 1, 150, 1024 and for DQN at K = 20 (the grid's dqn and ddqn runs),
-10 (dueling's), 1, 1024 — the first two of each first —, the same DDPG iteration with graphs but not compiled at
+10 (dueling's), 1, 1024 — the first two of each first, then prioritised replay at K = 10 (per's) —, the same DDPG
+iteration with graphs but not compiled at
 K = 110; the environment alone (:class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`, float64, uniformly random
 actions drawn on the device) in agent-steps/s at K = 16 384, 1024, 1; the projected wall time of a 625-episode run
 and of the paper's grid. On a fresh GPU machine each new K costs a compilation (about 40 s to 200 s for the
@@ -28,8 +29,10 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 GRID_DDPG_RUNS = 110
 """The paper grid's DDPG runs: 11 settings × 10 seeds (one batch: they may differ in preset and density)."""
 GRID_DQN_BATCHES = (20, 10)
-"""The grid's DQN-family batches on the lockstep path: dqn and ddqn's 20 runs together (one network), dueling's
-10 (timed at DQN's rate; its head is a little more work). per's 10 runs are not on that path."""
+"""The grid's DQN-family batches with uniform replay: dqn and ddqn's 20 runs together (one network), dueling's
+10 (timed at DQN's rate; its head is a little more work)."""
+GRID_PER_RUNS = 10
+"""The grid's prioritised-replay runs (one batch)."""
 RUN_ITERATIONS = 625 * 800
 """Lockstep iterations of a paper run (625 episodes of 800 steps)."""
 DENSITY = 90.0
@@ -115,7 +118,7 @@ def host_reads(device: str, seed: int = 0) -> str:
 
     if torch.device(device).type != "cuda":
         return "not checked (torch's sync debug mode watches CUDA only)"
-    for algo in ("ddpg", "dqn"):
+    for algo in ("ddpg", "dqn", "per"):
         loop = _loop(2, device, seed, algo, graphs=False, compile=None)
         for _ in range(loop.learner.learning_starts + 1):
             loop.iterate()
@@ -192,7 +195,8 @@ def describe(device: str) -> str:
 
 
 def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_sizes: Sequence[int],
-        env_steps: int, train_steps: int, budget_s: float, seed: int = 0) -> str:
+        env_steps: int, train_steps: int, budget_s: float, seed: int = 0,
+        per_sizes: Sequence[int] = (GRID_PER_RUNS,)) -> str:
     """The benchmark's text (module docstring); each row is printed as soon as it is measured."""
     import torch
 
@@ -227,6 +231,7 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
     row("|---|---|---|---|---|---|")
     rates: dict[tuple[str, int], float] = {}
     order = [("ddpg", k) for k in train_sizes[:2]] + [("dqn", k) for k in dqn_sizes[:2]]
+    order += [("per", k) for k in per_sizes]
     order += [("ddpg", k) for k in train_sizes[2:]] + [("dqn", k) for k in dqn_sizes[2:]]
     for algo, k in order:
         if not left():
@@ -251,15 +256,15 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
     row("")
     if ("ddpg", 1) in rates:
         row(f"one 625-episode DDPG run (K = 1): {RUN_ITERATIONS / rates['ddpg', 1] / 60:.1f} min")
-    needed = [("ddpg", GRID_DDPG_RUNS), *(("dqn", k) for k in GRID_DQN_BATCHES)]
+    needed = [("ddpg", GRID_DDPG_RUNS), *(("dqn", k) for k in GRID_DQN_BATCHES), ("per", GRID_PER_RUNS)]
     if any(key not in rates for key in needed):
         row("projected grid: not measured (its batch sizes were not among the rows, or the time budget ran out)")
     else:
         minutes = [RUN_ITERATIONS / rates[key] / 60.0 for key in needed]
         row(f"projected grid: DDPG's {GRID_DDPG_RUNS} runs as one batch {minutes[0]:.1f} min + dqn and ddqn's "
             f"{GRID_DQN_BATCHES[0]} runs as one batch {minutes[1]:.1f} min + dueling's {GRID_DQN_BATCHES[1]} at "
-            f"DQN's rate {minutes[2]:.1f} min = {sum(minutes):.1f} min, compiling not counted (per's 10 runs are "
-            "not on the lockstep path)")
+            f"DQN's rate {minutes[2]:.1f} min + per's {GRID_PER_RUNS} {minutes[3]:.1f} min = {sum(minutes):.1f} min, "
+            "compiling not counted")
     row(f"(bench took {time.perf_counter() - start:.0f} s; the untimed first iterations of each row, compiling and "
         f"capturing included: {', '.join(f'{w:.0f}' for w in WARM_S)} s)")
     return "\n".join(lines)

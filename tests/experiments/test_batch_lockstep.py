@@ -12,10 +12,10 @@ from typing import Any
 
 import pytest
 import torch as th
-from stable_baselines3 import DDPG, DQN
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, resume_batch, train_batch
+from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.lockstep import Lockstep
 from tests.experiments.test_batch import rows
 
@@ -33,7 +33,7 @@ def tiny(algo: str, seed: int, density: float = 70.0) -> LaneFreeConfig:
                                            "train": {**LOCKSTEP["train"], "algo": algo}})
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn"])
+@pytest.mark.parametrize("algo", ["ddpg", "dqn", "per"])
 def test_a_lockstep_batch_writes_ordinary_run_folders(tmp_path: Path, algo: str) -> None:
     cfgs = [tiny(algo, 0), tiny(algo, 1, density=90.0)]
     results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test", device="cpu", lockstep=True)
@@ -42,18 +42,20 @@ def test_a_lockstep_batch_writes_ordinary_run_folders(tmp_path: Path, algo: str)
         got = rows(folder / "episodes.csv")
         assert [int(r["episode"]) for r in got] == [1, 2, 3]
         assert [int(r["timesteps"]) for r in got] == [20, 40, 60] and all(r["steps"] == "20" for r in got)
-        model = (DDPG if algo == "ddpg" else DQN).load(folder / "model.zip", device="cpu")
+        model = get_algorithm(algo).cls.load(folder / "model.zip", device="cpu")
         assert model.num_timesteps == 60 and model._n_updates == 60 - 15 - 1  # none at the last step, as SB3
         session = json.loads((folder / "last_session.json").read_text())
         assert session["stopped_by"] is None and session["episodes_done"] == 3
     assert rows(results[0][0] / "episodes.csv") != rows(results[1][0] / "episodes.csv")
 
 
-def test_a_stopped_lockstep_batch_resumes_with_the_uninterrupted_episodes(tmp_path: Path,
+@pytest.mark.parametrize("algo", ["ddpg", "per"])
+def test_a_stopped_lockstep_batch_resumes_with_the_uninterrupted_episodes(tmp_path: Path, algo: str,
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """SIGTERM in the middle of episode 2: the batch saves after that iteration; --resume continues with the
-    device streams' state, and every run's episodes equal an uninterrupted batch's."""
-    cfgs = [tiny("ddpg", 0), tiny("ddpg", 1)]
+    device streams' state (DDPG's noise; prioritised replay's priorities), and every run's episodes equal an
+    uninterrupted batch's."""
+    cfgs = [tiny(algo, 0), tiny(algo, 1)]
     whole = train_batch(cfgs, tmp_path / "whole", progress=False, command="test", device="cpu", lockstep=True)
     iterate = Lockstep.iterate
 

@@ -91,7 +91,7 @@ def test_the_host_number_detector_sees_a_scalar_written_by_index() -> None:
     assert seen.found == []
 
 
-@pytest.mark.parametrize("algo", [None, "ddpg", "dqn", "dqn+ddqn"])
+@pytest.mark.parametrize("algo", [None, "ddpg", "dqn", "dqn+ddqn", "per"])
 def test_an_iteration_reads_nothing_from_the_host_and_writes_no_host_number(algo: str | None) -> None:
     """What a CUDA graph needs: each phase's iteration (random actions; acting; acting and updating) runs with
     every host read refused and writes no number from the host into a tensor."""
@@ -193,7 +193,7 @@ def test_a_compiler_that_fails_leaves_the_loop_uncompiled_with_a_warning() -> No
     assert th.equal(broken.obs, plain.obs) and th.equal(broken.learner.q_net.stack.flat, plain.learner.q_net.stack.flat)
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn", "dqn+ddqn"])
+@pytest.mark.parametrize("algo", ["ddpg", "dqn", "dqn+ddqn", "per"])
 def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_eager_one(algo: str) -> None:
     """The gradient step traced as one graph (``aot_eager``) moves the weights, the targets and Adam's moments as
     the eager step does, to float32 rounding (the traced graph runs the in-place updates in functional form: the
@@ -216,6 +216,9 @@ def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_ea
         a, b = getattr(traced.learner, name), getattr(eager.learner, name)
         a, b = (a if algo == "ddpg" else a.stack).flat, (b if algo == "ddpg" else b.stack).flat
         assert th.allclose(a, b, rtol=1e-5, atol=1e-7), name
+    if algo == "per":  # the priorities the traced step wrote back
+        assert th.allclose(traced.learner._leaves, eager.learner._leaves, rtol=1e-5)
+        assert ((eager.learner._leaves > 0) & (eager.learner._leaves != 1.0)).any()  # the updates moved some
     for mine, theirs in zip(traced.learner.optimisers(), eager.learner.optimisers(), strict=True):
         assert th.equal(mine.count, theirs.count) and float(mine.count) == 4.0
         assert th.allclose(mine.exp_avg, theirs.exp_avg, rtol=1e-5, atol=1e-9)
@@ -304,10 +307,55 @@ def test_the_lockstep_loop_refuses_what_it_cannot_run() -> None:
         Lockstep(env, None, 0)
     with pytest.raises(ConfigError, match="torch simulation"):
         Lockstep(BatchedRingEnv(configs("ddpg")), None, 0)
-    per = configs("per")
-    learner = build_batched(per, [0, 1], observation_space(per[0]), action_space(per[0]), device="cpu")
-    with pytest.raises(ConfigError, match="prioritised replay"):
-        Lockstep(BatchedRingEnv(per, device="cpu"), learner, 0)
+
+
+class Draws:
+    """A stand-in for a run's numpy stream that hands out given uniform numbers (RunPriorities.sample's draws)."""
+
+    def __init__(self, values: np.ndarray) -> None:
+        self.values = values
+
+    def random_sample(self, n: int) -> np.ndarray:
+        assert n == len(self.values)
+        return self.values
+
+
+def test_prioritised_replay_on_the_device_samples_and_updates_as_the_host_trees() -> None:
+    """With the same uniform numbers, the device's draw (running sums of the leaves) picks the positions the host's
+    sum trees pick, with the same importance weights (β at the same step count); the update on the device writes
+    the priorities the host trees get, and the largest so far; a transition stored on the device gets it."""
+    cfgs = configs("per")  # replay of 50
+    space, actions = observation_space(cfgs[0]), action_space(cfgs[0])
+    host = build_batched(cfgs, [0, 1], space, actions, device="cpu")
+    device = build_batched(cfgs, [0, 1], space, actions, device="cpu")
+    rng = np.random.default_rng(4)
+    for _ in range(40):  # 40 of 50 slots stored, with unequal priorities
+        row = (rng.normal(size=(2, 24)).astype(np.float32), rng.integers(0, 9, 2), rng.normal(size=2),
+               rng.normal(size=(2, 24)).astype(np.float32), np.zeros(2, bool))
+        for learner in (host, device):
+            learner.store(*row)
+    for k, priorities in enumerate(host.priorities):
+        positions = rng.choice(40, 25, replace=False)
+        priorities.update(positions, rng.exponential(2.0, 25).astype(np.float32))
+        device.priorities[k].load_state(priorities.state())
+    device.use_device_streams(th.Generator().manual_seed(0))
+    assert np.allclose(device._leaves.numpy(), np.stack([p.leaves() for p in host.priorities]), rtol=1e-12)
+    uniform = rng.random((2, host.batch_size))
+    device._rand = lambda *shape: th.as_tensor(uniform)  # type: ignore[method-assign]
+    got_indices, got_weights = device.sample_on_device()
+    beta = host.per_beta()
+    assert beta > host.per_beta0  # 40 steps in: β has moved, on both sides from the same count
+    for k, priorities in enumerate(host.priorities):
+        indices, weights = priorities.sample(Draws(uniform[k]), host.batch_size, beta)
+        assert np.array_equal(got_indices[k].numpy(), indices)
+        assert np.allclose(got_weights[k, :, 0].numpy(), weights, rtol=1e-6)
+    assert len(set(got_indices[0].tolist())) < host.batch_size  # the large priorities drawn more than once
+    host._learn(got_indices.numpy(), got_weights)
+    device._learn(got_indices, got_weights)
+    assert th.allclose(device._leaves, th.as_tensor(np.stack([p.leaves() for p in host.priorities])), rtol=1e-5)
+    assert np.allclose(device._max_leaf.numpy(), [p.max_priority for p in host.priorities], rtol=1e-5)
+    device.store_on_device(th.zeros(2, 24), th.zeros(2, 1, dtype=th.int64), th.zeros(2), th.zeros(2, 24))
+    assert th.equal(device._leaves[:, 40], device._max_leaf)
 
 
 def test_sums_in_torchs_order_agree_with_numpys_to_rounding(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -8,7 +8,8 @@ SB3 gives its variant's class with seed k, draws its ε-greedy decisions, random
 its own streams in the single run's order, and has its own learning rate, γ and ε schedule; the network shape,
 batch size, buffer size, ``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU
 run k equals the single fast learner bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay
-keeps its trees on the host: its TD errors come back from the device once per update.
+keeps its trees on the host: its TD errors come back from the device once per update. With device streams (the
+lockstep loop) its priorities live on the device instead (:meth:`BatchedDQN.sample_on_device`).
 """
 
 from __future__ import annotations
@@ -188,13 +189,51 @@ class BatchedDQN(BatchedLearner):
         return actions
 
     def use_device_streams(self, generator: th.Generator | None) -> None:
-        if self.priorities:
-            raise ValueError("prioritised replay keeps its trees on the host: it has no device streams")
         super().use_device_streams(generator)
         d = self.device
         start, end, fraction = (th.tensor([getattr(s, name) for s in self.exploration], dtype=th.float64).to(d)
                                 for name in ("start", "end", "end_fraction"))
         self._eps = (start, end, fraction)
+        if self.priorities:  # the trees' leaves (p^α; 0 where nothing is stored) and the largest p^α so far
+            self._leaves = th.as_tensor(np.stack([p.leaves() for p in self.priorities])).to(d)
+            self._max_leaf = th.tensor([p.max_priority for p in self.priorities], dtype=th.float64).to(d)
+            self._strata = th.arange(self.batch_size, dtype=th.float64).to(d)
+            self._slots = th.arange(self.buffer_size).to(d)
+
+    def store_on_device(self, obs: th.Tensor, action: th.Tensor, reward: th.Tensor, next_obs: th.Tensor) -> None:
+        if self.priorities:  # a new transition gets the largest p^α so far (RunPriorities.added)
+            self._leaves.index_copy_(1, self._pos.reshape(1), self._max_leaf.unsqueeze(1))
+        super().store_on_device(obs, action, reward, next_obs)
+
+    def sample_on_device(self) -> tuple[th.Tensor, ...]:
+        """The gradient step's arguments: uniform indices, or with prioritised replay (indices, weights) drawn as
+        :meth:`RunPriorities.sample` draws them (one uniform number per stratum of the total mass, the leaf whose
+        running sum first exceeds it, weights ``(P / P_min)^-β`` with β at the device's step count), the running
+        sum taken over the leaves at each draw instead of read from a sum tree."""
+        if not self.priorities:
+            return super().sample_on_device()
+        leaves = self._leaves
+        running = th.cumsum(leaves, dim=1)
+        total = running[:, -1:]
+        values = (self._strata + self._rand(self.runs, self.batch_size)) * (total / self.batch_size)
+        last = self._size.long() - 1  # values at or past the total (rounding): the last stored leaf, as the tree
+        indices = th.minimum(th.searchsorted(running, values, right=True), last)
+        stored = self._slots < self._size
+        smallest = leaves.masked_fill(~stored, float("inf")).amin(dim=1, keepdim=True)
+        beta = self.per_beta0 + (1.0 - self.per_beta0) * th.clamp(self._count / float(self.total_timesteps), 0.0, 1.0)
+        weights = (leaves.gather(1, indices) / smallest) ** (-beta)
+        return indices, weights.float().unsqueeze(2)
+
+    def device_state(self) -> dict[str, Any]:
+        if not self.priorities:
+            return super().device_state()
+        return {**super().device_state(), "leaves": self._leaves.cpu(), "max_leaf": self._max_leaf.cpu()}
+
+    def load_device_state(self, state: dict[str, Any]) -> None:
+        super().load_device_state(state)
+        if self.priorities:
+            self._leaves.copy_(state["leaves"])
+            self._max_leaf.copy_(state["max_leaf"])
 
     def act_on_device(self, obs: th.Tensor, random: bool) -> tuple[th.Tensor, th.Tensor]:
         """:meth:`act` (exploring) with device streams: (the env's actions ``[K]``, the buffer's ``[K, 1]``); ε from
@@ -278,8 +317,14 @@ class BatchedDQN(BatchedLearner):
             self.adam.step(grads)
         self.losses = {"loss": loss}
         if self.priorities:
-            td_errors = (target_q - current_q).reshape(self.runs, -1).abs().cpu().numpy()
-            for priorities, idx, td in zip(self.priorities, indices, td_errors):
+            td_errors = (target_q - current_q).reshape(self.runs, -1).abs()
+            if self.device_streams:  # RunPriorities.update on the device's leaves
+                assert isinstance(indices, th.Tensor)
+                leaves = (td_errors.double() + self.per_eps) ** self.per_alpha
+                self._leaves.scatter_(1, indices, leaves)
+                self._max_leaf.copy_(th.maximum(self._max_leaf, leaves.amax(dim=1)))
+                return
+            for priorities, idx, td in zip(self.priorities, indices, td_errors.cpu().numpy()):
                 priorities.update(idx, td)
 
     def _loss(self, current_q: th.Tensor, target_q: th.Tensor,

@@ -155,9 +155,10 @@ class BatchedLearner:
         self._size.add_(1.0).clamp_(max=float(self.buffer_size))
         self._count.add_(1.0)
 
-    def sample_on_device(self) -> th.Tensor:
-        """Each run's minibatch: ``[K, batch]`` indices drawn uniformly over what is stored, from the device stream."""
-        return (self._rand(self.runs, self.batch_size) * self._size).long()
+    def sample_on_device(self) -> tuple[th.Tensor, ...]:
+        """The arguments of the gradient step (:meth:`_learn`) on each run's minibatch: ``[K, batch]`` indices drawn
+        uniformly over what is stored, from the device stream."""
+        return ((self._rand(self.runs, self.batch_size) * self._size).long(),)
 
     def stepped_on_device(self, updated: bool) -> None:
         """The host's side of a device iteration (called before its device work): what :meth:`store` and

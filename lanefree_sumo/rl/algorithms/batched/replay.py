@@ -186,6 +186,10 @@ class RunPriorities:
         weights = (probs / min_prob) ** (-beta)
         return flat, weights.astype(np.float32)
 
+    def leaves(self) -> np.ndarray:
+        """Every position's ``p^α`` (0 where nothing is stored yet), float64 ``[capacity]``."""
+        return self.sum_tree.tree[self.sum_tree.size:self.sum_tree.size + self.sum_tree.capacity].copy()
+
     def update(self, indices: np.ndarray, td_errors: np.ndarray) -> None:
         """``p = |δ| + eps`` stored as ``p^α`` (``td_errors``: |δ|, float32 as the single run hands them)."""
         prio = (np.abs(np.asarray(td_errors, dtype=np.float64)) + self.eps) ** self.alpha
