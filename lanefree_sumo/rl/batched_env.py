@@ -4,9 +4,9 @@ Run k is, bit for bit, a :class:`~lanefree_sumo.rl.env.LaneFreeEnv` of its own c
 traffic seeds of a training run (:func:`~lanefree_sumo.rl.models.episode_seed` (seed, 0, e) for its e-th
 episode, as ``lanefree train --seed <seed>`` gives them): the same observations, rewards, reward terms, episode
 ends and episode metrics (every column but the wall time). The runs may differ in seed, density (vehicle count:
-the world pads and masks), reward preset and which passes earn the overtake bonus (``reward.overtake_bonus``);
-they share the step, the driver model, the agents' limits (top speed, lateral speed bound), the action and
-observation settings (the discrete action sizes among them) and the reward's constants.
+the world pads and masks), reward preset, which passes earn the overtake bonus (``reward.overtake_bonus``), the
+agent's top speed and its lateral speed bound; they share the step, the driver model, the agents' acceleration
+bounds, the action and observation settings (the discrete action sizes among them) and the reward's constants.
 
 Every step's work is array operations over the runs: observations, reward terms (:mod:`.rewards`,
 :mod:`.fields_zones`, evaluated for all runs at once), collisions, overtakes and the episode books. A run whose
@@ -92,8 +92,9 @@ def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[Reso
         differ += ["reward"] if {**mine["reward"], **unshared} != {**first["reward"], **unshared} else []
         if differ:
             raise ConfigError(f"run {k} differs from run 0 in {', '.join(differ)}: the runs of one batch may differ in "
-                              "seed, density, reward preset and overtake bonus only")
-    WorldParams.of(cfgs)  # the physics' shared parts (driver model, agents' limits)
+                              "seed, density, reward preset, overtake bonus and the agent's top speed and lateral "
+                              "bound only")
+    WorldParams.of(cfgs)  # the physics' shared parts (driver model, agents' acceleration bounds)
     return cfgs
 
 
@@ -120,7 +121,7 @@ class BatchedRingEnv:
         self.device = None if device is None else str(device)
         xp = self.xp
         self.runs = len(self.cfgs)
-        self.params = WorldParams.of(self.cfgs)
+        self.params = WorldParams.of(self.cfgs).on(xp)
         self.episode = np.array([e - 1 for e in (first_episodes or [1] * self.runs)], dtype=int)
         self.episode_seeds = np.zeros(self.runs, dtype=np.int64)
         self.stopped = np.zeros(self.runs, dtype=bool)

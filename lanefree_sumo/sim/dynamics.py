@@ -15,6 +15,7 @@ arrays ``[N]`` of one simulation or ``[K, N]`` of a batch of runs
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -82,20 +83,22 @@ def plan_step(
 
 
 def clip_accelerations(
-    ax: ArrayLike, ay: ArrayLike, bounds: AccelerationBounds, vx: ArrayLike, max_speed: float, step_s: float,
-    vy: np.ndarray | float = 0.0, lateral_ratio: float | None = None,
+    ax: ArrayLike, ay: ArrayLike, bounds: AccelerationBounds, vx: ArrayLike, max_speed: Any, step_s: float,
+    vy: np.ndarray | float = 0.0, lateral_ratio: Any = None, lateral_bounded: Any = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Clip agents' accelerations (m/s², element-wise) to their bounds and so that each speed ``vx`` (m/s) does
-    not exceed ``max_speed`` (m/s) at the end of the step; with ``lateral_ratio`` r also so that |vy| ≤ r·vx
-    after the step (vy in m/s), as the driver model bounds the background's."""
+    not exceed ``max_speed`` (m/s; a number or an array broadcast with ``vx``) at the end of the step; with
+    ``lateral_ratio`` r also so that |vy| ≤ r·vx after the step (vy in m/s), as the driver model bounds the
+    background's; ``lateral_bounded`` (an array broadcast with ``vx``, or None: all) where that bound applies."""
     xp = namespace(vx, ax, ay)
     speed: np.ndarray = xp.asarray(vx, dtype=float)
     ax_top = xp.minimum(bounds.ax_max, (max_speed - speed) / step_s)
     ay_clipped = xp.clip(xp.asarray(ay, dtype=float), bounds.ay_min, bounds.ay_max)
     if lateral_ratio is not None:
-        ay_clipped = xp.maximum(xp.minimum(ay_clipped, (lateral_ratio * speed - vy) / step_s),
-                                -(lateral_ratio * speed + vy) / step_s)
-        ay_clipped = xp.clip(ay_clipped, bounds.ay_min, bounds.ay_max)
+        bounded = xp.maximum(xp.minimum(ay_clipped, (lateral_ratio * speed - vy) / step_s),
+                             -(lateral_ratio * speed + vy) / step_s)
+        bounded = xp.clip(bounded, bounds.ay_min, bounds.ay_max)
+        ay_clipped = bounded if lateral_bounded is None else xp.where(lateral_bounded, bounded, ay_clipped)
     return xp.minimum(xp.maximum(xp.asarray(ax, dtype=float), bounds.ax_min), ax_top), ay_clipped
 
 

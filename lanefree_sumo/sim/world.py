@@ -34,10 +34,14 @@ from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, take_rows
 from lanefree_sumo.sim.xp import namespace, torch_namespace
 
+PER_RUN_LIMITS = ("agent_max_speed_mps", "agent_lateral_ratio", "agent_lateral_bounded")
+"""The :class:`WorldParams` the runs of one batch may differ in (then arrays ``[K, 1]``, one row per run)."""
+
 
 @dataclass(frozen=True)
 class WorldParams:
-    """What every run of a batch shares: the driver model, the step and the agents' limits (SI units)."""
+    """The physics' parameters of a batch (SI units): the driver model, the step and the agents' acceleration
+    bounds, which every run shares, and the agents' top speed and lateral bound, which may differ per run."""
 
     driver: DriverConfig
     step_s: float
@@ -45,23 +49,42 @@ class WorldParams:
     """The dynamics clip bodies this far inside the road edges (m)."""
     contact_tolerance_m: float
     agent_bounds: AccelerationBounds
-    agent_max_speed_mps: float
-    agent_lateral_ratio: float | None
-    """The agents' |vy| ≤ r·vx bound (None: none)."""
+    agent_max_speed_mps: Any
+    """The agents' top speed (m/s): one number, or ``[K, 1]`` where the runs differ."""
+    agent_lateral_ratio: Any
+    """The agents' |vy| ≤ r·vx bound: r, None (no bound), or ``[K, 1]`` where the runs differ."""
     min_lateral_move_m: float
     """Lateral moves shorter than this are set rather than driven, as SUMO does (m)."""
+    agent_lateral_bounded: Any = None
+    """Where some runs have a lateral bound and some none: ``[K, 1]`` True for the bounded runs (their r in
+    :attr:`agent_lateral_ratio`, 0 for the others); else None."""
 
     @classmethod
     def of(cls, cfgs: Sequence[LaneFreeConfig]) -> WorldParams:
-        """The shared parameters of the runs ``cfgs``; ConfigError when two runs differ in one of them."""
+        """The parameters of the runs ``cfgs``; ConfigError when two runs differ in a shared one."""
         made = [cls._of(cfg) for cfg in cfgs]
         if not made:
             raise ConfigError("a batch needs at least one run")
-        differ = [f.name for f in fields(cls) if any(getattr(p, f.name) != getattr(made[0], f.name) for p in made)]
+        differ = [f.name for f in fields(cls) if f.name not in PER_RUN_LIMITS
+                  and any(getattr(p, f.name) != getattr(made[0], f.name) for p in made)]
         if differ:
-            raise ConfigError(f"the runs of one batch must share the driver model, the step and the agents' limits; "
-                              f"these differ: {', '.join(differ)}")
-        return made[0]
+            raise ConfigError(f"the runs of one batch must share the driver model, the step and the agents' "
+                              f"acceleration bounds; these differ: {', '.join(differ)}")
+        per_run: dict[str, Any] = {}
+        speeds = [p.agent_max_speed_mps for p in made]
+        if len(set(speeds)) > 1:
+            per_run["agent_max_speed_mps"] = np.array(speeds, dtype=float)[:, None]
+        ratios = [p.agent_lateral_ratio for p in made]
+        if len(set(ratios)) > 1:
+            per_run["agent_lateral_ratio"] = np.array([0.0 if r is None else r for r in ratios], dtype=float)[:, None]
+            if None in ratios:
+                per_run["agent_lateral_bounded"] = np.array([r is not None for r in ratios])[:, None]
+        return replace(made[0], **per_run)
+
+    def on(self, xp: Any) -> WorldParams:
+        """These parameters with their per-run arrays in the array namespace ``xp`` (a torch device's)."""
+        return replace(self, **{name: xp.asarray(getattr(self, name)) for name in PER_RUN_LIMITS
+                                if isinstance(getattr(self, name), np.ndarray)})
 
     @classmethod
     def _of(cls, cfg: LaneFreeConfig) -> WorldParams:
@@ -230,7 +253,8 @@ def step_world(world: World, params: WorldParams, agent_accel: np.ndarray,
     rows = world.agent_rows
     agent_ax, agent_ay = clip_accelerations(commands[..., 0], commands[..., 1], params.agent_bounds,
                                             take_rows(world.vx, rows), params.agent_max_speed_mps, t,
-                                            take_rows(world.vy, rows), params.agent_lateral_ratio)
+                                            take_rows(world.vy, rows), params.agent_lateral_ratio,
+                                            params.agent_lateral_bounded)
     xp.put_along_axis(ax, rows, agent_ax, 1)
     xp.put_along_axis(ay, rows, agent_ay, 1)
     if present is not None:

@@ -62,7 +62,7 @@ def test_batched_runs_equal_sequential_runs(tmp_path: Path, algo: str) -> None:
 OPEN_CHOICES = {
     "overtake_bonus": ("ddpg", [{"reward": {"overtake_bonus": "once_per_vehicle"}},
                                 {"reward": {"overtake_bonus": "net_passes"}}]),
-    "agent_limits": ("dqn", [{"scenario": {"agent_max_speed_mps": 24.0, "agent_lateral_speed_ratio": 0.3}}] * 2),
+    "agent_limits": ("dqn", [{"scenario": {"agent_max_speed_mps": 24.0, "agent_lateral_speed_ratio": 0.3}}, {}]),
     "discrete_sizes": ("ddqn", [{"action": {"discrete_ax_mps2": 3.0, "discrete_ay_mps2": 0.5}}] * 2),
     "kerasrl_ddpg": ("ddpg", [{"train": {"profile": "kerasrl"}}] * 2),
     "kerasrl_dqn": ("dqn", [{"train": {"profile": "kerasrl"}}] * 2),

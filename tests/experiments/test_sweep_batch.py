@@ -46,26 +46,29 @@ def test_runs_that_differ_only_where_a_batch_may_are_packed_together(tmp_path):
         "algorithms": ["ddpg", "dqn", "ppo"], "reward_presets": ["collision", "fields_collision"],
         "densities": [70, 90], "seeds": [0, 1], "episodes": 2,
         "variants": {"default": {}, "once": {"reward.overtake_bonus": "once_per_vehicle"},
-                     "cap25": {"scenario.agent_max_speed_mps": 25.0}}}))
+                     "cap25": {"scenario.agent_max_speed_mps": 25.0},
+                     "slow": {"train.actor_critic.learning_rate": 1e-4, "train.dqn.learning_rate": 1e-4}}}))
     sweep = SweepDir(tmp_path / "sweep")
     cells = list(grid.cells())
     packing = pack(sweep, grid, cells, pending(grid), 8)
-    # per algorithm: default and once (overtake bonus per run) together, cap25 (the agents' limits) apart;
-    # 16 + 8 runs of each of ddpg and dqn, in batches of at most 8 of near equal size
-    assert sorted(len(b.runs) for b in packing.batches) == [8] * 6
+    # per algorithm: default, once (overtake bonus per run) and cap25 (top speed per run) together, slow (another
+    # learning rate) apart; 24 + 8 runs of each of ddpg and dqn, in batches of at most 8 of near equal size
+    assert sorted(len(b.runs) for b in packing.batches) == [8] * 8
     for batch in packing.batches:
         algos = {name.split("_")[0] for name in batch.runs}
-        capped = {"_cap25_" in name for name in batch.runs}
-        assert len(algos) == 1 and len(capped) == 1 and not batch.resumed
+        slow = {"_slow_" in name for name in batch.runs}
+        assert len(algos) == 1 and len(slow) == 1 and not batch.resumed
     mixed = [b for b in packing.batches if any("_once_" in n for n in b.runs) and any("_default_" in n for n in b.runs)]
     assert mixed  # the overtake bonus, the density and the preset differ within a batch
-    assert {c.name.split("_")[0] for c in packing.sequential} == {"ppo"} and len(packing.sequential) == 24
+    assert [b for b in packing.batches if any("_cap25_" in n for n in b.runs) and
+            any("_cap25_" not in n for n in b.runs)]  # and the top speed
+    assert {c.name.split("_")[0] for c in packing.sequential} == {"ppo"} and len(packing.sequential) == 32
     assert list(packing.reasons) == ["batched training covers ddpg, dqn, ddqn, dueling, per, not ppo"]
-    assert "48 run(s) in 6 batch(es) of at most 8" in packing.describe()
+    assert "64 run(s) in 8 batch(es) of at most 8" in packing.describe()
     assert sorted([n for b in packing.batches for n in b.runs] + [c.name for c in packing.sequential]) == \
         sorted(c.name for c in cells)  # every run once
     # 10 runs at K = 4: 4 + 3 + 3; K = 1: one run per task
-    ten = [c for c in cells if c.name.startswith("ddpg") and "_cap25_" not in c.name][:10]
+    ten = [c for c in cells if c.name.startswith("ddpg") and "_slow_" not in c.name][:10]
     assert [len(b.runs) for b in pack(sweep, grid, ten, pending(grid), 4).batches] == [4, 3, 3]
     single = pack(sweep, grid, ten, pending(grid), 1)
     assert not single.batches and len(single.sequential) == 10 and single.reasons == {"--batch 1": 10}

@@ -20,13 +20,15 @@ TERMS = ("c_x", "c_y", "c_f", "y_d", "v_d_eff", "blocked", "collided", "overtook
 
 
 def configs(kind: str, observation: str = "vector", *, bonuses: tuple[str, ...] = ("every_pass",) * len(RUNS),
-            scenario: dict | None = None, action: dict | None = None, steps: int = STEPS) -> list[dict]:
+            scenario: dict | None = None, action: dict | None = None, steps: int = STEPS,
+            limits: tuple[dict, ...] = ({},) * len(RUNS)) -> list[dict]:
     """The runs' configs: ``bonuses`` each run's reward.overtake_bonus; ``scenario`` and ``action`` keys every
-    run's."""
-    return [{"seed": seed, "backend": "numpy", "scenario": {"density_veh_per_km": density, **(scenario or {})},
+    run's; ``limits`` scenario keys of each run."""
+    return [{"seed": seed, "backend": "numpy",
+             "scenario": {"density_veh_per_km": density, **(scenario or {}), **own},
              "reward": {"preset": preset, "overtake_bonus": bonus}, "action": {"kind": kind, **(action or {})},
              "observation": {"kind": observation}, "sim": {"episode_steps": steps}}
-            for (seed, density, preset), bonus in zip(RUNS, bonuses)]
+            for (seed, density, preset), bonus, own in zip(RUNS, bonuses, limits)]
 
 
 def actions(rng: np.random.Generator, kind: str, step: int = 0, surge: bool = False) -> np.ndarray:
@@ -56,10 +58,15 @@ def test_each_run_is_lanefree_v0_with_a_training_runs_episode_seeds(kind, observ
     assert_runs_are_lanefree_v0(configs(kind, observation), kind)
 
 
-# the open modelling choices: the overtake bonus per run; the agents' limits and the discrete action sizes per batch
+PER_RUN_LIMITS = ({"agent_max_speed_mps": 24.0}, {"agent_lateral_speed_ratio": 0.3},
+                  {"agent_max_speed_mps": 26.0, "agent_lateral_speed_ratio": 0.1})
+"""Each run its own top speed and lateral bound (run 0 none: the default's 30 m/s and no bound)."""
+
+# the open modelling choices: the overtake bonus and the agents' limits per run; the discrete action sizes per batch
 SWITCHES = {
     "overtake_bonus": ("continuous", {"bonuses": ("once_per_vehicle", "net_passes", "every_pass"), "steps": 120}),
     "agent_limits": ("continuous", {"scenario": {"agent_max_speed_mps": 24.0, "agent_lateral_speed_ratio": 0.3}}),
+    "agent_limits_per_run": ("continuous", {"limits": PER_RUN_LIMITS, "steps": 120}),
     "discrete_sizes": ("discrete", {"action": {"discrete_ax_mps2": 3.0, "discrete_ay_mps2": 0.5}}),
 }
 
@@ -154,5 +161,5 @@ def test_runs_that_cannot_share_a_batch_are_refused():
         BatchedRingEnv([{**base[0], "road": {"kind": "onramp"}}])
     with pytest.raises(ConfigError, match="run 1 differs from run 0 in reward"):
         BatchedRingEnv([base[0], {**base[1], "reward": {"preset": "collision", "overtake_reward": 0.5}}])
-    with pytest.raises(ConfigError, match="agents' limits; these differ: agent_max_speed_mps"):
-        BatchedRingEnv([base[0], {**base[1], "scenario": {"agent_max_speed_mps": 25.0}}])
+    with pytest.raises(ConfigError, match="acceleration bounds; these differ: agent_bounds"):
+        BatchedRingEnv([base[0], {**base[1], "scenario": {"agent_bounds": {"ay_max": 1.0}}}])

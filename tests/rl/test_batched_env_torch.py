@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from lanefree_sumo.rl.batched_env import BatchedRingEnv  # noqa: E402
 from lanefree_sumo.sim.xp_torch import numpy_transcendentals  # noqa: E402
-from tests.rl.test_batched_env import TERMS, actions, configs  # noqa: E402
+from tests.rl.test_batched_env import PER_RUN_LIMITS, TERMS, actions, configs  # noqa: E402
 
 
 def _host(a):
@@ -21,8 +21,9 @@ def _host(a):
 @pytest.mark.parametrize("kind, bonuses", [("continuous", None), ("discrete", None),
                                             ("continuous", ("once_per_vehicle", "net_passes", "every_pass"))])
 def test_the_torch_batched_env_is_the_numpy_one_bit_for_bit(kind, bonuses):
-    """``bonuses``: each run's reward.overtake_bonus (None: every pass), the ledger on the device too."""
-    cfgs = configs(kind) if bonuses is None else configs(kind, bonuses=bonuses, steps=120)
+    """``bonuses``: each run's reward.overtake_bonus (None: every pass), the ledger on the device too; with the
+    bonuses, each run its own top speed and lateral bound too (the per-run limits on the device)."""
+    cfgs = configs(kind) if bonuses is None else configs(kind, bonuses=bonuses, steps=120, limits=PER_RUN_LIMITS)
     reference, twin = BatchedRingEnv(cfgs), BatchedRingEnv(cfgs, device="cpu")
     rng = np.random.default_rng(1)
     seen = {"ended": 0, "overtakes": 0, "collision_events": 0, "unpaid": 0}

@@ -34,8 +34,12 @@ def configs(algo: str, runs: int = 2, **extra: Any) -> list[LaneFreeConfig]:
                   section: {"learning_starts_steps": 6, "buffer_size": 50}}})) for k in range(runs)]
 
 
-def loop_of(algo: str | None, seed: int = 0, runs: int = 2, compile: str | None = None, **extra: Any) -> Lockstep:
+def loop_of(algo: str | None, seed: int = 0, runs: int = 2, compile: str | None = None, per_run_limits: bool = False,
+            **extra: Any) -> Lockstep:
+    """A started loop of ``runs`` runs (``per_run_limits``: run 1 with a 25 m/s top speed and a lateral bound)."""
     cfgs = configs(algo or "ddpg", runs, **extra)
+    if per_run_limits:
+        cfgs[1] = merge_config(cfgs[1], {"scenario": {"agent_max_speed_mps": 25.0, "agent_lateral_speed_ratio": 0.5}})
     env = BatchedRingEnv(cfgs, device="cpu")
     learner = None if algo is None else build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]),
                                                       action_space(cfgs[0]), device="cpu")
@@ -154,14 +158,17 @@ def test_the_state_is_copied_back_into_the_same_buffers() -> None:
     assert th.equal(pinned.learner.actor.flat, free.learner.actor.flat)
 
 
-def test_the_compiled_ring_step_traces_as_one_graph_and_equals_the_eager_one() -> None:
+@pytest.mark.parametrize("per_run_limits", [False, True])
+def test_the_compiled_ring_step_traces_as_one_graph_and_equals_the_eager_one(per_run_limits: bool) -> None:
     """What a GPU compiles, traced on the CPU without fusing (``aot_eager``): the ring's step is one graph
     (``fullgraph``: a graph break would raise) and gives the eager loop's world, observations and books bit for
-    bit (runs of two densities, so padded rows too)."""
+    bit (runs of two densities, so padded rows too; and with each run its own top speed and lateral bound)."""
     import torch._dynamo
 
     torch._dynamo.reset()
-    traced, eager = loop_of(None, seed=5, compile="aot_eager"), loop_of(None, seed=5)
+    traced = loop_of(None, seed=5, compile="aot_eager", per_run_limits=per_run_limits)
+    eager = loop_of(None, seed=5, per_run_limits=per_run_limits)
+    assert isinstance(eager.env.params.agent_max_speed_mps, th.Tensor) == per_run_limits
     assert traced.compiled == "aot_eager" and eager.compiled is None
     for _ in range(20):
         traced.iterate()

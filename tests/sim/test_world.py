@@ -89,9 +89,9 @@ def test_a_run_reset_alone_starts_as_a_fresh_simulation_and_the_others_go_on():
 def test_runs_that_must_share_a_parameter_are_refused():
     with pytest.raises(ConfigError, match="these differ: step_s, min_lateral_move_m$"):
         WorldParams.of([ring(0, 70.0), ring(1, 70.0, sim={"step_s": 0.2})])
-    with pytest.raises(ConfigError, match="these differ: agent_max_speed_mps$"):
+    with pytest.raises(ConfigError, match="acceleration bounds; these differ: agent_bounds$"):
         WorldParams.of([ring(0, 70.0), ring(1, 70.0),
-                        merge_config(ring(2, 70.0), {"scenario": {"agent_max_speed_mps": 25.0}})])
+                        merge_config(ring(2, 70.0), {"scenario": {"agent_bounds": {"ax_max": 3.0}}})])
     with pytest.raises(ConfigError, match="^a batch needs at least one run$"):
         WorldParams.of([])
     with pytest.raises(ConfigError, match="ring"):

@@ -83,7 +83,7 @@ OPTIONS: tuple[Option, ...] = (
            note=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})"),
     Option("--batch", type=argtypes.positive(int, "batch"), extra={"metavar": "K"},
            note="train runs of one algorithm (dqn and ddqn count as one) that differ only in seed, density, reward "
-           "preset or overtake bonus as "
+           "preset, overtake bonus, agent top speed or agent lateral bound as "
            "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU); "
            f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
            "one run per task"),
