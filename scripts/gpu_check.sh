@@ -29,7 +29,9 @@ if [ "$mode" = grid ]; then
   # the paper grid at 10 seeds on the GPU, without Ray: DDPG's 110 runs as one batch, dqn+ddqn as one, dueling
   # and per as one each. Stopped with a checkpoint after $GRID_LIMIT_S s; run it again on the same warm machine to
   # continue (the sweep folder, runs/gpu_grid, stays between calls). The finished runs' small files, the summary
-  # and the logs come back as grid.tar.gz.
+  # and the logs come back as grid.tar.gz. On a fresh machine (a batch checkpoint does not travel): unpack
+  # grid.tar.gz in the repository (it holds runs/gpu_grid) and carry runs/gpu_grid; its finished runs count as
+  # complete (their last session says so), the others start again.
   GRID=runs/gpu_grid
   if [ -f "$GRID/sweep.yaml" ]; then set -- --resume "$GRID"; else set -- paper --out "$GRID" --set train.device=cuda; fi
   timeout -s TERM "${GRID_LIMIT_S:-480}" $PY -m lanefree_sumo.cli sweep "$@" --batch 110 --no-ray --no-progress \
