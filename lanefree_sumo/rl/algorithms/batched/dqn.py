@@ -318,7 +318,8 @@ class BatchedDQN(BatchedLearner):
         self.losses = {"loss": loss}
         if self.priorities:
             td_errors = (target_q - current_q).reshape(self.runs, -1).abs()
-            if self.device_streams:  # RunPriorities.update on the device's leaves
+            if self.device_streams:  # RunPriorities.update on the device's leaves (a position drawn twice in the
+                # minibatch keeps one of its two new priorities: on a GPU either, in the host trees the last)
                 assert isinstance(indices, th.Tensor)
                 leaves = (td_errors.double() + self.per_eps) ** self.per_alpha
                 self._leaves.scatter_(1, indices, leaves)
