@@ -13,7 +13,7 @@ from lanefree_sumo.options import Option, add_options
 
 OPTIONS: tuple[Option, ...] = (
     Option("runs", type=Path, extra={"nargs": "*", "metavar": "RUN"},
-           note="run folders made by 'lanefree train', or ONE sweep folder made by 'lanefree sweep' (at least one)"),
+           note="run folders made by 'lanefree train', or sweep folders made by 'lanefree sweep' (at least one)"),
     Option("--out", type=Path, default=Path("report"),
            note="output folder (default report/: outside runs/, which holds run folders only)"),
     Option("--last", "last_episodes", schema=ReportConfig, unit="episodes"),
@@ -37,7 +37,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "and a table of last-50-episode means ± std with the paper's numbers (docs/specification.md §10) as "
         "summary.csv and summary.md. Unusable runs are named and skipped. Given a sweep folder (one with "
         "sweep.yaml), writes the sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over "
-        "seeds, as 'lanefree sweep'.",
+        "seeds, as 'lanefree sweep'. Given several sweep folders, writes each one's summary into it and puts their "
+        "variants' effects on one page, --out/effects.md: each open choice's verdict in every cell, then each "
+        "cell's figures.",
     )
     add_options(p, OPTIONS)
     return p
@@ -52,6 +54,12 @@ def run(args: argparse.Namespace) -> int:
     if not args.runs:
         raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder), before --eval")
     sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
+    if sweeps and len(sweeps) < len(args.runs):
+        other = next(path for path in args.runs if path not in sweeps)
+        raise UsageError(f"{sweeps[0]} is a sweep folder and {other} is not: report sweep folders alone or together, "
+                         "run folders apart")
+    if len(sweeps) > 1:
+        return _report_study(args, sweeps)
     if sweeps:
         return _report_sweep(args, sweeps)
     result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources)
@@ -82,8 +90,6 @@ def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
     """``lanefree report SWEEP_DIR``: the sweep's summary with bootstrap CIs, written into it."""
     from lanefree_sumo.experiments.sweep.summary import summarize
 
-    if len(args.runs) > 1:
-        raise UsageError(f"{sweeps[0]} is a sweep folder: report it alone (lanefree report {sweeps[0]})")
     if "--out" in args.given or args.eval is not None:
         bad = "--out" if "--out" in args.given else "--eval"
         raise UsageError(f"a sweep's summary is written into the sweep folder {sweeps[0]} from its training runs; "
@@ -95,4 +101,21 @@ def _report_sweep(args: argparse.Namespace, sweeps: list[Path]) -> int:
         print(f"note: {note}", file=sys.stderr)
     print(f"{len(result.table)} setting(s) -> {sweeps[0]}")
     print((sweeps[0] / "summary.md").read_text())
+    return 0
+
+
+def _report_study(args: argparse.Namespace, sweeps: list[Path]) -> int:
+    """``lanefree report SWEEP SWEEP … [--out DIR]``: each sweep's summary, and their effects on one page."""
+    from lanefree_sumo.experiments.sweep.summary import summarize_study
+
+    if args.eval is not None:
+        raise UsageError("the sweeps' summaries and effects come from their training runs; drop --eval")
+    summaries, page = summarize_study(sweeps, args.out, last=args.last, smooth=args.smooth)
+    for folder, result in zip(sweeps, summaries):
+        for name, reason in result.incomplete:
+            print(f"not in the summary of {folder}: {name} ({reason})", file=sys.stderr)
+        for note in result.notes:
+            print(f"note ({folder}): {note}", file=sys.stderr)
+    print(f"{len(sweeps)} sweeps' summaries written into them; their effects -> {page}")
+    print(page.read_text())
     return 0

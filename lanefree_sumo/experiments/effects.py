@@ -105,22 +105,86 @@ def _figure(row: pd.Series, digits: int) -> str:
     return f"{row['difference']:+.{digits}f}{ci}{p}"
 
 
+VERDICTS = ("decides racing", "moves the numbers", "no effect detected", "too few runs")
+"""The verdicts from the strongest to the weakest: a choice's verdict over several cells is its strongest."""
+
+
+def _explanation(last: int) -> str:
+    return (f"Per run: the mean over its last {last} episodes. Racing: a run whose mean speed is above "
+            f"{RACING_SPEED_MPS:g} m/s. Each figure: the variant's mean over runs minus the default's, "
+            "[95 % percentile-bootstrap CI] (exact two-sided rank-test p). Verdicts: *decides racing* (the racing "
+            f"fractions differ by half or more and the mean speeds with p ≤ {ALPHA}), *moves the numbers* (a CI "
+            f"excludes 0 with p ≤ {ALPHA}), *no effect detected* (with few runs: low power), *too few runs* "
+            f"(below {MIN_RUNS} a side).")
+
+
+def _cell_name(algo: str, preset: str, density: float) -> str:
+    return f"{algo} / {preset} / {density:g} veh/km"
+
+
+def _racing_share(by_metric: pd.DataFrame) -> str:
+    """``default → variant`` racing fractions of one cell and variant, – where a side has no run."""
+    racing = by_metric.loc["racing_fraction"]
+    if math.isnan(racing["default_mean"]) or math.isnan(racing["variant_mean"]):
+        return "–"
+    return f"{racing['default_mean']:.0%} → {racing['variant_mean']:.0%}"
+
+
+def overview(table: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
+    """(headers, rows) of the choice-by-cell table: per variant its verdict in each cell (with the racing
+    fractions and the runs a side; – where it has no complete runs) and its strongest verdict over the cells where
+    it was measured with enough runs (*too few runs* only where no cell has enough)."""
+    cells = list(dict.fromkeys(zip(table["algorithm"], table["reward_preset"], table["density"])))
+    rows = []
+    for variant, of_variant in table.groupby("variant", sort=False):
+        found: list[str] = []
+        entries = []
+        for algo, preset, density in cells:
+            rows_of = of_variant[(of_variant["algorithm"] == algo) & (of_variant["reward_preset"] == preset)
+                                 & (of_variant["density"] == density)]
+            if rows_of.empty:  # not in that sweep's grid, or none of its runs complete
+                entries.append("–")
+                continue
+            by_metric = rows_of.set_index("metric")
+            found.append(verdict(rows_of))
+            counts = f"runs {int(by_metric.loc['racing_fraction', 'n_default'])}, " \
+                     f"{int(by_metric.loc['racing_fraction', 'n_variant'])}"
+            entries.append(f"{found[-1]} (racing {_racing_share(by_metric)}; {counts})")
+        rows.append([str(variant), min(found, key=VERDICTS.index), *entries])
+    return ["choice", "verdict (strongest over the cells)", *(_cell_name(*cell) for cell in cells)], rows
+
+
+def study_markdown(table: pd.DataFrame, last: int, sources: Sequence[str]) -> str:
+    """The study page of several sweeps' effects (``lanefree report SWEEP SWEEP … --out DIR``: ``effects.md``):
+    the choice-by-cell table (:func:`overview`), then each cell's figures as in a sweep's ``effects.md``."""
+    lines = ["# Each open choice against the defaults, every cell", "",
+             f"From the sweeps {', '.join(f'`{s}`' for s in sources)}. {_explanation(last)}", ""]
+    if table.empty:
+        return "\n".join(lines + ["No cell has both a `default` and another variant with complete runs yet.", ""])
+    headers, rows = overview(table)
+    lines += markdown.table(headers, rows, fence="effects-overview")
+    lines += ["", "Runs: the default's and the choice's complete runs in the cell. –: no complete runs of the choice "
+              "in that cell (not in its grid, or not finished).", ""]
+    return "\n".join(lines + _cell_sections(table))
+
+
 def effects_markdown(table: pd.DataFrame, last: int) -> str:
     """``effects.md``: per cell, one row per variant with its verdict, racing fraction and each metric's
     difference from the default."""
-    lines = ["# Each open choice against the defaults", "",
-             f"Per run: the mean over its last {last} episodes. Racing: a run whose mean speed is above "
-             f"{RACING_SPEED_MPS:g} m/s. Each figure: the variant's mean over runs minus the default's, "
-             "[95 % percentile-bootstrap CI] (exact two-sided rank-test p). Verdicts: *decides racing* (the racing "
-             f"fractions differ by half or more and the mean speeds with p ≤ {ALPHA}), *moves the numbers* (a CI "
-             f"excludes 0 with p ≤ {ALPHA}), *no effect detected* (with few runs: low power), *too few runs* "
-             f"(below {MIN_RUNS} a side).", ""]
+    lines = ["# Each open choice against the defaults", "", _explanation(last), ""]
     if table.empty:
         return "\n".join(lines + ["No cell has both a `default` and another variant with complete runs yet.", ""])
+    return "\n".join(lines + _cell_sections(table))
+
+
+def _cell_sections(table: pd.DataFrame) -> list[str]:
+    """Per cell: a heading and one row per variant with its verdict, racing fraction and each metric's
+    difference from the default."""
+    lines: list[str] = []
     shown = ("collisions", "speed_dev_mps", "speed_dev_episode_mps", "overtakes", "return", "return_bonus")
     labels = dict(EFFECT_METRICS)
     for (algo, preset, density), cell in table.groupby(["algorithm", "reward_preset", "density"], sort=False):
-        lines += [f"## {algo} / {preset} / {density:g} veh/km", ""]
+        lines += [f"## {_cell_name(algo, preset, density)}", ""]
         headers = ["variant", "runs (default, variant)", "verdict", "racing runs (default → variant)",
                    *(labels[m] for m in shown)]
         rows = []
@@ -128,9 +192,7 @@ def effects_markdown(table: pd.DataFrame, last: int) -> str:
             by_metric = rows_of.set_index("metric")
             racing = by_metric.loc["racing_fraction"]
             counts = f"{int(racing['n_default'])}, {int(racing['n_variant'])}"
-            share = ("–" if math.isnan(racing["default_mean"]) or math.isnan(racing["variant_mean"])
-                     else f"{racing['default_mean']:.0%} → {racing['variant_mean']:.0%}")
-            rows.append([str(variant), counts, verdict(rows_of), share,
+            rows.append([str(variant), counts, verdict(rows_of), _racing_share(by_metric),
                          *(_figure(by_metric.loc[m], 2) for m in shown)])
         lines += markdown.table(headers, rows, fence=f"effects-{algo}-{preset}-{density:g}") + [""]
-    return "\n".join(lines)
+    return lines

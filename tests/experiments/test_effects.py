@@ -8,13 +8,13 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from lanefree_sumo.experiments.effects import COLUMNS, effect_table, effects_markdown, verdict
+from lanefree_sumo.experiments.effects import COLUMNS, effect_table, effects_markdown, overview, verdict
 from lanefree_sumo.experiments.rundata import RunData
 
 CELL = ("dqn", "fields_zones_overtake_collision", 70.0)
 
 
-def _runs(variant: str, speeds: list[float], collisions: list[float]) -> list[RunData]:
+def _runs(variant: str, speeds: list[float], collisions: list[float], cell: tuple = CELL) -> list[RunData]:
     """One run per seed whose every episode has this mean speed (m/s) and collisions; 60 episodes, so the last
     50 are read."""
     out = []
@@ -23,7 +23,7 @@ def _runs(variant: str, speeds: list[float], collisions: list[float]) -> list[Ru
                               "speed_dev_mps": abs(v - 20.0), "speed_dev_episode_mps": abs(v - 20.0),
                               "overtakes": 0.0, "return": 100.0, "return_reciprocal": 100.0, "return_bonus": 0.0,
                               "return_collision": 0.0}, index=pd.RangeIndex(1, 61, name="episode"))
-        out.append(RunData(Path(f"{variant}_s{seed}"), *CELL, seed, frame, variant))
+        out.append(RunData(Path(f"{variant}_s{seed}"), *cell, seed, frame, variant))
     return out
 
 
@@ -55,3 +55,26 @@ def test_verdicts_at_their_rules() -> None:
 def test_no_default_no_rows() -> None:
     assert effect_table({(*CELL, "calm"): _runs("calm", [20.0] * 3, [1.0] * 3)}).empty
     assert "No cell has both" in effects_markdown(effect_table({}), 50)
+
+
+def test_a_choices_verdict_over_cells_is_its_strongest_with_enough_runs() -> None:
+    """The overview: per choice its verdict in each cell and the strongest of them; a cell with too few runs
+    does not weaken it, and decides it only where no cell has enough."""
+    calm = ("ddpg", "collision", 70.0)
+    racing, calm_speeds = [28.0, 28.5, 27.9, 29.0], [20.0, 20.1, 19.9, 20.2]
+    groups = {
+        (*CELL, "default"): _runs("default", racing, [20.0] * 4),
+        (*CELL, "once"): _runs("once", calm_speeds, [2.0] * 4),             # decides racing here
+        (*CELL, "short"): _runs("short", calm_speeds[:2], [2.0] * 2),        # too few here …
+        (*calm, "default"): _runs("default", calm_speeds, [2.0] * 4, calm),
+        (*calm, "once"): _runs("once", [20.1, 20.0, 20.2, 19.9], [2.0] * 4, calm),   # no effect here
+        (*calm, "short"): _runs("short", calm_speeds, [1.0] * 4, calm),      # … moves the numbers here
+        (*calm, "only"): _runs("only", calm_speeds[:2], [1.0] * 2, calm),   # too few in its only cell
+    }
+    headers, rows = overview(effect_table(groups, last=50))
+    assert headers[2:] == ["dqn / fields_zones_overtake_collision / 70 veh/km", "ddpg / collision / 70 veh/km"]
+    assert [row[:2] for row in rows] == [["once", "decides racing"], ["short", "moves the numbers"],
+                                         ["only", "too few runs"]]
+    assert rows[0][2:] == ["decides racing (racing 100% → 0%; runs 4, 4)",
+                           "no effect detected (racing 0% → 0%; runs 4, 4)"]
+    assert rows[1][2] == "too few runs (racing 100% → 0%; runs 4, 2)" and rows[2][2] == "–"

@@ -531,6 +531,60 @@ def test_lanefree_report_of_a_sweep_folder_writes_its_summary(tmp_path):
         assert "sweep folder" in refused.stderr
 
 
+def _study_sweep(folder: Path, preset: str, variants: dict, collisions: dict[str, float]) -> None:
+    """A sweep folder of one cell (ddpg / ``preset`` / 70 veh/km), 4 seeds per variant, its runs faked with
+    each variant's collisions per episode."""
+    grid = parse_grid({"reward_presets": [preset], "n_seeds": 4, "episodes": 3, "variants": variants},
+                      folder.name, f"{folder.name}.yaml")
+    write_manifest(folder, Manifest(grid))
+    for cell in grid.cells():
+        fake_run(SweepDir(folder).run(cell), grid, cell, 3, collisions=collisions[cell.setting.variant])
+
+
+def test_lanefree_report_of_several_sweeps_puts_each_choice_in_every_cell_on_one_page(tmp_path):
+    """``lanefree report A B --out DIR``: each sweep's summary written into it, and DIR/effects.md with one row per
+    choice — its verdict in each cell (– where it was not run) and its strongest over the cells — then each
+    cell's figures; mixing a run folder in, two sweeps of one cell and sweeps without variants are refused."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    _study_sweep(a, "collision", {"default": {}, "cap25": {"scenario.agent_max_speed_mps": 25}},
+                 {"default": 5.0, "cap25": 1.0})
+    _study_sweep(b, "fields_collision", {"default": {}, "cap25": {"scenario.agent_max_speed_mps": 25},
+                                         "keras": {"train.profile": "kerasrl"}},
+                 {"default": 2.0, "cap25": 2.0, "keras": 2.0})
+    done = lanefree("report", str(a), str(b), "--out", str(tmp_path / "study"))
+    assert done.returncode == 0, done.stderr
+    assert (a / "summary.md").is_file() and (b / "effects.md").is_file()
+    page = (tmp_path / "study" / "effects.md").read_text()
+    lines = page.splitlines()
+    inside = lines[lines.index("<!-- effects-overview -->") + 1:lines.index("<!-- /effects-overview -->")]
+    assert [[c.strip() for c in line.strip("|").split("|")] for line in inside if line and "---" not in line] == [
+        ["choice", "verdict (strongest over the cells)", "ddpg / collision / 70 veh/km",
+         "ddpg / fields_collision / 70 veh/km"],
+        ["cap25", "moves the numbers", "moves the numbers (racing 0% → 0%; runs 4, 4)",
+         "no effect detected (racing 0% → 0%; runs 4, 4)"],
+        ["keras", "no effect detected", "–", "no effect detected (racing 0% → 0%; runs 4, 4)"]]
+    assert "## ddpg / collision / 70 veh/km" in page and "## ddpg / fields_collision / 70 veh/km" in page
+    assert "-4.00 [-4.00, -4.00] (p 0.029)" in page  # cap25's collisions in the first cell: 1 − 5, 4 runs a side
+    rows = list(csv.DictReader(open(tmp_path / "study" / "effects.csv")))
+    assert {(r["reward_preset"], r["variant"]) for r in rows} == \
+        {("collision", "cap25"), ("fields_collision", "cap25"), ("fields_collision", "keras")}
+    assert page in done.stdout
+    run = next((a / "runs").iterdir())
+    again = tmp_path / "again"
+    _study_sweep(again, "collision", {"default": {}, "lateral": {"scenario.agent_lateral_speed_ratio": 0.5}},
+                 {"default": 5.0, "lateral": 5.0})
+    plain = tmp_path / "plain"
+    plain_grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 1, "episodes": 3}, "plain", "plain.yaml")
+    write_manifest(plain, Manifest(plain_grid))
+    for args, words in (([str(a), str(run)], "report sweep folders alone or together"),
+                        ([str(a), str(again)], "both have the cell ddpg / collision / 70 veh/km"),
+                        ([str(plain), str(plain)], "none of these sweeps has variants"),
+                        ([str(a), str(b), "--eval"], "drop --eval")):
+        refused = lanefree("report", *args, "--out", str(tmp_path / "refused"))
+        assert refused.returncode != 0 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+        assert words in refused.stderr, refused.stderr
+
+
 # -- real sweeps on Ray (slow) --------------------------------------------------------------------
 
 def run_logs_nodes(out: Path) -> set[str]:

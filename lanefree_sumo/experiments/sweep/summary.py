@@ -54,13 +54,13 @@ from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.comparison import Sides, verdict_markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
-from lanefree_sumo.experiments.effects import effect_table, effects_markdown
+from lanefree_sumo.experiments.effects import effect_table, effects_markdown, study_markdown
 from lanefree_sumo.experiments.paper import paper_reference
 from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_episodes, read_run
 from lanefree_sumo.experiments.rundir import EPISODES, RunDir, write_atomic
 from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
 from lanefree_sumo.experiments.sweep.grid import DEFAULT_VARIANT, Cell, Grid, Setting
-from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
+from lanefree_sumo.experiments.sweep.manifest import EFFECTS_CSV, EFFECTS_MD, SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
 
 METRICS = ("collisions", "speed_dev_mps", "speed_dev_episode_mps", "speed_error_mps")
@@ -92,6 +92,9 @@ class SweepSummary:
     incomplete: list[tuple[str, str]] = field(default_factory=list)
     """(run name, state and episodes) of the runs left out."""
     notes: list[str] = field(default_factory=list)
+    effects: pd.DataFrame | None = None
+    """Each variant against ``default`` (:func:`~lanefree_sumo.experiments.effects.effect_table`), in a grid with
+    variants; else None."""
 
 
 def _key(setting: Setting) -> tuple[str, str, float, str]:
@@ -355,6 +358,7 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
         else:  # no claim compares two of this grid's settings (one written by an earlier version goes)
             sweep.claims_csv.unlink(missing_ok=True)
             sweep.claims_md.unlink(missing_ok=True)
+        effects = None
         if DEFAULT_VARIANT in grid.variants:
             effects = effect_table(groups, last)
             effects.to_csv(sweep.effects_csv, index=False)
@@ -367,4 +371,41 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None) 
             sweep.verdict_md.unlink(missing_ok=True)
     except OSError as exc:
         raise ReportError(f"cannot write the summary into {folder}: {exc.strerror or exc}") from None
-    return SweepSummary(table, files, incomplete, notes + plot_notes)
+    return SweepSummary(table, files, incomplete, notes + plot_notes, effects)
+
+
+def summarize_study(folders: Sequence[Path], out: Path, last: int | None = None,
+                    smooth: int | None = None) -> tuple[list[SweepSummary], Path]:
+    """Several sweeps' summaries (:func:`summarize`, each written into its folder), then their effects on one
+    page: ``out/effects.md`` (:func:`~lanefree_sumo.experiments.effects.study_markdown`: each choice's verdict in
+    every cell, then each cell's figures) and ``out/effects.csv`` (the sweeps' rows); returns the summaries and
+    the page. A cell may come from one sweep only; at least one sweep must have variants."""
+    summaries = [summarize(folder, last, smooth) for folder in folders]
+    tables = [s.effects for s in summaries if s.effects is not None]
+    if not tables:
+        raise ReportError("none of these sweeps has variants (a grid's `variants` with a `default`): there is no "
+                          "effect to put side by side; report each sweep alone")
+    seen: dict[tuple[str, str, float], Path] = {}
+    for folder, summary in zip(folders, summaries):
+        for cell in set(_cells(summary.effects)):
+            if cell in seen:
+                raise ReportError(f"the sweeps {seen[cell]} and {folder} both have the cell {cell[0]} / {cell[1]} / "
+                                  f"{cell[2]:g} veh/km: each cell's variants are compared within one sweep")
+            seen[cell] = folder
+    table = pd.concat(tables, ignore_index=True)
+    last = ReportConfig().last_episodes if last is None else last
+    page = out / EFFECTS_MD
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        table.to_csv(out / EFFECTS_CSV, index=False)
+        write_atomic(page, study_markdown(table, last, [str(folder) for folder in folders]))
+    except OSError as exc:
+        raise ReportError(f"cannot write the study's effects into {out}: {exc.strerror or exc}") from None
+    return summaries, page
+
+
+def _cells(effects: pd.DataFrame | None) -> list[tuple[str, str, float]]:
+    """The (algorithm, preset, density) cells of an effect table."""
+    if effects is None or effects.empty:
+        return []
+    return list(zip(effects["algorithm"], effects["reward_preset"], effects["density"]))
