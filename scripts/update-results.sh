@@ -29,4 +29,4 @@ done
 .venv/bin/python scripts/collisions_vs_overtakes.py "$paper" >/dev/null
 if [ -f README.md ] && [ -f "$paper/summary.csv" ]; then .venv/bin/python scripts/readme_results.py >/dev/null; fi
 scripts/varobs-transfer.sh "$episodes" >/dev/null
-echo "results updated: $paper (summary.md, runs.csv, claims.md, eval_report/, eval_shield_report/, collisions_vs_overtakes.png), README.md's table, results/varobs/report*/, results/varobs/verdict.md"
+echo "results updated: $paper (summary.md, runs.csv, claims.md, eval_report/, eval_shield_report/, collisions_vs_overtakes.png), README.md's table, results/varobs/report*/, results/varobs/verdict/"

@@ -9,7 +9,7 @@
 #   DQN (Liu et al.'s own setting, a Q-network): the paper sweep's DQN runs against results/varobs/set_dqn/runs/*;
 #     results/varobs/report_dqn/ and results/varobs/report_dqn_transfer/;
 # then both comparisons' verdicts on Liu et al.'s claim, set - vector with bootstrap CIs, in
-# results/varobs/verdict.md (scripts/varobs_verdict.py).
+# results/varobs/verdict/verdict.md (`lanefree report ... --compare` of every finished run of both).
 # A run is evaluated where its model.zip is (the machine that trained it) and reported wherever its evaluations
 # are committed. Resumable: rerun it and it evaluates only what is missing. Usage: scripts/varobs-transfer.sh [EPISODES]
 set -euo pipefail
@@ -17,6 +17,7 @@ cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., 
 bin=.venv/bin/lanefree
 episodes=${1:-50}
 base=results/varobs
+finished=()  # every evaluated run of both comparisons, for the verdict
 source scripts/evaluation-helper.sh
 
 # compare ALGO SET_SWEEP REPORT: evaluate the vector runs of ALGO and the set runs of SET_SWEEP, report them
@@ -30,7 +31,7 @@ compare() {
             done
             evaluate "$run" eval_onramp --scenario onramp
         fi
-        if [ -s "$run/eval/episodes.csv" ]; then runs+=("$run"); fi
+        if [ -s "$run/eval/episodes.csv" ]; then runs+=("$run"); finished+=("$run"); fi
     done
     # the set sweep's own summary and runs.csv, with the evaluations made since its driver wrote them
     if [ -f "$sets/sweep.yaml" ]; then "$bin" report "$sets" >/dev/null; fi
@@ -41,4 +42,10 @@ compare() {
 
 compare ddpg "$base/set" "$base/report"
 compare dqn "$base/set_dqn" "$base/report_dqn"
-.venv/bin/python scripts/varobs_verdict.py >/dev/null
+# the verdict once both observations have a finished run (a set run's config.yaml says `kind: set`)
+if [ ${#finished[@]} -gt 0 ]; then
+    sets=$(grep -lx "  kind: set" "${finished[@]/%//config.yaml}" | wc -l)
+    if [ "$sets" -gt 0 ] && [ "$sets" -lt ${#finished[@]} ]; then
+        "$bin" report "${finished[@]}" --out "$base/verdict" --compare >/dev/null
+    fi
+fi

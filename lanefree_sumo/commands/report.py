@@ -23,6 +23,10 @@ OPTIONS: tuple[Option, ...] = (
            "eval_shield) instead of its training episodes, at the evaluated density; several NAMEs: the "
            "evaluations side by side in one table and two bar charts (evaluations_collisions.png, "
            "evaluations_speed_dev.png), no learning curves. Put the RUN folders before --eval"),
+    Option("--compare", extra={"action": "store_true"},
+           note="also write verdict.md: each way the runs differ from the defaults (their variant) against the "
+           "default runs of the same setting, over training episodes 1-12, all, the last 50 and every evaluation "
+           "the runs have: difference with a bootstrap CI, rank test and verdict (run folders only, without --eval)"),
 )
 
 
@@ -58,17 +62,20 @@ def run(args: argparse.Namespace) -> int:
         other = next(path for path in args.runs if path not in sweeps)
         raise UsageError(f"{sweeps[0]} is a sweep folder and {other} is not: report sweep folders alone or together, "
                          "run folders apart")
+    if args.compare and (sweeps or args.eval is not None):
+        raise UsageError("--compare reads run folders' training episodes and every evaluation they have: "
+                         + ("a sweep writes its own verdict.md (a grid's `compare`)" if sweeps else "drop --eval"))
     if len(sweeps) > 1:
         return _report_study(args, sweeps)
     if sweeps:
         return _report_sweep(args, sweeps)
-    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources)
+    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources, compare=args.compare)
     for path, reason in result.skipped:
         print(f"skipped {path}: {reason}", file=sys.stderr)
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     rows = "group(s)" if isinstance(sources, str) or len(sources) == 1 else "row(s), one per evaluation and group"
-    print(f"{len(result.table)} {rows} -> {args.out}")
+    print(f"{len(result.table)} {rows} -> {args.out}" + (" (and verdict.md)" if args.compare else ""))
     print((args.out / "summary.md").read_text())
     return 0
 

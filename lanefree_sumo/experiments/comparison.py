@@ -12,19 +12,20 @@ deviation), *no difference detected* when it contains 0 (few runs a side: low po
 
 A sweep whose grid names variants in ``compare`` writes this page as ``verdict.md``
 (:func:`lanefree_sumo.experiments.sweep.summary.summarize`); the second paper's comparison is the
-built-in grid ``varobs``.
+built-in grid ``varobs``. ``lanefree report RUN … --compare`` writes it for run folders of any origin: each way
+the runs differ from the defaults against the default runs of the same setting (:func:`against_defaults`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import MIN_RUNS, difference_ci, per_run, rank_test
-from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_run
+from lanefree_sumo.experiments.rundata import RunData, RunKey, UnusableRunError, read_run
 
 LIU_EPISODES = (1, 12)
 """Liu et al. compare rewards over 10 000 training steps: episodes 1–12 (800 steps each; 9600 steps)."""
@@ -55,6 +56,23 @@ class Sides:
     label: str
     variant: Sequence[Path]
     baseline: Sequence[Path]
+
+
+def setting_label(algorithm: str, preset: str, density: float) -> str:
+    """A comparison's label: its setting."""
+    return f"{algorithm} / {preset} / d{density:g}"
+
+
+def against_defaults(groups: Mapping[RunKey, Sequence[RunData]]) -> dict[str, list[Sides]]:
+    """Per variant of ``groups`` other than the defaults (``""``), one comparison per (algorithm, preset, density)
+    where both the variant and the defaults have runs; variants without such a setting are left out."""
+    out: dict[str, list[Sides]] = {}
+    for (algorithm, preset, density, variant), runs in groups.items():
+        baseline = groups.get((algorithm, preset, density, ""))
+        if variant and baseline:
+            out.setdefault(variant, []).append(Sides(setting_label(algorithm, preset, density),
+                                                     [run.path for run in runs], [run.path for run in baseline]))
+    return out
 
 
 def reading(better: int, low: float, high: float, variant: str = "set") -> str:

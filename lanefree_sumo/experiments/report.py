@@ -55,6 +55,7 @@ import pandas as pd
 
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments import markdown
+from lanefree_sumo.experiments.comparison import against_defaults, verdict_markdown
 from lanefree_sumo.experiments.curves import (
     CURVE_METRICS,
     EVALUATION_FIGURES,
@@ -288,7 +289,7 @@ def _write_report(out: Path, files: dict[str, Any]) -> list[Path]:
 
 
 def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
-           source: str | Sequence[str] = "") -> ReportResult:
+           source: str | Sequence[str] = "", compare: bool = False) -> ReportResult:
     """Learning curves and the last-``last``-episode summary table of training runs.
 
     ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
@@ -301,9 +302,12 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     ``source``: ``""`` for the training episodes, else an evaluation folder name inside each run
     (``eval``, ``eval_d120``, ``eval_shield``, …): its episodes instead, at the evaluated density.
     Several names: :func:`evaluations_report` (the evaluations side by side, no learning curves).
+    ``compare``: also ``verdict.md`` (training episodes only): each way the runs differ from the defaults against
+    the default runs of the same setting, over training windows and every evaluation the runs have
+    (:func:`~lanefree_sumo.experiments.comparison.verdict_markdown`).
 
-    Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, or
-    when ``out`` cannot be written.
+    Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, when
+    ``compare`` finds no variant with default runs of its setting, or when ``out`` cannot be written.
     """
     if not isinstance(source, str):
         if len(source) != 1:
@@ -326,7 +330,22 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
         for column, name, ylabel in CURVE_METRICS}
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
+    if compare:
+        files["verdict.md"] = _verdict_page(groups)
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
+
+
+def _verdict_page(groups: dict[RunKey, list[RunData]]) -> str:
+    """``verdict.md`` of ``report(..., compare=True)``: one table per variant against the defaults."""
+    pages = against_defaults(groups)
+    if not pages:
+        kinds = "; ".join(sorted({variant or "the defaults" for (*_, variant) in groups}))
+        raise ReportError(f"--compare needs runs of the defaults and runs that differ from them, of the same "
+                          f"algorithm, reward preset and density; these runs are of: {kinds}")
+    episodes = max(int(run.episodes.index.max()) for runs in groups.values() for run in runs)
+    return "\n".join(verdict_markdown(sides, episodes, f"{variant} against the defaults: every source",
+                                      "The runs given, by setting", "`lanefree report --compare`",
+                                      "variant", "default", "setting") for variant, sides in pages.items())
 
 
 def evaluations_report(runs: Sequence[Path], out: Path, sources: Sequence[str], last: int = 50) -> ReportResult:

@@ -19,11 +19,12 @@ import pandas as pd
 import pytest
 
 from lanefree_sumo.experiments import comparison
+from lanefree_sumo.experiments.report import report
 
 from conftest import ROOT, lanefree
 
 SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py",
-           "collisions_vs_overtakes.py", "varobs_verdict.py")
+           "collisions_vs_overtakes.py")
 CELL = "ddpg_fields_zones_overtake_collision_d70_s0"  # a paper sweep cell and the vector baseline's seed 0
 EPISODES = 4  # per evaluation (50 in make results)
 
@@ -81,16 +82,15 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     assert {r["density"] for r in csv.DictReader(open(run / "eval_d90" / "episodes.csv"))} == {"90.0"}
     assert (paper / "summary.md").is_file() and not (paper / "claims.md").exists()  # one setting: no claim
     assert rows(paper / "runs.csv") == 1 and (paper / "collisions_vs_overtakes.png").stat().st_size > 0
-    for report in ("eval_report", "eval_shield_report"):
-        text = (paper / report / "summary.md").read_text()
+    for folder in ("eval_report", "eval_shield_report"):
+        text = (paper / folder / "summary.md").read_text()
         assert "| ddpg | fields_zones_overtake_collision | 70 |" in text and "Skipped runs" not in text
     transfer = (root / "results" / "varobs" / "report_transfer" / "summary.md").read_text()
     assert all(f"| `{name}` |" in transfer for name in ("eval", "eval_d90", "eval_d120", "eval_onramp"))
     assert (root / "results" / "varobs" / "report" / "summary.md").is_file()
     # the set sweep's summary rewritten with the evaluations made since
     assert next(csv.DictReader(open(set_sweep / "runs.csv")))["eval_episodes"] == str(EPISODES)
-    verdict = (root / "results" / "varobs" / "verdict.md").read_text()  # one vector run, no set run: no verdict
-    assert "| DDPG | training, last 50 episodes | return | 0, 1 | – |" in verdict and "| set worse |" not in verdict
+    assert not (root / "results" / "varobs" / "verdict").exists()  # vector runs only (the stand-in's): no verdict
     readme = (root / "README.md").read_text()  # its table rewritten from the summary, the rest kept
     assert "stale" not in readme and readme.startswith("# results\n") and readme.endswith("-->\nafter\n")
     assert "| fields_zones_overtake_collision | 1 of 1 |" not in readme  # every planned run: the count alone
@@ -131,14 +131,26 @@ def test_readme_results_refuses_a_readme_without_its_markers_in_one_line_and_lea
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "empty.csv" in refused.stderr
 
 
-def test_the_varobs_verdict_page_is_what_the_run_folders_make():
-    """results/varobs/verdict.md is what the package's comparison (through scripts/varobs_verdict.py, which names
-    the committed folders) makes of the run folders (on a clean checkout: the committed ones, the page the
-    script wrote before the comparison moved into the package), so committing new runs without their verdict
-    fails here."""
-    made = script("varobs_verdict").verdict_page(ROOT)
-    assert (ROOT / "results" / "varobs" / "verdict.md").read_text() == made
-    assert made.count("| DDPG |") == made.count("| DQN |") == 21  # 7 sources x 3 metrics each
+def varobs_finished(root: Path) -> list[Path]:
+    """The runs scripts/varobs-transfer.sh hands to the verdict: both algorithms' vector runs (the paper sweep's seeds
+    0-2 of the cell) and set runs, those evaluated."""
+    runs = [root / "results" / "paper" / "runs" / f"{algorithm}_fields_zones_overtake_collision_d70_s{seed}"
+            for algorithm in ("ddpg", "dqn") for seed in range(3)]
+    runs += sorted((root / "results" / "varobs").glob("set*/runs/*"))
+    return [run for run in runs if (run / "eval" / "episodes.csv").is_file()]
+
+
+def test_the_varobs_verdict_page_is_what_the_run_folders_make(tmp_path):
+    """results/varobs/verdict/verdict.md is what `lanefree report RUN … --compare` makes of the committed run folders,
+    so committing new runs without their verdict fails here."""
+    made = report(varobs_finished(ROOT), tmp_path / "verdict", compare=True)
+    assert (ROOT / "results" / "varobs" / "verdict" / "verdict.md").read_text() == \
+        (tmp_path / "verdict" / "verdict.md").read_text()
+    assert made.files[-1] == tmp_path / "verdict" / "verdict.md"
+    text = (tmp_path / "verdict" / "verdict.md").read_text()
+    for algorithm in ("ddpg", "dqn"):  # 7 sources x 3 metrics each
+        assert text.count(f"| {algorithm} / fields_zones_overtake_collision / d70 |") == 21
+    assert text.startswith("# observation.kind=set, observation.encoder=paper against the defaults")
 
 
 def copy_run(run: Path, to: Path) -> None:
@@ -151,48 +163,54 @@ def copy_run(run: Path, to: Path) -> None:
         shutil.copy2(evaluation, to / evaluation.parent.name / "episodes.csv")
 
 
-def test_varobs_verdict_decides_set_against_vector_from_finished_runs(tmp_path):
-    """With 3 finished runs a side the DDPG set encoder (standing still or racing) is decided worse in return and speed
-    deviation, each side's column the mean of its runs' last 50 episodes, with the two-sided rank test; a set
-    run without ``eval/`` (still training) counts nowhere, a vector run without one evaluation is missing from
-    that one only, and a run of another cell (here a DQN run among the DDPG set runs) from every row."""
-    verdict = script("varobs_verdict")
+def test_report_compare_decides_set_against_vector_from_the_run_folders(tmp_path):
+    """With 3 vector runs and 4 set runs the DDPG set encoder (standing still or racing) is decided worse in return and
+    speed deviation, each side's column the mean of its runs' last 50 episodes (its first 12 for Liu et al.'s
+    window), with the two-sided rank test; a vector run without one evaluation is missing from that one only; a run
+    of another setting with no variant of its own (a DQN run) is in no comparison; runs without any variant are
+    refused in one line."""
     committed = ROOT / "results"
+    vector = []
     for seed in range(3):
         name = f"ddpg_fields_zones_overtake_collision_d70_s{seed}"
-        copy_run(committed / "paper" / "runs" / name, tmp_path / "results" / "paper" / "runs" / name)
+        vector.append(tmp_path / "vector" / name)
+        copy_run(committed / "paper" / "runs" / name, vector[-1])
+    shutil.rmtree(vector[2] / "eval_d90")
     finished = [run for run in sorted((committed / "varobs" / "set" / "runs").glob("*")) if (run / "eval").is_dir()]
     assert len(finished) >= 2
-    for k, run in enumerate([*finished, finished[0]]):  # at least 3 set runs: a copy of the first one more
-        copy_run(run, tmp_path / "results" / "varobs" / "set" / "runs" / f"set_{k}")
-    training = tmp_path / "results" / "varobs" / "set" / "runs" / "training"
-    copy_run(finished[0], training)
-    shutil.rmtree(training / "eval")
-    copy_run(committed / "paper" / "runs" / "dqn_fields_zones_overtake_collision_d70_s1",
-             tmp_path / "results" / "varobs" / "set" / "runs" / "other_cell")
-    shutil.rmtree(tmp_path / "results" / "paper" / "runs" / "ddpg_fields_zones_overtake_collision_d70_s2" / "eval_d90")
-    assert verdict.main([str(tmp_path)]) == 0
-    table = {tuple(cells[1:4]): cells[4:] for line in (tmp_path / "results" / "varobs" / "verdict.md").read_text()
-             .splitlines() if line.startswith("| DDPG") for cells in [[c.strip() for c in line.strip("|").split("|")]]}
-    n_set = len(finished) + 1
+    sets = [tmp_path / "set" / f"set_{k}" for k in range(len(finished) + 1)]
+    for run, to in zip([*finished, finished[0]], sets):  # at least 3 set runs: a copy of the first one more
+        copy_run(run, to)
+    other = tmp_path / "other_cell"
+    copy_run(committed / "paper" / "runs" / "dqn_fields_zones_overtake_collision_d70_s1", other)
+    report([*vector, *sets, other], tmp_path / "out", compare=True)
+    label = "ddpg / fields_zones_overtake_collision / d70"
+    table = {tuple(cells[1:4]): cells[4:] for line in (tmp_path / "out" / "verdict.md").read_text().splitlines()
+             if line.startswith("| ") for cells in [[c.strip() for c in line.strip("|").split("|")]]
+             if cells[0] == label}
+    assert "| dqn / " not in (tmp_path / "out" / "verdict.md").read_text()
+    n_set = len(sets)
     ret = table[("training, last 50 episodes", "return", f"{n_set}, 3")]
     # every set run below every vector run: two-sided, twice the share of the splits as extreme
-    assert ret[-1] == "set worse" and ret[3] == f"0/{n_set * 3}, p = {2 / math.comb(n_set + 3, 3):.2f}"
-    runs = [tmp_path / "results" / "varobs" / "set" / "runs" / f"set_{k}" for k in range(n_set)]
-    expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[-50:].mean() for run in runs) / n_set
+    assert ret[-1] == "variant worse" and ret[3] == f"0/{n_set * 3}, p = {2 / math.comb(n_set + 3, 3):.2f}"
+    expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[-50:].mean() for run in sets) / n_set
     assert ret[0] == f"{expected:.2f}"
     early = table[("training, episodes 1–12 (Liu et al.'s 10 000 steps)", "return", f"{n_set}, 3")]
-    expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[:12].mean() for run in runs) / n_set
+    expected = sum(pd.read_csv(run / "episodes.csv")["return"].iloc[:12].mean() for run in sets) / n_set
     assert early[0] == f"{expected:.2f}"
-    assert table[("deterministic, 70 veh/km", "speed deviation (m/s)", f"{n_set}, 3")][-1] == "set worse"
-    assert table[("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2")][-1] == comparison.TOO_FEW
+    assert table[("deterministic, 70 veh/km", "speed deviation (m/s)", f"{n_set}, 3")][-1] == "variant worse"
+    assert ("zero-shot, 90 veh/km", "collisions / episode", f"{n_set}, 2") in table  # the one without it left out
+    assert ("zero-shot, 120 veh/km", "collisions / episode", f"{n_set}, 3") in table
     assert comparison.reading(1, -3.0, -1.0) == comparison.reading(-1, 1.0, 3.0) == "set worse"
     assert comparison.reading(-1, -3.0, -1.0) == comparison.reading(1, 1.0, 3.0) == "set better"
     assert comparison.reading(1, -1.0, 2.0) == "no difference detected"
     assert comparison.reading(1, -3.0, -1.0, "cap25") == "cap25 worse"
-    refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "varobs_verdict.py"), str(tmp_path / "none")],
-                             capture_output=True, text=True, timeout=120)
-    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "none" in refused.stderr
+    refused = lanefree("report", *map(str, vector), "--out", str(tmp_path / "none"), "--compare")
+    assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and "--compare needs runs" in refused.stderr
+    assert not (tmp_path / "none").exists()
+    refused = lanefree("report", *map(str, sets), "--out", str(tmp_path / "none"), "--eval", "eval", "--compare")
+    assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and "drop --eval" in refused.stderr
+    assert not (tmp_path / "none").exists()
 
 
 def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):

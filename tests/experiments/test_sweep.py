@@ -579,7 +579,8 @@ def test_lanefree_report_of_several_sweeps_puts_each_choice_in_every_cell_on_one
     for args, words in (([str(a), str(run)], "report sweep folders alone or together"),
                         ([str(a), str(again)], "both have the cell ddpg / collision / 70 veh/km"),
                         ([str(plain), str(plain)], "none of these sweeps has variants"),
-                        ([str(a), str(b), "--eval"], "drop --eval")):
+                        ([str(a), str(b), "--eval"], "drop --eval"),
+                        ([str(a), "--compare"], "a sweep writes its own verdict.md")):
         refused = lanefree("report", *args, "--out", str(tmp_path / "refused"))
         assert refused.returncode != 0 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
         assert words in refused.stderr, refused.stderr

@@ -52,7 +52,7 @@ from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
-from lanefree_sumo.experiments.comparison import Sides, verdict_markdown
+from lanefree_sumo.experiments.comparison import Sides, setting_label, verdict_markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.effects import effect_table, effects_markdown, study_markdown
 from lanefree_sumo.experiments.paper import paper_reference
@@ -298,7 +298,7 @@ def paper_comparisons(grid: Grid) -> tuple[Comparison, ...]:
 
 def verdict_page(grid: Grid, groups: dict[Any, list[RunData]], variant: str) -> str:
     """``variant`` against :data:`DEFAULT_VARIANT`, per setting of the grid, over every source."""
-    comparisons = [Sides(f"{s.algorithm} / {s.preset} / d{s.density:g}", [r.path for r in groups.get(
+    comparisons = [Sides(setting_label(s.algorithm, s.preset, s.density), [r.path for r in groups.get(
         _key(s)[:3] + (variant,), [])], [r.path for r in groups.get(_key(s), [])])
         for s in grid.settings if s.variant == DEFAULT_VARIANT]
     return verdict_markdown(comparisons, grid.episodes, f"{variant} against {DEFAULT_VARIANT}: every source",
