@@ -1,22 +1,24 @@
 """The claims the first paper draws from its Tables 5–8, checked one by one on a set of runs.
 
 Each claim compares settings (algorithm, reward preset, density in veh/km) by a per-run statistic —
-the mean of a metric over a run's last ``last`` episodes (or over an episode window) — and decides
-with a **difference of means between two groups of runs** and its 95 % percentile-bootstrap
-confidence interval (each group resampled with replacement, 10 000 times, fixed seed):
+the mean of a metric over a run's last ``last`` episodes (or over an episode window) — through a
+**difference of means between two groups of runs** with its 95 % percentile-bootstrap confidence interval
+(each group resampled with replacement, 10 000 times, fixed seed), and a **rank** statistic that does not
+lean on the bootstrap's asymptotics (:func:`rank_test`): in how many of the n_a · n_b pairs of runs a's value
+is above b's (the Mann–Whitney U; ties count ½), with its exact permutation p-value. Verdicts
+(:func:`verdict`), both tests agreeing at :data:`ALPHA`:
 
-* *reproduced*: the CI excludes 0 on the side the paper's numbers are on;
-* *opposite*: the CI excludes 0 on the other side;
-* *inconclusive*: the CI contains 0 — for a claim of *no* difference this reads "no difference
-  detected", which with 3 runs per group is a lack of power, not evidence of equivalence;
+* *consistent with the paper*: the CI excludes 0 on the side the paper's numbers are on and the one-sided
+  rank test in that direction has p ≤ :data:`ALPHA`; for a claim of *no* difference: the CI contains 0
+  ("no difference detected", which with few runs is a lack of power, not evidence of equivalence);
+* *against the paper*: the CI excludes 0 on the other side and the one-sided rank test in that direction
+  has p ≤ :data:`ALPHA` (for a claim of no difference: either side, the two-sided test);
+* *undecided*: anything else;
 * *no data*: a group has fewer than :data:`MIN_RUNS` complete runs (a percentile bootstrap of 2 values
   is meaningless), or a run does not cover the episode window.
 
-Beside it, a **rank** statistic that does not lean on the bootstrap's asymptotics (:func:`rank_test`): in how
-many of the n_a · n_b pairs of runs a's value is above b's (the Mann–Whitney U; ties count ½), and its exact
-permutation p-value in the paper's direction (two-sided for a claim of no difference). With 3 runs per
-group the smallest p possible is 1/20 = 0.05 one-sided (every a above every b): the bootstrap CI can
-exclude 0 where the rank test cannot go below 0.05.
+With 3 runs per group the smallest p possible is 1/20 = 0.05 one-sided (every a above every b) and 0.10
+two-sided; with the paper's 10 per group, 1/184 756.
 
 The paper's own difference (Karalakou et al. 2023, specification §10) is printed beside ours.
 """
@@ -90,9 +92,11 @@ COMPARISONS: tuple[Comparison, ...] = (
 
 MIN_RUNS = 3
 """Complete runs per group below which no verdict is given."""
+ALPHA = 0.05
+"""The rank test's p at or below which a verdict leaves *undecided*."""
 
 COLUMNS = ("claim", "metric", "a", "b", "n_a", "n_b", "paper_difference", "difference", "ci95_low", "ci95_high",
-           "pairs_a_above_b", "rank_p", "verdict")
+           "pairs_a_above_b", "rank_p", "rank_p_against", "verdict")
 
 
 def per_run(runs: Sequence[RunData], metric: str, last: int, window: tuple[int, int] | None) -> list[float]:
@@ -152,14 +156,27 @@ def rank_test(a: Sequence[float], b: Sequence[float], expect: int) -> tuple[floa
     return observed, float(extreme.mean())
 
 
-def verdict(expect: int, low: float, high: float) -> str:
-    """Reading of a difference's CI against the expected sign (module docstring)."""
+CONSISTENT, AGAINST, UNDECIDED, NO_DATA = ("consistent with the paper", "against the paper", "undecided",
+                                          "no data")
+NO_DIFFERENCE = f"{CONSISTENT} (no difference detected)"
+
+
+def verdict(expect: int, low: float, high: float, p_paper: float, p_against: float) -> str:
+    """Reading of a difference's CI [low, high] and its rank test against the expected sign (module docstring):
+    ``p_paper`` the rank test's p in the paper's direction, ``p_against`` in the opposite one (both the
+    two-sided p for a claim of no difference, ``expect`` 0)."""
     if math.isnan(low):
-        return "no data"
+        return NO_DATA
     side = 1 if low > 0 else (-1 if high < 0 else 0)
     if expect == 0:
-        return "no difference detected (low power)" if side == 0 else "not reproduced (a difference)"
-    return "reproduced" if side == expect else ("inconclusive" if side == 0 else "opposite")
+        if side == 0:
+            return NO_DIFFERENCE
+        return AGAINST if p_against <= ALPHA else UNDECIDED
+    if side == expect and p_paper <= ALPHA:
+        return CONSISTENT
+    if side == -expect and p_against <= ALPHA:
+        return AGAINST
+    return UNDECIDED
 
 
 def _label(key: Key) -> str:
@@ -194,13 +211,19 @@ def check_claims(groups: Mapping[Key, Sequence[RunData]], last: int = 50,
         b = per_run(groups.get(c.b, ()), c.metric, last, c.window)
         diff, low, high = difference_ci(a, b)
         above, p = rank_test(a, b, c.expect)
+        p_against = p if c.expect == 0 else rank_test(a, b, -c.expect)[1]
         rows.append({"claim": c.claim, "metric": c.metric + (f" (episodes {c.window[0]}–{c.window[1]})" if c.window
                                                              else f" (last {last})"),
                      "a": _label(c.a), "b": _label(c.b),
                      "n_a": len(a), "n_b": len(b), "paper_difference": _paper_difference(c), "difference": diff,
                      "ci95_low": low, "ci95_high": high, "pairs_a_above_b": above, "rank_p": p,
-                     "verdict": verdict(c.expect, low, high)})
+                     "rank_p_against": p_against, "verdict": verdict(c.expect, low, high, p, p_against)})
     return pd.DataFrame(rows, columns=list(COLUMNS))
+
+
+def p_text(p: float) -> str:
+    """A p-value for a table: two decimals, or two significant digits below 0.01 (10 runs a side reach 5e-06)."""
+    return f"{p:.2f}" if p >= 0.01 else f"{p:.1e}"
 
 
 def claims_markdown(table: pd.DataFrame) -> str:
@@ -212,19 +235,23 @@ def claims_markdown(table: pd.DataFrame) -> str:
     lines = ["# The paper's claims, checked", "",
              "Difference of per-run means (group a − group b) with a 95 % percentile-bootstrap CI over runs "
              "(`lanefree_sumo/experiments/claims.py`); collisions per episode, speed deviation in m/s. "
-             "Verdicts: *reproduced* when the CI excludes 0 on the paper's side, *opposite* on the other, "
-             "*inconclusive* when it contains 0 (for a claim of no difference: *no difference detected*, which with 3 "
-             "runs per group is low power, not equivalence), *no data* below 3 complete runs per group. With 3 runs "
-             "per group the percentile bootstrap is narrow: read n and the rank test beside it. Rank: in how many "
-             "pairs of runs a's value is above b's (the Mann–Whitney U, ties ½), and its exact permutation p-value "
-             "in the paper's direction (two-sided for a claim of no difference); with 3 runs per group it cannot go "
-             "below 0.05 one-sided (every a above every b).", ""]
+             "Rank: in how many pairs of runs a's value is above b's (the Mann–Whitney U, ties ½), and its exact "
+             "permutation p-value in the paper's direction (two-sided for a claim of no difference). Verdicts: "
+             f"*{CONSISTENT}* when the CI excludes 0 on the paper's side and the rank test's p ≤ {ALPHA}; "
+             f"*{AGAINST}* when the CI excludes 0 on the other side and the rank test in that direction has "
+             f"p ≤ {ALPHA} (for a claim of no difference: a difference, two-sided); *{UNDECIDED}* otherwise; "
+             f"*{NO_DIFFERENCE}* for a claim of no difference whose CI contains 0 (with few runs: low power, not "
+             f"equivalence); *{NO_DATA}* below {MIN_RUNS} complete runs per group. With 3 runs per group the rank "
+             "test cannot go below p = 0.05 one-sided (every a above every b) or 0.10 two-sided, and the "
+             "percentile bootstrap is narrow: read n beside the verdict.", ""]
     rows = []
     for r in table.itertuples():
         ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
-        rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {r.rank_p:.2f}"
+        rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {p_text(r.rank_p)}"
+        if not math.isnan(r.rank_p) and r.rank_p_against != r.rank_p:
+            rank += f" (other way {p_text(r.rank_p_against)})"
         rows.append([str(r.claim), str(r.metric), f"{r.n_a}, {r.n_b}", num(r.paper_difference),
                      f"{num(r.difference)}{ci}", rank, str(r.verdict)])
-    lines += markdown.table(["claim", "metric", "n (a, b)", "paper", "ours [95 % CI]", "rank: a > b, p", "verdict"],
-                            rows)
+    lines += markdown.table(["claim", "metric", "n (a, b)", "paper", "ours [95 % CI]",
+                             "rank: a > b, p in the paper's direction", "verdict"], rows)
     return "\n".join(lines) + "\n"

@@ -28,13 +28,11 @@ import numpy as np
 import pandas as pd
 
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import MIN_RUNS, difference_ci, rank_test
+from lanefree_sumo.experiments.claims import ALPHA, MIN_RUNS, difference_ci, rank_test
 from lanefree_sumo.experiments.rundata import RunData, RunKey
 
 RACING_SPEED_MPS = 24.0
 """A run races when its mean speed over its last episodes is above this (m/s)."""
-ALPHA = 0.05
-"""The rank test's two-sided p at or below which a difference counts."""
 BASELINE = "default"
 """The variant every other is measured against."""
 EFFECT_METRICS: tuple[tuple[str, str], ...] = (

@@ -11,8 +11,12 @@ import pandas as pd
 import pytest
 
 from lanefree_sumo.experiments.claims import (
+    AGAINST,
     COLUMNS,
     COMPARISONS,
+    CONSISTENT,
+    NO_DIFFERENCE,
+    UNDECIDED,
     Comparison,
     check_claims,
     claims_markdown,
@@ -38,11 +42,42 @@ def run(algo: str, preset: str, density: float, seed: int, collisions: list[floa
 def test_difference_ci_and_verdicts():
     diff, low, high = difference_ci([3.0, 3.2, 2.9], [1.0, 1.1, 0.9])
     assert np.isclose(diff, 2.0333, atol=1e-3) and 0 < low < diff < high
-    assert verdict(1, low, high) == "reproduced" and verdict(-1, low, high) == "opposite"
-    assert verdict(1, -0.5, 0.4) == "inconclusive" and verdict(0, -0.5, 0.4) == "no difference detected (low power)"
-    assert verdict(0, low, high) == "not reproduced (a difference)"
+    assert verdict(1, low, high, 0.05, 1.0) == CONSISTENT == "consistent with the paper"
+    assert verdict(-1, low, high, 1.0, 0.05) == AGAINST == "against the paper"
+    assert verdict(1, -0.5, 0.4, 0.3, 0.8) == UNDECIDED == "undecided"
+    assert verdict(0, -0.5, 0.4, 0.6, 0.6) == NO_DIFFERENCE == "consistent with the paper (no difference detected)"
+    assert verdict(0, low, high, 0.05, 0.05) == AGAINST and verdict(0, low, high, 0.10, 0.10) == UNDECIDED
     assert np.isnan(difference_ci([1.0, 2.0], [2.0, 3.0, 4.0])[1])  # below MIN_RUNS
-    assert verdict(1, float("nan"), float("nan")) == "no data"
+    assert verdict(1, float("nan"), float("nan"), float("nan"), float("nan")) == "no data"
+
+
+def test_a_ci_off_zero_needs_the_rank_test_in_its_direction_too():
+    """The bootstrap CI alone decides nothing: the one-sided rank test in the CI's direction must reach
+    ALPHA (0.05), exactly 0.05 included, or the verdict is undecided."""
+    assert verdict(1, 0.2, 1.0, 0.05, 1.0) == CONSISTENT and verdict(1, 0.2, 1.0, 0.0501, 1.0) == UNDECIDED
+    assert verdict(-1, 0.2, 1.0, 1.0, 0.05) == AGAINST and verdict(-1, 0.2, 1.0, 1.0, 0.10) == UNDECIDED
+    assert verdict(-1, -1.0, -0.2, 0.01, 0.99) == CONSISTENT and verdict(1, -1.0, -0.2, 0.99, 0.01) == AGAINST
+    # a rank test in the paper's direction does not count for a CI on the other side, nor the reverse
+    assert verdict(1, -1.0, -0.2, 0.01, 0.99) == UNDECIDED and verdict(1, 0.2, 1.0, 0.99, 0.01) == UNDECIDED
+    # 3 runs a side, every a above every b: the bootstrap excludes 0 and the rank test reaches 1/20
+    a, b = [3.0, 3.2, 2.9], [1.0, 1.1, 0.9]
+    row = check_claims({COMPARISONS[0].a: [run(*COMPARISONS[0].a, s, [v] * 2) for s, v in enumerate(a)],
+                        COMPARISONS[0].b: [run(*COMPARISONS[0].b, s, [v] * 2) for s, v in enumerate(b)]},
+                       last=2, comparisons=COMPARISONS[:1]).iloc[0]
+    assert (row["pairs_a_above_b"], row["rank_p"], row["rank_p_against"]) == (9.0, pytest.approx(0.05), 1.0)
+    assert row["verdict"] == CONSISTENT
+    # one pair out of order: the CI still excludes 0, but p = 2/20 leaves it undecided
+    row = check_claims({COMPARISONS[0].a: [run(*COMPARISONS[0].a, s, [v] * 2) for s, v in enumerate([3.0, 3.2, 1.05])],
+                        COMPARISONS[0].b: [run(*COMPARISONS[0].b, s, [v] * 2) for s, v in enumerate(b)]},
+                       last=2, comparisons=COMPARISONS[:1]).iloc[0]
+    assert row["pairs_a_above_b"] == 8.0 and row["rank_p"] == pytest.approx(0.10) and row["verdict"] == UNDECIDED
+    assert row["ci95_low"] > 0
+    # the paper's 10 runs a side, every a above every b: p = 1 / C(20, 10), written with two significant digits
+    ten = {COMPARISONS[0].a: [run(*COMPARISONS[0].a, s, [2.0 + 0.01 * s] * 2) for s in range(10)],
+           COMPARISONS[0].b: [run(*COMPARISONS[0].b, s, [1.0 + 0.01 * s] * 2) for s in range(10)]}
+    table = check_claims(ten, last=2, comparisons=COMPARISONS[:1])
+    assert table.iloc[0]["rank_p"] == pytest.approx(1 / 184_756) and table.iloc[0]["verdict"] == CONSISTENT
+    assert f"| 100/100, p = 5.4e-06 (other way 1.00) | {CONSISTENT} |" in claims_markdown(table)
 
 
 def test_rank_test_counts_pairs_and_gives_the_exact_permutation_p():
@@ -99,11 +134,11 @@ def test_claims_from_runs_last_episodes_and_windows():
     table = check_claims(groups, last=last)
     assert len(table) == len(COMPARISONS)
     fields = table.iloc[0]
-    assert fields["verdict"] == "reproduced" and np.isclose(fields["difference"], 2.0)  # the last 10 episodes only
+    assert fields["verdict"] == CONSISTENT and np.isclose(fields["difference"], 2.0)  # the last 10 episodes only
     assert fields["pairs_a_above_b"] == 9.0 and np.isclose(fields["rank_p"], 0.05)
     assert np.isclose(fields["paper_difference"], 2.256 - 0.726)
     per = table[table["claim"].str.contains("temporarily")].iloc[0]
-    assert per["verdict"] == "reproduced" and per["difference"] > 4 and np.isnan(per["paper_difference"])
+    assert per["verdict"] == CONSISTENT and per["difference"] > 4 and np.isnan(per["paper_difference"])
     assert (table[table["claim"].str.contains("density")]["verdict"] == "no data").all()
     # a run that ends before the window's last episode gives no value for it
     short = {**groups, ("ddqn", "fields_zones_overtake_collision", 70.0): [
@@ -112,8 +147,8 @@ def test_claims_from_runs_last_episodes_and_windows():
     row = per_short[per_short["claim"].str.contains("temporarily")].iloc[0]
     assert row["n_b"] == 0 and row["verdict"] == "no data"
     text = claims_markdown(table)
-    assert text.count("\n| ") == len(COMPARISONS) + 1 and "reproduced" in text
-    assert "| +2.000 [" in text and "| 9/9, p = 0.05 | reproduced |" in text
+    assert text.count("\n| ") == len(COMPARISONS) + 1 and CONSISTENT in text
+    assert "| +2.000 [" in text and f"| 9/9, p = 0.05 (other way 1.00) | {CONSISTENT} |" in text
     assert len(fenced_rows(text)) == len(COMPARISONS) + 2  # header, rule, one row per claim
 
 
@@ -131,14 +166,15 @@ def test_a_grid_decides_only_the_claims_that_compare_two_of_its_settings():
 
 # -- exact boundaries: a CI bound of exactly 0, the run counts, the episode window --------------------
 
-def test_a_ci_bound_of_exactly_zero_is_inconclusive_on_either_side():
-    assert verdict(1, 0.0, 0.5) == "inconclusive" and verdict(-1, 0.0, 0.5) == "inconclusive"
-    assert verdict(-1, -0.5, 0.0) == "inconclusive" and verdict(1, -0.5, 0.0) == "inconclusive"
-    assert verdict(0, 0.0, 0.5) == verdict(0, -0.5, 0.0) == "no difference detected (low power)"
-    assert verdict(1, 1e-12, 0.5) == "reproduced" and verdict(-1, 1e-12, 0.5) == "opposite"
-    assert verdict(-1, -0.5, -1e-12) == "reproduced" and verdict(1, -0.5, -1e-12) == "opposite"
-    assert verdict(0, 1e-12, 0.5) == verdict(0, -0.5, -1e-12) == "not reproduced (a difference)"
-    assert verdict(1, 0.0, 0.0) == "inconclusive"
+def test_a_ci_bound_of_exactly_zero_is_undecided_on_either_side():
+    """A bound of exactly 0 does not exclude 0, whatever the rank test says."""
+    assert verdict(1, 0.0, 0.5, 0.0, 1.0) == UNDECIDED and verdict(-1, 0.0, 0.5, 1.0, 0.0) == UNDECIDED
+    assert verdict(-1, -0.5, 0.0, 0.0, 1.0) == UNDECIDED and verdict(1, -0.5, 0.0, 1.0, 0.0) == UNDECIDED
+    assert verdict(0, 0.0, 0.5, 0.0, 0.0) == verdict(0, -0.5, 0.0, 0.0, 0.0) == NO_DIFFERENCE
+    assert verdict(1, 1e-12, 0.5, 0.01, 1.0) == CONSISTENT and verdict(-1, 1e-12, 0.5, 1.0, 0.01) == AGAINST
+    assert verdict(-1, -0.5, -1e-12, 0.01, 1.0) == CONSISTENT and verdict(1, -0.5, -1e-12, 1.0, 0.01) == AGAINST
+    assert verdict(0, 1e-12, 0.5, 0.01, 0.01) == verdict(0, -0.5, -1e-12, 0.01, 0.01) == AGAINST
+    assert verdict(1, 0.0, 0.0, 0.0, 0.0) == UNDECIDED
 
 
 def test_a_bootstrap_whose_low_bound_is_exactly_zero():
@@ -147,17 +183,17 @@ def test_a_bootstrap_whose_low_bound_is_exactly_zero():
     # 2.5 % quantile is exactly 0; the difference is 1 with probability (2/3)^3 ≈ 30 % > 2.5 %: high = 1
     diff, low, high = difference_ci([1.0, 1.0, 1.0], [0.0, 0.0, 1.0])
     assert (diff, low, high) == (pytest.approx(2 / 3), 0.0, 1.0)
-    assert verdict(1, low, high) == "inconclusive"
+    assert verdict(1, low, high, 0.0, 1.0) == UNDECIDED
     diff, low, high = difference_ci([0.0, 0.0, 1.0], [1.0, 1.0, 1.0])  # mirrored: high is exactly 0
     assert (diff, low, high) == (pytest.approx(-2 / 3), -1.0, 0.0)
-    assert verdict(-1, low, high) == "inconclusive"
+    assert verdict(-1, low, high, 0.0, 1.0) == UNDECIDED
     # the claims table reads the same CI: three runs each, one value per run
     groups = {("ddpg", "collision", 70.0): [run("ddpg", "collision", 70.0, s, [1.0] * 4) for s in range(3)],
               ("ddpg", "fields_collision", 70.0): [run("ddpg", "fields_collision", 70.0, s, [c] * 4)
                                                    for s, c in enumerate([0.0, 0.0, 1.0])]}
     row = check_claims(groups, last=2, comparisons=COMPARISONS[:1]).iloc[0]
     assert (row["n_a"], row["n_b"], row["ci95_low"], row["ci95_high"]) == (3, 3, 0.0, 1.0)
-    assert row["verdict"] == "inconclusive" and row["difference"] == pytest.approx(2 / 3)
+    assert row["verdict"] == UNDECIDED and row["difference"] == pytest.approx(2 / 3)
 
 
 def test_the_bootstrap_intervals_at_their_boundaries():
@@ -282,14 +318,15 @@ def test_claims_markdown_rows_with_and_without_data():
     comparisons = (COMPARISONS[0], Comparison("unknown", ("ddpg", "collision", 55.0), ("ddpg", "collision", 70.0)))
     text = claims_markdown(check_claims(groups, last=2, comparisons=comparisons))
     assert text.startswith("# The paper's claims, checked\n\nDifference of per-run means")
-    assert text.endswith("\n") and "(every a above every b).\n\n" + TABLE_BEGIN + "\n" in text
+    assert text.endswith("\n") and "read n beside the verdict.\n\n" + TABLE_BEGIN + "\n" in text
     rows = fenced_rows(text)
-    assert rows[0] == "| claim | metric | n (a, b) | paper | ours [95 % CI] | rank: a > b, p | verdict |"
+    assert rows[0] == ("| claim | metric | n (a, b) | paper | ours [95 % CI] | rank: a > b, p in the paper's direction "
+                       "| verdict |")
     assert rows[1] == "|---|---|---|---|---|---|---|"
     # a − b = mean(3, 4, 5) − 1 = 3; every a above every b: 9 of 9 pairs, p = 1/20; paper 2.256 − 0.726
     low, high = check_claims(groups, last=2, comparisons=comparisons[:1]).iloc[0][["ci95_low", "ci95_high"]]
     assert rows[2] == (f"| {COMPARISONS[0].claim} | collisions (last 2) | 3, 3 | +1.530 | +3.000 [{low:+.3f}, "
-                       f"{high:+.3f}] | 9/9, p = 0.05 | reproduced |")
+                       f"{high:+.3f}] | 9/9, p = 0.05 (other way 1.00) | {CONSISTENT} |")
     # no runs at 55 veh/km and no paper value: dashes, no CI, no rank
     assert rows[3] == "| unknown | collisions (last 2) | 0, 3 | – | – | – | no data |"
     assert len(rows) == 4
