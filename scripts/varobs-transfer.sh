@@ -44,7 +44,7 @@ compare ddpg "$base/set" "$base/report"
 compare dqn "$base/set_dqn" "$base/report_dqn"
 # the verdict once both observations have a finished run (a set run's config.yaml says `kind: set`)
 if [ ${#finished[@]} -gt 0 ]; then
-    sets=$(grep -lx "  kind: set" "${finished[@]/%//config.yaml}" | wc -l)
+    sets=$( (grep -lx "  kind: set" "${finished[@]/%//config.yaml}" || true) | wc -l)
     if [ "$sets" -gt 0 ] && [ "$sets" -lt ${#finished[@]} ]; then
         "$bin" report "${finished[@]}" --out "$base/verdict" --compare >/dev/null
     fi
