@@ -8,9 +8,10 @@ Importing the package registers the gymnasium environment ``LaneFree-v0``::
 Citations "specification §N" in the docstrings refer to the project's specification, docs/specification.md.
 """
 
-from lanefree_sumo.numerics import keep_numpy_portable
+from lanefree_sumo.numerics import keep_mkl_reproducible, keep_numpy_portable
 
 keep_numpy_portable()  # before anything imports numpy: the same episodes on every machine (numerics.py)
+keep_mkl_reproducible()  # before torch loads MKL: a batch's runs get the bits of the runs alone (numerics.py)
 
 from gymnasium.envs.registration import register  # noqa: E402  (numpy's kernels are chosen above)
 

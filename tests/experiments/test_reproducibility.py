@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from lanefree_sumo.numerics import PORTABLE_NUMPY_DISPATCH, VARIABLE
+from lanefree_sumo.numerics import MKL_REPRODUCIBLE, MKL_VARIABLE, PORTABLE_NUMPY_DISPATCH, VARIABLE
 
 from conftest import ROOT, lanefree_popen, wait_for
 
@@ -63,6 +63,23 @@ def test_numpy_keeps_portable_kernels_unless_the_user_chose() -> None:
     assert "X86_V3" in pinned and not set(PORTABLE_NUMPY_DISPATCH.split()) & pinned
     assert child == PORTABLE_NUMPY_DISPATCH  # sweep workers and env processes inherit it
     assert ("X86_V4" in own) is _cpu_has_avx512() and own_child == ""  # the user's empty setting: the whole CPU
+
+
+def test_mkl_is_kept_reproducible_unless_the_user_chose_or_torch_came_first() -> None:
+    """Importing the package sets MKL's conditional numerical reproducibility for itself and its child processes
+    (sweep workers); a user's own setting stays, and so does torch's state when torch was imported first (its MKL
+    may have read the variable already)."""
+    child = (f"import os, subprocess, sys\nprint(os.environ.get('{MKL_VARIABLE}'))\n"
+             f"print(subprocess.run([sys.executable, '-c', 'import os; print(os.environ.get(\"{MKL_VARIABLE}\"))'],"
+             " capture_output=True, text=True).stdout.strip())")
+    env = {k: v for k, v in os.environ.items() if k != MKL_VARIABLE}
+    runs = {name: subprocess.run([sys.executable, "-c", first + child], capture_output=True, text=True, check=True,
+                                 cwd=ROOT, env={**env, **extra}).stdout.splitlines()
+            for name, first, extra in (("package", "import lanefree_sumo\n", {}),
+                                       ("user", "import lanefree_sumo\n", {MKL_VARIABLE: "AVX2"}),
+                                       ("torch first", "import torch, lanefree_sumo\n", {}))}
+    assert runs == {"package": [MKL_REPRODUCIBLE, MKL_REPRODUCIBLE], "user": ["AVX2", "AVX2"],
+                    "torch first": ["None", "None"]}
 
 
 @x86_64_only
