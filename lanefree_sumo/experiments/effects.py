@@ -128,6 +128,12 @@ def _racing_share(by_metric: pd.DataFrame) -> str:
     return f"{racing['default_mean']:.0%} → {racing['variant_mean']:.0%}"
 
 
+def _run_counts(by_metric: pd.DataFrame) -> str:
+    """``default, variant``: the complete runs a side of one cell and variant."""
+    racing = by_metric.loc["racing_fraction"]
+    return f"{int(racing['n_default'])}, {int(racing['n_variant'])}"
+
+
 def overview(table: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
     """(headers, rows) of the choice-by-cell table: per variant its verdict in each cell (with the racing
     fractions and the runs a side; – where it has no complete runs) and its strongest verdict over the cells where
@@ -145,9 +151,7 @@ def overview(table: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
                 continue
             by_metric = rows_of.set_index("metric")
             found.append(verdict(rows_of))
-            counts = f"runs {int(by_metric.loc['racing_fraction', 'n_default'])}, " \
-                     f"{int(by_metric.loc['racing_fraction', 'n_variant'])}"
-            entries.append(f"{found[-1]} (racing {_racing_share(by_metric)}; {counts})")
+            entries.append(f"{found[-1]} (racing {_racing_share(by_metric)}; runs {_run_counts(by_metric)})")
         rows.append([str(variant), min(found, key=VERDICTS.index), *entries])
     return ["choice", "verdict (strongest over the cells)", *(_cell_name(*cell) for cell in cells)], rows
 
@@ -188,9 +192,7 @@ def _cell_sections(table: pd.DataFrame) -> list[str]:
         rows = []
         for variant, rows_of in cell.groupby("variant", sort=False):
             by_metric = rows_of.set_index("metric")
-            racing = by_metric.loc["racing_fraction"]
-            counts = f"{int(racing['n_default'])}, {int(racing['n_variant'])}"
-            rows.append([str(variant), counts, verdict(rows_of), _racing_share(by_metric),
+            rows.append([str(variant), _run_counts(by_metric), verdict(rows_of), _racing_share(by_metric),
                          *(_figure(by_metric.loc[m], 2) for m in shown)])
         lines += markdown.table(headers, rows, fence=f"effects-{algo}-{preset}-{density:g}") + [""]
     return lines
