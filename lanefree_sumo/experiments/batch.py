@@ -58,11 +58,11 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
     for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
                         (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
-                        (cfg.observation.kind != "vector", "the set observation (--obs set)"),
+                        (cfg.observation.kind != "vector" and cfg.train.algo != "ddpg",
+                         f"the set observation (--obs set) with {cfg.train.algo}"),
                         (cfg.train.envs != 1, "several environments (--envs)"),
                         (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),
-                        (cfg.train.overlap, "--overlap"),
-                        (cfg.train.actor_critic.pre_tanh_penalty != 0, "train.actor_critic.pre_tanh_penalty")):
+                        (cfg.train.overlap, "--overlap")):
         if wrong:
             raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
     check_device(cfg.train.device)

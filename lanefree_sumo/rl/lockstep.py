@@ -46,6 +46,8 @@ def lockstep_refusal(env: Any, learner: Any) -> str | None:
         return "the lockstep loop runs the torch simulation (give the environment a device)"
     if bool(np.any(env._terminate)):
         return "episode.terminate_on_collision ends episodes at different steps"
+    if getattr(learner, "layout", None) is not None:
+        return "the set observation (--obs set) is trained in the exact loop"
     return None
 
 

@@ -230,10 +230,8 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
         raise ConfigError(f"batched training covers ddpg and {', '.join(FAMILY)}, not {algo}; train it run by run")
     if len(seeds) != len(cfgs):
         raise ConfigError(f"{len(cfgs)} configs but {len(seeds)} seeds: give one seed per run")
-    if any(c.train.actor_critic.pre_tanh_penalty for c in cfgs if algo == "ddpg"):
-        raise ConfigError("batched training has no train.actor_critic.pre_tanh_penalty; train such runs run by run")
-    if any(c.observation.kind != "vector" for c in cfgs):
-        raise ConfigError("batched training takes the vector observation; train the set observation run by run")
+    if algo != "ddpg" and any(c.observation.kind != "vector" for c in cfgs):
+        raise ConfigError(f"batched {algo} takes the vector observation; train the set observation run by run")
     sections = [getattr(c.train, spec.config_section) for c in cfgs]
     shared = _BATCH_SHARED[spec.config_section] + (("timesteps",) if algo != "ddpg" else ())
     for key in shared:
@@ -249,6 +247,8 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
             ou_theta=[s.ou_theta for s in sections], actor_layers=first.actor_layers,
             critic_layers=first.critic_layers, batch_size=first.batch_size, buffer_size=first.buffer_size,
             learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
+            pre_tanh_penalty=[s.pre_tanh_penalty for s in sections],
+            encoder=cfgs[0].observation.encoder if cfgs[0].observation.kind == "set" else None,
             total_timesteps=total_timesteps(cfgs[0]), device=device)
     return BatchedDQN(
         [c.train.algo for c in cfgs], observation_space, action_space, seeds,

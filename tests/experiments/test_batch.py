@@ -66,7 +66,29 @@ OPEN_CHOICES = {
     "discrete_sizes": ("ddqn", [{"action": {"discrete_ax_mps2": 3.0, "discrete_ay_mps2": 0.5}}] * 2),
     "kerasrl_ddpg": ("ddpg", [{"train": {"profile": "kerasrl"}}] * 2),
     "kerasrl_dqn": ("dqn", [{"train": {"profile": "kerasrl"}}] * 2),
+    "pre_tanh_penalty": ("ddpg", [{"train": {"actor_critic": {"pre_tanh_penalty": 0.01}}}, {}]),
 }
+
+
+def test_batched_set_observation_runs_agree_with_sequential_runs(tmp_path: Path) -> None:
+    """The set observation (the paper encoder): run k of a batch agrees with ``lanefree train --seed k --obs set``
+    to float tolerance (the batched encoder sums rows in another order: tests/rl/test_batched_set.py): the
+    same episodes, counts equal, the other columns within 1e-4 relative; the model loads with its set encoder."""
+    extra = {"observation": {"kind": "set", "encoder": "paper"}, "train": {"episodes": 2}}
+    cfgs = [merge_config(small("ddpg", seed), extra) for seed in (0, 1)]
+    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test")
+    for cfg, (folder, done) in zip(cfgs, results):
+        run, _ = train(cfg, run=tmp_path / f"seq_{cfg.seed}", progress=False, command="test")
+        batched, sequential = rows(folder / "episodes.csv"), rows(run / "episodes.csv")
+        assert done == 2 and len(batched) == len(sequential) == 2
+        for mine, theirs in zip(batched, sequential):
+            for column, value in theirs.items():
+                try:
+                    assert float(mine[column]) == pytest.approx(float(value), rel=1e-4, abs=1e-6), column
+                except ValueError:  # a text column
+                    assert mine[column] == value, column
+        model = get_algorithm("ddpg").cls.load(folder / "model.zip", device="cpu")
+        assert model.actor.features_extractor.encoder_name == "paper"
 
 
 @pytest.mark.parametrize("choice", list(OPEN_CHOICES))

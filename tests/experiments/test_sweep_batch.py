@@ -91,12 +91,12 @@ def test_dqn_and_ddqn_runs_share_batches_and_the_other_variants_do_not(tmp_path)
 def test_a_run_with_a_switch_the_batched_learners_lack_goes_one_per_task(tmp_path):
     grid = load_grid(write_grid(tmp_path / "g.yaml", {
         "algorithms": ["ddpg"], "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2,
-        "variants": {"default": {}, "penalty": {"train.actor_critic.pre_tanh_penalty": 0.01}}}))
+        "variants": {"default": {}, "shield": {"shield.enabled": True}}}))
     cells = list(grid.cells())
     packing = pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 8)
     assert [sorted(b.runs) for b in packing.batches] == [sorted(c.name for c in cells if "_default_" in c.name)]
-    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_penalty_" in c.name)
-    assert list(packing.reasons) == ["batched training does not support train.actor_critic.pre_tanh_penalty"]
+    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_shield_" in c.name)
+    assert list(packing.reasons) == ["batched training does not support the safety shield (--shield)"]
 
 
 def test_the_default_batch_keeps_every_worker_busy():

@@ -401,3 +401,26 @@ def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:
         build_batched([merge_config(base, {"train": {"algo": "td3"}})], [0], env.observation_space, env.action_space)
     with pytest.raises(ConfigError, match="one seed per run"):
         build_batched([base, base], [0], env.observation_space, env.action_space)
+
+
+def test_ddpg_pre_tanh_penalty_equals_the_single_autograd_update_bit_for_bit() -> None:
+    """λ per run (0 for run 0: no term), against FastDDPG's autograd update with the penalty."""
+    penalties = (0.0, 0.01, 0.05)
+    transitions = _transitions(False)
+    env = ToyEnv(False)
+    lr, gamma, tau = HYPER["per-run"]
+    batched = BatchedDDPG(env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma, tau=tau,
+                          batch_size=BATCH, buffer_size=5000, learning_starts=100, pre_tanh_penalty=penalties)
+    for obs, action, reward, next_obs, done, truncated in transitions:
+        batched.store(obs, action, reward, next_obs, done, truncated)
+    for _ in range(UPDATES):
+        assert batched.update()
+    for k in range(len(SEEDS)):
+        single = _ddpg(k)
+        single.pre_tanh_penalty = penalties[k]
+        _fill(single, k, transitions)
+        np.random.seed(SEEDS[k])
+        for _ in range(UPDATES):
+            single.train(gradient_steps=1, batch_size=BATCH)
+        _assert_same(single, batched, k)
+        assert float(batched.losses["actor_loss"][k]) == single.logger.name_to_value["train/actor_loss"]

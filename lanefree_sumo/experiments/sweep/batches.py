@@ -8,12 +8,12 @@ files (``batch.json``, ``batch_checkpoints/``) live in ``DIR/batches/<batch>/`` 
 member is complete.
 
 Packing (:func:`pack`): the runs to start whose configs differ only in what a batch may differ in
-(:data:`PER_RUN_KEYS`: seed, density, reward preset, overtake bonus, the agent's top speed and lateral bound)
-go together, in grid order, split into
-batches of at most K of near equal size. A run the batched path cannot train (:func:`batch_key`'s reason) goes
-one run per task. An interrupted batch (a batch folder with a batch checkpoint and an unfinished member)
-continues as that batch, whatever K is now: its members' checkpoints hold no replay buffer of their own. A batch
-folder without a checkpoint (killed before its first) is deleted and its runs are packed afresh.
+(:data:`PER_RUN_KEYS`: seed, density, reward preset, overtake bonus, the agent's top speed and lateral bound,
+DDPG's pre-tanh penalty) go together, in grid order, split into batches of at most K of near equal size. A run
+the batched path cannot train (:func:`batch_key`'s reason) goes one run per task. An interrupted batch (a batch
+folder with a batch checkpoint and an unfinished member) continues as that batch, whatever K is now: its members'
+checkpoints hold no replay buffer of their own. A batch folder without a checkpoint (killed before its first) is
+deleted and its runs are packed afresh.
 """
 
 from __future__ import annotations
@@ -54,7 +54,8 @@ DEFAULT_BATCH = 8
 """The most runs a batch takes when ``--batch`` is not given (see :func:`batch_size`)."""
 
 PER_RUN_KEYS = ("seed", "scenario.density_veh_per_km", "reward.preset", "reward.overtake_bonus",
-                "scenario.agent_max_speed_mps", "scenario.agent_lateral_speed_ratio")
+                "scenario.agent_max_speed_mps", "scenario.agent_lateral_speed_ratio",
+                "train.actor_critic.pre_tanh_penalty")
 """The config keys (dotted) the runs of one batch may differ in (:class:`~lanefree_sumo.rl.batched_env.
 BatchedRingEnv`); every other key they share, but ``train.algo`` only up to its batch group (dqn and ddqn
 mix: :func:`~lanefree_sumo.rl.algorithms.batched.dqn.batch_group`)."""

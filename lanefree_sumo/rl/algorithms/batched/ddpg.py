@@ -25,35 +25,50 @@ from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner, SpacesEnv, kept_random_state, per_run
 from lanefree_sumo.rl.algorithms.batched.replay import OUNoise
+from lanefree_sumo.rl.algorithms.batched.set_encoder import Encoded, SetLayout, encode, encode_backward
 from lanefree_sumo.rl.algorithms.batched.stack import (
     ParamStack,
     StackedAdam,
+    aten,
     mlp_backward,
     mlp_forward,
     per_run_column,
     soft_update,
 )
 from lanefree_sumo.rl.algorithms.fast_ddpg import WARMUP_ACTIONS
+from lanefree_sumo.rl.encoder import SetFeaturesExtractor
+
+
+def policy_kwargs(actor_layers: Sequence[int], critic_layers: Sequence[int], encoder: str | None) -> dict[str, Any]:
+    """SB3's ``policy_kwargs`` of ``build_model``'s DDPG: the layer widths, ReLU, and the set encoder ``encoder``
+    (None: the vector observation's flat input)."""
+    kwargs: dict[str, Any] = {"net_arch": {"pi": list(actor_layers), "qf": list(critic_layers)},
+                              "activation_fn": nn.ReLU}
+    if encoder is not None:
+        kwargs.update(features_extractor_class=SetFeaturesExtractor, features_extractor_kwargs={"encoder": encoder})
+    return kwargs
 
 
 def sb3_policy(observation_space: spaces.Space, action_space: spaces.Space, seed: int, learning_rate: float,
-               actor_layers: Sequence[int], critic_layers: Sequence[int]) -> TD3Policy:
+               actor_layers: Sequence[int], critic_layers: Sequence[int], encoder: str | None = None) -> TD3Policy:
     """The policy SB3's DDPG builds with ``seed`` (``build_model``'s network settings), built on the CPU
     under ``torch.manual_seed(seed)`` without touching the caller's torch random state."""
     with th.random.fork_rng(devices=[]):
         th.manual_seed(seed)
         return TD3Policy(observation_space, action_space, lambda _: learning_rate,  # type: ignore[arg-type]
-                         net_arch={"pi": list(actor_layers), "qf": list(critic_layers)},
-                         activation_fn=nn.ReLU, n_critics=1)
+                         n_critics=1, **policy_kwargs(actor_layers, critic_layers, encoder))
 
 
 class BatchedDDPG(BatchedLearner):
     """DDPG (SB3's, as ``lanefree train`` configures it) for K runs; module docstring.
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``tau``, ``ou_sigma``,
-    ``ou_theta``. The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``,
+    ``ou_theta``, ``pre_tanh_penalty`` (λ of :class:`~..fast_ddpg.FastDDPG`'s λ·mean(u²) on the actor's pre-tanh
+    output u). The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``,
     ``warmup_actions`` (:class:`~..fast_ddpg.FastDDPG`'s: ``uniform`` random actions before
-    ``learning_starts``, or ``policy``: the actor and its noise from the first step)."""
+    ``learning_starts``, or ``policy``: the actor and its noise from the first step), ``encoder``: the set
+    encoder's name for the set observation (a Dict observation space; :mod:`.set_encoder`), None for the
+    vector observation."""
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  learning_rate: float | Sequence[float] = 1e-3, gamma: float | Sequence[float] = 0.98,
@@ -61,6 +76,7 @@ class BatchedDDPG(BatchedLearner):
                  ou_theta: float | Sequence[float] = 0.15, actor_layers: Sequence[int] = (256, 128),
                  critic_layers: Sequence[int] = (256, 128), batch_size: int = 64, buffer_size: int = 100_000,
                  learning_starts: int = 800, warmup_actions: str = "uniform", total_timesteps: int = 1,
+                 pre_tanh_penalty: float | Sequence[float] = 0.0, encoder: str | None = None,
                  device: str | th.device = "cpu", exact: bool | None = None) -> None:
         if not isinstance(action_space, spaces.Box) or len(action_space.shape) != 1:
             raise ValueError("batched DDPG takes a flat Box action space")
@@ -77,13 +93,31 @@ class BatchedDDPG(BatchedLearner):
         self.ou_sigma, self.ou_theta = per_run(ou_sigma, k, "ou_sigma"), per_run(ou_theta, k, "ou_theta")
         self.actor_layers, self.critic_layers = tuple(actor_layers), tuple(critic_layers)
         self.warmup_actions = warmup_actions
-        policies = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers)
+        self.pre_tanh_penalty = per_run(pre_tanh_penalty, k, "pre_tanh_penalty")
+        if not all(v >= 0 for v in self.pre_tanh_penalty):
+            raise ValueError(f"pre_tanh_penalty must be ≥ 0, got {self.pre_tanh_penalty}")
+        self.encoder = encoder
+        if (encoder is None) != isinstance(observation_space, spaces.Box):
+            raise ValueError("the set observation (a Dict space) takes an encoder, the vector observation none")
+        policies = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers, encoder)
                     for seed, lr in zip(self.seeds, self.learning_rate)]
         self._policy = policies[0]  # scale/unscale of actions (the same for all runs)
-        self.actor = ParamStack([list(p.actor.parameters()) for p in policies], self.device)
-        self.critic = ParamStack([list(p.critic.parameters()) for p in policies], self.device)
-        self.actor_target = ParamStack([list(p.actor_target.parameters()) for p in policies], self.device)
-        self.critic_target = ParamStack([list(p.critic_target.parameters()) for p in policies], self.device)
+        self.layout: SetLayout | None = None
+        """The set observation's layout (None: the vector observation)."""
+        if encoder is not None:
+            others = observation_space["others"]  # type: ignore[index]
+            extractor = policies[0].actor.features_extractor
+            assert isinstance(extractor, SetFeaturesExtractor)
+            self.layout = SetLayout.of(extractor.encoder,
+                                       int(observation_space["ego"].shape[0]),  # type: ignore[index]
+                                       int(others.shape[0]))
+        head = 0 if self.layout is None else self.layout.tensors
+        self.features_dim = int(policies[0].actor.features_dim)
+        """The width of the features the actor's and the critic's MLP heads read (the observation's, or the
+        encoder's output with the ego features)."""
+        self.actor, self.critic, self.actor_target, self.critic_target = (
+            ParamStack([list(getattr(p, name).parameters()) for p in policies], self.device, head)
+            for name in ("actor", "critic", "actor_target", "critic_target"))
         group = policies[0].actor.optimizer.param_groups[0]
         self.actor_adam = StackedAdam(self.actor, self.learning_rate, group["betas"], group["eps"])
         self.critic_adam = StackedAdam(self.critic, self.learning_rate, group["betas"], group["eps"])
@@ -93,6 +127,9 @@ class BatchedDDPG(BatchedLearner):
         self._shared_tau = self.tau[0] if len(set(self.tau)) == 1 else None
         self.noise = OUNoise(self.ou_sigma, self.ou_theta, n_actions)
         self._one = th.tensor(1.0, device=self.device)
+        self._penalty = (None if not any(self.pre_tanh_penalty)
+                         else per_run_column(self.pre_tanh_penalty, self.device).unsqueeze(2))
+        """λ per run ``[K, 1, 1]`` float32 (as autograd rounds a Python λ), None when no run has a penalty."""
         self._last: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
@@ -105,10 +142,32 @@ class BatchedDDPG(BatchedLearner):
 
     # -- acting -----------------------------------------------------------------------------------------------
 
-    def actor_output(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
-        """μ(s) of every run, ``[K, actions]`` in [−1, 1] (obs ``[K, obs]``)."""
+    def _forward(self, net: ParamStack, obs: th.Tensor, actions: th.Tensor | None,
+                 squash: bool) -> tuple[Encoded | None, list[th.Tensor]]:
+        """(the encoder's saved values — None for the vector observation —, the MLP head's [input, outputs]) of
+        network ``net`` on observations ``[K, M, obs]`` (and, for a critic, ``actions`` ``[K, M, A]``)."""
+        saved = None
+        features = obs
+        if self.layout is not None:
+            features, saved = encode(self.mm, self.layout, net.views(), obs)
+        if actions is not None:
+            features = th.cat([features, actions], dim=2)
+        return saved, mlp_forward(self.mm, net.layers(), features, squash)
+
+    def _backward(self, net: ParamStack, saved: Encoded | None, outs: list[th.Tensor], grad: th.Tensor,
+                  squash: bool) -> list[th.Tensor]:
+        """The gradients of ``net``'s tensors (its encoder's, then its head's) from its output's gradient."""
+        grads, grad_input = mlp_backward(self.mm, net.layers(), outs, grad, squash, to_input=saved is not None)
+        if saved is None or self.layout is None:
+            return grads
+        assert grad_input is not None
+        return [*encode_backward(self.mm, self.layout, net.views(), saved, grad_input[..., :self.features_dim]),
+                *grads]
+
+    def actor_output(self, obs: Any) -> th.Tensor:
+        """μ(s) of every run, ``[K, actions]`` in [−1, 1] (obs ``[K, obs]``, or the set observation's dict)."""
         with th.no_grad():
-            return mlp_forward(self.mm, self.actor.layers(), self._obs(obs), True)[-1].reshape(self.runs, -1)
+            return self._forward(self.actor, self._obs(obs), None, True)[1][-1].reshape(self.runs, -1)
 
     def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
         """Every run's action for the env, ``[K, actions]`` (SB3's ``_sample_action``: random for the first
@@ -175,24 +234,36 @@ class BatchedDDPG(BatchedLearner):
     def _learn(self, indices: np.ndarray | th.Tensor) -> None:
         mm = self.mm
         obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
-        actor, critic = self.actor.layers(), self.critic.layers()
+        critic = self.critic.layers()
         with th.no_grad():
-            next_actions = mlp_forward(mm, self.actor_target.layers(), next_obs, True)[-1]
-            next_q = mlp_forward(mm, self.critic_target.layers(), th.cat([next_obs, next_actions], dim=2), False)[-1]
+            next_actions = self._forward(self.actor_target, next_obs, None, True)[1][-1]
+            next_q = self._forward(self.critic_target, next_obs, next_actions, False)[1][-1]
             target_q = rewards + (1 - dones) * self._gamma * next_q
 
-            q_outs = mlp_forward(mm, critic, th.cat([obs, actions], dim=2), False)
+            saved, q_outs = self._forward(self.critic, obs, actions, False)
             critic_loss = F.mse_loss(q_outs[-1], target_q, reduction="none").mean(dim=(1, 2))
             grad_q = (q_outs[-1] - target_q).mul_(2.0 / self.batch_size)  # mse_loss_backward (mean)
-            self.critic_adam.step(mlp_backward(mm, critic, q_outs, grad_q, False)[0])
+            self.critic_adam.step(self._backward(self.critic, saved, q_outs, grad_q, False))
 
-            actor_outs = mlp_forward(mm, actor, obs, True)
-            q = mlp_forward(mm, critic, th.cat([obs, actor_outs[-1]], dim=2), False)
+            if self._penalty is None:
+                saved, actor_outs = self._forward(self.actor, obs, None, True)
+                action = actor_outs[-1]
+            else:  # keep the pre-tanh output u
+                saved, actor_outs = self._forward(self.actor, obs, None, False)
+                action = th.tanh(actor_outs[-1])
+            q = self._forward(self.critic, obs, action, False)[1]
             actor_loss = -q[-1].mean(dim=(1, 2))
             grad_mean = (-self._one).expand(q[-1].shape) / self.batch_size  # autograd's d(−mean)/dq
             grad_input = mlp_backward(mm, critic, q, grad_mean, False, weights=False, to_input=True)[1]
             assert grad_input is not None
-            self.actor_adam.step(mlp_backward(mm, actor, actor_outs, grad_input[:, :, self.obs_dim:], True)[0])
+            grad_action = grad_input[:, :, self.features_dim:]
+            if self._penalty is None:
+                self.actor_adam.step(self._backward(self.actor, saved, actor_outs, grad_action, True))
+            else:  # + λ·mean(u²): autograd's (λ / numel) · (2 u) added to the tanh's gradient
+                u = actor_outs[-1]
+                actor_loss = actor_loss + self._penalty[:, 0, 0] * u.square().mean(dim=(1, 2))
+                grad_u = aten.tanh_backward(grad_action, action) + (self._penalty / u[0].numel()) * (2.0 * u)
+                self.actor_adam.step(self._backward(self.actor, saved, actor_outs, grad_u, False))
 
             soft_update(self.critic_target, self.critic, self._tau, self._one_minus_tau, self._shared_tau)
             soft_update(self.actor_target, self.actor, self._tau, self._one_minus_tau, self._shared_tau)
@@ -226,13 +297,13 @@ class BatchedDDPG(BatchedLearner):
         noise = OrnsteinUhlenbeckActionNoise(np.zeros(n_actions), self.ou_sigma[k] * np.ones(n_actions),
                                              theta=self.ou_theta[k])
         with kept_random_state():
-            model = cls("MlpPolicy", SpacesEnv(self.observation_space, self.action_space),
+            model = cls("MlpPolicy" if self.encoder is None else "MultiInputPolicy",
+                        SpacesEnv(self.observation_space, self.action_space),
                         learning_rate=self.learning_rate[k], buffer_size=self.buffer_size, batch_size=self.batch_size,
                         gamma=self.gamma[k], tau=self.tau[k], learning_starts=self.learning_starts, train_freq=1,
                         gradient_steps=1, action_noise=noise, seed=self.seeds[k], device="cpu", verbose=0,
-                        warmup_actions=self.warmup_actions,
-                        policy_kwargs={"net_arch": {"pi": list(self.actor_layers), "qf": list(self.critic_layers)},
-                                       "activation_fn": nn.ReLU})
+                        warmup_actions=self.warmup_actions, pre_tanh_penalty=self.pre_tanh_penalty[k],
+                        policy_kwargs=policy_kwargs(self.actor_layers, self.critic_layers, self.encoder))
         with th.no_grad():
             for net, stack in ((model.actor, self.actor), (model.critic, self.critic),
                                (model.actor_target, self.actor_target), (model.critic_target, self.critic_target)):

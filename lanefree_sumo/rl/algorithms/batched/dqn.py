@@ -119,6 +119,8 @@ class BatchedDQN(BatchedLearner):
             raise ValueError("batched DQN takes a Discrete action space")
         if loss not in LOSSES:
             raise ValueError(f"unknown TD loss {loss!r}; valid: {', '.join(LOSSES)}")
+        if not isinstance(observation_space, spaces.Box):
+            raise ValueError("batched DQN takes the vector observation (a flat Box)")
         super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
                          learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=1,
                          action_dtype=th.int64, device=device, exact=exact)

@@ -42,6 +42,32 @@ def kept_random_state() -> Iterator[None]:
     np.random.set_state(numpy)
 
 
+def observation_size(space: spaces.Space) -> int:
+    """The length of one run's observation as the batched replay stores it: a flat float32 Box (the vector
+    observation), or the set observation's Dict of ``ego`` ``(E,)`` and ``others`` ``(rows, width)``, flattened
+    (:func:`flat_observations`); ValueError for another space."""
+    if isinstance(space, spaces.Box) and len(space.shape) == 1 and space.dtype == np.float32:
+        return int(space.shape[0])
+    if isinstance(space, spaces.Dict) and set(space.spaces) == {"ego", "others"}:
+        ego, others = space["ego"], space["others"]
+        if len(ego.shape) == 1 and len(others.shape) == 2:  # type: ignore[arg-type]
+            return int(ego.shape[0]) + int(others.shape[0]) * int(others.shape[1])  # type: ignore[index]
+    raise ValueError("batched learners take a flat float32 Box observation or the set observation's "
+                     "Dict of ego and others")
+
+
+def flat_observations(obs: Any) -> Any:
+    """The set observation's dict ``{"ego": [K, E], "others": [K, rows, width]}`` (arrays or tensors) as one
+    ``[K, E + rows·width]`` (ego, then the table row by row); anything else unchanged."""
+    if not isinstance(obs, dict):
+        return obs
+    ego, others = obs["ego"], obs["others"]
+    if isinstance(ego, th.Tensor):
+        return th.cat([ego, others.reshape(others.shape[0], -1)], dim=1)
+    ego, others = np.asarray(ego), np.asarray(others)
+    return np.concatenate([ego, others.reshape(others.shape[0], -1)], axis=1)
+
+
 class SpacesEnv(gym.Env):
     """An environment that only declares its spaces: what SB3 needs to build a model to export weights into."""
 
@@ -58,7 +84,8 @@ class SpacesEnv(gym.Env):
 class BatchedLearner:
     """K runs of one off-policy algorithm: per-run seeds and random streams, replay ``[K, capacity, …]``.
 
-    :param observation_space: a flat float32 Box (the vector observation), the same for all runs.
+    :param observation_space: a flat float32 Box (the vector observation) or the set observation's Dict, the same
+        for all runs (:func:`observation_size`).
     :param seeds: run k's seed (its initial weights and random streams are the single run's with this seed).
     :param total_timesteps: the runs' SB3 ``learn`` length in steps (the progress the ε and β schedules read).
     :param device: where the networks and the replay live (CPU: batched run k equals the single run bit for bit).
@@ -68,9 +95,7 @@ class BatchedLearner:
                  batch_size: int, buffer_size: int, learning_starts: int, total_timesteps: int,
                  action_dim: int, action_dtype: th.dtype, device: str | th.device = "cpu",
                  exact: bool | None = None) -> None:
-        if not (isinstance(observation_space, spaces.Box) and len(observation_space.shape) == 1
-                and observation_space.dtype == np.float32):
-            raise ValueError("batched learners take a flat float32 Box observation (the vector observation)")
+        self.obs_dim = observation_size(observation_space)
         if not seeds:
             raise ValueError("a batch needs at least one run")
         self.observation_space, self.action_space = observation_space, action_space
@@ -80,7 +105,6 @@ class BatchedLearner:
         self.mm = Products(self.device.type == "cpu" if exact is None else exact)
         self.batch_size, self.buffer_size = int(batch_size), int(buffer_size)
         self.learning_starts, self.total_timesteps = int(learning_starts), int(total_timesteps)
-        self.obs_dim = int(observation_space.shape[0])
         self.streams = RunStreams(self.seeds, action_space)
         self.replay = BatchedReplay(self.runs, self.buffer_size, self.obs_dim, action_dim, action_dtype, self.device)
         self.num_timesteps = 0
@@ -94,9 +118,11 @@ class BatchedLearner:
 
     # -- the cycle ------------------------------------------------------------------------------------------
 
-    def _obs(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
-        """Observations ``[K, obs]`` (host arrays, or tensors where the env runs on a device) as the networks take
-        them: ``[K, 1, obs]`` float32 on the device."""
+    def _obs(self, obs: Any) -> th.Tensor:
+        """Observations ``[K, obs]`` (host arrays, or tensors where the env runs on a device; the set observation's
+        dicts flattened, :func:`flat_observations`) as the networks take them: ``[K, 1, obs]`` float32 on the
+        device."""
+        obs = flat_observations(obs)
         values = obs if isinstance(obs, th.Tensor) else th.as_tensor(np.asarray(obs))
         return values.float().reshape(self.runs, 1, self.obs_dim).to(self.device)
 
@@ -109,7 +135,8 @@ class BatchedLearner:
         done = np.asarray(done, dtype=bool).reshape(self.runs)
         timeouts = np.zeros(self.runs, dtype=bool) if truncated is None else np.asarray(truncated, dtype=bool)
         self.num_timesteps += 1
-        pos = self.replay.add(obs, next_obs, self._buffer_actions(action), np.asarray(reward), done, timeouts)
+        pos = self.replay.add(flat_observations(obs), flat_observations(next_obs), self._buffer_actions(action),
+                              np.asarray(reward), done, timeouts)
         self._stored(pos)
         self.progress_remaining = 1.0 - float(self.num_timesteps) / float(self.total_timesteps)
         self._on_step()

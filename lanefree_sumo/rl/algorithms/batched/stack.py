@@ -35,15 +35,17 @@ class ParamStack:
     """The parameters of K networks of one architecture in one buffer ``[K, P]`` (row k: run k's parameters
     in ``per_run[k]``'s order, flattened), with a view ``[K, *shape]`` per parameter tensor."""
 
-    def __init__(self, per_run: Sequence[Sequence[th.Tensor]], device: th.device) -> None:
+    def __init__(self, per_run: Sequence[Sequence[th.Tensor]], device: th.device, head_start: int = 0) -> None:
         shapes = [tuple(p.shape) for p in per_run[0]]
         if any([tuple(p.shape) for p in params] != shapes for params in per_run):
             raise ValueError("the networks of a batch must have one architecture")
         self.shapes = shapes
+        self.head_start = head_start
+        """The index of the first tensor of the MLP :meth:`layers` returns (the tensors before it: an encoder's)."""
         rows = [th.cat([p.detach().reshape(-1) for p in params]) for params in per_run]
         self.flat = th.stack(rows).to(device=device, dtype=th.float32).contiguous()
         self.tensors = self._views(self.flat)
-        self._layers = self._linear(self.tensors)
+        self._layers = self._linear(self.tensors[head_start:])
 
     def _views(self, flat: th.Tensor) -> list[th.Tensor]:
         views, at = [], 0
@@ -61,12 +63,16 @@ class ParamStack:
                 for i in range(0, len(tensors), 2)]
 
     def layers(self) -> list[Linear]:
-        """The tensors as linear layers (weight, bias, weight, bias, … in order). Compiled code takes new views of
-        the buffer (a compiled function must not see the buffer and its views as separate inputs: it would update
-        one and read the other's stale copy)."""
+        """The tensors from :attr:`head_start` on as linear layers (weight, bias, weight, bias, … in order).
+        Compiled code takes new views of the buffer (a compiled function must not see the buffer and its views as
+        separate inputs: it would update one and read the other's stale copy)."""
         if th.compiler.is_compiling():
-            return self._linear(self._views(self.flat))
+            return self._linear(self._views(self.flat)[self.head_start:])
         return self._layers
+
+    def views(self) -> list[th.Tensor]:
+        """Every tensor's view ``[K, *shape]`` (new views in compiled code, as :meth:`layers`)."""
+        return self._views(self.flat) if th.compiler.is_compiling() else self.tensors
 
     def row(self, k: int) -> list[th.Tensor]:
         """Run k's parameter tensors (views)."""
@@ -128,25 +134,29 @@ class Products:
                          lambda g, w: th.stack([g[k].mm(w[k]) for k in range(g.shape[0])]))
 
 
-def mlp_forward(mm: Products, layers: Sequence[Linear], x: th.Tensor, squash: bool) -> list[th.Tensor]:
-    """[input, output of each layer] of K MLPs (ReLU between layers, Tanh after the last iff ``squash``);
-    x ``[K, M, in]``."""
+def mlp_forward(mm: Products, layers: Sequence[Linear], x: th.Tensor, squash: bool,
+                relu_out: bool = False) -> list[th.Tensor]:
+    """[input, output of each layer] of K MLPs (ReLU between layers; after the last Tanh iff ``squash``, ReLU iff
+    ``relu_out``); x ``[K, M, in]``."""
     outs = [x]
     last = len(layers) - 1
     for k, layer in enumerate(layers):
         z = mm.linear(x, layer)
-        x = th.relu(z) if k < last else (th.tanh(z) if squash else z)
+        x = th.relu(z) if k < last or relu_out else (th.tanh(z) if squash else z)
         outs.append(x)
     return outs
 
 
 def mlp_backward(mm: Products, layers: Sequence[Linear], outs: Sequence[th.Tensor], grad: th.Tensor, squash: bool,
-                 weights: bool = True, to_input: bool = False) -> tuple[list[th.Tensor], th.Tensor | None]:
+                 weights: bool = True, to_input: bool = False,
+                 relu_out: bool = False) -> tuple[list[th.Tensor], th.Tensor | None]:
     """(gradients [W1, b1, W2, b2, …] ``[K, …]`` — empty unless ``weights``, the input's gradient — None unless
     ``to_input``) from the output's gradient ``grad``: :func:`~..lean.backward`'s kernels with a run axis
-    (the bias gradient sums over the batch axis 1)."""
+    (the bias gradient sums over the batch axis 1); ``squash``, ``relu_out``: as :func:`mlp_forward`'s."""
     if squash:
         grad = aten.tanh_backward(grad, outs[-1])
+    elif relu_out:
+        grad = aten.threshold_backward(grad, outs[-1], 0)
     grads: list[th.Tensor] = []
     for k in range(len(layers) - 1, -1, -1):
         if weights:

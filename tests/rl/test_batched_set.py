@@ -1,0 +1,162 @@
+"""Batched DDPG on the set observation (the written-out set encoder, :mod:`...batched.set_encoder`).
+
+The chain: run k of a batch equals the batch of that one run bit for bit (CPU); a batch of one run equals
+SB3's autograd update (``FastDDPG`` with ``SetFeaturesExtractor``, the sequential ``lanefree train --obs set``)
+to float tolerance — the dense encoder sums the rows in another order than the gathered one — after 20
+updates; the exported model loads in SB3 and acts as the batch does (to the same tolerance). Both encoders
+(``paper``, ``small``), with and without the pre-tanh penalty, runs with different seeds and penalties in one
+batch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import DDPG
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+
+from lanefree_sumo.rl.algorithms.batched import BatchedDDPG
+from lanefree_sumo.rl.algorithms.batched.learner import SpacesEnv
+from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
+from lanefree_sumo.rl.encoder import SetFeaturesExtractor
+
+EGO, ROWS, WIDTH, ACT, BATCH, UPDATES = 4, 6, 5, 2, 16, 20
+SEEDS = (0, 1, 2)
+PENALTIES = (0.0, 0.01, 0.05)
+LAYERS = (64, 32)
+SPACE = spaces.Dict({"ego": spaces.Box(-np.inf, np.inf, (EGO,), np.float32),
+                     "others": spaces.Box(-np.inf, np.inf, (ROWS, WIDTH), np.float32)})
+ACTIONS = spaces.Box(-1.0, 1.0, (ACT,), np.float32)
+TOLERANCE = 1e-5
+"""The largest |difference| allowed between a batched and an SB3 parameter after the updates (measured:
+1.2e-7–1.2e-6)."""
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _observations(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """K set observations: each row present with probability 0.6 (padding rows zero, presence last)."""
+    present = (rng.uniform(size=(len(SEEDS), ROWS)) < 0.6).astype(np.float32)
+    table = rng.normal(size=(len(SEEDS), ROWS, WIDTH)).astype(np.float32) * present[..., None]
+    table[..., -1] = present
+    return {"ego": rng.normal(size=(len(SEEDS), EGO)).astype(np.float32), "others": table}
+
+
+def _transitions(n: int = 300) -> list[tuple[Any, ...]]:
+    rng = np.random.default_rng(7)
+    out = []
+    for t in range(n):
+        obs, next_obs = _observations(rng), _observations(rng)
+        done = np.full(len(SEEDS), t % 40 == 39)
+        out.append((obs, rng.uniform(-1, 1, (len(SEEDS), ACT)).astype(np.float32),
+                    rng.normal(size=len(SEEDS)).astype(np.float32), next_obs, done, done & (t % 80 == 79)))
+    return out
+
+
+def _run(values: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
+    return {key: v[k:k + 1] for key, v in values.items()}
+
+
+def _batched(encoder: str, seeds: tuple[int, ...], penalties: tuple[float, ...]) -> BatchedDDPG:
+    return BatchedDDPG(SPACE, ACTIONS, seeds, learning_rate=1e-3, batch_size=BATCH, buffer_size=1000,
+                       learning_starts=50, encoder=encoder, pre_tanh_penalty=penalties, actor_layers=LAYERS,
+                       critic_layers=LAYERS)
+
+
+def _trained(encoder: str, runs: list[int], transitions: list[tuple[Any, ...]]) -> BatchedDDPG:
+    """A batch of runs ``runs`` (indices into SEEDS) after every transition and UPDATES updates."""
+    batched = _batched(encoder, tuple(SEEDS[k] for k in runs), tuple(PENALTIES[k] for k in runs))
+    for obs, action, reward, next_obs, done, truncated in transitions:
+        batched.store({key: v[runs] for key, v in obs.items()}, action[runs], reward[runs],
+                      {key: v[runs] for key, v in next_obs.items()}, done[runs], truncated[runs])
+    for _ in range(UPDATES):
+        assert batched.update()
+    return batched
+
+
+def _single(encoder: str, k: int) -> FastDDPG:
+    return FastDDPG("MultiInputPolicy", SpacesEnv(SPACE, ACTIONS), learning_rate=1e-3, buffer_size=1000,
+                    batch_size=BATCH, gamma=0.98, tau=0.001, learning_starts=50, train_freq=1, gradient_steps=1,
+                    seed=SEEDS[k], device="cpu", pre_tanh_penalty=PENALTIES[k],
+                    action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
+                    policy_kwargs={"net_arch": {"pi": list(LAYERS), "qf": list(LAYERS)},
+                                   "activation_fn": th.nn.ReLU, "features_extractor_class": SetFeaturesExtractor,
+                                   "features_extractor_kwargs": {"encoder": encoder}})
+
+
+NETS = ("actor", "critic", "actor_target", "critic_target")
+
+
+@pytest.mark.parametrize("encoder", ["paper", "small"])
+def test_initial_weights_are_sb3s(encoder: str) -> None:
+    batched = _batched(encoder, SEEDS, PENALTIES)
+    for k in range(len(SEEDS)):
+        single = _single(encoder, k)
+        params = [p.detach() for net in NETS for p in getattr(single, net).parameters()]
+        mine = [t for net in NETS for t in getattr(batched, net).row(k)]
+        assert len(params) == len(mine) > 24 and all(th.equal(p, q) for p, q in zip(params, mine))
+
+
+@pytest.mark.parametrize("encoder", ["paper", "small"])
+def test_a_batch_equals_its_runs_batched_alone_bit_for_bit(encoder: str) -> None:
+    transitions = _transitions()
+    batch = _trained(encoder, [0, 1, 2], transitions)
+    for k in range(len(SEEDS)):
+        alone = _trained(encoder, [k], transitions)
+        for net in NETS:
+            assert th.equal(getattr(batch, net).flat[k], getattr(alone, net).flat[0]), (encoder, k, net)
+        assert th.equal(batch.actor_adam.exp_avg_sq[k], alone.actor_adam.exp_avg_sq[0])
+        assert th.equal(batch.losses["actor_loss"][k], alone.losses["actor_loss"][0])
+
+
+@pytest.mark.parametrize("encoder", ["paper", "small"])
+def test_updates_equal_sb3s_autograd_update_to_float_tolerance(encoder: str) -> None:
+    transitions = _transitions()
+    batched = _trained(encoder, [0, 1, 2], transitions)
+    for k in range(len(SEEDS)):
+        single = _single(encoder, k)
+        for obs, action, reward, next_obs, done, truncated in transitions:
+            single.replay_buffer.add(_run(obs, k), _run(next_obs, k), single.policy.scale_action(action[k:k + 1]),
+                                     reward[k:k + 1], done[k:k + 1], [{"TimeLimit.truncated": bool(truncated[k])}])
+        single.set_logger(configure(None, [""]))
+        np.random.seed(SEEDS[k])  # the single run's global stream, as SB3 seeded it
+        for _ in range(UPDATES):
+            single.train(gradient_steps=1, batch_size=BATCH)
+        exported = batched.sb3_model(k)
+        moved = 0.0
+        for net in NETS:
+            for p, q, start in zip(getattr(single, net).parameters(), getattr(exported, net).parameters(),
+                                   getattr(_batched(encoder, SEEDS, PENALTIES), net).row(k)):
+                assert (p - q).abs().max().item() < TOLERANCE, (encoder, k, net)
+                moved = max(moved, (p - start).abs().max().item())
+        assert moved > 100 * TOLERANCE  # the updates moved the weights far more than the tolerance
+        for name in ("critic_loss", "actor_loss"):
+            assert float(batched.losses[name][k]) == pytest.approx(single.logger.name_to_value[f"train/{name}"],
+                                                                   rel=1e-5, abs=1e-6)
+
+
+def test_the_export_loads_in_sb3_and_acts_as_the_batch(tmp_path: Path) -> None:
+    batched = _trained("paper", [0, 1, 2], _transitions(120))
+    obs = _observations(np.random.default_rng(3))
+    deterministic = batched.act(obs, explore=False)
+    for k in range(len(SEEDS)):
+        batched.export(k, tmp_path / f"run{k}.zip")
+        model = DDPG.load(tmp_path / f"run{k}.zip", device="cpu")
+        action, _ = model.predict({key: v[k] for key, v in obs.items()}, deterministic=True)
+        assert np.allclose(action, deterministic[k], atol=1e-6)
+        assert model.pre_tanh_penalty == PENALTIES[k] and model.num_timesteps == 120
+
+
+def test_the_vector_learners_refuse_the_set_observation() -> None:
+    from lanefree_sumo.rl.algorithms.batched import BatchedDQN
+
+    with pytest.raises(ValueError, match="takes an encoder"):
+        BatchedDDPG(SPACE, ACTIONS, SEEDS)
+    with pytest.raises(ValueError, match="vector observation"):
+        BatchedDQN("dqn", SPACE, spaces.Discrete(9), SEEDS)
