@@ -41,8 +41,13 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _observations(rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """K set observations: each row present with probability 0.6 (padding rows zero, presence last)."""
-    present = (rng.uniform(size=(len(SEEDS), ROWS)) < 0.6).astype(np.float32)
+    """K set observations (padding rows zero, presence last): runs 0 and 1 see the first 0–2 and 0–3 rows (as
+    the environment lists the vehicles, nearest first; a batch then cuts its table after more rows than either
+    run alone), run 2 each row with probability 0.6, in any order."""
+    present = np.zeros((len(SEEDS), ROWS), dtype=np.float32)
+    for k, most in ((0, 2), (1, 3)):
+        present[k, :rng.integers(0, most + 1)] = 1.0
+    present[2] = rng.uniform(size=ROWS) < 0.6
     table = rng.normal(size=(len(SEEDS), ROWS, WIDTH)).astype(np.float32) * present[..., None]
     table[..., -1] = present
     return {"ego": rng.normal(size=(len(SEEDS), EGO)).astype(np.float32), "others": table}
@@ -160,3 +165,24 @@ def test_the_vector_learners_refuse_the_set_observation() -> None:
         BatchedDDPG(SPACE, ACTIONS, SEEDS)
     with pytest.raises(ValueError, match="vector observation"):
         BatchedDQN("dqn", SPACE, spaces.Discrete(9), SEEDS)
+
+
+def test_the_devices_dense_encoder_equals_the_cpus_run_by_run_encoder() -> None:
+    """The pass a GPU takes (every row of every run at once, no cut) against the CPU's (run by run, each table
+    cut after its last present row), forward and backward, to float tolerance."""
+    from lanefree_sumo.rl.algorithms.batched.set_encoder import _encode, _encode_backward, encode, encode_backward
+
+    batched = _batched("paper", SEEDS, PENALTIES)
+    obs = th.as_tensor(np.stack([np.concatenate([o["ego"], o["others"].reshape(len(SEEDS), -1)], axis=1)
+                                 for o in (_observations(np.random.default_rng(i)) for i in range(BATCH))], axis=1))
+    layout, tensors = batched.layout, batched.actor.views()[:batched.layout.tensors]  # type: ignore[union-attr]
+    assert layout is not None
+    features, saved = encode(batched.mm, layout, tensors, obs)
+    dense, dense_saved = _encode(batched.mm, layout, tensors, obs, cut=False)
+    assert len(saved) == len(SEEDS) and saved[0].mask.shape[2] <= 3 < dense_saved.mask.shape[2] == ROWS
+    assert th.allclose(features, dense, atol=1e-6)
+    grad = th.as_tensor(np.random.default_rng(5).normal(size=features.shape).astype(np.float32))
+    for mine, theirs in zip(encode_backward(batched.mm, layout, tensors, saved, grad),
+                            _encode_backward(batched.mm, layout, tensors, dense_saved, grad)):
+        assert mine.shape == theirs.shape and th.allclose(mine, theirs, atol=1e-5)
+    assert features.shape == (len(SEEDS), BATCH, batched.features_dim)

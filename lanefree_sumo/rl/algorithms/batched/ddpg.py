@@ -143,7 +143,7 @@ class BatchedDDPG(BatchedLearner):
     # -- acting -----------------------------------------------------------------------------------------------
 
     def _forward(self, net: ParamStack, obs: th.Tensor, actions: th.Tensor | None,
-                 squash: bool) -> tuple[Encoded | None, list[th.Tensor]]:
+                 squash: bool) -> tuple[list[Encoded] | None, list[th.Tensor]]:
         """(the encoder's saved values — None for the vector observation —, the MLP head's [input, outputs]) of
         network ``net`` on observations ``[K, M, obs]`` (and, for a critic, ``actions`` ``[K, M, A]``)."""
         saved = None
@@ -154,7 +154,7 @@ class BatchedDDPG(BatchedLearner):
             features = th.cat([features, actions], dim=2)
         return saved, mlp_forward(self.mm, net.layers(), features, squash)
 
-    def _backward(self, net: ParamStack, saved: Encoded | None, outs: list[th.Tensor], grad: th.Tensor,
+    def _backward(self, net: ParamStack, saved: list[Encoded] | None, outs: list[th.Tensor], grad: th.Tensor,
                   squash: bool) -> list[th.Tensor]:
         """The gradients of ``net``'s tensors (its encoder's, then its head's) from its output's gradient."""
         grads, grad_input = mlp_backward(self.mm, net.layers(), outs, grad, squash, to_input=saved is not None)

@@ -9,7 +9,9 @@ batched replay stores it.
 Dense, not gathered: :meth:`~lanefree_sumo.rl.encoder.SetEncoder.pooled` encodes only the present rows (a
 gather whose size depends on the data); here every row of the padded table goes through f1 and f2 (one
 batched product per layer over ``[K, M·rows, width]``, a fixed shape a CUDA graph can hold) and the padding rows
-are masked to contribute nothing. The result is the same function; its float rounding is not the single
+are masked to contribute nothing. On the CPU the encoder runs run by run instead, each run's table cut after
+its last row present in the minibatch (:func:`encode`), so its cost follows the vehicles seen, as the single
+run's does. The result is the same function; its float rounding is not the single
 run's (other summation order), so a batched set-observation run agrees with its sequential run to float
 tolerance, not bit for bit (``tests/rl/test_batched_set.py``). Batched run k still equals the batch of one run
 of its seed bit for bit on CPU: every product goes through :class:`~.stack.Products`, every reduction is over
@@ -118,25 +120,44 @@ class Encoded:
 
 
 def encode(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor],
-           obs: th.Tensor) -> tuple[th.Tensor, Encoded]:
+           obs: th.Tensor) -> tuple[th.Tensor, list[Encoded]]:
     """(the features ``[K, M, ego + out]`` — the ego passthrough, then the encoder's output, as
     ``SetFeaturesExtractor`` concatenates them —, what the backward pass needs) of flattened observations
-    ``obs`` ``[K, M, obs_dim]``; ``tensors``: the encoder's ``[K, …]`` views, in module order."""
+    ``obs`` ``[K, M, obs_dim]``; ``tensors``: the encoder's ``[K, …]`` views, in module order.
+
+    On the CPU run by run, each run's table cut after its last row present in any of its sets (the observation
+    lists the vehicles nearest first, so the present rows lead): the products' lengths are then the run's own,
+    as in the batch of that run alone. On another device all runs at once over every row (fixed shapes)."""
+    if obs.device.type != "cpu":
+        features, saved = _encode(mm, layout, tensors, obs, cut=False)
+        return features, [saved]
+    parts = [_encode(mm, layout, [t[k:k + 1] for t in tensors], obs[k:k + 1], cut=True)
+             for k in range(obs.shape[0])]
+    return th.cat([f for f, _ in parts]), [saved for _, saved in parts]
+
+
+def _encode(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor], obs: th.Tensor,
+            cut: bool) -> tuple[th.Tensor, Encoded]:
+    """:func:`encode` of the runs of ``obs`` together; ``cut``: drop the rows empty in every set first."""
     k, m = obs.shape[0], obs.shape[1]
     ego = obs[..., :layout.ego]
     table = obs[..., layout.ego:].reshape(k, m, layout.rows, layout.width)
     mask = (table[..., -1] > layout.threshold).to(obs.dtype)
+    if cut:
+        used = mask.amax(dim=(0, 1)).nonzero()
+        rows_used = int(used[-1, 0]) + 1 if used.numel() else 1
+        table, mask = table[:, :, :rows_used], mask[:, :, :rows_used]
     rows = th.where(mask.unsqueeze(-1) > 0, table[..., :-1], th.zeros_like(table[..., :-1]))
     if layout.presence_input:
         rows = th.cat([rows, mask.unsqueeze(-1)], dim=-1)
-    flat = rows.reshape(k, m * layout.rows, rows.shape[-1])
+    flat = rows.reshape(k, m * mask.shape[2], rows.shape[-1])
     n = 2 * layout.layers
     f1 = [_linear(tensors[i], tensors[i + 1]) for i in range(0, n, 2)]
     f2 = [_linear(tensors[i], tensors[i + 1]) for i in range(n, 2 * n, 2)]
     outs1 = mlp_forward(mm, f1, flat, False, relu_out=layout.out_relu)
     outs2 = mlp_forward(mm, f2, flat, False, relu_out=layout.out_relu)
-    y1 = outs1[-1].reshape(k, m, layout.rows, layout.d1) * mask.unsqueeze(-1)
-    y2 = outs2[-1].reshape(k, m, layout.rows, layout.d2)
+    y1 = outs1[-1].reshape(k, m, mask.shape[2], layout.d1) * mask.unsqueeze(-1)
+    y2 = outs2[-1].reshape(k, m, mask.shape[2], layout.d2)
     if layout.pool_over == "rows":
         weighted = y1
         per_row = (y1.unsqueeze(-1) * y2.unsqueeze(-2)).flatten(start_dim=-2)
@@ -166,10 +187,20 @@ def encode(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor],
     return features, Encoded(mask, count, outs1, outs2, weighted, y2, pooled, normed, stats, scale, out, feature_out)
 
 
-def encode_backward(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor], saved: Encoded,
+def encode_backward(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor], saved: list[Encoded],
                     grad: th.Tensor) -> list[th.Tensor]:
     """The gradients of the encoder's tensors ``[K, …]`` (module order) from the gradient ``grad`` of the
-    features :func:`encode` returned."""
+    features :func:`encode` returned (run by run where it encoded so)."""
+    if grad.device.type != "cpu":
+        return _encode_backward(mm, layout, tensors, saved[0], grad)
+    parts = [_encode_backward(mm, layout, [t[k:k + 1] for t in tensors], one, grad[k:k + 1])
+             for k, one in enumerate(saved)]
+    return [th.cat(grads) for grads in zip(*parts)]
+
+
+def _encode_backward(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor], saved: Encoded,
+                     grad: th.Tensor) -> list[th.Tensor]:
+    """:func:`encode_backward` of the runs of ``grad`` together."""
     g = grad[..., layout.ego:]
     at = 4 * layout.layers + (2 if layout.norm == "layernorm" else 0)
     tail: list[th.Tensor] = []
@@ -198,7 +229,7 @@ def encode_backward(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor
         g_y2 = g_row * saved.weighted
         g_y1 = ((g_row * saved.y2).sum(-1, keepdim=True) / layout.d1).expand(*saved.y2.shape[:-1], layout.d1)
     g_y1 = g_y1 * saved.mask.unsqueeze(-1)
-    k, rows = g_y1.shape[0], g_y1.shape[1] * layout.rows
+    k, rows = g_y1.shape[0], g_y1.shape[1] * g_y1.shape[2]
     n = 2 * layout.layers
     f1 = [_linear(tensors[i], tensors[i + 1]) for i in range(0, n, 2)]
     f2 = [_linear(tensors[i], tensors[i + 1]) for i in range(n, 2 * n, 2)]
