@@ -234,7 +234,7 @@ def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
         (["--seeds", "0-1", "--scenario", "onramp"], "does not support the onramp road"),
         (["--seeds", "0-1", "--agents", "2"], "does not support several agents"),
         (["--seeds", "0-1", "--algo", "dqn", "--obs", "set"], "the set observation (--obs set) with dqn"),
-        (["--seeds", "0-1", "--algo", "ppo"], "batched training covers ddpg, dqn, ddqn, dueling, per, not ppo"),
+        (["--seeds", "0-1", "--algo", "ppo"], "batched training covers ddpg, td3, dqn, ddqn, dueling, per, not ppo"),
     ],
 )
 def test_bad_batch_options_are_one_line_and_write_nothing(tmp_path, args, needle):

@@ -51,14 +51,14 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
     """ConfigError (one line) for a run the batched path cannot train."""
     from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
 
-    algorithms = ("ddpg", *FAMILY)
+    algorithms = ("ddpg", "td3", *FAMILY)
     if cfg.train.algo not in algorithms:
         raise ConfigError(f"batched training covers {', '.join(algorithms)}, not {cfg.train.algo}; "
                           "train it with --seed (one run)")
     for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
                         (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
-                        (cfg.observation.kind != "vector" and cfg.train.algo != "ddpg",
+                        (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
                         (cfg.train.envs != 1, "several environments (--envs)"),
                         (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),

@@ -48,6 +48,8 @@ def lockstep_refusal(env: Any, learner: Any) -> str | None:
         return "episode.terminate_on_collision ends episodes at different steps"
     if getattr(learner, "layout", None) is not None:
         return "the set observation (--obs set) is trained in the exact loop"
+    if getattr(learner, "algo", None) == "td3":
+        return "TD3 draws its target noise on the host: it is trained in the exact loop"
     return None
 
 

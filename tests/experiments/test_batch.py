@@ -39,7 +39,7 @@ def rows(path: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)]
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn", "ddqn", "dueling", "per"])
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "dqn", "ddqn", "dueling", "per"])
 def test_batched_runs_equal_sequential_runs(tmp_path: Path, algo: str) -> None:
     """Run k of a batch (seeds 0 and 1, run 1 at another density) writes the sequential run's episodes.csv."""
     cfgs = [small(algo, 0), small(algo, 1, density=120.0)]

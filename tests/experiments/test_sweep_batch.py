@@ -63,7 +63,7 @@ def test_runs_that_differ_only_where_a_batch_may_are_packed_together(tmp_path):
     assert [b for b in packing.batches if any("_cap25_" in n for n in b.runs) and
             any("_cap25_" not in n for n in b.runs)]  # and the top speed
     assert {c.name.split("_")[0] for c in packing.sequential} == {"ppo"} and len(packing.sequential) == 32
-    assert list(packing.reasons) == ["batched training covers ddpg, dqn, ddqn, dueling, per, not ppo"]
+    assert list(packing.reasons) == ["batched training covers ddpg, td3, dqn, ddqn, dueling, per, not ppo"]
     assert "64 run(s) in 8 batch(es) of at most 8" in packing.describe()
     assert sorted([n for b in packing.batches for n in b.runs] + [c.name for c in packing.sequential]) == \
         sorted(c.name for c in cells)  # every run once

@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3 import DDPG, DQN
+from stable_baselines3 import DDPG, DQN, TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError
-from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN
+from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN, BatchedTD3
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner
 from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
 from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
@@ -137,15 +137,15 @@ def _transitions(discrete: bool, n: int = 1000) -> list[tuple[np.ndarray, ...]]:
 def _fill(single: Any, k: int, transitions: list[tuple[np.ndarray, ...]]) -> None:
     """The transitions of run k into the single run's buffer as SB3 stores them (DDPG: the action scaled)."""
     for obs, action, reward, next_obs, done, truncated in transitions:
-        stored = single.policy.scale_action(action[k:k + 1]) if isinstance(single, DDPG) else action[k:k + 1]
+        stored = single.policy.scale_action(action[k:k + 1]) if isinstance(single, TD3) else action[k:k + 1]
         single.replay_buffer.add(obs[k:k + 1], next_obs[k:k + 1], stored.reshape(1, -1), reward[k:k + 1],
                                  done[k:k + 1], [{"TimeLimit.truncated": bool(truncated[k])}])
     single.set_logger(configure(None, [""]))
 
 
 def _tensors(model: Any) -> list[th.Tensor]:
-    """Every parameter, target parameter and Adam state tensor of an SB3 DDPG or DQN model."""
-    if isinstance(model, DDPG):
+    """Every parameter, target parameter and Adam state tensor of an SB3 DDPG, TD3 or DQN model."""
+    if isinstance(model, TD3):  # DDPG is SB3's TD3 with one critic
         nets, optimizers = (model.actor, model.critic, model.actor_target, model.critic_target), (
             model.actor.optimizer, model.critic.optimizer)
     else:
@@ -283,6 +283,59 @@ def test_ddpg_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
     _checkpoint_roundtrip(lambda: _batched_ddpg(learning_starts=50, total=200), False, tmp_path / "batch.pt")
 
 
+# -- TD3 ------------------------------------------------------------------------------------------------
+
+def _td3(k: int) -> TD3:
+    lr, gamma, tau = (values[k] for values in HYPER["per-run"])
+    return TD3("MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH, gamma=gamma,
+               tau=tau, learning_starts=100, train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
+               action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
+               policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU})
+
+
+def _batched_td3(total: int = 1, learning_starts: int = 100) -> BatchedTD3:
+    env = ToyEnv(False)
+    lr, gamma, tau = HYPER["per-run"]
+    return BatchedTD3(env.observation_space, env.action_space, SEEDS, learning_rate=lr, gamma=gamma, tau=tau,
+                      batch_size=BATCH, buffer_size=5000, learning_starts=learning_starts, total_timesteps=total)
+
+
+def test_td3_updates_equal_sb3s_bit_for_bit() -> None:
+    """Twin critics, the clipped target noise from each run's torch stream, the actor and targets every second
+    update: against ``stable_baselines3.TD3``'s autograd update."""
+    transitions = _transitions(False)
+    batched = _batched_td3()
+    for obs, action, reward, next_obs, done, truncated in transitions:
+        batched.store(obs, action, reward, next_obs, done, truncated)
+    for _ in range(UPDATES + 1):  # an odd count: the last update leaves the actor alone
+        assert batched.update()
+    for k in range(len(SEEDS)):
+        single = _td3(k)
+        _fill(single, k, transitions)
+        np.random.seed(SEEDS[k])
+        for _ in range(UPDATES + 1):
+            single.train(gradient_steps=1, batch_size=BATCH)
+        _assert_same(single, batched, k)
+        assert th.equal(th.random.get_rng_state(), batched.generators[k].get_state())
+        assert float(batched.losses["critic_loss"][k]) == single.logger.name_to_value["train/critic_loss"]
+        assert float(batched.losses["actor_loss"][k]) == single.logger.name_to_value["train/actor_loss"]
+    assert batched.actor_adam.steps == UPDATES // 2 and batched.critic_adam.steps == UPDATES + 1
+
+
+def test_td3_act_store_update_equals_sb3s_learn() -> None:
+    steps = 230
+    batched = _batched_td3(total=steps)
+    _drive(batched, False, steps)
+    for k in range(len(SEEDS)):
+        single = _td3(k)
+        single.learn(total_timesteps=steps)
+        _assert_same(single, batched, k)
+
+
+def test_td3_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
+    _checkpoint_roundtrip(lambda: _batched_td3(total=200, learning_starts=50), False, tmp_path / "batch.pt")
+
+
 # -- the DQN family ---------------------------------------------------------------------------------------
 
 def _per_trees(single: Any, batched: BatchedDQN, k: int) -> None:
@@ -362,18 +415,20 @@ def test_dqn_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
 
 # -- from the runs' configs -------------------------------------------------------------------------------
 
-@pytest.mark.parametrize(("algo", "profile"), [("ddpg", "sb3"), ("ddpg", "kerasrl"), ("dqn", "kerasrl"),
-                                               ("per", "sb3")])
+@pytest.mark.parametrize(("algo", "profile"), [("ddpg", "sb3"), ("ddpg", "kerasrl"), ("td3", "sb3"),
+                                               ("dqn", "kerasrl"), ("per", "sb3")])
 def test_build_batched_gives_each_run_build_models_model(algo: str, profile: str) -> None:
     """Run k of ``build_batched`` is ``build_model``'s model for config k and seed k: the same class,
     hyperparameters and initial weights (run 1 with another learning rate and γ), for both learner profiles."""
-    section = "actor_critic" if algo == "ddpg" else "dqn"
+    actor_critic = algo in ("ddpg", "td3")
+    section = "actor_critic" if actor_critic else "dqn"
     cfgs = [merge_config(LaneFreeConfig(), {"train": {"algo": algo, "profile": profile, "episodes": 50, section: {
         "learning_rate": lr, "gamma": gamma}}}) for lr, gamma in ((1e-3, 0.98), (3e-4, 0.95))]
-    env = ToyEnv(algo != "ddpg")
+    env = ToyEnv(not actor_critic)
     batched = build_batched(cfgs, [5, 6], env.observation_space, env.action_space)
     keys = ["learning_rate", "gamma", "buffer_size", "batch_size", "learning_starts", "seed"] + (
-        ["tau", "warmup_actions"] if algo == "ddpg" else [
+        ["tau", "warmup_actions"] if algo == "ddpg" else
+        ["tau", "policy_delay", "target_policy_noise", "target_noise_clip"] if algo == "td3" else [
             "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "exploration_fraction",
             "max_grad_norm", "loss"])
     for k, seed in enumerate((5, 6)):
@@ -382,7 +437,7 @@ def test_build_batched_gives_each_run_build_models_model(algo: str, profile: str
         assert {key: getattr(mine, key) for key in keys} == {key: getattr(theirs, key) for key in keys}
         a, b = (th.cat([p.detach().reshape(-1) for p in m.policy.parameters()]) for m in (mine, theirs))
         assert th.equal(a, b)
-        if algo == "ddpg":
+        if actor_critic:
             noises = (mine.action_noise, theirs.action_noise)
             assert all(np.array_equal(getattr(noises[0], n), getattr(noises[1], n)) for n in ("_sigma", "_theta"))
     assert batched.learning_rate == [1e-3, 3e-4]
@@ -397,8 +452,8 @@ def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:
     wider = merge_config(base, {"train": {"actor_critic": {"actor_layers": [400, 300]}}})
     with pytest.raises(ConfigError, match="share train.actor_critic.actor_layers"):
         build_batched([base, wider], [0, 1], env.observation_space, env.action_space)
-    with pytest.raises(ConfigError, match="not td3"):
-        build_batched([merge_config(base, {"train": {"algo": "td3"}})], [0], env.observation_space, env.action_space)
+    with pytest.raises(ConfigError, match="not sac"):
+        build_batched([merge_config(base, {"train": {"algo": "sac"}})], [0], env.observation_space, env.action_space)
     with pytest.raises(ConfigError, match="one seed per run"):
         build_batched([base, base], [0], env.observation_space, env.action_space)
 

@@ -1,11 +1,11 @@
-"""Batched DDPG on the set observation (the written-out set encoder, :mod:`...batched.set_encoder`).
+"""Batched DDPG and TD3 on the set observation (the written-out set encoder, :mod:`...batched.set_encoder`).
 
 The chain: run k of a batch equals the batch of that one run bit for bit (CPU); a batch of one run equals
 SB3's autograd update (``FastDDPG`` with ``SetFeaturesExtractor``, the sequential ``lanefree train --obs set``)
 to float tolerance — the dense encoder sums the rows in another order than the gathered one — after 20
 updates; the exported model loads in SB3 and acts as the batch does (to the same tolerance). Both encoders
 (``paper``, ``small``), with and without the pre-tanh penalty, runs with different seeds and penalties in one
-batch.
+batch; TD3 (twin critics on one encoder) with the paper encoder.
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3 import DDPG
+from stable_baselines3 import DDPG, TD3
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
-from lanefree_sumo.rl.algorithms.batched import BatchedDDPG
+from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedTD3
 from lanefree_sumo.rl.algorithms.batched.learner import SpacesEnv
 from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
 from lanefree_sumo.rl.encoder import SetFeaturesExtractor
@@ -68,15 +68,16 @@ def _run(values: dict[str, np.ndarray], k: int) -> dict[str, np.ndarray]:
     return {key: v[k:k + 1] for key, v in values.items()}
 
 
-def _batched(encoder: str, seeds: tuple[int, ...], penalties: tuple[float, ...]) -> BatchedDDPG:
-    return BatchedDDPG(SPACE, ACTIONS, seeds, learning_rate=1e-3, batch_size=BATCH, buffer_size=1000,
-                       learning_starts=50, encoder=encoder, pre_tanh_penalty=penalties, actor_layers=LAYERS,
-                       critic_layers=LAYERS)
+def _batched(encoder: str, seeds: tuple[int, ...], penalties: tuple[float, ...], algo: str = "ddpg") -> BatchedDDPG:
+    extra: dict[str, Any] = {"pre_tanh_penalty": penalties} if algo == "ddpg" else {}
+    return (BatchedDDPG if algo == "ddpg" else BatchedTD3)(
+        SPACE, ACTIONS, seeds, learning_rate=1e-3, batch_size=BATCH, buffer_size=1000, learning_starts=50,
+        encoder=encoder, actor_layers=LAYERS, critic_layers=LAYERS, **extra)
 
 
-def _trained(encoder: str, runs: list[int], transitions: list[tuple[Any, ...]]) -> BatchedDDPG:
+def _trained(encoder: str, runs: list[int], transitions: list[tuple[Any, ...]], algo: str = "ddpg") -> BatchedDDPG:
     """A batch of runs ``runs`` (indices into SEEDS) after every transition and UPDATES updates."""
-    batched = _batched(encoder, tuple(SEEDS[k] for k in runs), tuple(PENALTIES[k] for k in runs))
+    batched = _batched(encoder, tuple(SEEDS[k] for k in runs), tuple(PENALTIES[k] for k in runs), algo)
     for obs, action, reward, next_obs, done, truncated in transitions:
         batched.store({key: v[runs] for key, v in obs.items()}, action[runs], reward[runs],
                       {key: v[runs] for key, v in next_obs.items()}, done[runs], truncated[runs])
@@ -85,47 +86,52 @@ def _trained(encoder: str, runs: list[int], transitions: list[tuple[Any, ...]]) 
     return batched
 
 
-def _single(encoder: str, k: int) -> FastDDPG:
-    return FastDDPG("MultiInputPolicy", SpacesEnv(SPACE, ACTIONS), learning_rate=1e-3, buffer_size=1000,
-                    batch_size=BATCH, gamma=0.98, tau=0.001, learning_starts=50, train_freq=1, gradient_steps=1,
-                    seed=SEEDS[k], device="cpu", pre_tanh_penalty=PENALTIES[k],
-                    action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
-                    policy_kwargs={"net_arch": {"pi": list(LAYERS), "qf": list(LAYERS)},
-                                   "activation_fn": th.nn.ReLU, "features_extractor_class": SetFeaturesExtractor,
-                                   "features_extractor_kwargs": {"encoder": encoder}})
+def _single(encoder: str, k: int, algo: str = "ddpg") -> TD3:
+    extra: dict[str, Any] = {"pre_tanh_penalty": PENALTIES[k]} if algo == "ddpg" else {}
+    return (FastDDPG if algo == "ddpg" else TD3)(
+        "MultiInputPolicy", SpacesEnv(SPACE, ACTIONS), learning_rate=1e-3, buffer_size=1000, batch_size=BATCH,
+        gamma=0.98, tau=0.001, learning_starts=50, train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
+        action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
+        policy_kwargs={"net_arch": {"pi": list(LAYERS), "qf": list(LAYERS)}, "activation_fn": th.nn.ReLU,
+                       "features_extractor_class": SetFeaturesExtractor,
+                       "features_extractor_kwargs": {"encoder": encoder}}, **extra)
 
 
 NETS = ("actor", "critic", "actor_target", "critic_target")
 
 
-@pytest.mark.parametrize("encoder", ["paper", "small"])
-def test_initial_weights_are_sb3s(encoder: str) -> None:
-    batched = _batched(encoder, SEEDS, PENALTIES)
+CASES = [("paper", "ddpg"), ("small", "ddpg"), ("paper", "td3")]
+"""(encoder, algorithm) of the comparisons."""
+
+
+@pytest.mark.parametrize(("encoder", "algo"), CASES)
+def test_initial_weights_are_sb3s(encoder: str, algo: str) -> None:
+    batched = _batched(encoder, SEEDS, PENALTIES, algo)
     for k in range(len(SEEDS)):
-        single = _single(encoder, k)
+        single = _single(encoder, k, algo)
         params = [p.detach() for net in NETS for p in getattr(single, net).parameters()]
         mine = [t for net in NETS for t in getattr(batched, net).row(k)]
         assert len(params) == len(mine) > 24 and all(th.equal(p, q) for p, q in zip(params, mine))
 
 
-@pytest.mark.parametrize("encoder", ["paper", "small"])
-def test_a_batch_equals_its_runs_batched_alone_bit_for_bit(encoder: str) -> None:
+@pytest.mark.parametrize(("encoder", "algo"), CASES)
+def test_a_batch_equals_its_runs_batched_alone_bit_for_bit(encoder: str, algo: str) -> None:
     transitions = _transitions()
-    batch = _trained(encoder, [0, 1, 2], transitions)
+    batch = _trained(encoder, [0, 1, 2], transitions, algo)
     for k in range(len(SEEDS)):
-        alone = _trained(encoder, [k], transitions)
+        alone = _trained(encoder, [k], transitions, algo)
         for net in NETS:
             assert th.equal(getattr(batch, net).flat[k], getattr(alone, net).flat[0]), (encoder, k, net)
         assert th.equal(batch.actor_adam.exp_avg_sq[k], alone.actor_adam.exp_avg_sq[0])
         assert th.equal(batch.losses["actor_loss"][k], alone.losses["actor_loss"][0])
 
 
-@pytest.mark.parametrize("encoder", ["paper", "small"])
-def test_updates_equal_sb3s_autograd_update_to_float_tolerance(encoder: str) -> None:
+@pytest.mark.parametrize(("encoder", "algo"), CASES)
+def test_updates_equal_sb3s_autograd_update_to_float_tolerance(encoder: str, algo: str) -> None:
     transitions = _transitions()
-    batched = _trained(encoder, [0, 1, 2], transitions)
+    batched = _trained(encoder, [0, 1, 2], transitions, algo)
     for k in range(len(SEEDS)):
-        single = _single(encoder, k)
+        single = _single(encoder, k, algo)
         for obs, action, reward, next_obs, done, truncated in transitions:
             single.replay_buffer.add(_run(obs, k), _run(next_obs, k), single.policy.scale_action(action[k:k + 1]),
                                      reward[k:k + 1], done[k:k + 1], [{"TimeLimit.truncated": bool(truncated[k])}])
@@ -137,7 +143,7 @@ def test_updates_equal_sb3s_autograd_update_to_float_tolerance(encoder: str) -> 
         moved = 0.0
         for net in NETS:
             for p, q, start in zip(getattr(single, net).parameters(), getattr(exported, net).parameters(),
-                                   getattr(_batched(encoder, SEEDS, PENALTIES), net).row(k)):
+                                   getattr(_batched(encoder, SEEDS, PENALTIES, algo), net).row(k)):
                 assert (p - q).abs().max().item() < TOLERANCE, (encoder, k, net)
                 moved = max(moved, (p - start).abs().max().item())
         assert moved > 100 * TOLERANCE  # the updates moved the weights far more than the tolerance

@@ -2,14 +2,16 @@
 ``[K, …]``, one batched product per layer for all runs, one Adam buffer ``[K, P]``, per-run replay
 ``[K, capacity, …]`` and per-run random streams.
 
-:class:`BatchedDDPG` and :class:`BatchedDQN` (DQN, double, dueling, prioritised) take every run's
+:class:`BatchedDDPG`, :class:`BatchedTD3` and :class:`BatchedDQN` (DQN, double, dueling, prioritised) take every run's
 observation and give every run's action (:meth:`~.learner.BatchedLearner.act`), store every run's transition
 (``store``), and make one gradient step per run (``update``); ``state_dict``/``load_state_dict`` checkpoint the
 batch and ``export(k, path)`` writes run k as an ordinary SB3 ``model.zip``. On CPU run k computes exactly what
-the single fast learner (:mod:`..fast_ddpg`, :mod:`..fast_dqn`) with seed k computes.
+the single fast learner (:mod:`..fast_ddpg`, :mod:`..fast_dqn`; SB3's TD3) with seed k computes (DDPG and TD3
+on the set observation: to float tolerance, :mod:`.set_encoder`).
 """
 
 from lanefree_sumo.rl.algorithms.batched.ddpg import BatchedDDPG
 from lanefree_sumo.rl.algorithms.batched.dqn import BatchedDQN
+from lanefree_sumo.rl.algorithms.batched.td3 import BatchedTD3
 
-__all__ = ["BatchedDDPG", "BatchedDQN"]
+__all__ = ["BatchedDDPG", "BatchedDQN", "BatchedTD3"]

@@ -50,13 +50,16 @@ def policy_kwargs(actor_layers: Sequence[int], critic_layers: Sequence[int], enc
 
 
 def sb3_policy(observation_space: spaces.Space, action_space: spaces.Space, seed: int, learning_rate: float,
-               actor_layers: Sequence[int], critic_layers: Sequence[int], encoder: str | None = None) -> TD3Policy:
-    """The policy SB3's DDPG builds with ``seed`` (``build_model``'s network settings), built on the CPU
+               actor_layers: Sequence[int], critic_layers: Sequence[int], encoder: str | None = None,
+               n_critics: int = 1) -> tuple[TD3Policy, th.Tensor]:
+    """(the policy SB3's DDPG — TD3 with ``n_critics`` 2 — builds with ``seed`` (``build_model``'s network
+    settings), torch's CPU random state after it: where the single run's update draws from), built on the CPU
     under ``torch.manual_seed(seed)`` without touching the caller's torch random state."""
     with th.random.fork_rng(devices=[]):
         th.manual_seed(seed)
-        return TD3Policy(observation_space, action_space, lambda _: learning_rate,  # type: ignore[arg-type]
-                         n_critics=1, **policy_kwargs(actor_layers, critic_layers, encoder))
+        policy = TD3Policy(observation_space, action_space, lambda _: learning_rate,  # type: ignore[arg-type]
+                           n_critics=n_critics, **policy_kwargs(actor_layers, critic_layers, encoder))
+        return policy, th.random.get_rng_state()
 
 
 class BatchedDDPG(BatchedLearner):
@@ -69,6 +72,11 @@ class BatchedDDPG(BatchedLearner):
     ``learning_starts``, or ``policy``: the actor and its noise from the first step), ``encoder``: the set
     encoder's name for the set observation (a Dict observation space; :mod:`.set_encoder`), None for the
     vector observation."""
+
+    n_critics = 1
+    """Q-networks in the critic (TD3: 2)."""
+    algo = "ddpg"
+    """The registry's name of the algorithm (:meth:`sb3_model`'s class)."""
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  learning_rate: float | Sequence[float] = 1e-3, gamma: float | Sequence[float] = 0.98,
@@ -99,8 +107,11 @@ class BatchedDDPG(BatchedLearner):
         self.encoder = encoder
         if (encoder is None) != isinstance(observation_space, spaces.Box):
             raise ValueError("the set observation (a Dict space) takes an encoder, the vector observation none")
-        policies = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers, encoder)
-                    for seed, lr in zip(self.seeds, self.learning_rate)]
+        built = [sb3_policy(observation_space, action_space, seed, lr, actor_layers, critic_layers, encoder,
+                            self.n_critics) for seed, lr in zip(self.seeds, self.learning_rate)]
+        policies = [policy for policy, _ in built]
+        self._torch_states = [state for _, state in built]
+        """Each run's torch CPU random state after its policy was built (SB3's draws in the update start there)."""
         self._policy = policies[0]  # scale/unscale of actions (the same for all runs)
         self.layout: SetLayout | None = None
         """The set observation's layout (None: the vector observation)."""
@@ -286,13 +297,17 @@ class BatchedDDPG(BatchedLearner):
         self.noise.prev = th.as_tensor(state["noise"], dtype=th.float64).cpu().numpy().copy()
         self._last = None
 
+    def _model_kwargs(self, k: int) -> dict[str, Any]:
+        """Run k's constructor arguments of the SB3 class beyond those all these learners share."""
+        return {"warmup_actions": self.warmup_actions, "pre_tanh_penalty": self.pre_tanh_penalty[k]}
+
     def sb3_model(self, k: int, cls: Any = None) -> Any:
         """Run k as an SB3 model of ``cls`` (the registry's DDPG class by default): its hyperparameters, its
         networks, Adam states and step counts."""
         if cls is None:
             from lanefree_sumo.rl.algorithms import get_algorithm
 
-            cls = get_algorithm("ddpg").cls
+            cls = get_algorithm(self.algo).cls
         n_actions = int(self.action_space.shape[0])  # type: ignore[index]
         noise = OrnsteinUhlenbeckActionNoise(np.zeros(n_actions), self.ou_sigma[k] * np.ones(n_actions),
                                              theta=self.ou_theta[k])
@@ -302,8 +317,8 @@ class BatchedDDPG(BatchedLearner):
                         learning_rate=self.learning_rate[k], buffer_size=self.buffer_size, batch_size=self.batch_size,
                         gamma=self.gamma[k], tau=self.tau[k], learning_starts=self.learning_starts, train_freq=1,
                         gradient_steps=1, action_noise=noise, seed=self.seeds[k], device="cpu", verbose=0,
-                        warmup_actions=self.warmup_actions, pre_tanh_penalty=self.pre_tanh_penalty[k],
-                        policy_kwargs=policy_kwargs(self.actor_layers, self.critic_layers, self.encoder))
+                        policy_kwargs=policy_kwargs(self.actor_layers, self.critic_layers, self.encoder),
+                        **self._model_kwargs(k))
         with th.no_grad():
             for net, stack in ((model.actor, self.actor), (model.critic, self.critic),
                                (model.actor_target, self.actor_target), (model.critic_target, self.critic_target)):
