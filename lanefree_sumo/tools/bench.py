@@ -12,7 +12,8 @@ Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's updat
 against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved, and
 :func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
 (``--training-only`` runs just these sections, ``--dqn-only`` the last), and :func:`batch_speed`: runs per
-core-hour of sequential runs against batches of K runs in one process (``--batch-only``). ``--gpu``: the
+core-hour of sequential runs against batches of K runs in one process, then :func:`set_update_speed`: the set
+observation's update, sequential against batched (``--batch-only``). ``--gpu``: the
 batched path on a torch device instead (:mod:`lanefree_sumo.tools.bench_gpu`, ``make bench-gpu``).
 """
 
@@ -445,6 +446,66 @@ def batch_speed(seed: int, steps: int = 800) -> str:
     return "\n".join(lines)
 
 
+SET_BATCH = 6
+"""Runs of the set observation's batch in :func:`set_update_speed` (the remedies' DDPG grid: 2 variants × 3 seeds)."""
+
+
+def set_update_speed(seed: int, updates: int = 30, fill: int = 1000) -> str:
+    """Markdown: the CPU time of one DDPG update on the set observation (the paper encoder, the paper's settings
+    at 70 veh/km): the sequential run's (SB3's autograd update) against the batched learner's per run, for a batch
+    of 1 and of :data:`SET_BATCH`; the replay filled with ``fill`` steps of uniformly random actions."""
+    import torch
+
+    from lanefree_sumo.rl.algorithms.batched.learner import SpacesEnv
+    from lanefree_sumo.rl.batched_env import BatchedRingEnv
+    from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.models import build_batched, build_model, training_config
+
+    cfgs = [training_config(merge_config(LaneFreeConfig(), {
+        "seed": seed + k, "scenario": {"density_veh_per_km": 70.0}, "observation": {"kind": "set", "encoder": "paper"},
+        "train": {"algo": "ddpg"}})) for k in range(SET_BATCH)]
+    torch.set_num_threads(1)
+    env = BatchedRingEnv(cfgs)
+    spaces = (observation_space(cfgs[0]), action_space(cfgs[0]))
+    learners = {k: build_batched(cfgs[:k], [c.seed for c in cfgs[:k]], *spaces) for k in (1, SET_BATCH)}
+    single = build_model(cfgs[0], SpacesEnv(*spaces), cfgs[0].seed, None)
+    rng = np.random.default_rng(seed)
+    obs = env.reset()
+    seen = []
+    for _ in range(fill):
+        actions = rng.uniform(-1, 1, (SET_BATCH, 2)).astype(np.float32)
+        new_obs, reward, terminated, truncated, _ = env.step(actions)
+        done = terminated | truncated
+        seen.append(float(obs["others"][..., -1].sum(axis=1).mean()))
+        for k, learner in learners.items():
+            learner.store({key: v[:k] for key, v in obs.items()}, actions[:k], reward[:k],
+                          {key: v[:k] for key, v in new_obs.items()}, done[:k], (truncated & ~terminated)[:k])
+        single.replay_buffer.add({key: v[:1] for key, v in obs.items()}, {key: v[:1] for key, v in new_obs.items()},
+                                 actions[:1], reward[:1], done[:1], [{}])
+        obs = env.reset([k for k in range(SET_BATCH) if done[k]]) if done.any() else new_obs
+
+    def cpu_ms(step: Callable[[], None]) -> float:
+        step()  # warm up (first products probed)
+        began = time.thread_time()
+        for _ in range(updates):
+            step()
+        return (time.thread_time() - began) / updates * 1000
+
+    from stable_baselines3.common.logger import configure
+
+    single.set_logger(configure(None, [""]))
+    base = cpu_ms(lambda: single.train(gradient_steps=1, batch_size=single.batch_size))
+    lines = [f"The set observation's DDPG update (paper encoder, 70 veh/km, batch {single.batch_size}, "
+             f"{cfgs[0].observation.max_rows} rows, {statistics.mean(seen):.1f} vehicles seen on average; CPU time of "
+             f"one thread, {updates} updates after {fill} random steps):", "",
+             "| learner | ms per update per run | × sequential |", "|---|---|---|",
+             f"| sequential `lanefree train --obs set` (SB3's autograd update) | {base:.1f} | 1.00× |"]
+    for k, learner in learners.items():
+        per_run = cpu_ms(learner._update) / k
+        lines.append(f"| batched, {k} run(s) | {per_run:.1f} | {base / per_run:.2f}× |")
+    return "\n".join(lines)
+
+
 def run(steps: int, seed: int, out_dir: Path) -> str:
     from lanefree_sumo.sim.backends.sumo import bare_step_rate
 
@@ -503,7 +564,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         rate = training_rate(algo, seed)
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
-    lines += ["", training_speed(seed), "", batch_speed(seed)]
+    lines += ["", training_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -569,6 +630,8 @@ def main() -> None:
             raise SystemExit(f"error: {exc}") from None
     elif args.batch_only:
         print(batch_speed(args.seed, steps=args.steps))
+        print()
+        print(set_update_speed(args.seed))
     elif args.dqn_only:
         print(dqn_family_speed(args.seed))
     else:

@@ -28,6 +28,7 @@ class BatchedTD3(BatchedDDPG):
     :param policy_delay: critic updates per actor and target update.
     :param target_policy_noise: σ of the target action's Gaussian noise (scaled action units).
     :param target_noise_clip: the bound of that noise.
+
     The other parameters are :class:`~.ddpg.BatchedDDPG`'s (TD3 has no pre-tanh penalty and SB3's uniform
     warm-up only)."""
 
