@@ -234,6 +234,9 @@ def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
         (["--seeds", "0-1", "--scenario", "onramp"], "does not support the onramp road"),
         (["--seeds", "0-1", "--agents", "2"], "does not support several agents"),
         (["--seeds", "0-1", "--algo", "dqn", "--obs", "set"], "the set observation (--obs set) with dqn"),
+        (["--seeds", "0-1", "--algo", "td3", "--set", "train.profile=kerasrl"], "td3 takes SB3's uniform warm-up"),
+        (["--seeds", "0-1", "--algo", "td3", "--set", "train.actor_critic.pre_tanh_penalty=0.01"],
+         "set it to 0 for td3"),
         (["--seeds", "0-1", "--algo", "ppo"], "batched training covers ddpg, td3, dqn, ddqn, dueling, per, not ppo"),
     ],
 )

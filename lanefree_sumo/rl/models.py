@@ -136,6 +136,20 @@ def exploration_fraction(cfg: LaneFreeConfig) -> float:
     return min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
 
 
+def check_actor_critic_choices(cfg: LaneFreeConfig, own_ddpg: bool, fast_update: bool = True) -> None:
+    """ConfigError (one line) for an actor-critic choice only the project's DDPG trains: the pre-tanh penalty
+    (its fast update: ``fast_update``) and the warm-up from the policy. ``own_ddpg``: the learner is the
+    project's DDPG class (the single run's, or the batched one)."""
+    ac, algo = cfg.train.actor_critic, cfg.train.algo
+    if ac.pre_tanh_penalty and (algo != "ddpg" or not (own_ddpg and fast_update)):
+        raise ConfigError(f"train.actor_critic.pre_tanh_penalty = {ac.pre_tanh_penalty:g} is built into the "
+                          f"fast DDPG update only; set it to 0 for {algo}"
+                          + ("" if algo != "ddpg" else " without train.fast_learner"))
+    if ac.warmup_actions != "uniform" and algo not in ("ppo", *(("ddpg",) if own_ddpg else ())):
+        raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions} is built for ddpg only; "
+                          f"{algo} takes SB3's uniform warm-up")
+
+
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
     """A new model for ``cfg.train.algo`` with the paper's hyperparameters (specification §9); ``cls`` another class
     taking SB3's constructor arguments (e.g. SB3's own ``DDPG``, for comparisons)."""
@@ -172,18 +186,12 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
             kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
-        if ac.pre_tanh_penalty and (algo != "ddpg" or not (spec.fast_learner and own_class and cfg.train.fast_learner)):
-            raise ConfigError(f"train.actor_critic.pre_tanh_penalty = {ac.pre_tanh_penalty:g} is built into the "
-                              f"fast DDPG update only; set it to 0 for {algo}"
-                              + ("" if algo != "ddpg" else " without train.fast_learner"))
+        check_actor_critic_choices(cfg, spec.fast_learner and own_class, cfg.train.fast_learner)
         if spec.fast_learner and own_class:
             kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
                           warmup_actions=ac.warmup_actions)
             if algo == "ddpg":
                 kwargs["pre_tanh_penalty"] = ac.pre_tanh_penalty
-        elif ac.warmup_actions != "uniform" and algo != "ppo":
-            raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions} is built for ddpg only; "
-                              f"{algo} takes SB3's uniform warm-up")
         if spec.overlap and own_class:
             kwargs.update(overlap=cfg.train.overlap)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
