@@ -5,8 +5,11 @@ as ``DDPG._setup_model`` builds it), draws its replay indices and Ornstein-Uhlen
 stream (:class:`~.replay.RunStreams`) in the single run's order, and has its own learning rate, γ, τ, σ and θ;
 the network shapes, batch size, buffer size and ``learning_starts`` are the batch's. On CPU run k's
 parameters, targets and Adam moments equal the single :class:`~..fast_ddpg.FastDDPG` run's bit for bit
-(``tests/rl/test_batched_learners.py``). SB3 also draws DDPG's target-policy noise, which DDPG clips to
-zero; it changes no number (only a −0.0 action to +0.0), so it is not drawn here.
+(``tests/rl/test_batched_learners.py``), with the pre-tanh penalty too (FastDDPG's autograd update). SB3 also
+draws DDPG's target-policy noise, which DDPG clips to zero; it changes no number (only a −0.0 action to +0.0),
+so it is not drawn here. On the set observation each network starts with the set encoder (:mod:`.set_encoder`),
+and run k agrees with the single run to float tolerance (``tests/rl/test_batched_set.py``). TD3 is this class
+with two Q-networks (:mod:`.td3`).
 """
 
 from __future__ import annotations
