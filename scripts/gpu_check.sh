@@ -5,6 +5,9 @@
 #          whose model.zip files load on the CPU;
 #   grid:  the paper grid at 10 seeds (lanefree sweep paper --no-ray --batch 110 on CUDA), resumable across calls
 #          on one warm machine; finished runs packed as grid.tar.gz;
+#   remedies: the set encoder's DDPG collapse and its remedies (results/varobs_remedies/ddpg.yaml: DDPG and DDPG
+#          with the pre-tanh penalty, 3 seeds each, one batch of 6 in the lockstep loop; then td3.yaml, 3 runs, the
+#          exact loop) on CUDA, resumable across calls on one warm machine; finished runs packed as remedies.tar.gz;
 #   full:  the whole bench, a profile of a DDPG iteration at K = 110, then the learning check's runs: three
 #          settings × 10 seeds × $EPISODES episodes trained on CUDA (the three batches at once, stopped with a
 #          checkpoint after $LEARN_LIMIT_S s), packed as learn.tar.gz; compare them with the CPU runs of
@@ -38,6 +41,23 @@ if [ "$mode" = grid ]; then
     2>&1 | grep -v "Warning\|check(" | tail -n 40 | tee "$OUT/grid.log"
   tar czf "$OUT/grid.tar.gz" --exclude='*.zip' --exclude='*.pt' --exclude='tb' --exclude='checkpoints' \
     --exclude='batch_checkpoints' "$GRID"
+  exit 0
+fi
+
+if [ "$mode" = remedies ]; then
+  # Stopped with a checkpoint after $REMEDIES_LIMIT_S s in all; run it again on the same warm machine to continue.
+  # The set encoder's iteration on a GPU was never measured: the log's episode counts say how far it got.
+  for grid in ddpg td3; do
+    dir=runs/gpu_remedies_$grid
+    if [ -f "$dir/sweep.yaml" ]; then set -- --resume "$dir"; else
+      set -- "results/varobs_remedies/$grid.yaml" --out "$dir" --set train.device=cuda; fi
+    left=$(( ${REMEDIES_LIMIT_S:-480} - ($(date +%s) - began) ))
+    [ "$left" -gt 60 ] || break
+    timeout -s TERM "$left" $PY -m lanefree_sumo.cli sweep "$@" --batch 6 --no-ray --no-progress \
+      2>&1 | grep -v "Warning\|check(" | tail -n 20 | tee -a "$OUT/remedies.log"
+  done
+  tar czf "$OUT/remedies.tar.gz" --exclude='*.zip' --exclude='*.pt' --exclude='tb' --exclude='checkpoints' \
+    --exclude='batch_checkpoints' runs/gpu_remedies_*
   exit 0
 fi
 

@@ -34,6 +34,7 @@ import numpy as np
 import torch as th
 
 from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.rl.algorithms.batched.learner import flat_observations
 from lanefree_sumo.sim.world import World
 
 REPLACED = ("_prev_dx", "_in_range", "_order", "_net", "_best", "_ever")
@@ -46,8 +47,6 @@ def lockstep_refusal(env: Any, learner: Any) -> str | None:
         return "the lockstep loop runs the torch simulation (give the environment a device)"
     if bool(np.any(env._terminate)):
         return "episode.terminate_on_collision ends episodes at different steps"
-    if getattr(learner, "layout", None) is not None:
-        return "the set observation (--obs set) is trained in the exact loop"
     if getattr(learner, "algo", None) == "td3":
         return "TD3 draws its target noise on the host: it is trained in the exact loop"
     return None
@@ -160,10 +159,10 @@ class Lockstep:
         env._books = {name: static[f"books.{name}"] for name in env._books}
         self.obs = static["obs"]
 
-    def start(self, obs: th.Tensor) -> None:
-        """Take the observations ``[K, obs]`` and the env's state after a reset (of every run or some) as the
-        next iteration's, and the env's stopped runs as not scored."""
-        self.obs = obs
+    def start(self, obs: Any) -> None:
+        """Take the observations ``[K, obs]`` (the set observation's dict flattened) and the env's state after a
+        reset (of every run or some) as the next iteration's, and the env's stopped runs as not scored."""
+        self.obs = flat_observations(obs)
         self._pin()
         self.active.copy_(th.as_tensor(~self.env.stopped).to(self.active.device))
 
@@ -178,12 +177,13 @@ class Lockstep:
         else:
             actions, stored = learner.act_on_device(self.obs, random)
             obs, reward, bad = self._step(actions, self.active)
+            obs = flat_observations(obs)
             learner.store_on_device(self.obs, stored, reward.to(th.float32), obs)
             if update:
                 assert self._learn is not None
                 self._learn(*learner.sample_on_device())
         self.flagged |= bad
-        self.obs = obs
+        self.obs = flat_observations(obs)
         self._pin()
 
     def iterate(self, update: bool = True) -> None:

@@ -49,6 +49,18 @@ def test_a_lockstep_batch_writes_ordinary_run_folders(tmp_path: Path, algo: str)
     assert rows(results[0][0] / "episodes.csv") != rows(results[1][0] / "episodes.csv")
 
 
+def test_a_lockstep_batch_trains_the_set_observation(tmp_path: Path) -> None:
+    """DDPG on the set observation in the lockstep loop (the encoder over every row, as on a GPU): run folders
+    whose models load with the paper encoder."""
+    cfgs = [merge_config(tiny("ddpg", seed), {"observation": {"kind": "set", "encoder": "paper"}}) for seed in (0, 1)]
+    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test", device="cpu", lockstep=True)
+    assert [done for _, done in results] == [3, 3]
+    for folder, _ in results:
+        model = get_algorithm("ddpg").cls.load(folder / "model.zip", device="cpu")
+        assert model.actor.features_extractor.encoder_name == "paper" and model._n_updates == 60 - 15 - 1
+    assert rows(results[0][0] / "episodes.csv") != rows(results[1][0] / "episodes.csv")
+
+
 @pytest.mark.parametrize("algo", ["ddpg", "per"])
 def test_a_stopped_lockstep_batch_resumes_with_the_uninterrupted_episodes(tmp_path: Path, algo: str,
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:

@@ -174,8 +174,8 @@ def test_the_vector_learners_refuse_the_set_observation() -> None:
 
 
 def test_the_devices_dense_encoder_equals_the_cpus_run_by_run_encoder() -> None:
-    """The pass a GPU takes (every row of every run at once, no cut) against the CPU's (run by run, each table
-    cut after its last present row), forward and backward, to float tolerance."""
+    """The pass a GPU and the lockstep loop take (every row of every run at once, no cut) against the CPU exact
+    loop's (run by run, each table cut after its last present row), forward and backward, to float tolerance."""
     from lanefree_sumo.rl.algorithms.batched.set_encoder import _encode, _encode_backward, encode, encode_backward
 
     batched = _batched("paper", SEEDS, PENALTIES)
@@ -183,7 +183,7 @@ def test_the_devices_dense_encoder_equals_the_cpus_run_by_run_encoder() -> None:
                                  for o in (_observations(np.random.default_rng(i)) for i in range(BATCH))], axis=1))
     layout, tensors = batched.layout, batched.actor.views()[:batched.layout.tensors]  # type: ignore[union-attr]
     assert layout is not None
-    features, saved = encode(batched.mm, layout, tensors, obs)
+    features, saved = encode(batched.mm, layout, tensors, obs, dense=False)
     dense, dense_saved = _encode(batched.mm, layout, tensors, obs, cut=False)
     assert len(saved) == len(SEEDS) and saved[0].mask.shape[2] <= 3 < dense_saved.mask.shape[2] == ROWS
     assert th.allclose(features, dense, atol=1e-6)

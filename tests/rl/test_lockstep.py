@@ -26,7 +26,10 @@ PHASES = ((True, False), (False, False), (False, True))
 
 
 def configs(algo: str, runs: int = 2, **extra: Any) -> list[LaneFreeConfig]:
-    """``runs`` runs of ``algo`` ("dqn+ddqn": dqn, ddqn, dqn, …), densities 70 and 90 by turns."""
+    """``runs`` runs of ``algo`` ("dqn+ddqn": dqn, ddqn, dqn, …; "ddpg-set": DDPG on the set observation with the
+    paper encoder), densities 70 and 90 by turns."""
+    if algo == "ddpg-set":
+        algo, extra = "ddpg", {**extra, "observation": {"kind": "set", "encoder": "paper"}}
     section = "actor_critic" if algo == "ddpg" else "dqn"
     return [training_config(merge_config(LaneFreeConfig(), {
         "seed": k, "scenario": {"density_veh_per_km": 90.0 if k % 2 else 70.0}, **extra,
@@ -95,7 +98,7 @@ def test_the_host_number_detector_sees_a_scalar_written_by_index() -> None:
     assert seen.found == []
 
 
-@pytest.mark.parametrize("algo", [None, "ddpg", "dqn", "dqn+ddqn", "per"])
+@pytest.mark.parametrize("algo", [None, "ddpg", "ddpg-set", "dqn", "dqn+ddqn", "per"])
 def test_an_iteration_reads_nothing_from_the_host_and_writes_no_host_number(algo: str | None) -> None:
     """What a CUDA graph needs: each phase's iteration (random actions; acting; acting and updating) runs with
     every host read refused and writes no number from the host into a tensor."""
@@ -200,7 +203,7 @@ def test_a_compiler_that_fails_leaves_the_loop_uncompiled_with_a_warning() -> No
     assert th.equal(broken.obs, plain.obs) and th.equal(broken.learner.q_net.stack.flat, plain.learner.q_net.stack.flat)
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn", "dqn+ddqn", "per"])
+@pytest.mark.parametrize("algo", ["ddpg", "ddpg-set", "dqn", "dqn+ddqn", "per"])
 def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_eager_one(algo: str) -> None:
     """The gradient step traced as one graph (``aot_eager``) moves the weights, the targets and Adam's moments as
     the eager step does, to float32 rounding (the traced graph runs the in-place updates in functional form: the
@@ -218,10 +221,11 @@ def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_ea
         traced.iterate()
         eager.iterate()
     assert traced.learner.n_updates == eager.learner.n_updates == 4
-    nets = ("actor", "critic", "actor_target", "critic_target") if algo == "ddpg" else ("q_net", "q_net_target")
+    ddpg = algo.startswith("ddpg")
+    nets = ("actor", "critic", "actor_target", "critic_target") if ddpg else ("q_net", "q_net_target")
     for name in nets:
         a, b = getattr(traced.learner, name), getattr(eager.learner, name)
-        a, b = (a if algo == "ddpg" else a.stack).flat, (b if algo == "ddpg" else b.stack).flat
+        a, b = (a if ddpg else a.stack).flat, (b if ddpg else b.stack).flat
         assert th.allclose(a, b, rtol=1e-5, atol=1e-7), name
     if algo == "per":  # the priorities the traced step wrote back
         assert th.allclose(traced.learner._leaves, eager.learner._leaves, rtol=1e-5)
@@ -314,6 +318,10 @@ def test_the_lockstep_loop_refuses_what_it_cannot_run() -> None:
         Lockstep(env, None, 0)
     with pytest.raises(ConfigError, match="torch simulation"):
         Lockstep(BatchedRingEnv(configs("ddpg")), None, 0)
+    td3 = [training_config(merge_config(c, {"train": {"algo": "td3"}})) for c in configs("ddpg")]
+    learner = build_batched(td3, [0, 1], observation_space(td3[0]), action_space(td3[0]), device="cpu")
+    with pytest.raises(ConfigError, match="TD3 draws its target noise on the host"):
+        Lockstep(BatchedRingEnv(td3, device="cpu"), learner, 0)
 
 
 class Draws:

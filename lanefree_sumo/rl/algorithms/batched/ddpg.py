@@ -163,10 +163,16 @@ class BatchedDDPG(BatchedLearner):
         saved = None
         features = obs
         if self.layout is not None:
-            features, saved = encode(self.mm, self.layout, net.views(), obs)
+            features, saved = encode(self.mm, self.layout, net.views(), obs, self.dense)
         if actions is not None:
             features = th.cat([features, actions], dim=2)
         return saved, mlp_forward(self.mm, net.layers(), features, squash)
+
+    @property
+    def dense(self) -> bool:
+        """Whether the set encoder runs every row of every run at once (a GPU, the lockstep loop:
+        :func:`~.set_encoder.encode`)."""
+        return self.device.type != "cpu" or self.device_streams
 
     def _backward(self, net: ParamStack, saved: list[Encoded] | None, outs: list[th.Tensor], grad: th.Tensor,
                   squash: bool) -> list[th.Tensor]:

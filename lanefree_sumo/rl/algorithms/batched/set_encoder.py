@@ -9,9 +9,9 @@ batched replay stores it.
 Dense, not gathered: :meth:`~lanefree_sumo.rl.encoder.SetEncoder.pooled` encodes only the present rows (a
 gather whose size depends on the data); here every row of the padded table goes through f1 and f2 (one
 batched product per layer over ``[K, M·rows, width]``, a fixed shape a CUDA graph can hold) and the padding rows
-are masked to contribute nothing. On the CPU the encoder runs run by run instead, each run's table cut after
-its last row present in the minibatch (:func:`encode`), so its cost follows the vehicles seen, as the single
-run's does. The result is the same function; its float rounding is not the single
+are masked to contribute nothing. In the CPU's exact loop the encoder runs run by run instead, each run's table
+cut after its last row present in the minibatch (:func:`encode`), so its cost follows the vehicles seen, as the
+single run's does. The result is the same function; its float rounding is not the single
 run's (other summation order), so a batched set-observation run agrees with its sequential run to float
 tolerance, not bit for bit (``tests/rl/test_batched_set.py``). Batched run k still equals the batch of one run
 of its seed bit for bit on CPU: every product goes through :class:`~.stack.Products`, every reduction is over
@@ -119,16 +119,17 @@ class Encoded:
     feature_out: th.Tensor | None
 
 
-def encode(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor],
-           obs: th.Tensor) -> tuple[th.Tensor, list[Encoded]]:
+def encode(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor], obs: th.Tensor,
+           dense: bool) -> tuple[th.Tensor, list[Encoded]]:
     """(the features ``[K, M, ego + out]`` — the ego passthrough, then the encoder's output, as
     ``SetFeaturesExtractor`` concatenates them —, what the backward pass needs) of flattened observations
     ``obs`` ``[K, M, obs_dim]``; ``tensors``: the encoder's ``[K, …]`` views, in module order.
 
-    On the CPU run by run, each run's table cut after its last row present in any of its sets (the observation
+    ``dense``: all runs at once over every row (fixed shapes, nothing read from the host: a GPU, the lockstep
+    loop). Else run by run, each run's table cut after its last row present in any of its sets (the observation
     lists the vehicles nearest first, so the present rows lead): the products' lengths are then the run's own,
-    as in the batch of that run alone. On another device all runs at once over every row (fixed shapes)."""
-    if obs.device.type != "cpu":
+    as in the batch of that run alone (the CPU's exact loop)."""
+    if dense:
         features, saved = _encode(mm, layout, tensors, obs, cut=False)
         return features, [saved]
     parts = [_encode(mm, layout, [t[k:k + 1] for t in tensors], obs[k:k + 1], cut=True)
@@ -191,7 +192,7 @@ def encode_backward(mm: Products, layout: SetLayout, tensors: Sequence[th.Tensor
                     grad: th.Tensor) -> list[th.Tensor]:
     """The gradients of the encoder's tensors ``[K, …]`` (module order) from the gradient ``grad`` of the
     features :func:`encode` returned (run by run where it encoded so)."""
-    if grad.device.type != "cpu":
+    if len(saved) == 1:  # dense, or one run
         return _encode_backward(mm, layout, tensors, saved[0], grad)
     parts = [_encode_backward(mm, layout, [t[k:k + 1] for t in tensors], one, grad[k:k + 1])
              for k, one in enumerate(saved)]

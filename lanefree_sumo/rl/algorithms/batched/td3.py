@@ -62,7 +62,7 @@ class BatchedTD3(BatchedDDPG):
         saved = None
         features = obs
         if self.layout is not None:
-            features, saved = encode(self.mm, self.layout, net.views(), obs)
+            features, saved = encode(self.mm, self.layout, net.views(), obs, self.dense)
         x = th.cat([features, actions], dim=2)
         return saved, [mlp_forward(self.mm, head, x, False) for head in self._heads(net.layers())[:heads]]
 
