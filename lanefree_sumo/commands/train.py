@@ -25,7 +25,7 @@ OPTIONS: tuple[Option, ...] = (
     SEED,
     Option("--seeds", type=argtypes.seeds, default=None, extra={"metavar": "A-B"},
            note="train these seeds (a range A-B or a list A,B,C) as one batch in one process, one run folder each "
-           "under --out (ddpg and the DQN family, one agent on the ring, vector observation)"),
+           "under --out (ddpg, td3 and the DQN family, one agent on the ring; ddpg and td3 also with --obs set)"),
     Option("--obs", "observation.kind"),
     Option("--encoder", "observation.encoder"),
     Option("--envs", "train.envs", unit="processes"),

@@ -99,6 +99,16 @@ def test_a_run_with_a_switch_the_batched_learners_lack_goes_one_per_task(tmp_pat
     assert list(packing.reasons) == ["batched training does not support the safety shield (--shield)"]
 
 
+@pytest.mark.parametrize(("grid_name", "runs"), [("ddpg", 6), ("td3", 3)])
+def test_the_set_encoder_remedy_grids_train_as_one_batch_each(tmp_path, grid_name, runs):
+    """The committed remedy grids (the set observation; DDPG's two variants differ in the pre-tanh penalty, which
+    a batch may hold per run) pack into one batch at --batch 6."""
+    root = Path(__file__).resolve().parents[2]
+    grid = load_grid(root / "results" / "varobs_remedies" / f"{grid_name}.yaml")
+    packing = pack(SweepDir(tmp_path / "sweep"), grid, list(grid.cells()), pending(grid), 6)
+    assert [len(b.runs) for b in packing.batches] == [runs] and not packing.sequential
+
+
 def test_the_default_batch_keeps_every_worker_busy():
     assert batch_size(None, 4, 2) == 2 and batch_size(None, 1, 4) == 1 and batch_size(None, 150, 2) == 8
     assert batch_size(None, 10, None) == 8 and batch_size(3, 150, 2) == 3
