@@ -174,6 +174,7 @@ class Lockstep:
         if learner is None:
             draws = th.rand((env.runs, 2), generator=self.generator, dtype=th.float64, device=self.active.device)
             obs, reward, bad = self._step(draws * 2.0 - 1.0, self.active)
+            obs = flat_observations(obs)
         else:
             actions, stored = learner.act_on_device(self.obs, random)
             obs, reward, bad = self._step(actions, self.active)
@@ -183,7 +184,7 @@ class Lockstep:
                 assert self._learn is not None
                 self._learn(*learner.sample_on_device())
         self.flagged |= bad
-        self.obs = flat_observations(obs)
+        self.obs = obs
         self._pin()
 
     def iterate(self, update: bool = True) -> None:
