@@ -166,7 +166,9 @@ def test_ddpg_policy_warmup_acts_with_the_actor_from_the_first_step() -> None:
 @pytest.mark.slow
 def test_the_pre_tanh_penalty_holds_the_actor_off_its_bound_and_is_refused_where_it_is_not_built() -> None:
     """``train.actor_critic.pre_tanh_penalty``: λ·mean(u²) in DDPG's actor loss (u before the tanh) keeps the actor's
-    pre-tanh output near 0 where λ = 0 lets it grow; TD3, SB3's own update and batched training refuse a λ > 0."""
+    pre-tanh output near 0 where λ = 0 lets it grow; TD3 (single or batched) and SB3's own update refuse a λ > 0,
+    the batched DDPG takes it per run."""
+    from lanefree_sumo.experiments.batch import check_batchable
     from lanefree_sumo.rl.models import build_batched, build_model, make_vec_env, training_config
 
     cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"episode_steps": 50}, "train": {
@@ -190,5 +192,6 @@ def test_the_pre_tanh_penalty_holds_the_actor_off_its_bound_and_is_refused_where
             build_model(c, make_vec_env(c), 0, None)
     c = training_config(merge_config(cfg, {"train": {"actor_critic": {"pre_tanh_penalty": 0.1}}}))
     env = make_vec_env(c)
+    assert build_batched([c, c], [0, 1], env.observation_space, env.action_space).pre_tanh_penalty == [0.1, 0.1]
     with pytest.raises(ConfigError, match="pre_tanh_penalty"):
-        build_batched([c, c], [0, 1], env.observation_space, env.action_space)
+        check_batchable(training_config(merge_config(c, {"train": {"algo": "td3"}})))
