@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import signal
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -139,6 +141,35 @@ def test_a_run_with_a_non_finite_action_stops_alone(tmp_path: Path, monkeypatch:
     assert report_batch([(run0, done0), (run1, done1)]) == 1  # not an interruption: nothing to resume
     out = capsys.readouterr()
     assert f"stopped after 1/3 episodes -> {run1} (run 1: action" in out.out and "--resume" not in out.err
+
+
+@pytest.mark.parametrize(("algo", "obs"), [("td3", "vector"), ("ddpg", "set"), ("td3", "set")])
+def test_a_stopped_batch_resumes_exactly_with_td3_and_the_set_observation(tmp_path: Path, algo: str, obs: str,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM in the middle of episode 2 (after the first batch checkpoint): --resume continues TD3's target-noise
+    streams and the set observation's batch, and every run's episodes equal an uninterrupted batch's."""
+    from lanefree_sumo.experiments import batch
+
+    extra = {"observation": {"kind": "set", "encoder": "paper"}} if obs == "set" else {}
+    cfgs = [merge_config(small(algo, seed), extra) for seed in (0, 1)]
+    whole = train_batch(cfgs, tmp_path / "whole", progress=False, command="test")
+    step = batch._Batch._step
+
+    def interrupted(self: Any, env: Any, learner: Any, *args: Any) -> bool:
+        checkpoint = step(self, env, learner, *args)
+        if learner.num_timesteps == 90:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return checkpoint
+
+    monkeypatch.setattr(batch._Batch, "_step", interrupted)
+    out = tmp_path / "interrupted"
+    stopped = train_batch(cfgs, out, progress=False, command="test")
+    monkeypatch.undo()
+    assert [done for _, done in stopped] == [1, 1]
+    resumed = resume_batch(out, progress=False, command="test")
+    assert [done for _, done in resumed] == [3, 3]
+    for (a, _), (b, _) in zip(resumed, whole):
+        assert rows(a / "episodes.csv") == rows(b / "episodes.csv")
 
 
 def test_a_batch_stopped_by_sigterm_resumes_with_the_uninterrupted_episodes(tmp_path: Path) -> None:

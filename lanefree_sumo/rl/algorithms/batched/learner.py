@@ -234,7 +234,6 @@ class BatchedLearner:
         """One gradient step for every run on the minibatch at ``indices`` ``[K, batch]``."""
         raise NotImplementedError
 
-
     def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 

@@ -5,7 +5,10 @@ target the smaller of the two target Q-values, clipped Gaussian noise on the tar
 0.5), and the actor and both targets updated every ``policy_delay`` (2) critic updates. Run k draws that noise
 from its own torch generator, started where SB3's global generator stands after building run k's policy, so on
 CPU run k's parameters, targets and Adam moments equal ``stable_baselines3.TD3``'s with seed k bit for bit on
-the vector observation (``tests/rl/test_batched_set.py``), and to float tolerance on the set observation.
+the vector observation (``tests/rl/test_batched_learners.py``), and to float tolerance on the set observation
+(``tests/rl/test_batched_set.py``). The noise is drawn on the host, so TD3 trains in the exact loop, never the
+lockstep loop (:func:`~lanefree_sumo.rl.lockstep.lockstep_refusal`). ``losses["actor_loss"]`` is the last actor
+update's (every ``policy_delay``-th update; absent before the first).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from gymnasium import spaces
 from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms.batched.ddpg import BatchedDDPG
+from lanefree_sumo.rl.algorithms.batched.learner import per_run
 from lanefree_sumo.rl.algorithms.batched.set_encoder import Encoded, encode, encode_backward
 from lanefree_sumo.rl.algorithms.batched.stack import Linear, ParamStack, mlp_backward, mlp_forward, soft_update
 
@@ -38,7 +42,8 @@ class BatchedTD3(BatchedDDPG):
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  policy_delay: int = 2, target_policy_noise: float = 0.2, target_noise_clip: float = 0.5,
                  **kwargs: Any) -> None:
-        if kwargs.get("warmup_actions", "uniform") != "uniform" or kwargs.get("pre_tanh_penalty", 0.0):
+        if kwargs.get("warmup_actions", "uniform") != "uniform" or any(
+                per_run(kwargs.get("pre_tanh_penalty", 0.0), len(seeds), "pre_tanh_penalty")):
             raise ValueError("batched TD3 takes SB3's uniform warm-up and no pre-tanh penalty")
         super().__init__(observation_space, action_space, seeds, **kwargs)
         self.policy_delay = int(policy_delay)
@@ -49,6 +54,9 @@ class BatchedTD3(BatchedDDPG):
             generator = th.Generator()
             generator.set_state(state)
             self.generators.append(generator)
+
+    def use_device_streams(self, generator: th.Generator | None) -> None:
+        raise RuntimeError("batched TD3 draws its target noise on the host: it trains in the exact loop only")
 
     def _heads(self, layers: list[Linear]) -> list[list[Linear]]:
         """The critic's layers as its Q-networks' (in order)."""
