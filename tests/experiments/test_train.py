@@ -81,22 +81,27 @@ def test_set_observation_trains_with_the_encoder(tmp_path):
     assert done == 2 and (run / "model.zip").is_file()
 
 
+EPISODES = 30
+"""The interrupted run's episodes (test_sigint_checkpoints_and_resume_continues_without_gaps)."""
+
+
 def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
+    # 30 short episodes: a fast machine trains one in ~50 ms, so SIGINT after the second lands long before the last
     run = tmp_path / "run"
-    proc = lanefree_popen("train", "--algo", "dqn", "--episodes", "6", "--episode-steps", "100", "--out", str(run),
-                    "--checkpoint-every", "100")
+    proc = lanefree_popen("train", "--algo", "dqn", "--episodes", str(EPISODES), "--episode-steps", "100",
+                          "--out", str(run), "--checkpoint-every", "100")
     csv_path = run / "episodes.csv"
     deadline = time.time() + 240
     while time.time() < deadline:
         if csv_path.exists() and len(rows(csv_path)) >= 2:
             break
-        time.sleep(0.2)
+        time.sleep(0.01)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert "Resume with: lanefree train --resume" in err and "Traceback" not in err
     first = [int(r["episode"]) for r in rows(csv_path)]
-    assert 2 <= len(first) < 6 and first == list(range(1, len(first) + 1))
+    assert 2 <= len(first) < EPISODES and first == list(range(1, len(first) + 1))
     state = json.loads(next((run / "checkpoints").glob("ep_*/state.json")).read_text())
     assert state["episodes"] == len(first)
 
@@ -104,17 +109,17 @@ def test_sigint_checkpoints_and_resume_continues_without_gaps(tmp_path):
     out, err = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, err
     episodes = [int(r["episode"]) for r in rows(csv_path)]
-    assert episodes == [1, 2, 3, 4, 5, 6]
+    assert episodes == list(range(1, EPISODES + 1))
     timesteps = [int(r["timesteps"]) for r in rows(csv_path)]
     assert timesteps == sorted(timesteps)
     # the traffic continues: episode k's seed depends on the run's seed and k only, as if never interrupted
-    assert [int(r["seed"]) for r in rows(csv_path)] == [episode_seed(0, 0, k) for k in range(1, 7)]
+    assert [int(r["seed"]) for r in rows(csv_path)] == [episode_seed(0, 0, k) for k in range(1, EPISODES + 1)]
     assert (run / "model.zip").is_file()
     assert len((run / "command.txt").read_text().splitlines()) == 2
     # each session's episodes, end and versions (the kernels too), as one line each
     sessions = [json.loads(line) for line in (run / "sessions.jsonl").read_text().splitlines()]
     assert [(s["first_episode"], s["episodes_done"], s["stopped_by"]) for s in sessions] == [
-        (1, len(first), "SIGINT"), (len(first) + 1, 6, None)]
+        (1, len(first), "SIGINT"), (len(first) + 1, EPISODES, None)]
     assert all(s["versions"]["numpy_simd"] and s["versions"]["git_commit"] for s in sessions)
     assert json.loads((run / "last_session.json").read_text()) == sessions[-1]
 
