@@ -160,13 +160,20 @@ class BatchedDDPG(BatchedLearner):
                  squash: bool) -> tuple[list[Encoded] | None, list[th.Tensor]]:
         """(the encoder's saved values — None for the vector observation —, the MLP head's [input, outputs]) of
         network ``net`` on observations ``[K, M, obs]`` (and, for a critic, ``actions`` ``[K, M, A]``)."""
+        saved, features = self._features(net, obs, actions)
+        return saved, mlp_forward(self.mm, net.layers(), features, squash)
+
+    def _features(self, net: ParamStack, obs: th.Tensor,
+                  actions: th.Tensor | None) -> tuple[list[Encoded] | None, th.Tensor]:
+        """(the encoder's saved values — None for the vector observation —, the MLP head's input) of network
+        ``net``: the set encoder's features (or ``obs`` itself), then ``actions`` appended for a critic."""
         saved = None
         features = obs
         if self.layout is not None:
             features, saved = encode(self.mm, self.layout, net.views(), obs, self.dense)
         if actions is not None:
             features = th.cat([features, actions], dim=2)
-        return saved, mlp_forward(self.mm, net.layers(), features, squash)
+        return saved, features
 
     @property
     def dense(self) -> bool:

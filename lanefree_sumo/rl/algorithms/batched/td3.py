@@ -22,7 +22,7 @@ from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms.batched.ddpg import BatchedDDPG
 from lanefree_sumo.rl.algorithms.batched.learner import per_run
-from lanefree_sumo.rl.algorithms.batched.set_encoder import Encoded, encode, encode_backward
+from lanefree_sumo.rl.algorithms.batched.set_encoder import Encoded, encode_backward
 from lanefree_sumo.rl.algorithms.batched.stack import Linear, ParamStack, mlp_backward, mlp_forward, soft_update
 
 
@@ -67,11 +67,7 @@ class BatchedTD3(BatchedDDPG):
                 heads: int = 2) -> tuple[list[Encoded] | None, list[list[th.Tensor]]]:
         """(the encoder's saved values — None for the vector observation —, the first ``heads`` Q-networks'
         [input, outputs]) of critic ``net``: one encoder, its features and the actions the heads' input."""
-        saved = None
-        features = obs
-        if self.layout is not None:
-            features, saved = encode(self.mm, self.layout, net.views(), obs, self.dense)
-        x = th.cat([features, actions], dim=2)
+        saved, x = self._features(net, obs, actions)
         return saved, [mlp_forward(self.mm, head, x, False) for head in self._heads(net.layers())[:heads]]
 
     def _noise(self, shape: th.Size) -> th.Tensor:
