@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Bring the committed result files up to date after runs finish. Evaluates every finished run of
 # the paper sweep that still has its model (deterministic and shielded, 50 episodes each), rewrites the
-# sweep's summary, claims and curves, both evaluation tables, the collisions-against-overtakes figure and
-# README.md's results table (scripts/collisions_vs_overtakes.py, readme_results.py) from the committed
-# episodes.csv files, then runs the variable-dimension evaluations and reports (scripts/varobs-transfer.sh).
-# Resumable: it only evaluates what is missing. Usage: scripts/update-results.sh [EPISODES]   (make results; EPISODES per
-# evaluation, default 50)
+# sweep's summary, claims and curves (of the seeds complete in every setting), both evaluation tables, the
+# collisions-against-overtakes figure and README.md's results table (scripts/collisions_vs_overtakes.py,
+# readme_results.py) from the committed episodes.csv files, then runs the variable-dimension evaluations and
+# reports (scripts/varobs-transfer.sh). Resumable: it only evaluates what is missing.
+# Usage: scripts/update-results.sh [EPISODES]   (make results; EPISODES per evaluation, default 50)
 set -euo pipefail
 cd "$(dirname "$0")/.."  # relative paths: the tables name runs as results/..., on any machine
 exec 9>results/.lock  # one update at a time (the watcher of scripts/reproduce.sh runs this too)
@@ -15,11 +15,15 @@ paper=results/paper
 episodes=${1:-50}
 [[ $episodes =~ ^[1-9][0-9]*$ ]] || { echo "update-results: EPISODES must be a whole number >= 1, got '$episodes'" >&2; exit 2; }
 scripts/evaluate-runs.sh "$paper" "$episodes"
-"$bin" report "$paper" >/dev/null
+# the tables' seeds 0 … seeds−1: those complete in every setting (while the sweep is extended to more seeds,
+# its tables stay those of the seeds it has everywhere; every seed once it is complete)
+seeds=$(.venv/bin/python -c "import sys; from lanefree_sumo.experiments.sweep.summary import complete_seeds; from pathlib import Path; print(complete_seeds(Path(sys.argv[1])))" "$paper")
+"$bin" sweep --summary "$paper" --seeds "$seeds" >/dev/null
 for eval in eval eval_shield; do
     finished=()  # runs with a model (trained here) or this evaluation (committed): not those still training
     for run in "$paper"/runs/*/; do
         run=${run%/}
+        ((${run##*_s} < seeds)) || continue
         if [ -e "$run/model.zip" ] || [ -d "$run/$eval" ]; then finished+=("$run"); fi
     done
     if ((${#finished[@]})); then

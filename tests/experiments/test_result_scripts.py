@@ -96,6 +96,9 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     assert "| fields_zones_overtake_collision | 1 of 1 |" not in readme  # every planned run: the count alone
     assert "| fields_zones_overtake_collision | 1 | " in readme and " [n/a] (0.449) |" in readme
 
+    # a later seed's evaluated run (a sweep being extended to more seeds): left out of the evaluation tables,
+    # which keep the seeds complete in every setting (here seed 0)
+    shutil.copytree(run, run.with_name(CELL[:-1] + "1"))
     # a second pass evaluates nothing again, but an evaluation stopped part-way (it keeps the episodes it
     # finished) is run again whole
     cut = run / "eval_d120" / "episodes.csv"
@@ -104,6 +107,8 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     evaluations = {p: p.stat().st_mtime_ns for p in run.glob("eval*/episodes.csv") if p != cut}
     again = make_results(root)
     assert again.returncode == 0, again.stdout + again.stderr
+    for folder in ("eval_report", "eval_shield_report"):
+        assert [r["n_seeds"] for r in csv.DictReader(open(paper / folder / "summary.csv"))] == ["1"], folder
     assert {p: p.stat().st_mtime_ns for p in evaluations} == evaluations and len(evaluations) == 4
     assert rows(cut) == EPISODES
 

@@ -48,7 +48,7 @@ from lanefree_sumo.experiments.sweep.grid import (
 )
 from lanefree_sumo.experiments.sweep.manifest import Manifest, SweepDir, check_same_grid, read_manifest, write_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, DAMAGED, PARTIAL, PENDING, STALE, inspect_run
-from lanefree_sumo.experiments.sweep.summary import COLUMNS, RUN_COLUMNS, bootstrap_ci, summarize
+from lanefree_sumo.experiments.sweep.summary import COLUMNS, RUN_COLUMNS, bootstrap_ci, complete_seeds, summarize
 
 from conftest import CLI_ENV, ROOT, fenced_rows, lanefree, lanefree_popen
 
@@ -122,14 +122,14 @@ def test_builtin_grids_are_the_papers_tables():
 
 
 def test_builtin_grids_are_the_package_grid_files_and_the_paper_grid_is_its_manifest():
-    """The names are the files of the package's grids folder, each with what it is; the paper grid at 3 seeds is
-    the grid of the committed 45-run sweep (so that sweep resumes or extends under today's built-in)."""
+    """The names are the files of the package's grids folder, each with what it is; the paper grid is the grid of
+    the committed sweep, being extended from 3 seeds to the paper's 10 (so it resumes under today's built-in)."""
     assert BUILTIN_GRIDS == ("paper", "table5", "table6", "table7", "table8", "varobs")
     assert sorted(p.stem for p in GRIDS_DIR.glob("*.yaml")) == list(BUILTIN_GRIDS)
     descriptions = builtin_descriptions()
     assert "Tables 5-8" in descriptions["paper"] and "set encoder" in descriptions["varobs"]
     committed = read_manifest(ROOT / "results" / "paper").grid
-    assert builtin_grid("paper").with_budget(seeds=3).to_dict() == committed.to_dict()
+    assert builtin_grid("paper").to_dict() == committed.to_dict()
 
 
 def test_the_varobs_grid_sets_the_set_encoder_against_the_vector_at_the_papers_seeds():
@@ -888,6 +888,32 @@ def test_variants_are_settings_of_their_own_with_their_own_runs_and_rows(tmp_pat
     effects = (tmp_path / "effects.md").read_text()  # each variant against default, per cell: 2 runs a side
     assert "| cap25 | 2, 2 | too few runs |" in effects and "| keras | 2, 2 | too few runs |" in effects
     assert {r["variant"] for r in csv.DictReader(open(tmp_path / "effects.csv"))} == {"cap25", "keras"}
+
+
+def test_summary_of_the_first_seeds_of_an_extended_sweep(tmp_path, capsys):
+    """``--summary DIR --seeds N``: a sweep extended to more seeds keeps the tables of its seeds 0 … N−1 (the
+    later seeds' runs are left out, the budget reads N seeds); N above the sweep's seeds is a one-line error;
+    ``complete_seeds`` counts the first seeds complete in every setting."""
+    grid = parse_grid({"reward_presets": ["collision", "fields_collision"], "n_seeds": 4, "episodes": 3},
+                      "grid", "grid.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    sweep = SweepDir(tmp_path)
+    for cell in grid.cells():
+        fake_run(sweep.run(cell), grid, cell, 3, collisions=float(cell.seed))
+    assert list(summarize(tmp_path).table["collisions_mean"]) == [1.5, 1.5]  # seeds 0–3
+    assert main(["sweep", "--summary", str(tmp_path), "--seeds", "2"]) == 0
+    table = list(csv.DictReader(open(tmp_path / "summary.csv")))
+    assert [(r["n_runs"], float(r["collisions_mean"])) for r in table] == [("2", 0.5), ("2", 0.5)]
+    assert "2 seed(s) per setting instead of the paper's 10" in (tmp_path / "summary.md").read_text()
+    assert len(list(csv.DictReader(open(tmp_path / "runs.csv")))) == 4
+    assert read_manifest(tmp_path).grid.seeds == (0, 1, 2, 3)  # the sweep itself is unchanged
+    assert complete_seeds(tmp_path) == 4
+    shutil.rmtree(sweep.run(grid.cells()[5]))  # seed 2 of the second setting not trained yet
+    assert complete_seeds(tmp_path) == 2
+    capsys.readouterr()
+    assert main(["sweep", "--summary", str(tmp_path), "--seeds", "5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--seeds 5 asks for seeds 0 … 4 (give N ≤ 4)" in err
 
 
 def test_a_grid_that_compares_a_variant_writes_its_verdict_over_every_source(tmp_path):

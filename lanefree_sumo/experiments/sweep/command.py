@@ -70,7 +70,8 @@ OPTIONS: tuple[Option, ...] = (
            note="(re)write DIR/summary.csv, summary.md and curves/ from the complete runs and exit"),
     Option("--seeds", type=argtypes.positive(int, "seeds"), extra={"metavar": "N"},
            note="seeds 0 … N−1 instead of the grid's (a reduced budget is recorded and reported); with --resume "
-           "DIR, add seeds to DIR's sweep until it has N per setting (its runs are kept)"),
+           "DIR, add seeds to DIR's sweep until it has N per setting (its runs are kept); with --summary DIR, "
+           "summarise seeds 0 … N−1 only"),
     Option("--episodes", "train.episodes", unit="episodes", default=None, extra={"metavar": "N"},
            note="for every run of GRID instead of the grid's (paper: 625)"),
     Option("--episode-steps", "sim.episode_steps", unit="steps", default=None, extra={"metavar": "N"},
@@ -138,7 +139,7 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
                 if o in given]
     if modes:
         mode = modes[0]
-        extra = [o for o in budget if not (mode == "resume" and o == "--seeds")]
+        extra = [o for o in budget if not (mode in ("resume", "summary") and o == "--seeds")]
         if args.out is not None or extra:
             bad = "--out" if args.out is not None else extra[0]
             raise UsageError(f"lanefree sweep: {bad} goes with GRID, not with --{mode} (the grid is in DIR/sweep.yaml)")
@@ -170,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
     if mode == "summary":
         from lanefree_sumo.experiments.sweep.summary import summarize
 
-        result = summarize(folder)
+        result = summarize(folder, seeds=args.seeds)
         print(f"{len(result.table)} setting(s), {len(result.incomplete)} run(s) not complete -> "
               f"{folder / 'summary.md'}")
         print(SweepDir(folder).summary_md.read_text())

@@ -49,7 +49,7 @@ import numpy as np
 import pandas as pd
 
 from lanefree_sumo.config import ReportConfig
-from lanefree_sumo.errors import ReportError
+from lanefree_sumo.errors import ReportError, UsageError
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.comparison import Sides, setting_label, verdict_markdown
@@ -61,7 +61,7 @@ from lanefree_sumo.experiments.rundir import EPISODES, RunDir, write_atomic
 from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
 from lanefree_sumo.experiments.sweep.grid import DEFAULT_VARIANT, Cell, Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import EFFECTS_CSV, EFFECTS_MD, SweepDir, read_manifest
-from lanefree_sumo.experiments.sweep.state import COMPLETE, episode_numbers, inspect_run
+from lanefree_sumo.experiments.sweep.state import COMPLETE, RunInfo, episode_numbers, inspect_run
 
 METRICS = ("collisions", "speed_dev_mps", "speed_dev_episode_mps", "speed_error_mps")
 """Per setting, with CIs: collisions per episode; the speed deviation read per step (the mean of |vx − v_d|,
@@ -306,22 +306,49 @@ def verdict_page(grid: Grid, groups: dict[Any, list[RunData]], variant: str) -> 
                             variant, DEFAULT_VARIANT, "setting")
 
 
-def summarize(folder: Path, last: int | None = None, smooth: int | None = None) -> SweepSummary:
+def _complete(info: RunInfo, path: Path, episodes: int) -> bool:
+    """Whether the run in ``path`` counts in a summary: complete, or every episode of the budget on file (a
+    copy of the results without models)."""
+    return info.state == COMPLETE or episode_numbers(RunDir(path).episodes) == list(range(1, episodes + 1))
+
+
+def complete_seeds(folder: Path) -> int:
+    """How many of sweep folder ``folder``'s first seeds (0, 1, …) have a complete run in every setting: the N of
+    ``lanefree sweep --summary DIR --seeds N`` whose tables have every run, while a sweep is extended."""
+    sweep = SweepDir(folder)
+    grid = read_manifest(folder).grid
+    count = 0
+    while count in grid.seeds and all(_complete(inspect_run(sweep.run(cell), grid.episodes), sweep.run(cell),
+                                                grid.episodes)
+                                      for cell in (Cell(setting, count) for setting in grid.settings)):
+        count += 1
+    return count
+
+
+def summarize(folder: Path, last: int | None = None, smooth: int | None = None,
+              seeds: int | None = None) -> SweepSummary:
     """Write ``summary.csv``, ``runs.csv``, ``summary.md``, ``curves/`` and (when a claim compares two of
     the grid's settings) ``claims.csv``/``claims.md`` of sweep folder ``folder`` from its complete runs
-    (any time: during, after or without a driver)."""
+    (any time: during, after or without a driver); with ``seeds``, of seeds 0 … ``seeds`` − 1 only, as if the
+    grid had those (a sweep extended to more seeds keeps the tables of its first ones). UsageError for a
+    ``seeds`` above the grid's."""
     defaults = ReportConfig()
     last = defaults.last_episodes if last is None else last
     smooth = defaults.smooth_episodes if smooth is None else smooth
     sweep = SweepDir(folder)
     grid = read_manifest(folder).grid
+    if seeds is not None:
+        if not set(range(seeds)) <= set(grid.seeds):
+            raise UsageError(f"{folder} has seeds {', '.join(map(str, grid.seeds))} per setting; --seeds {seeds} "
+                             f"asks for seeds 0 … {seeds - 1} (give N ≤ {len(grid.seeds)})")
+        grid = grid.with_budget(seeds=seeds)
     runs: list[tuple[Cell, RunData]] = []
     incomplete: list[tuple[str, str]] = []
     notes: list[str] = []
     for cell in grid.cells():
         path = sweep.run(cell)
         info = inspect_run(path, grid.episodes)
-        if info.state != COMPLETE and episode_numbers(RunDir(path).episodes) != list(range(1, grid.episodes + 1)):
+        if not _complete(info, path, grid.episodes):
             incomplete.append((cell.name, f"{info.state}, {info.episodes}/{grid.episodes} episodes"))
             continue
         try:
