@@ -16,9 +16,15 @@ episodes=${1:-50}
 [[ $episodes =~ ^[1-9][0-9]*$ ]] || { echo "update-results: EPISODES must be a whole number >= 1, got '$episodes'" >&2; exit 2; }
 scripts/evaluate-runs.sh "$paper" "$episodes"
 # the tables' seeds 0 … seeds−1: those complete in every setting (while the sweep is extended to more seeds,
-# its tables stay those of the seeds it has everywhere; every seed once it is complete)
+# its tables stay those of the seeds it has everywhere; every seed once it is complete); before any seed is
+# complete everywhere, every complete run
 seeds=$(.venv/bin/python -c "import sys; from lanefree_sumo.experiments.sweep.summary import complete_seeds; from pathlib import Path; print(complete_seeds(Path(sys.argv[1])))" "$paper")
-"$bin" sweep --summary "$paper" --seeds "$seeds" >/dev/null
+if ((seeds > 0)); then
+    "$bin" sweep --summary "$paper" --seeds "$seeds" >/dev/null
+else
+    "$bin" report "$paper" >/dev/null
+    seeds=$((1 << 31))  # SUMO's seeds are below 2³¹
+fi
 for eval in eval eval_shield; do
     finished=()  # runs with a model (trained here) or this evaluation (committed): not those still training
     for run in "$paper"/runs/*/; do
