@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from lanefree_sumo import argtypes
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import UsageError
 from lanefree_sumo.options import Option, add_options
@@ -27,6 +28,11 @@ OPTIONS: tuple[Option, ...] = (
            note="also write verdict.md: each way the runs differ from the defaults (their variant) against the "
            "default runs of the same setting, over training episodes 1-12, all, the last 50 and every evaluation "
            "the runs have: difference with a bootstrap CI, rank test and verdict (run folders only, without --eval)"),
+    Option("--first", type=argtypes.positive(int, "episodes"), default=None, extra={"metavar": "N"},
+           note="read every run over its first N training episodes only, e.g. 150-episode runs against the first "
+           "150 of 625-episode ones: longer runs are cut there, shorter ones skipped, and the planned number of "
+           "episodes no longer separates variants (run folders only, without --eval; --compare then reads no "
+           "evaluation)"),
 )
 
 
@@ -65,11 +71,16 @@ def run(args: argparse.Namespace) -> int:
     if args.compare and (sweeps or args.eval is not None):
         raise UsageError("--compare reads run folders' training episodes and every evaluation they have: "
                          + ("a sweep writes its own verdict.md (a grid's `compare`)" if sweeps else "drop --eval"))
+    if args.first is not None and (sweeps or args.eval is not None):
+        raise UsageError("--first cuts run folders' training episodes: "
+                         + ("a sweep's summary reads its runs whole" if sweeps else
+                            "evaluations are of the final models, drop --eval"))
     if len(sweeps) > 1:
         return _report_study(args, sweeps)
     if sweeps:
         return _report_sweep(args, sweeps)
-    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources, compare=args.compare)
+    result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources, compare=args.compare,
+                    first=args.first)
     for path, reason in result.skipped:
         print(f"skipped {path}: {reason}", file=sys.stderr)
     for note in result.notes:

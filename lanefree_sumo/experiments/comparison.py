@@ -89,23 +89,26 @@ def _mean_text(values: list[float]) -> str:
     return f"{sum(values) / len(values):.2f}" if values else "–"
 
 
-def readable(runs: Sequence[Path], source: str) -> list[RunData]:
+def readable(runs: Sequence[Path], source: str, first: int | None = None) -> list[RunData]:
     """The runs that have ``source`` (``""``: training; an evaluation a machine without the model could not run
-    is absent)."""
+    is absent); ``first``: training episodes 1 … ``first`` only, as :func:`~.rundata.read_run`."""
     out = []
     for run in runs:
         try:
-            out.append(read_run(run, source))
+            out.append(read_run(run, source, first))
         except UnusableRunError:
             continue
     return out
 
 
-def sources(comparisons: Sequence[Sides], episodes: int) -> list[tuple[str, str, tuple[int, int] | None]]:
-    """The training windows (``episodes``: the planned episodes per run) and every evaluation of
-    :data:`EVALUATIONS` that some run of ``comparisons`` has."""
+def sources(comparisons: Sequence[Sides], episodes: int,
+            evaluations: bool = True) -> list[tuple[str, str, tuple[int, int] | None]]:
+    """The training windows (``episodes``: the planned episodes per run) and, with ``evaluations``, every
+    evaluation of :data:`EVALUATIONS` that some run of ``comparisons`` has."""
     out = [(folder, label.format(episodes=episodes), (1, episodes) if window == (1, 0) else window)
            for folder, label, window in TRAINING_SOURCES]
+    if not evaluations:
+        return out
     runs = [run for sides in comparisons for run in (*sides.variant, *sides.baseline)]
     for folder, label in EVALUATIONS:
         if any((run / folder / "episodes.csv").is_file() for run in runs):
@@ -113,14 +116,18 @@ def sources(comparisons: Sequence[Sides], episodes: int) -> list[tuple[str, str,
     return out
 
 
-def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set") -> list[list[str]]:
+def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set",
+         first: int | None = None) -> list[list[str]]:
     """One table row per comparison, source and metric: label, source, metric, runs a side, each side's mean,
-    the difference with its CI, the rank test and the verdict (``variant`` names the variant in it)."""
+    the difference with its CI, the rank test and the verdict (``variant`` names the variant in it).
+    ``first``: every run read over its training episodes 1 … ``first`` only (``episodes`` is then ``first``), and
+    no evaluation (they are of the final models)."""
     out = []
-    every = sources(comparisons, episodes)
+    every = sources(comparisons, episodes, evaluations=first is None)
     for sides in comparisons:
         for source, label, window in every:
-            data = {"variant": readable(sides.variant, source), "baseline": readable(sides.baseline, source)}
+            data = {"variant": readable(sides.variant, source, first if not source else None),
+                    "baseline": readable(sides.baseline, source, first if not source else None)}
             for column, name, better in METRICS:
                 a = per_run(data["variant"], column, LAST, window)
                 b = per_run(data["baseline"], column, LAST, window)
@@ -135,11 +142,14 @@ def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set") -> l
 
 
 def verdict_markdown(comparisons: Sequence[Sides], episodes: int, title: str, setting: str,
-                     written_by: str, variant: str = "set", baseline: str = "vector", label: str = "algorithm") -> str:
+                     written_by: str, variant: str = "set", baseline: str = "vector", label: str = "algorithm",
+                     first: int | None = None) -> str:
     """The page: how to read it, then the table (``setting``: what every run trained on, a sentence's start;
-    ``label``: the heading of the comparisons' column)."""
+    ``label``: the heading of the comparisons' column; ``first``: as :func:`rows`)."""
+    cut = (f"; every run read over its first {first} training episodes only (longer runs cut there; no "
+           "evaluation, those are of the final models)") if first is not None else ""
     lines = [f"# {title}", "",
-             f"{setting}; per-run means over the last 50 episodes of "
+             f"{setting}{cut}; per-run means over the last 50 episodes of "
              "each source (training also over its first 12 episodes, about the 10 000 steps over which Liu et al. "
              f"compare training rewards, and over all {episodes}), then {variant} − {baseline} with a 95 % "
              "percentile-bootstrap CI over runs and the two-sided rank test (pairs of runs with "
@@ -153,5 +163,5 @@ def verdict_markdown(comparisons: Sequence[Sides], episodes: int, title: str, se
              f"{written_by} from the run folders.", ""]
     lines += markdown.table([label, "source", "metric", f"n ({variant}, {baseline})", variant, baseline,
                              f"{variant} − {baseline} [95 % CI]", f"rank: {variant} > {baseline}, p", "verdict"],
-                            rows(comparisons, episodes, variant))
+                            rows(comparisons, episodes, variant, first))
     return "\n".join(lines) + "\n"

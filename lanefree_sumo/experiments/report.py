@@ -223,8 +223,10 @@ def _check_writable(folder: Path) -> None:
         raise ReportError(str(exc)) from None
 
 
-def _read_usable(runs: Sequence[Path], source: str) -> tuple[list[RunData], list[tuple[Path, str]], list[str]]:
-    """(usable runs, skipped runs with the reason, notes) of the folders given, each read once."""
+def _read_usable(runs: Sequence[Path], source: str,
+                 first: int | None = None) -> tuple[list[RunData], list[tuple[Path, str]], list[str]]:
+    """(usable runs, skipped runs with the reason, notes) of the folders given, each read once (``first``: as
+    :func:`~.rundata.read_run`)."""
     usable: list[RunData] = []
     skipped: list[tuple[Path, str]] = []
     notes: list[str] = []
@@ -237,9 +239,12 @@ def _read_usable(runs: Sequence[Path], source: str) -> tuple[list[RunData], list
             continue
         seen.add(resolved)
         try:
-            usable.append(read_run(run, source))
+            usable.append(read_run(run, source, first))
         except UnusableRunError as exc:
             skipped.append((run, _one_line(str(exc))))
+    if first is not None:
+        notes.append(f"every run read over its first {first} training episodes only (--first): longer runs are cut "
+                     "there, and the planned number of episodes does not separate variants")
     return usable, skipped, notes
 
 
@@ -289,7 +294,7 @@ def _write_report(out: Path, files: dict[str, Any]) -> list[Path]:
 
 
 def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
-           source: str | Sequence[str] = "", compare: bool = False) -> ReportResult:
+           source: str | Sequence[str] = "", compare: bool = False, first: int | None = None) -> ReportResult:
     """Learning curves and the last-``last``-episode summary table of training runs.
 
     ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
@@ -305,10 +310,19 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     ``compare``: also ``verdict.md`` (training episodes only): each way the runs differ from the defaults against
     the default runs of the same setting, over training windows and every evaluation the runs have
     (:func:`~lanefree_sumo.experiments.comparison.verdict_markdown`).
+    ``first``: read every run over its training episodes 1 … ``first`` only (runs of different lengths compared
+    over the same episodes; a run with fewer is skipped), the planned number of episodes then not part of a
+    run's variant; not with evaluations.
 
-    Raises :class:`ReportError` when ``last`` or ``smooth`` < 1, when no usable run remains, when
+    Raises :class:`ReportError` when ``last``, ``smooth`` or ``first`` < 1, when ``first`` is given with
+    evaluations, when no usable run remains, when
     ``compare`` finds no variant with default runs of its setting, or when ``out`` cannot be written.
     """
+    if first is not None:
+        if isinstance(first, bool) or not isinstance(first, int) or first < 1:
+            raise ReportError(f"first must be a whole number of episodes ≥ 1, got {first!r}")
+        if source:
+            raise ReportError("first cuts the training episodes; evaluations are of the final models: drop one")
     if not isinstance(source, str):
         if len(source) != 1:
             return evaluations_report(runs, out, source, last)
@@ -318,7 +332,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
         raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
     out = Path(out)
-    usable, skipped, notes = _read_usable(runs, source)
+    usable, skipped, notes = _read_usable(runs, source, first)
     if not usable:
         raise _no_usable_run(skipped)
 
@@ -331,12 +345,13 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
     if compare:
-        files["verdict.md"] = _verdict_page(groups)
+        files["verdict.md"] = _verdict_page(groups, first)
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
 
 
-def _verdict_page(groups: dict[RunKey, list[RunData]]) -> str:
-    """``verdict.md`` of ``report(..., compare=True)``: one table per variant against the defaults."""
+def _verdict_page(groups: dict[RunKey, list[RunData]], first: int | None = None) -> str:
+    """``verdict.md`` of ``report(..., compare=True)``: one table per variant against the defaults (``first``: as
+    :func:`report`)."""
     pages = against_defaults(groups)
     if not pages:
         kinds = "; ".join(sorted({variant or "the defaults" for (*_, variant) in groups}))
@@ -345,7 +360,7 @@ def _verdict_page(groups: dict[RunKey, list[RunData]]) -> str:
     episodes = max(int(run.episodes.index.max()) for runs in groups.values() for run in runs)
     return "\n".join(verdict_markdown(sides, episodes, f"{variant} against the defaults: every source",
                                       "The runs given, by setting", "`lanefree report --compare`",
-                                      "variant", "default", "setting") for variant, sides in pages.items())
+                                      "variant", "default", "setting", first) for variant, sides in pages.items())
 
 
 def evaluations_report(runs: Sequence[Path], out: Path, sources: Sequence[str], last: int = 50) -> ReportResult:

@@ -70,16 +70,18 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
-def variant_of(cfg: LaneFreeConfig) -> str:
+def variant_of(cfg: LaneFreeConfig, planned: bool = True) -> str:
     """``key=value, …`` of the settings where ``cfg`` differs from the defaults (beyond
     :data:`NOT_VARIANT` and the hyperparameters the run never read,
-    :func:`~lanefree_sumo.rl.algorithms.unused_config`); ``""`` for a default run."""
-    ignore = NOT_VARIANT + unused_config(cfg.train.algo)
+    :func:`~lanefree_sumo.rl.algorithms.unused_config`); ``""`` for a default run. ``planned=False`` leaves out
+    ``train.episodes`` (runs read over the same first episodes, whatever their length)."""
+    ignore = NOT_VARIANT + unused_config(cfg.train.algo) + (() if planned else ("train.episodes",))
     return ", ".join(f"{k}={v}" for k, v in config_differences(cfg, _DEFAULT_CONFIG, ignore).items())
 
 
-def read_run_config(run: Path) -> tuple[str, str, float, int, str]:
-    """(algorithm, reward preset, density veh/km, seed, variant) from ``run/config.yaml``.
+def read_run_config(run: Path, planned: bool = True) -> tuple[str, str, float, int, str]:
+    """(algorithm, reward preset, density veh/km, seed, variant) from ``run/config.yaml`` (``planned``: as
+    :func:`variant_of`).
 
     Raises ``UnusableRunError`` with the reason when the file is missing or malformed.
     """
@@ -88,7 +90,7 @@ def read_run_config(run: Path) -> tuple[str, str, float, int, str]:
     except RunError as exc:
         raise UnusableRunError(str(exc)) from None
     return (cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed,
-            variant_of(cfg))
+            variant_of(cfg, planned))
 
 
 def read_episodes(path: Path) -> pd.DataFrame:
@@ -170,19 +172,27 @@ def _evaluated_density(path: Path, trained: float) -> float:
     return round(float(values[0]), 6) if len(values) == 1 and math.isfinite(values[0]) else trained
 
 
-def read_run(run: Path, source: str = "") -> RunData:
+def read_run(run: Path, source: str = "", first: int | None = None) -> RunData:
     """Read one run folder — its training ``episodes.csv``, or with ``source`` the one of its
     evaluation folder ``run/<source>/`` (e.g. ``eval``, ``eval_d120_shield``); raises
-    ``UnusableRunError`` with the reason to skip it."""
+    ``UnusableRunError`` with the reason to skip it. ``first``: only the training episodes 1 … ``first``,
+    the planned number of episodes then not part of the variant (a run with fewer episodes is unusable)."""
     if not run.is_dir():
         raise UnusableRunError("not a folder" if run.exists() else "folder does not exist")
-    algo, preset, density, seed, variant = read_run_config(run)
+    algo, preset, density, seed, variant = read_run_config(run, planned=first is None)
     cfg = read_config(run)  # read_run_config read it: it reads again
     desired = cfg.scenario.agent
     v_d = desired.desired_speed_min_mps if desired.desired_speed_min_mps == desired.desired_speed_max_mps else None
     if not source:
-        return RunData(run, algo, preset, density, seed, with_speed_readings(read_episodes(run / EPISODES), v_d),
-                       variant, cfg.road.kind)
+        episodes = read_episodes(run / EPISODES)
+        if first is not None:
+            if episodes.index.max() < first:
+                raise UnusableRunError(f"has {int(episodes.index.max())} episode(s), fewer than the first {first} "
+                                       "asked for")
+            episodes = episodes.loc[:first]
+        return RunData(run, algo, preset, density, seed, with_speed_readings(episodes, v_d), variant, cfg.road.kind)
+    if first is not None:
+        raise ValueError("first applies to the training episodes, not to an evaluation")
     path = run / source / EPISODES
     if not path.is_file():
         raise UnusableRunError(f"no {source}/{EPISODES} (run 'lanefree evaluate' first)")

@@ -218,6 +218,58 @@ def test_report_compare_decides_set_against_vector_from_the_run_folders(tmp_path
     assert not (tmp_path / "none").exists()
 
 
+def shortened(run: Path, to: Path, episodes: int) -> None:
+    """A copy of ``run``'s config and training episodes as if it had been planned for ``episodes`` and stopped
+    there (its first ``episodes`` rows, ``train.episodes`` set to that)."""
+    to.mkdir(parents=True)
+    config = (run / "config.yaml").read_text()
+    assert config.count("  episodes: 625\n") == 1
+    (to / "config.yaml").write_text(config.replace("  episodes: 625\n", f"  episodes: {episodes}\n"))
+    lines = (run / "episodes.csv").read_text().splitlines(keepends=True)
+    (to / "episodes.csv").write_text("".join(lines[:episodes + 1]))
+
+
+def test_report_first_compares_runs_of_different_lengths_over_their_first_episodes(tmp_path):
+    """``first`` reads every run over its first N training episodes: 150-episode set runs and the first 150 of a
+    625-episode set run form one variant against the vector runs cut at 150 (each side's last 50 are episodes
+    101-150, its "all" window 1-150), no evaluation is compared, a shorter run is skipped with the reason; without
+    it, the planned length separates the 150-episode runs into their own variant. Bad values are refused in one
+    line."""
+    committed = ROOT / "results"
+    vector = [committed / "paper" / "runs" / f"ddpg_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
+    whole = sorted((committed / "varobs" / "set" / "runs").glob("*"))
+    short = [tmp_path / f"short_{k}" for k in range(3)]
+    for run, to in zip(whole, short):
+        shortened(run, to, 150)
+    too_short = tmp_path / "too_short"
+    shortened(whole[0], too_short, 100)
+    made = report([*vector, *short, whole[1], too_short], tmp_path / "out", compare=True, first=150)
+    assert made.skipped == [(too_short, "has 100 episode(s), fewer than the first 150 asked for")]
+    assert any("first 150 training episodes" in note for note in made.notes)
+    assert sorted(made.table["variant"]) == ["", "observation.kind=set, observation.encoder=paper"]
+    label = "ddpg / fields_zones_overtake_collision / d70"
+    text = (tmp_path / "out" / "verdict.md").read_text()
+    table = {tuple(cells[1:4]): cells[4:] for line in text.splitlines()
+             if line.startswith("| ") for cells in [[c.strip() for c in line.strip("|").split("|")]]
+             if cells[0] == label}
+    assert {source for source, *_ in table} == {"training, episodes 1–12 (Liu et al.'s 10 000 steps)",
+                                                "training, all 150 episodes", "training, last 50 episodes"}
+    sets = [*short, whole[1]]
+    last = table[("training, last 50 episodes", "return", "4, 3")]
+    mean = [sum(pd.read_csv(run / "episodes.csv")["return"].iloc[100:150].mean() for run in side) / len(side)
+            for side in (sets, vector)]
+    assert last[:2] == [f"{mean[0]:.2f}", f"{mean[1]:.2f}"]
+    every = table[("training, all 150 episodes", "return", "4, 3")]
+    assert every[1] == f"{sum(pd.read_csv(r / 'episodes.csv')['return'].iloc[:150].mean() for r in vector) / 3:.2f}"
+    plain = report([*vector, *short, whole[1]], tmp_path / "plain")
+    assert "observation.kind=set, observation.encoder=paper, train.episodes=150" in set(plain.table["variant"])
+    for bad, words in ((["--first", "0"], "expected a positive number of episodes"),
+                       (["--first", "150", "--eval", "eval"], "drop --eval")):
+        refused = lanefree("report", *map(str, vector), "--out", str(tmp_path / "none"), *bad)
+        assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and words in refused.stderr
+        assert not (tmp_path / "none").exists()
+
+
 def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):
     refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "collisions_vs_overtakes.py"), str(tmp_path)],
                              capture_output=True, text=True, timeout=120)
