@@ -23,13 +23,12 @@ if ((seeds > 0)); then
     "$bin" sweep --summary "$paper" --seeds "$seeds" >/dev/null
 else
     "$bin" report "$paper" >/dev/null
-    seeds=$((1 << 31))  # SUMO's seeds are below 2³¹
 fi
 for eval in eval eval_shield; do
     finished=()  # runs with a model (trained here) or this evaluation (committed): not those still training
     for run in "$paper"/runs/*/; do
         run=${run%/}
-        ((${run##*_s} < seeds)) || continue
+        ((seeds == 0 || ${run##*_s} < seeds)) || continue
         if [ -e "$run/model.zip" ] || [ -d "$run/$eval" ]; then finished+=("$run"); fi
     done
     if ((${#finished[@]})); then

@@ -279,10 +279,6 @@ def _checkpoint_roundtrip(make: Callable[[], BatchedLearner], discrete: bool, pa
     assert np.array_equal(second.act(obs, explore=True), resumed.act(obs, explore=True))
 
 
-def test_ddpg_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
-    _checkpoint_roundtrip(lambda: _batched_ddpg(learning_starts=50, total=200), False, tmp_path / "batch.pt")
-
-
 # -- TD3 ------------------------------------------------------------------------------------------------
 
 def _td3(k: int) -> TD3:
@@ -330,10 +326,6 @@ def test_td3_act_store_update_equals_sb3s_learn() -> None:
         single = _td3(k)
         single.learn(total_timesteps=steps)
         _assert_same(single, batched, k)
-
-
-def test_td3_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
-    _checkpoint_roundtrip(lambda: _batched_td3(total=200, learning_starts=50), False, tmp_path / "batch.pt")
 
 
 # -- the DQN family ---------------------------------------------------------------------------------------
@@ -409,8 +401,12 @@ def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_
         assert model.learning_rate == LR[k] and model.gamma == GAMMA[k] and model._n_updates == 30
 
 
-def test_dqn_batch_checkpoint_resumes_exactly(tmp_path: Path) -> None:
-    _checkpoint_roundtrip(lambda: _batched_dqn("per", total=200, learning_starts=50), True, tmp_path / "batch.pt")
+@pytest.mark.parametrize("algo", ["ddpg", "td3", "per"])
+def test_a_batch_checkpoint_resumes_exactly(algo: str, tmp_path: Path) -> None:
+    make = {"ddpg": lambda: _batched_ddpg(learning_starts=50, total=200),
+            "td3": lambda: _batched_td3(total=200, learning_starts=50),
+            "per": lambda: _batched_dqn("per", total=200, learning_starts=50)}[algo]
+    _checkpoint_roundtrip(make, algo == "per", tmp_path / "batch.pt")
 
 
 # -- from the runs' configs -------------------------------------------------------------------------------
