@@ -126,8 +126,8 @@ def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set",
     every = sources(comparisons, episodes, evaluations=first is None)
     for sides in comparisons:
         for source, label, window in every:
-            data = {"variant": readable(sides.variant, source, first if not source else None),
-                    "baseline": readable(sides.baseline, source, first if not source else None)}
+            data = {"variant": readable(sides.variant, source, first),
+                    "baseline": readable(sides.baseline, source, first)}
             for column, name, better in METRICS:
                 a = per_run(data["variant"], column, LAST, window)
                 b = per_run(data["baseline"], column, LAST, window)
