@@ -158,6 +158,21 @@ def test_the_varobs_verdict_page_is_what_the_run_folders_make(tmp_path):
     assert text.startswith("# observation.kind=set, observation.encoder=paper against the defaults")
 
 
+def test_the_remedy_report_is_what_the_run_folders_make(tmp_path):
+    """results/varobs_remedies/report150/ is `lanefree report … --first 150 --compare` of the vector DDPG runs (seeds
+    0-2), the set runs and the pre-tanh penalty's 150-episode runs: both variants against the vector runs over the
+    same 150 episodes."""
+    committed = ROOT / "results"
+    runs = [committed / "paper" / "runs" / f"ddpg_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
+    runs += sorted((committed / "varobs" / "set" / "runs").glob("*"))
+    runs += sorted((committed / "varobs_remedies" / "pretanh150" / "runs").glob("*"))
+    made = report(runs, tmp_path / "report150", compare=True, first=150)
+    assert not made.skipped and len(made.table) == 3
+    for name in ("verdict.md", "summary.md"):
+        assert (committed / "varobs_remedies" / "report150" / name).read_text() == \
+            (tmp_path / "report150" / name).read_text()
+
+
 def copy_run(run: Path, to: Path) -> None:
     """A run folder's committed files: config, training episodes and every evaluation's episodes."""
     to.mkdir(parents=True)
