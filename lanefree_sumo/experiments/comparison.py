@@ -125,9 +125,12 @@ def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set",
     out = []
     every = sources(comparisons, episodes, evaluations=first is None)
     for sides in comparisons:
+        read: dict[str, dict[str, list[RunData]]] = {}  # source -> side -> runs: each source read once
         for source, label, window in every:
-            data = {"variant": readable(sides.variant, source, first),
-                    "baseline": readable(sides.baseline, source, first)}
+            if source not in read:
+                read[source] = {"variant": readable(sides.variant, source, first),
+                                "baseline": readable(sides.baseline, source, first)}
+            data = read[source]
             for column, name, better in METRICS:
                 a = per_run(data["variant"], column, LAST, window)
                 b = per_run(data["baseline"], column, LAST, window)

@@ -79,18 +79,12 @@ def variant_of(cfg: LaneFreeConfig, planned: bool = True) -> str:
     return ", ".join(f"{k}={v}" for k, v in config_differences(cfg, _DEFAULT_CONFIG, ignore).items())
 
 
-def read_run_config(run: Path, planned: bool = True) -> tuple[str, str, float, int, str]:
-    """(algorithm, reward preset, density veh/km, seed, variant) from ``run/config.yaml`` (``planned``: as
-    :func:`variant_of`).
-
-    Raises ``UnusableRunError`` with the reason when the file is missing or malformed.
-    """
+def _run_config(run: Path) -> LaneFreeConfig:
+    """``run/config.yaml``; raises ``UnusableRunError`` with the reason when it is missing or malformed."""
     try:
-        cfg = read_config(run)
+        return read_config(run)
     except RunError as exc:
         raise UnusableRunError(str(exc)) from None
-    return (cfg.train.algo, cfg.reward.preset, round(float(cfg.scenario.density_veh_per_km), 6), cfg.seed,
-            variant_of(cfg, planned))
 
 
 def read_episodes(path: Path) -> pd.DataFrame:
@@ -179,8 +173,10 @@ def read_run(run: Path, source: str = "", first: int | None = None) -> RunData:
     the planned number of episodes then not part of the variant (a run with fewer episodes is unusable)."""
     if not run.is_dir():
         raise UnusableRunError("not a folder" if run.exists() else "folder does not exist")
-    algo, preset, density, seed, variant = read_run_config(run, planned=first is None)
-    cfg = read_config(run)  # read_run_config read it: it reads again
+    cfg = _run_config(run)
+    algo, preset, seed = cfg.train.algo, cfg.reward.preset, cfg.seed
+    density = round(float(cfg.scenario.density_veh_per_km), 6)
+    variant = variant_of(cfg, planned=first is None)
     desired = cfg.scenario.agent
     v_d = desired.desired_speed_min_mps if desired.desired_speed_min_mps == desired.desired_speed_max_mps else None
     if not source:
