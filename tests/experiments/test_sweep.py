@@ -425,9 +425,10 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tm
     def time_line() -> str:
         return next(line for line in status_text(tmp_path).splitlines() if line.startswith("time left"))
 
-    def training(cell: Cell) -> None:  # a live heartbeat (this process's): the run is training now
+    def training(cell: Cell, batch: str | None = None) -> None:  # a live heartbeat (this process's): training now
         sweep.heartbeat(cell.name).parent.mkdir(parents=True, exist_ok=True)
-        sweep.heartbeat(cell.name).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+        beat = {"pid": os.getpid(), "host": socket.gethostname(), **({"batch": batch} if batch else {})}
+        sweep.heartbeat(cell.name).write_text(json.dumps(beat))
 
     assert time_line().startswith("time left: unknown until a run completes or has 25 episodes")
     fake_run(sweep.run(ddpg[0]), grid, ddpg[0], 24, model=False, checkpoint=20, wall_s=50.0)
@@ -465,6 +466,15 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tm
     # left: 30 + 60 DDPG episodes at 110 s, 240 DQN ones at 40 s
     assert time_line().startswith("time left: ≈ 5.4 core-hours for 330 episodes")
     assert "ddpg 110.0 (with runs training now), dqn 40.0)" in time_line()
+    # ddpg[3] trains in a batch with ddpg[4] (their heartbeats name one batch): each has half of the 120 s
+    fake_run(sweep.run(ddpg[4]), grid, ddpg[4], 30, model=False, checkpoint=25, wall_s=120.0)
+    for cell in (ddpg[3], ddpg[4]):
+        training(cell, "batch_ddpg_k2_0")
+    # the 3 latest: 60 and 60 training, then 110; left: 30 + 30 DDPG episodes at 60 s, 240 DQN ones at 40 s
+    assert time_line().startswith("time left: ≈ 3.7 core-hours for 300 episodes")
+    assert "ddpg 60.0 (with runs training now), dqn 40.0)" in time_line()
+    training(ddpg[4], "batch_ddpg_k1_1")  # each alone in its batch: 120 s each again
+    assert "ddpg 120.0 (with runs training now)" in time_line()
     for cell in [*dqn[1:], ddpg[3], ddpg[4]]:
         shutil.rmtree(sweep.run(cell), ignore_errors=True)
         fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
@@ -475,26 +485,30 @@ def test_a_runs_pace_is_its_latest_sessions(tmp_path):
     grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 1, "episodes": 100}, "pace", "pace.yaml")
     cell, run = grid.cells()[0], tmp_path / "run"
     fake_run(run, grid, cell, 80, wall_s=50.0)
-    assert _pace_sample(run, running=False) == (None, [50.0] * 80)  # no sessions.jsonl: every episode
+    assert _pace_sample(run) == (None, [50.0] * 80)  # no sessions.jsonl: every episode
     with open(run / "episodes.csv", "a") as fh:  # a damaged row's wall time is left out
         fh.write("81," + ",".join(["x"] * (len(EPISODE_COLUMNS) - 1)) + "\n")
-    assert _pace_sample(run, running=False) == (None, [])  # an unreadable column: no sample
+    assert _pace_sample(run) == (None, [])  # an unreadable column: no sample
     shutil.rmtree(run)
     fake_run(run, grid, cell, 80, wall_s=50.0)
     walls_from(run, 51, 20.0)
     record_session(run, {"episodes_done": 40, "first_episode": 1, "ended": "2026-11-24T10:00:00+00:00"})
     record_session(run, {"episodes_done": 80, "first_episode": 41, "ended": "2026-11-25T10:00:00+00:00"})
-    assert _pace_sample(run, running=False) == ("2026-11-25T10:00:00+00:00", [50.0] * 10 + [20.0] * 30)
+    assert _pace_sample(run) == ("2026-11-25T10:00:00+00:00", [50.0] * 10 + [20.0] * 30)
     with open(run / "sessions.jsonl", "a") as fh:
         fh.write('{"episodes_done": 90, "first_')  # a half-written last line: the one before stands
-    assert _pace_sample(run, running=False)[0] == "2026-11-25T10:00:00+00:00"
+    assert _pace_sample(run)[0] == "2026-11-25T10:00:00+00:00"
     record_session(run, {"episodes_done": 50, "first_episode": 41, "ended": "2026-11-25T11:00:00+00:00"})
     # training now: the episodes after the last recorded session (51-80), all at 20 s
-    assert _pace_sample(run, running=True) == ("2026-11-25T11:00:00+00:00", [20.0] * 30)
+    assert _pace_sample(run, together=1) == ("2026-11-25T11:00:00+00:00", [20.0] * 30)
+    assert _pace_sample(run, together=4)[1] == [5.0] * 30  # batched with 3 other runs on one core: a quarter each
+    record_session(run, {"episodes_done": 80, "first_episode": 51, "ended": "2026-11-25T12:00:00+00:00",
+                         "batch": {"folder": "../../batches/b", "run": 2, "runs": 5}})
+    assert _pace_sample(run)[1] == [4.0] * 30  # a session of a batch of 5: its episodes' wall time shared by 5
     record_session(run, {"episodes_done": 60, "first_episode": 51, "ended": "2026-11-25T12:00:00+00:00"})
-    assert _pace_sample(run, running=True)[1] == [50.0] * 50 + [20.0] * 30  # 20 episodes since: too few, all
+    assert _pace_sample(run, together=1)[1] == [50.0] * 50 + [20.0] * 30  # 20 episodes since: too few, all
     (run / "sessions.jsonl").write_text('["not", "a", "session"]\n{"episodes_done": "many"}\n')
-    assert _pace_sample(run, running=True) == (None, [50.0] * 50 + [20.0] * 30)
+    assert _pace_sample(run, together=1) == (None, [50.0] * 50 + [20.0] * 30)
 
 
 def test_a_setting_in_several_tables_is_drawn_once(tmp_path):

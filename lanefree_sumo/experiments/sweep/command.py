@@ -43,6 +43,7 @@ from lanefree_sumo.experiments.sweep.state import (
     inspect_run,
     open_files,
     overlay,
+    read_heartbeat,
     writers_elsewhere,
 )
 from lanefree_sumo.options import Option, add_options
@@ -298,11 +299,22 @@ PACE_RUNS = 3
 sessions, and the latest runs measure the ones the rest will run on."""
 
 
-def _pace_sample(run: Path, running: bool) -> tuple[str | None, list[float]]:
-    """(when the run's last recorded training session ended, ISO 8601 UTC, or None; the wall times in s of the
-    episodes of its latest session — the one in progress for a running run, else its last recorded one — or
-    of all its episodes when that session has fewer than :data:`PARTIAL_PACE_EPISODES` or none is recorded).
-    A session's episodes measure the machine and code it ran on; a resumed run's earlier ones may not."""
+def _batch_size(session: dict[str, Any]) -> int:
+    """How many runs a recorded training session trained together in one process (1 outside a batch)."""
+    batch = session.get("batch")
+    try:
+        return max(1, int(batch["runs"])) if isinstance(batch, dict) else 1
+    except (KeyError, TypeError, ValueError):
+        return 1
+
+
+def _pace_sample(run: Path, together: int | None = None) -> tuple[str | None, list[float]]:
+    """(when the run's last recorded training session ended, ISO 8601 UTC, or None; the core-seconds of each
+    episode of its latest session — the one in progress when ``together`` is given (the run is training now,
+    batched with ``together`` − 1 others), else its last recorded one — or of all its episodes when that session
+    has fewer than :data:`PARTIAL_PACE_EPISODES` or none is recorded). An episode's core-seconds are its wall
+    time shared among the runs trained with it on one core (a batch's, ``sessions.jsonl``). A session's
+    episodes measure the machine and code it ran on; a resumed run's earlier ones may not."""
     import numpy as np
     import pandas as pd
 
@@ -315,20 +327,22 @@ def _pace_sample(run: Path, running: bool) -> tuple[str | None, list[float]]:
     except (OSError, ValueError):
         return ended, []
     try:
-        first = int(last["episodes_done"]) + 1 if running else int(last["first_episode"])
+        first = int(last["episodes_done"]) + 1 if together is not None else int(last["first_episode"])
     except (KeyError, TypeError, ValueError):
         first = 1
     valid = np.isfinite(wall) & (wall > 0)
     sample = wall[valid & (episode >= first)]
     if sample.size < PARTIAL_PACE_EPISODES:
         sample = wall[valid]
-    return ended, [float(x) for x in sample]
+    share = together if together is not None else _batch_size(last)
+    return ended, [float(x) / share for x in sample]
 
 
 def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> str:
     """One line: the core-hours the unfinished runs still need, at each algorithm's pace: the median over its
-    :data:`PACE_RUNS` most recent runs of each run's median episode wall time in its latest session
-    (:func:`_pace_sample`). Most recent: the runs training now, then the others by the end of their last
+    :data:`PACE_RUNS` most recent runs of each run's median episode core-seconds in its latest session
+    (:func:`_pace_sample`; a batch's wall time shared among its runs, the runs training now counted by the
+    batch their heartbeats name). Most recent: the runs training now, then the others by the end of their last
     training session (``sessions.jsonl``; runs without one count as the oldest). A run counts once complete, or
     with :data:`PARTIAL_PACE_EPISODES` episodes. An algorithm without such a run is assumed to go at the median
     of the others' paces; the line says which. ``runs``: name -> (state, episodes)."""
@@ -337,6 +351,8 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
     measured: dict[str, list[tuple[tuple[int, str], float]]] = {}  # algo -> [(recency, the run's pace)]
     training: set[str] = set()
     left: dict[str, int] = {}
+    beats = {cell.name: read_heartbeat(sweep, cell.name).get("batch") for cell in grid.cells()
+             if runs[cell.name][0] == RUNNING}
     for cell in grid.cells():
         state, episodes = runs[cell.name]
         algo = cell.setting.algorithm
@@ -344,7 +360,11 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
             left[algo] = left.get(algo, 0) + max(grid.episodes - episodes, 0)
         if state not in (COMPLETE, PARTIAL, RUNNING) or episodes == 0:  # not a stale, failed or damaged run's
             continue
-        ended, walls = _pace_sample(sweep.run(cell), state == RUNNING)
+        together = None
+        if state == RUNNING:  # the runs whose heartbeats name the same batch train with it
+            batch = beats[cell.name]
+            together = sum(1 for b in beats.values() if b == batch) if isinstance(batch, str) else 1
+        ended, walls = _pace_sample(sweep.run(cell), together)
         if not walls or (state != COMPLETE and len(walls) < PARTIAL_PACE_EPISODES):
             continue
         recency = (2, cell.name) if state == RUNNING else ((1, ended) if ended else (0, cell.name))
@@ -365,8 +385,8 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
                       for algo in sorted(known))
     note = f"; {', '.join(assumed)}: no run far enough yet, {every:.1f} assumed" if assumed else ""
     return (f"time left: ≈ {seconds / 3600:.1f} core-hours for {sum(left.values())} episodes at each algorithm's "
-            f"pace (s/episode, median of its {PACE_RUNS} latest runs' latest sessions: {paces}{note}); divide by "
-            "the workers running at once")
+            f"pace (core-s per episode, a batch's shared among its runs; median of its {PACE_RUNS} latest runs' "
+            f"latest sessions: {paces}{note}); divide by the workers running at once")
 
 
 def status_text(folder: Path) -> str:
