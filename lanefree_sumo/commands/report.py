@@ -28,6 +28,11 @@ OPTIONS: tuple[Option, ...] = (
            note="also write verdict.md: each way the runs differ from the defaults (their variant) against the "
            "default runs of the same setting, over training episodes 1-12, all, the last 50 and every evaluation "
            "the runs have: difference with a bootstrap CI, rank test and verdict (run folders only, without --eval)"),
+    Option("--against", type=Path, extra={"nargs": "+", "metavar": "RUN"},
+           note="run folders of one group (e.g. DDPG's, to set TD3 or another algorithm against them): verdict.md "
+           "then compares every group of the RUN folders with them, as --compare does (which this implies), instead "
+           "of each variant with the defaults of its setting; they join the table and curves (run folders only, "
+           "without --eval). Put the RUN folders before --against"),
     Option("--first", type=argtypes.positive(int, "episodes"), default=None, extra={"metavar": "N"},
            note="read every run over its first N training episodes only, e.g. 150-episode runs against the first "
            "150 of 625-episode ones: longer runs are cut there, shorter ones skipped, and the planned number of "
@@ -71,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
     if args.compare and (sweeps or args.eval is not None):
         raise UsageError("--compare reads run folders' training episodes and every evaluation they have: "
                          + ("a sweep writes its own verdict.md (a grid's `compare`)" if sweeps else "drop --eval"))
+    if args.against is not None and (sweeps or args.eval is not None):
+        raise UsageError("--against compares run folders' training episodes: "
+                         + ("a sweep writes its own verdict.md (a grid's `compare`)" if sweeps else "drop --eval"))
     if args.first is not None and (sweeps or args.eval is not None):
         raise UsageError("--first cuts run folders' training episodes: "
                          + ("a sweep's summary reads its runs whole" if sweeps else
@@ -80,13 +88,13 @@ def run(args: argparse.Namespace) -> int:
     if sweeps:
         return _report_sweep(args, sweeps)
     result = report(args.runs, args.out, last=args.last, smooth=args.smooth, source=sources, compare=args.compare,
-                    first=args.first)
+                    first=args.first, against=args.against)
     for path, reason in result.skipped:
         print(f"skipped {path}: {reason}", file=sys.stderr)
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     rows = "group(s)" if isinstance(sources, str) or len(sources) == 1 else "row(s), one per evaluation and group"
-    print(f"{len(result.table)} {rows} -> {args.out}" + (" (and verdict.md)" if args.compare else ""))
+    print(f"{len(result.table)} {rows} -> {args.out}" + (" (and verdict.md)" if args.compare or args.against else ""))
     print((args.out / "summary.md").read_text())
     return 0
 

@@ -55,7 +55,7 @@ import pandas as pd
 
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.comparison import against_defaults, verdict_markdown
+from lanefree_sumo.experiments.comparison import Sides, against_defaults, verdict_markdown
 from lanefree_sumo.experiments.curves import (
     CURVE_METRICS,
     EVALUATION_FIGURES,
@@ -294,7 +294,8 @@ def _write_report(out: Path, files: dict[str, Any]) -> list[Path]:
 
 
 def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
-           source: str | Sequence[str] = "", compare: bool = False, first: int | None = None) -> ReportResult:
+           source: str | Sequence[str] = "", compare: bool = False, first: int | None = None,
+           against: Sequence[Path] | None = None) -> ReportResult:
     """Learning curves and the last-``last``-episode summary table of training runs.
 
     ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
@@ -313,11 +314,17 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     ``first``: read every run over its training episodes 1 … ``first`` only (runs of different lengths compared
     over the same episodes; a run with fewer is skipped), the planned number of episodes then not part of a
     run's variant; not with evaluations.
+    ``against``: run folders of one group (e.g. DDPG's, to set TD3 against them): ``verdict.md`` then compares
+    every other group with them instead of each variant with the defaults of its setting (as ``compare`` does, which
+    it implies); they join the table and curves as a group of their own (given as ``runs`` too, counted once).
 
-    Raises :class:`ReportError` when ``last``, ``smooth`` or ``first`` < 1, when ``first`` is given with
-    evaluations, when no usable run remains, when
-    ``compare`` finds no variant with default runs of its setting, or when ``out`` cannot be written.
+    Raises :class:`ReportError` when ``last``, ``smooth`` or ``first`` < 1, when ``first`` or ``against`` is given
+    with evaluations, when no usable run remains, when ``compare`` finds no variant with default runs of its setting,
+    when an ``against`` run is unusable, the ``against`` runs are of several groups or no other group remains, or
+    when ``out`` cannot be written.
     """
+    if against is not None and source:
+        raise ReportError("against compares training episodes; evaluations are tabulated without it: drop one")
     if first is not None:
         if isinstance(first, bool) or not isinstance(first, int) or first < 1:
             raise ReportError(f"first must be a whole number of episodes ≥ 1, got {first!r}")
@@ -332,7 +339,14 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
         raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
     out = Path(out)
-    usable, skipped, notes = _read_usable(runs, source, first)
+    given = {Path(run).resolve() for run in runs}
+    baseline = [Path(run) for run in against or ()]
+    usable, skipped, notes = _read_usable([*runs, *(run for run in baseline if run.resolve() not in given)],
+                                          source, first)
+    if baseline:
+        bad = next(((run, why) for run, why in skipped if run.resolve() in {b.resolve() for b in baseline}), None)
+        if bad is not None:
+            raise ReportError(f"--against {bad[0]} cannot be compared with: {bad[1]}")
     if not usable:
         raise _no_usable_run(skipped)
 
@@ -344,7 +358,9 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
         for column, name, ylabel in CURVE_METRICS}
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
-    if compare:
+    if baseline:
+        files["verdict.md"] = _against_page(groups, {run.resolve() for run in baseline}, first)
+    elif compare:
         files["verdict.md"] = _verdict_page(groups, first)
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
 
@@ -361,6 +377,26 @@ def _verdict_page(groups: dict[RunKey, list[RunData]], first: int | None = None)
     return "\n".join(verdict_markdown(sides, episodes, f"{variant} against the defaults: every source",
                                       "The runs given, by setting", "`lanefree report --compare`",
                                       "variant", "default", "setting", first) for variant, sides in pages.items())
+
+
+def _against_page(groups: dict[RunKey, list[RunData]], baseline: set[Path], first: int | None = None) -> str:
+    """``verdict.md`` of ``report(..., against=...)``: every group against the group of the runs ``baseline``
+    (resolved paths), in one table (``first``: as :func:`report`)."""
+    keys = sorted({key for key, runs in groups.items() for run in runs if run.path.resolve() in baseline},
+                  key=_sort_key)
+    if len(keys) != 1:
+        raise ReportError(f"--against takes the runs of one group (algorithm, reward preset, density, variant); these "
+                          f"are of {len(keys)}: {'; '.join(group_label(key) for key in keys)}")
+    base = keys[0]
+    sides = [Sides(group_label(key), [run.path for run in runs], [run.path for run in groups[base]])
+             for key, runs in groups.items() if key != base]
+    if not sides:
+        raise ReportError(f"--against: every run given is of its group ({group_label(base)}); give the runs to set "
+                          "against it as RUN")
+    episodes = max(int(run.episodes.index.max()) for runs in groups.values() for run in runs)
+    return verdict_markdown(sides, episodes, f"Each group against {group_label(base)}: every source",
+                            "The runs given, by group", "`lanefree report --against`", "group", "baseline",
+                            "group", first)
 
 
 def evaluations_report(runs: Sequence[Path], out: Path, sources: Sequence[str], last: int = 50) -> ReportResult:

@@ -285,6 +285,44 @@ def test_report_first_compares_runs_of_different_lengths_over_their_first_episod
         assert not (tmp_path / "none").exists()
 
 
+def test_report_against_sets_every_group_against_one_groups_runs(tmp_path):
+    """``against``: every group of the runs given — another algorithm's included, which the defaults' comparison
+    never pairs — against the baseline runs (vector DDPG), each side's column the mean of its runs' last 50
+    episodes; the baseline joins the table as a group and is not set against itself. Baselines of several groups,
+    an unusable baseline run, no other group and evaluations are refused in one line."""
+    committed = ROOT / "results"
+    vector = [committed / "paper" / "runs" / f"ddpg_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
+    dqn = [committed / "paper" / "runs" / f"dqn_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
+    sets = sorted((committed / "varobs" / "set" / "runs").glob("*"))
+    made = report([*dqn, *sets, vector[0]], tmp_path / "out", against=vector, first=150)
+    assert not made.skipped and len(made.table) == 3  # dqn, set ddpg and the vector ddpg baseline
+    text = (tmp_path / "out" / "verdict.md").read_text()
+    assert text.startswith("# Each group against ddpg / fields_zones_overtake_collision / d70: every source")
+    table = {tuple(cells[:4]): cells[4:] for line in text.splitlines() if line.startswith("| ")
+             for cells in [[c.strip() for c in line.strip("|").split("|")]] if " / " in cells[0]}
+    mean = {name: sum(pd.read_csv(run / "episodes.csv")["return"].iloc[100:150].mean() for run in side) / len(side)
+            for name, side in (("dqn", dqn), ("vector", vector))}
+    row = table[("dqn / fields_zones_overtake_collision / d70", "training, last 50 episodes", "return", "3, 3")]
+    assert row[:2] == [f"{mean['dqn']:.2f}", f"{mean['vector']:.2f}"]
+    assert row[-1] in ("group better", "group worse", "no difference detected")
+    assert {key[0] for key in table} == {"dqn / fields_zones_overtake_collision / d70",
+                                         "ddpg / fields_zones_overtake_collision / d70 / observation.kind=set, "
+                                         "observation.encoder=paper"}
+    too_short = tmp_path / "too_short"
+    shortened(vector[1], too_short, 100)
+    for against, words in (([*vector, dqn[0]], "the runs of one group"),
+                           ([vector[0], too_short], f"--against {too_short} cannot be compared with: has 100"),
+                           (vector, "every run given is of its group")):
+        runs = vector if words.startswith("every") else dqn
+        refused = lanefree("report", *map(str, runs), "--out", str(tmp_path / "none"), "--first", "150",
+                           "--against", *map(str, against))
+        assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and words in refused.stderr, refused.stderr
+        assert not (tmp_path / "none").exists()
+    refused = lanefree("report", *map(str, dqn), "--out", str(tmp_path / "none"), "--eval", "eval", "--against",
+                       *map(str, vector))
+    assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and "drop --eval" in refused.stderr
+
+
 def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):
     refused = subprocess.run([sys.executable, str(ROOT / "scripts" / "collisions_vs_overtakes.py"), str(tmp_path)],
                              capture_output=True, text=True, timeout=120)
