@@ -161,16 +161,23 @@ def test_the_varobs_verdict_page_is_what_the_run_folders_make(tmp_path):
 def test_the_remedy_report_is_what_the_run_folders_make(tmp_path):
     """results/varobs_remedies/report150/ is `lanefree report … --first 150 --compare` of the vector DDPG runs (seeds
     0-2), the set runs and the pre-tanh penalty's 150-episode runs: both variants against the vector runs over the
-    same 150 episodes."""
+    same 150 episodes; report_td3_150/ the TD3 runs with those set runs `--against` the vector runs, and
+    report_td3_vs_set150/ the TD3 runs `--against` the plain set DDPG runs."""
     committed = ROOT / "results"
     runs = [committed / "paper" / "runs" / f"ddpg_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
     runs += sorted((committed / "varobs" / "set" / "runs").glob("*"))
     runs += sorted((committed / "varobs_remedies" / "pretanh150" / "runs").glob("*"))
     made = report(runs, tmp_path / "report150", compare=True, first=150)
     assert not made.skipped and len(made.table) == 3
-    for name in ("verdict.md", "summary.md"):
-        assert (committed / "varobs_remedies" / "report150" / name).read_text() == \
-            (tmp_path / "report150" / name).read_text()
+    td3 = sorted((committed / "varobs_remedies" / "td3_150" / "runs").glob("*"))
+    made = report([*td3, *runs[3:]], tmp_path / "report_td3_150", first=150, against=runs[:3])
+    assert not made.skipped and len(made.table) == 4
+    made = report(td3, tmp_path / "report_td3_vs_set150", first=150, against=runs[3:6])
+    assert not made.skipped and len(made.table) == 2
+    for folder in ("report150", "report_td3_150", "report_td3_vs_set150"):
+        for name in ("verdict.md", "summary.md"):
+            assert (committed / "varobs_remedies" / folder / name).read_text() == \
+                (tmp_path / folder / name).read_text(), (folder, name)
 
 
 def copy_run(run: Path, to: Path) -> None:
