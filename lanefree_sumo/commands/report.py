@@ -30,9 +30,10 @@ OPTIONS: tuple[Option, ...] = (
            "the runs have: difference with a bootstrap CI, rank test and verdict (run folders only, without --eval)"),
     Option("--against", type=Path, extra={"nargs": "+", "metavar": "RUN"},
            note="run folders of one group (e.g. DDPG's, to set TD3 or another algorithm against them): verdict.md "
-           "then compares every group of the RUN folders with them, as --compare does (which this implies), instead "
-           "of each variant with the defaults of its setting; they join the table and curves (run folders only, "
-           "without --eval). Put the RUN folders before --against"),
+           "then compares every other group of the RUN folders with that group (these runs and any RUN folders of "
+           "it), as --compare does (which this implies), instead of each variant with the defaults of its setting; "
+           "runs of different lengths need --first (run folders only, without --eval). Put the RUN folders before "
+           "--against"),
     Option("--first", type=argtypes.positive(int, "episodes"), default=None, extra={"metavar": "N"},
            note="read every run over its first N training episodes only, e.g. 150-episode runs against the first "
            "150 of 625-episode ones: longer runs are cut there, shorter ones skipped, and the planned number of "
@@ -67,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     sources = _evaluation_names(args.eval)
     if not args.runs:
-        raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder), before --eval")
+        raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder), before --eval or "
+                         "--against")
     sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
     if sweeps and len(sweeps) < len(args.runs):
         other = next(path for path in args.runs if path not in sweeps)

@@ -315,16 +315,19 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     over the same episodes; a run with fewer is skipped), the planned number of episodes then not part of a
     run's variant; not with evaluations.
     ``against``: run folders of one group (e.g. DDPG's, to set TD3 against them): ``verdict.md`` then compares
-    every other group with them instead of each variant with the defaults of its setting (as ``compare`` does, which
-    it implies); they join the table and curves as a group of their own (given as ``runs`` too, counted once).
+    every other group with that group — the ``against`` runs and any of ``runs`` in it — instead of each variant
+    with the defaults of its setting (as ``compare`` does, which it implies); the group is in the table and curves.
 
     Raises :class:`ReportError` when ``last``, ``smooth`` or ``first`` < 1, when ``first`` or ``against`` is given
     with evaluations, when no usable run remains, when ``compare`` finds no variant with default runs of its setting,
-    when an ``against`` run is unusable, the ``against`` runs are of several groups or no other group remains, or
-    when ``out`` cannot be written.
+    when ``against`` is empty, an ``against`` run is unusable, the ``against`` runs are of several groups, no other
+    group remains, or (without ``first``) the runs compared have different numbers of episodes, or when ``out``
+    cannot be written.
     """
     if against is not None and source:
         raise ReportError("against compares training episodes; evaluations are tabulated without it: drop one")
+    if against is not None and not against:
+        raise ReportError("against needs at least one run folder to compare with")
     if first is not None:
         if isinstance(first, bool) or not isinstance(first, int) or first < 1:
             raise ReportError(f"first must be a whole number of episodes ≥ 1, got {first!r}")
@@ -339,14 +342,12 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
         raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
     out = Path(out)
-    given = {Path(run).resolve() for run in runs}
     baseline = [Path(run) for run in against or ()]
-    usable, skipped, notes = _read_usable([*runs, *(run for run in baseline if run.resolve() not in given)],
-                                          source, first)
+    usable, skipped, notes = _read_usable([*runs, *baseline], source, first)
     if baseline:
         bad = next(((run, why) for run, why in skipped if run.resolve() in {b.resolve() for b in baseline}), None)
         if bad is not None:
-            raise ReportError(f"--against {bad[0]} cannot be compared with: {bad[1]}")
+            raise ReportError(f"--against {bad[0]} is unusable: {bad[1]}")
     if not usable:
         raise _no_usable_run(skipped)
 
@@ -359,7 +360,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
     if baseline:
-        files["verdict.md"] = _against_page(groups, {run.resolve() for run in baseline}, first)
+        files["verdict.md"] = _against_page(groups, {run.resolve() for run in baseline}, skipped, first)
     elif compare:
         files["verdict.md"] = _verdict_page(groups, first)
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
@@ -379,9 +380,11 @@ def _verdict_page(groups: dict[RunKey, list[RunData]], first: int | None = None)
                                       "variant", "default", "setting", first) for variant, sides in pages.items())
 
 
-def _against_page(groups: dict[RunKey, list[RunData]], baseline: set[Path], first: int | None = None) -> str:
+def _against_page(groups: dict[RunKey, list[RunData]], baseline: set[Path], skipped: list[tuple[Path, str]],
+                  first: int | None = None) -> str:
     """``verdict.md`` of ``report(..., against=...)``: every group against the group of the runs ``baseline``
-    (resolved paths), in one table (``first``: as :func:`report`)."""
+    (resolved paths), in one table (``skipped``: the run folders left out, with why; ``first``: as
+    :func:`report`)."""
     keys = sorted({key for key, runs in groups.items() for run in runs if run.path.resolve() in baseline},
                   key=_sort_key)
     if len(keys) != 1:
@@ -391,9 +394,14 @@ def _against_page(groups: dict[RunKey, list[RunData]], baseline: set[Path], firs
     sides = [Sides(group_label(key), [run.path for run in runs], [run.path for run in groups[base]])
              for key, runs in groups.items() if key != base]
     if not sides:
-        raise ReportError(f"--against: every run given is of its group ({group_label(base)}); give the runs to set "
-                          "against it as RUN")
-    episodes = max(int(run.episodes.index.max()) for runs in groups.values() for run in runs)
+        left_out = f" ({skipped[0][0]} was left out: {skipped[0][1]})" if skipped else ""
+        raise ReportError(f"--against: no run of another group than {group_label(base)} to compare with it{left_out}; "
+                          "give the runs to set against it as RUN")
+    lengths = {int(run.episodes.index.max()) for runs in groups.values() for run in runs}
+    if first is None and len(lengths) > 1:
+        raise ReportError(f"--against: the runs have {min(lengths)} to {max(lengths)} episodes, so their last 50 are "
+                          f"different episodes; compare them over the same ones with --first {min(lengths)}")
+    episodes = max(lengths)
     return verdict_markdown(sides, episodes, f"Each group against {group_label(base)}: every source",
                             "The runs given, by group", "`lanefree report --against`", "group", "baseline",
                             "group", first)

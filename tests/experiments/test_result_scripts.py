@@ -296,7 +296,8 @@ def test_report_against_sets_every_group_against_one_groups_runs(tmp_path):
     """``against``: every group of the runs given — another algorithm's included, which the defaults' comparison
     never pairs — against the baseline runs (vector DDPG), each side's column the mean of its runs' last 50
     episodes; the baseline joins the table as a group and is not set against itself. Baselines of several groups,
-    an unusable baseline run, no other group and evaluations are refused in one line."""
+    an unusable baseline run, no other group (naming a RUN folder left out), runs of different lengths without
+    ``first``, a sweep folder and evaluations are refused in one line."""
     committed = ROOT / "results"
     vector = [committed / "paper" / "runs" / f"ddpg_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
     dqn = [committed / "paper" / "runs" / f"dqn_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
@@ -317,17 +318,21 @@ def test_report_against_sets_every_group_against_one_groups_runs(tmp_path):
                                          "observation.encoder=paper"}
     too_short = tmp_path / "too_short"
     shortened(vector[1], too_short, 100)
-    for against, words in (([*vector, dqn[0]], "the runs of one group"),
-                           ([vector[0], too_short], f"--against {too_short} cannot be compared with: has 100"),
-                           (vector, "every run given is of its group")):
-        runs = vector if words.startswith("every") else dqn
-        refused = lanefree("report", *map(str, runs), "--out", str(tmp_path / "none"), "--first", "150",
+    short_dqn = tmp_path / "short_dqn"
+    shortened(dqn[0], short_dqn, 150)
+    for runs, against, first, words in (
+            (dqn, [*vector, dqn[0]], ["--first", "150"], "the runs of one group"),
+            (dqn, [vector[0], too_short], ["--first", "150"], f"--against {too_short} is unusable: has 100"),
+            (vector, vector, ["--first", "150"], "no run of another group"),
+            ([too_short], vector, ["--first", "150"], f"({too_short} was left out: has 100"),
+            ([short_dqn], vector, [], "have 150 to 625 episodes, so their last 50 are different episodes; compare "
+                                      "them over the same ones with --first 150"),
+            ([committed / "paper"], vector, [], "a sweep writes its own verdict.md"),
+            (dqn, vector, ["--eval", "eval"], "drop --eval")):
+        refused = lanefree("report", *map(str, runs), "--out", str(tmp_path / "none"), *first,
                            "--against", *map(str, against))
         assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and words in refused.stderr, refused.stderr
         assert not (tmp_path / "none").exists()
-    refused = lanefree("report", *map(str, dqn), "--out", str(tmp_path / "none"), "--eval", "eval", "--against",
-                       *map(str, vector))
-    assert refused.returncode != 0 and refused.stderr.count("\n") == 1 and "drop --eval" in refused.stderr
 
 
 def test_collisions_vs_overtakes_refuses_a_sweep_without_runs_csv_in_one_line(tmp_path):

@@ -466,15 +466,20 @@ def test_status_says_the_time_left_at_the_pace_of_each_algorithms_latest_runs(tm
     # left: 30 + 60 DDPG episodes at 110 s, 240 DQN ones at 40 s
     assert time_line().startswith("time left: ≈ 5.4 core-hours for 330 episodes")
     assert "ddpg 110.0 (with runs training now), dqn 40.0)" in time_line()
-    # ddpg[3] trains in a batch with ddpg[4] (their heartbeats name one batch): each has half of the 120 s
     fake_run(sweep.run(ddpg[4]), grid, ddpg[4], 30, model=False, checkpoint=25, wall_s=120.0)
+    training(ddpg[4])  # two runs training at once, each in a process of its own: 120 s each
+    assert "ddpg 120.0 (with runs training now)" in time_line()
+    # ddpg[3] and ddpg[4] train as one batch (its batch.json, named by their heartbeats): each has half of 120 s
+    sweep.batch("batch_ddpg_k2_0").mkdir(parents=True)
+    (sweep.batch("batch_ddpg_k2_0") / "batch.json").write_text(json.dumps(
+        {"runs": [f"../../runs/{cell.name}" for cell in (ddpg[3], ddpg[4])]}))
     for cell in (ddpg[3], ddpg[4]):
         training(cell, "batch_ddpg_k2_0")
     # the 3 latest: 60 and 60 training, then 110; left: 30 + 30 DDPG episodes at 60 s, 240 DQN ones at 40 s
     assert time_line().startswith("time left: ≈ 3.7 core-hours for 300 episodes")
     assert "ddpg 60.0 (with runs training now), dqn 40.0)" in time_line()
-    training(ddpg[4], "batch_ddpg_k1_1")  # each alone in its batch: 120 s each again
-    assert "ddpg 120.0 (with runs training now)" in time_line()
+    training(ddpg[4], "batch_gone")  # a batch without batch.json: alone
+    assert "ddpg 110.0 (with runs training now)" in time_line()  # 60 (ddpg[3], its batch of 2), 120, 110
     for cell in [*dqn[1:], ddpg[3], ddpg[4]]:
         shutil.rmtree(sweep.run(cell), ignore_errors=True)
         fake_run(sweep.run(cell), grid, cell, 60, wall_s=1.0)
@@ -505,6 +510,9 @@ def test_a_runs_pace_is_its_latest_sessions(tmp_path):
     record_session(run, {"episodes_done": 80, "first_episode": 51, "ended": "2026-11-25T12:00:00+00:00",
                          "batch": {"folder": "../../batches/b", "run": 2, "runs": 5}})
     assert _pace_sample(run)[1] == [4.0] * 30  # a session of a batch of 5: its episodes' wall time shared by 5
+    for runs in (0, -2, "5", None, [5], 2.5, True, float("inf")):  # not a whole number >= 1: as if alone
+        record_session(run, {"episodes_done": 80, "first_episode": 51, "batch": {"runs": runs}})
+        assert _pace_sample(run)[1] == [20.0] * 30, runs
     record_session(run, {"episodes_done": 60, "first_episode": 51, "ended": "2026-11-25T12:00:00+00:00"})
     assert _pace_sample(run, together=1)[1] == [50.0] * 50 + [20.0] * 30  # 20 episodes since: too few, all
     (run / "sessions.jsonl").write_text('["not", "a", "session"]\n{"episodes_done": "many"}\n')

@@ -19,7 +19,7 @@ from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
 from lanefree_sumo.experiments.rundir import EPISODES, read_sessions
-from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH
+from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH, members
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, builtin_descriptions, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -300,12 +300,11 @@ sessions, and the latest runs measure the ones the rest will run on."""
 
 
 def _batch_size(session: dict[str, Any]) -> int:
-    """How many runs a recorded training session trained together in one process (1 outside a batch)."""
+    """How many runs a recorded training session trained together in one process (1 outside a batch, or when the
+    record is not a whole number ≥ 1)."""
     batch = session.get("batch")
-    try:
-        return max(1, int(batch["runs"])) if isinstance(batch, dict) else 1
-    except (KeyError, TypeError, ValueError):
-        return 1
+    runs = batch.get("runs") if isinstance(batch, dict) else None
+    return runs if isinstance(runs, int) and not isinstance(runs, bool) and runs >= 1 else 1
 
 
 def _pace_sample(run: Path, together: int | None = None) -> tuple[str | None, list[float]]:
@@ -341,18 +340,16 @@ def _pace_sample(run: Path, together: int | None = None) -> tuple[str | None, li
 def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> str:
     """One line: the core-hours the unfinished runs still need, at each algorithm's pace: the median over its
     :data:`PACE_RUNS` most recent runs of each run's median episode core-seconds in its latest session
-    (:func:`_pace_sample`; a batch's wall time shared among its runs, the runs training now counted by the
-    batch their heartbeats name). Most recent: the runs training now, then the others by the end of their last
-    training session (``sessions.jsonl``; runs without one count as the oldest). A run counts once complete, or
-    with :data:`PARTIAL_PACE_EPISODES` episodes. An algorithm without such a run is assumed to go at the median
-    of the others' paces; the line says which. ``runs``: name -> (state, episodes)."""
+    (:func:`_pace_sample`; a batch's wall time shared among its runs: for the runs training now, the runs of the
+    batch their heartbeat names, its ``batch.json``). Most recent: the runs training now, then the others by the
+    end of their last training session (``sessions.jsonl``; runs without one count as the oldest). A run counts
+    once complete, or with :data:`PARTIAL_PACE_EPISODES` episodes. An algorithm without such a run is assumed to
+    go at the median of the others' paces; the line says which. ``runs``: name -> (state, episodes)."""
     import numpy as np
 
     measured: dict[str, list[tuple[tuple[int, str], float]]] = {}  # algo -> [(recency, the run's pace)]
     training: set[str] = set()
     left: dict[str, int] = {}
-    beats = {cell.name: read_heartbeat(sweep, cell.name).get("batch") for cell in grid.cells()
-             if runs[cell.name][0] == RUNNING}
     for cell in grid.cells():
         state, episodes = runs[cell.name]
         algo = cell.setting.algorithm
@@ -361,9 +358,9 @@ def time_left(grid: Grid, sweep: SweepDir, runs: dict[str, tuple[str, int]]) -> 
         if state not in (COMPLETE, PARTIAL, RUNNING) or episodes == 0:  # not a stale, failed or damaged run's
             continue
         together = None
-        if state == RUNNING:  # the runs whose heartbeats name the same batch train with it
-            batch = beats[cell.name]
-            together = sum(1 for b in beats.values() if b == batch) if isinstance(batch, str) else 1
+        if state == RUNNING:  # trained with the runs of the batch its heartbeat names (alone without one)
+            batch = read_heartbeat(sweep, cell.name).get("batch")
+            together = len(members(sweep.batch(batch))) or 1 if isinstance(batch, str) and batch else 1
         ended, walls = _pace_sample(sweep.run(cell), together)
         if not walls or (state != COMPLETE and len(walls) < PARTIAL_PACE_EPISODES):
             continue
