@@ -18,6 +18,7 @@ from types import ModuleType
 import pandas as pd
 import pytest
 
+from lanefree_sumo.errors import ReportError
 from lanefree_sumo.experiments import comparison
 from lanefree_sumo.experiments.report import report
 
@@ -313,6 +314,8 @@ def test_report_against_sets_every_group_against_one_groups_runs(tmp_path):
     row = table[("dqn / fields_zones_overtake_collision / d70", "training, last 50 episodes", "return", "3, 3")]
     assert row[:2] == [f"{mean['dqn']:.2f}", f"{mean['vector']:.2f}"]
     assert row[-1] in ("group better", "group worse", "no difference detected")
+    with pytest.raises(ReportError, match="against needs at least one run folder"):
+        report(dqn, tmp_path / "empty", against=[])
     assert {key[0] for key in table} == {"dqn / fields_zones_overtake_collision / d70",
                                          "ddpg / fields_zones_overtake_collision / d70 / observation.kind=set, "
                                          "observation.encoder=paper"}
