@@ -343,7 +343,9 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
         raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
     out = Path(out)
     baseline = [Path(run) for run in against or ()]
-    usable, skipped, notes = _read_usable([*runs, *baseline], source, first)
+    given = {Path(run).resolve() for run in runs}  # a baseline run given as RUN too is read once, without a note
+    usable, skipped, notes = _read_usable([*runs, *(run for run in baseline if run.resolve() not in given)],
+                                          source, first)
     if baseline:
         bad = next(((run, why) for run, why in skipped if run.resolve() in {b.resolve() for b in baseline}), None)
         if bad is not None:

@@ -163,7 +163,8 @@ def test_the_remedy_report_is_what_the_run_folders_make(tmp_path):
     """results/varobs_remedies/report150/ is `lanefree report … --first 150 --compare` of the vector DDPG runs (seeds
     0-2), the set runs and the pre-tanh penalty's 150-episode runs: both variants against the vector runs over the
     same 150 episodes; report_td3_150/ the TD3 runs with those set runs `--against` the vector runs, and
-    report_td3_vs_set150/ the TD3 runs `--against` the plain set DDPG runs."""
+    report_td3_vs_set150/ the TD3 runs `--against` the plain set DDPG runs, report_penalty150/ the vector, set and
+    penalty runs `--against` the vector runs with the penalty."""
     committed = ROOT / "results"
     runs = [committed / "paper" / "runs" / f"ddpg_fields_zones_overtake_collision_d70_s{seed}" for seed in range(3)]
     runs += sorted((committed / "varobs" / "set" / "runs").glob("*"))
@@ -175,7 +176,11 @@ def test_the_remedy_report_is_what_the_run_folders_make(tmp_path):
     assert not made.skipped and len(made.table) == 4
     made = report(td3, tmp_path / "report_td3_vs_set150", first=150, against=runs[3:6])
     assert not made.skipped and len(made.table) == 2
-    for folder in ("report150", "report_td3_150", "report_td3_vs_set150"):
+    control = sorted((committed / "varobs_remedies" / "vector_pretanh150" / "runs").glob("*"))
+    made = report([*runs[:3], *control, *runs[3:]], tmp_path / "report_penalty150", first=150, against=control)
+    assert not made.skipped and len(made.table) == 4
+    assert not any("more than once" in note for note in made.notes)  # given as RUN and --against: no note
+    for folder in ("report150", "report_td3_150", "report_td3_vs_set150", "report_penalty150"):
         for name in ("verdict.md", "summary.md"):
             assert (committed / "varobs_remedies" / folder / name).read_text() == \
                 (tmp_path / folder / name).read_text(), (folder, name)
