@@ -342,14 +342,13 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     if isinstance(smooth, bool) or not isinstance(smooth, int) or smooth < 1:
         raise ReportError(f"smooth must be a whole number of episodes ≥ 1, got {smooth!r}")
     out = Path(out)
-    baseline = [Path(run) for run in against or ()]
+    baseline = {Path(run).resolve(): Path(run) for run in against or ()}
     given = {Path(run).resolve() for run in runs}  # a baseline run given as RUN too is read once, without a note
-    usable, skipped, notes = _read_usable([*runs, *(run for run in baseline if run.resolve() not in given)],
+    usable, skipped, notes = _read_usable([*runs, *(run for path, run in baseline.items() if path not in given)],
                                           source, first)
-    if baseline:
-        bad = next(((run, why) for run, why in skipped if run.resolve() in {b.resolve() for b in baseline}), None)
-        if bad is not None:
-            raise ReportError(f"--against {bad[0]} is unusable: {bad[1]}")
+    bad = next(((run, why) for run, why in skipped if run.resolve() in baseline), None)
+    if bad is not None:
+        raise ReportError(f"--against {bad[0]} is unusable: {bad[1]}")
     if not usable:
         raise _no_usable_run(skipped)
 
@@ -362,7 +361,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
     if baseline:
-        files["verdict.md"] = _against_page(groups, {run.resolve() for run in baseline}, skipped, first)
+        files["verdict.md"] = _against_page(groups, set(baseline), skipped, first)
     elif compare:
         files["verdict.md"] = _verdict_page(groups, first)
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
