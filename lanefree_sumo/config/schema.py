@@ -563,7 +563,7 @@ class ReplayConfig:
     shield_color_rgb: tuple[int, int, int] = (230, 0, 230)
     """Colour of the agent on the steps the safety shield changed its action (0–255 each)."""
     display_timeout_s: float = 10.0
-    """How long sumo-gui may take to open its window before replay gives up (s)."""
+    """How long sumo-gui may take to open its window before replay or ``simulate --gui`` gives up (s)."""
 
 
 @dataclass(frozen=True)

@@ -154,6 +154,17 @@ def test_gui_without_a_display_says_so_at_once(recorded, monkeypatch):
     assert time.perf_counter() - t0 < 10
 
 
+def test_gui_on_a_display_that_does_not_answer_is_one_line_quoting_sumo_gui(recorded):
+    unused = next(n for n in range(4000, 5000) if not Path(f"/tmp/.X11-unix/X{n}").exists())
+    res = subprocess.run([sys.executable, "-m", "lanefree_sumo.cli", "replay", str(recorded)], capture_output=True,
+                         text=True, cwd=ROOT, timeout=120, env={**CLI_ENV, "DISPLAY": f":{unused}"})
+    assert res.returncode != 0
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr  # sumo-gui's own complaint is quoted, not printed beside ours
+    assert f"did not open its window on display ':{unused}'" in lines[0]
+    assert f"unable to open display :{unused}" in lines[0] and "xvfb-run" in lines[0]
+
+
 def test_unwritable_screenshot_path_is_refused_before_the_replay(recorded, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")

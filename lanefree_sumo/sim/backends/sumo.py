@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import subprocess
 import tempfile
@@ -24,8 +25,9 @@ import numpy as np
 import sumo
 import traci
 import traci.constants as tc
+from sumolib.miscutils import getFreeSocketPort
 
-from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.config import LaneFreeConfig, ReplayConfig
 from lanefree_sumo.errors import SumoError
 from lanefree_sumo.sim.dynamics import StepCommand
 from lanefree_sumo.sim.network import (
@@ -196,8 +198,10 @@ class SumoBackend:
         gui: bool = False,
         label: str | None = None,
         extra_args: Sequence[str] = (),
+        gui_timeout_s: float = ReplayConfig.display_timeout_s,
     ) -> None:
-        """``extra_args``: further SUMO options (e.g. ``--fcd-output``, GUI settings)."""
+        """``extra_args``: further SUMO options (e.g. ``--fcd-output``, GUI settings); ``gui_timeout_s``: how long
+        sumo-gui may take to open its window before the start gives up (s; TraCI retries once a second)."""
         if kind not in ("libsumo", "traci"):
             raise SumoError(f"unknown SUMO backend '{kind}'; use libsumo or traci")
         if gui and kind != "traci":
@@ -217,7 +221,7 @@ class SumoBackend:
         self._centre = np.zeros(0)
         """y (m) of the centre of each vehicle's lane (as of the last reset or read)."""
         self._conn: Any = None
-        self.gui_start_retries = 10
+        self.gui_start_retries = max(0, math.ceil(gui_timeout_s))
         """Attempts (about 1 s each) to connect to sumo-gui before giving up."""
         self.sumo_step_seconds = 0.0
         """Wall time spent inside SUMO's simulationStep during ``step`` (s), for profiling."""
@@ -242,23 +246,43 @@ class SumoBackend:
                     )
                 libsumo.start(args)
                 self._conn = libsumo
+            elif self.gui:
+                self._conn = self._start_gui(args)
             else:
-                if self.gui and not os.environ.get("DISPLAY"):
-                    raise SumoError("sumo-gui needs a display and none is set (DISPLAY); "
-                                    "on a headless machine run the command under 'xvfb-run -a'")
-                retries = self.gui_start_retries if self.gui else tc.DEFAULT_NUM_RETRIES
                 with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # traci's "Retrying" noise; we say one line instead
-                    traci.start(args, label=self._label, numRetries=retries, stdout=subprocess.DEVNULL)
+                    traci.start(args, label=self._label, stdout=subprocess.DEVNULL)
                 self._conn = traci.getConnection(self._label)
         except SumoError:
+            self._tmp.cleanup()
             raise
         except Exception as exc:
-            if self.gui:
-                raise SumoError(f"sumo-gui did not open its window on display {os.environ.get('DISPLAY')!r}; "
-                                "check the display, or on a headless machine run under 'xvfb-run -a'") from None
+            self._tmp.cleanup()
             raise SumoError(f"SUMO did not start: {str(exc).strip() or type(exc).__name__}; "
                             f"check the network file {self.net}") from None
+
+    def _start_gui(self, args: list[str]) -> Any:
+        """Start sumo-gui and connect to it within ``gui_start_retries`` seconds, its output in a log beside the
+        simulation's files (so that a failure is one line: ours, quoting sumo-gui's last)."""
+        display = os.environ.get("DISPLAY")
+        if not display:
+            raise SumoError("sumo-gui needs a display and none is set (DISPLAY); "
+                            "on a headless machine run the command under 'xvfb-run -a'")
+        log_path = Path(self._tmp.name) / "sumo-gui.log"
+        port = int(getFreeSocketPort())
+        with log_path.open("wb") as log:
+            proc = subprocess.Popen([*args, "--remote-port", str(port)], stdout=subprocess.DEVNULL, stderr=log)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):  # traci's "Retrying" noise; we say one line instead
+                traci.init(port, numRetries=self.gui_start_retries, label=self._label, proc=proc)
+        except Exception:
+            proc.kill()
+            proc.wait()
+            said = [line.strip() for line in log_path.read_text(errors="replace").splitlines() if line.strip()]
+            raise SumoError(f"sumo-gui did not open its window on display {display!r}"
+                            + (f" ({said[-1]})" if said else "")
+                            + "; check the display, or on a headless machine run under 'xvfb-run -a'") from None
+        return traci.getConnection(self._label)
 
     def close(self) -> None:
         """Stop SUMO (idempotent)."""
@@ -391,8 +415,8 @@ class OnRampSumoBackend(SumoBackend):
     _subscribed = _SUBSCRIBED_ONRAMP
 
     def __init__(self, cfg: LaneFreeConfig, kind: str = "libsumo", gui: bool = False, label: str | None = None,
-                 extra_args: Sequence[str] = ()) -> None:
-        super().__init__(cfg, kind, gui, label, extra_args)
+                 extra_args: Sequence[str] = (), gui_timeout_s: float = ReplayConfig.display_timeout_s) -> None:
+        super().__init__(cfg, kind, gui, label, extra_args, gui_timeout_s)
         self._offsets = np.array(onramp_edge_offsets(cfg))
         self._edge_offset = dict(zip(ONRAMP_EDGES, self._offsets.tolist()))
         self._ramp_half = 0.5 * cfg.road.onramp.ramp_width_m
