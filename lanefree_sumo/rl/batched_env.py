@@ -137,7 +137,6 @@ class BatchedRingEnv:
         self._discrete_accel = xp.asarray(DISCRETE_ACTIONS * np.array([cfg.action.discrete_ax_mps2,
                                                                       cfg.action.discrete_ay_mps2]))
         """The discrete actions' (ax, ay) in m/s², on the device (:meth:`device_accelerations`)."""
-        self._density = [c.scenario.density_veh_per_km for c in self.cfgs]
         self._range = cfg.observation.range_m
         self._books = {name: xp.zeros(self.runs) for name in BOOKS}
         self._t0 = np.zeros(self.runs)

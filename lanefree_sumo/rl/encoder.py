@@ -353,7 +353,6 @@ class SetFeaturesExtractor(BaseFeaturesExtractor):
         self.encoder_name = encoder
         self.set_key = set_key
         self.pass_keys = list(pass_keys)
-        self.is_dict = isinstance(observation_space, spaces.Dict)
 
     def forward(self, observations: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
         if not isinstance(observations, dict):

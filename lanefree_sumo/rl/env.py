@@ -34,7 +34,6 @@ from lanefree_sumo.config import (
     ConfigError,
     LaneFreeConfig,
     ResolvedConfig,
-    config_to_dict,
     merge_config,
     validate_config,
 )
@@ -438,7 +437,3 @@ class LaneFreeEnv(gym.Env):
     def episode_metrics(self) -> dict[str, Any]:
         """specification §8 metrics of the episode so far (one CSV row)."""
         return self.vehicle.metrics(self.episode, self._episode_seed)
-
-    def config_dict(self) -> dict[str, Any]:
-        """The full resolved configuration as a plain dict."""
-        return config_to_dict(self.cfg)

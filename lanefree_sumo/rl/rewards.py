@@ -221,11 +221,6 @@ class RewardWeights:
     use_collision: bool
     use_overtake: bool
 
-    @property
-    def uses_zones(self) -> bool:
-        """Zones (the lateral target) are evaluated only when w_y > 0."""
-        return self.w_y > 0.0
-
 
 PRESET_COMPONENTS: tuple[str, ...] = ("fields", "zones", "overtake", "collision")
 """What a reward preset's name may list, joined by ``_`` (paper Table 4's components)."""

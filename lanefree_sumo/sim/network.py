@@ -213,11 +213,6 @@ def onramp_lane_centre(cfg: LaneFreeConfig, edge: int, lane: int) -> float:
     return 0.5 * cfg.road.width_m
 
 
-def onramp_main_lane(edge: int) -> int:
-    """The main road's lane index on edge number ``edge`` (1 beside the ramp, else 0)."""
-    return 1 if edge == 1 else 0
-
-
 def write_plain_onramp(cfg: LaneFreeConfig, directory: Path) -> tuple[Path, Path, Path]:
     """Write the node, edge and connection files of the on-ramp (straight, along SUMO's x axis; lanes are
     laid right of each edge's line, so the main road's centre is at SUMO y = −W/2 on every edge); return
