@@ -51,7 +51,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "which a run's config differs from the defaults, e.g. shield.enabled=True), average the seeds, and write "
         "learning curves (return, collisions, speed deviation per episode; mean ± std over seeds, smoothed) as PNG "
         "and a table of last-50-episode means ± std with the paper's numbers (docs/specification.md §10) as "
-        "summary.csv and summary.md. Unusable runs are named and skipped. Given a sweep folder (one with "
+        "summary.csv and summary.md, and where the runs decide one of the paper's claims (default runs of two "
+        "settings a claim compares), the claims table with bootstrap CIs and exact rank tests as claims.csv and "
+        "claims.md. Unusable runs are named and skipped. Given a sweep folder (one with "
         "sweep.yaml), writes the sweep's summary into it instead: last-50 means with 95 % bootstrap CIs over "
         "seeds, as 'lanefree sweep'. Given several sweep folders, writes each one's summary into it and puts their "
         "variants' effects on one page, --out/effects.md: each open choice's verdict in every cell, then each "
@@ -96,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     rows = "group(s)" if isinstance(sources, str) or len(sources) == 1 else "row(s), one per evaluation and group"
-    print(f"{len(result.table)} {rows} -> {args.out}" + (" (and verdict.md)" if args.compare or args.against else ""))
+    extra = [path.name for path in result.files if path.name in ("claims.md", "verdict.md")]
+    print(f"{len(result.table)} {rows} -> {args.out}" + (f" (and {', '.join(extra)})" if extra else ""))
     print((args.out / "summary.md").read_text())
     return 0
 

@@ -9,6 +9,8 @@ writes into ``out``::
     curves_speed_dev.png    speed deviation mean |vx − v_d| per episode (m/s)
     summary.csv             one row per group: last-``last``-episode means, std over seeds, paper values
     summary.md              the same as a Markdown table, cells ``0.520 ± 0.100 (paper 0.449)``
+    claims.csv, claims.md   the paper's claims two of the groups decide (default runs on the ring; a sweep's
+                            claims table, :func:`paper_claims`); not written when no claim compares two groups
 
 Definitions (specification §8, §10):
 
@@ -55,6 +57,7 @@ import pandas as pd
 
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments import markdown
+from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
 from lanefree_sumo.experiments.comparison import Sides, against_defaults, verdict_markdown
 from lanefree_sumo.experiments.curves import (
     CURVE_METRICS,
@@ -91,7 +94,8 @@ class ReportResult:
     :func:`evaluations_report`), the columns of ``summary.csv`` (see :func:`summary_table`)."""
     files: list[Path]
     """Files written, in order: the three curve PNGs (the two evaluation figures of
-    :func:`evaluations_report`), ``summary.csv``, ``summary.md``."""
+    :func:`evaluations_report`), ``summary.csv``, ``summary.md``, then ``claims.csv``, ``claims.md`` and
+    ``verdict.md`` where written."""
     skipped: list[tuple[Path, str]]
     """Run folders left out, each with the reason."""
     notes: list[str] = field(default_factory=list)
@@ -300,7 +304,8 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
 
     ``runs``: run folders of ``lanefree train``; unusable ones are skipped with the reason.
     ``out``: folder for ``curves_return.png``, ``curves_collisions.png``, ``curves_speed_dev.png``,
-    ``summary.csv``, ``summary.md``: a new folder, or the folder of an earlier report (its
+    ``summary.csv``, ``summary.md`` (and ``claims.csv``/``claims.md`` where the runs decide a paper's claim:
+    :func:`paper_claims`, training episodes read whole): a new folder, or the folder of an earlier report (its
     ``.lanefree-output`` marker), replaced whole when the new report is complete; any other existing
     folder is refused (a user's notes, a sweep folder, a run folder).
     ``last``: episodes per run averaged for the table (paper: 50).
@@ -360,11 +365,24 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
         for column, name, ylabel in CURVE_METRICS}
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
+    claims = paper_claims(groups, last) if not source and first is None else None
+    if claims is not None:
+        files["claims.csv"] = claims
+        files["claims.md"] = claims_markdown(claims)
     if baseline:
         files["verdict.md"] = _against_page(groups, set(baseline), skipped, first)
     elif compare:
         files["verdict.md"] = _verdict_page(groups, first)
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
+
+
+def paper_claims(groups: dict[RunKey, list[RunData]], last: int) -> pd.DataFrame | None:
+    """The paper's claims (:mod:`~lanefree_sumo.experiments.claims`) that two of the groups decide: groups of default
+    runs (no variant: the paper's settings, on its ring — another road is a variant), each claim over its two
+    settings' runs; None when no claim compares two of them."""
+    default = {key[:3]: members for key, members in groups.items() if key[3] == ""}
+    comparisons = decidable(default)
+    return check_claims(default, last, comparisons) if comparisons else None
 
 
 def _verdict_page(groups: dict[RunKey, list[RunData]], first: int | None = None) -> str:

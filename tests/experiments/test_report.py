@@ -357,7 +357,7 @@ def test_written_files_are_valid(two_seed_runs: list[Path], tmp_path: Path) -> N
     result = report(two_seed_runs, out, smooth=5)
     names = [p.name for p in result.files]
     assert names == ["curves_return.png", "curves_collisions.png", "curves_speed_dev.png",
-                     "summary.csv", "summary.md"]
+                     "summary.csv", "summary.md", "claims.csv", "claims.md"]  # dqn − ddpg at FZOC/70: a claim
     for name in names[:3]:
         data = (out / name).read_bytes()
         assert data[:8] == PNG_MAGIC
@@ -376,6 +376,36 @@ def _run_data(values: list[float], seed: int) -> RunData:
     frame = pd.DataFrame({"return": values, "collisions": values, "speed_dev_mps": values, "overtakes": values},
                          index=pd.Index(range(1, len(values) + 1), name="episode"))
     return RunData(Path(f"r{seed}"), "ddpg", FZOC, 70.0, seed, frame)
+
+
+def test_the_paper_claims_two_groups_of_default_runs_decide_are_checked(tmp_path: Path) -> None:
+    """DDPG (last-50 collisions 0.5, 0.6, 0.7) against DQN (2.0, 2.1, 2.2) at FZOC/70: Table 8's claim, every DQN run
+    above every DDPG run; a shielded DDPG run (a variant) and an on-ramp DQN run are not the paper's groups."""
+    runs = tmp_path / "runs"
+    folders = [make_run(runs, f"ddpg_s{k}", seed=k, collisions=early_then_last(9.0, [c] * 50))
+               for k, c in enumerate((0.5, 0.6, 0.7))]
+    folders += [make_run(runs, f"dqn_s{k}", algo="dqn", seed=k, collisions=early_then_last(9.0, [c] * 50))
+                for k, c in enumerate((2.0, 2.1, 2.2))]
+    folders += [make_run(runs, "ddpg_shield", seed=5, collisions=[0.0] * 80, extra={"shield": {"enabled": True}}),
+                make_run(runs, "dqn_onramp", algo="dqn", seed=7, collisions=[9.0] * 80,
+                         extra={"road": {"kind": "onramp"}})]
+    result = report(folders, tmp_path / "rep")
+    assert [p.name for p in result.files][-2:] == ["claims.csv", "claims.md"]
+    claims = list(csv.DictReader(open(tmp_path / "rep" / "claims.csv")))
+    assert [c["claim"] for c in claims] == ["DDPG has fewer collisions than DQN (Table 8): dqn − ddpg > 0",
+                                            "DQN has a smaller speed deviation than DDPG (Table 8): ddpg − dqn > 0"]
+    claim, speed = claims
+    assert float(speed["difference"]) == 0.0 and speed["verdict"] == "undecided"  # every run 0.5 m/s
+    assert (claim["n_a"], claim["n_b"]) == ("3", "3")
+    assert float(claim["difference"]) == pytest.approx(1.5) and float(claim["pairs_a_above_b"]) == 9
+    assert float(claim["rank_p"]) == pytest.approx(0.05) and claim["verdict"] == "consistent with the paper"
+    assert "| 3, 3 | +0.503 | +1.500 [" in (tmp_path / "rep" / "claims.md").read_text()
+    alone = report(folders[:3], tmp_path / "alone")  # one setting: no claim, no claims files
+    assert "claims.md" not in [p.name for p in alone.files] and not (tmp_path / "alone" / "claims.md").exists()
+    cut = report(folders[:6], tmp_path / "cut", first=60)  # the paper's claims are over whole runs
+    assert "claims.md" not in [p.name for p in cut.files]
+    res = lanefree("report", *map(str, folders[:6]), "--out", str(tmp_path / "cli"))
+    assert res.returncode == 0 and "-> " + str(tmp_path / "cli") + " (and claims.md)" in res.stdout, res.stderr
 
 
 def test_curves_use_trailing_moving_average_and_std_over_seeds() -> None:
