@@ -89,6 +89,7 @@ class Recording:
 def load_recording(run: Path, episode: int = 1) -> Recording:
     """Read episode ``episode`` of the recording in RUN/eval (or in RUN if it is an eval folder)."""
     eval_dir = find_eval_dir(run)
+    cfg = read_config(eval_dir) if (eval_dir / CONFIG).is_file() else read_config(run)  # not a run: said first
     traj = trajectory_path(eval_dir, episode)
     vehicles = vehicles_path(eval_dir, episode)
     if not traj.is_file() or not vehicles.is_file():
@@ -99,7 +100,6 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
             f"no recording of episode {episode} in {eval_dir / TRAJECTORIES}{hint}; "
             f"make one with: lanefree evaluate {run} --record"
         )
-    cfg = read_config(eval_dir) if (eval_dir / CONFIG).is_file() else read_config(run)
     try:
         table = pd.read_csv(traj)
         attrs = pd.read_csv(vehicles)

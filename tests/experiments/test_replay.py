@@ -16,9 +16,10 @@ import pytest
 from PIL import Image
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.errors import SumoError
+from lanefree_sumo.errors import RunError, SumoError
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
+from lanefree_sumo.experiments.rundir import write_config
 from lanefree_sumo.experiments.train import train
 from lanefree_sumo.sim.road import road_of
 
@@ -76,6 +77,9 @@ def test_frames_and_gif(display, recorded, tmp_path):
 
 
 def test_missing_recording_says_how_to_make_one(tmp_path):
+    with pytest.raises(RunError, match="is not a run folder .*'lanefree train' made"):  # not "evaluate it"
+        load_recording(tmp_path, 1)
+    write_config(tmp_path, LaneFreeConfig())
     with pytest.raises(ReplayError, match="lanefree evaluate .* --record"):
         load_recording(tmp_path, 1)
 
