@@ -49,8 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``lanefree`` parser: one sub-parser per verb, each built by its module."""
     parser = _Parser(prog="lanefree", description="Deep RL in lane-free traffic on Eclipse SUMO.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    for module in VERBS.values():
-        module.add_parser(sub)
+    parser.set_defaults(verb_parsers={name: module.add_parser(sub) for name, module in VERBS.items()})
     return parser
 
 
@@ -74,7 +73,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
         argv = list(sys.argv[1:] if argv is None else argv)
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
+        if unknown:  # named by the verb's parser, whose --help lists what it takes
+            args.verb_parsers.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}")
         args.given = {token.split("=", 1)[0] for token in argv if token.startswith("--")}
         if args.command is None:
             parser.print_help()

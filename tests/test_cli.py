@@ -56,7 +56,7 @@ def test_numpy_backend_matches_sumo_output(tmp_path):
         (["--density", "-3"], "positive finite"),
         (["--density", "nan"], "positive finite"),
         (["--density", "5000"], "the maximum is"),
-        (["--frobnicate"], "unrecognized arguments"),
+        (["--frobnicate"], "lanefree simulate: unrecognized arguments: --frobnicate (see 'lanefree simulate --help')"),
         (["--seconds", "x"], "expected a number in s"),
         (["--net", "/no/such/file.net.xml"], "does not exist"),
     ],
