@@ -44,6 +44,7 @@ from lanefree_sumo.experiments.sweep.state import (
     Heartbeat,
     RunInfo,
     clear_failure,
+    held_elsewhere,
     inspect_run,
     record_failure,
     run_lock,
@@ -159,7 +160,9 @@ def trained_in_batch(run: Path) -> bool:
 
 def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell]) -> list[Batch]:
     """The batches of ``sweep`` to continue: those with a batch checkpoint and a run in ``todo``. Deletes the
-    batch folders without a checkpoint (killed before their first: their runs start afresh)."""
+    batch folders without a checkpoint (killed before their first: their runs start afresh) whose runs are all in
+    ``todo`` and held by no process — not one a batch started elsewhere is training towards its first checkpoint
+    (its runs busy, or their locks held)."""
     found: list[Batch] = []
     if not sweep.batches.is_dir():
         return found
@@ -167,7 +170,8 @@ def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell]) -> list[B
     for folder in sorted(p for p in sweep.batches.iterdir() if p.is_dir()):
         runs = members(folder)
         if not has_checkpoint(folder):
-            shutil.rmtree(folder)
+            if wanted.issuperset(runs) and not any(held_elsewhere(sweep, name) for name in runs):
+                shutil.rmtree(folder)
         elif wanted.intersection(runs):
             strangers = sorted(set(runs) - known)
             if strangers:

@@ -214,6 +214,12 @@ def run_lock(sweep: SweepDir, name: str) -> Iterator[bool]:
         fh.close()
 
 
+def held_elsewhere(sweep: SweepDir, name: str) -> bool:
+    """Whether another process (a sweep worker, a batch) holds run ``name``'s lock now."""
+    with run_lock(sweep, name) as held:
+        return not held
+
+
 class Heartbeat:
     """``.sweep/running/<run>.json`` (host, pid, start) refreshed every :data:`HEARTBEAT_S` by a
     daemon thread while the worker trains; removed when it stops."""
