@@ -20,7 +20,7 @@ from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, BATCH_FILE, train
 from lanefree_sumo.experiments.sweep.batches import batch_size, pack
 from lanefree_sumo.experiments.sweep.grid import load_grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
-from lanefree_sumo.experiments.sweep.state import PARTIAL, PENDING, STALE, RunInfo, run_lock
+from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, PARTIAL, PENDING, STALE, RunInfo, run_lock
 
 from conftest import CLI_ENV, lanefree, lanefree_popen, wait_for
 
@@ -137,25 +137,29 @@ def test_an_interrupted_batch_continues_as_that_batch_and_one_without_a_checkpoi
 
 
 def test_a_batch_starting_elsewhere_before_its_first_checkpoint_is_left_alone(tmp_path):
-    """A batch without a checkpoint is deleted only when nothing trains it: not while a process holds one of its
-    runs' locks (a batch between its start and its first checkpoint), nor while one of its runs is not to be
-    trained here (busy elsewhere); it was deleted under the batch, which then failed at its first checkpoint."""
-    grid = load_grid(write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0, 1, 2, 3],
+    """A batch folder without a checkpoint is deleted only when nothing trains it: not while a process holds one of
+    its runs' locks (a sweep's batch between its start and its first checkpoint), nor while one of its runs is busy
+    elsewhere, nor before its batch.json names its runs; a finished batch's folder goes (it was deleted under a
+    starting batch, which then failed at its first checkpoint)."""
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": [0, 1, 2, 3, 4],
                                                       "episodes": 2}))
     sweep = SweepDir(tmp_path / "sweep")
     names = [c.name for c in grid.cells()]
-    for folder, runs in (("locked", names[:2]), ("busy", names[2:])):
+    for folder, runs in (("locked", names[:2]), ("busy", names[2:4]), ("finished", names[4:]), ("starting", None)):
         (sweep.batch(folder) / BATCH_CHECKPOINTS).mkdir(parents=True)
-        (sweep.batch(folder) / BATCH_FILE).write_text(json.dumps({"runs": [f"../../runs/{n}" for n in runs]}))
-    todo = [c for c in grid.cells() if c.name != names[3]]  # names[3]: busy, left alone by the sweep
+        if runs is not None:
+            (sweep.batch(folder) / BATCH_FILE).write_text(json.dumps({"runs": [f"../../runs/{n}" for n in runs]}))
+    states = {**pending(grid), names[3]: RunInfo(BUSY, 1, "episodes.csv is open in process 1"),
+              names[4]: RunInfo(COMPLETE, 2)}
+    todo = [c for c in grid.cells() if c.name in names[:3]]
     with run_lock(sweep, names[1]) as held:  # as a batch task holds it (another open file: another holder)
         assert held
-        packing = pack(sweep, grid, todo, pending(grid), 2)
-    assert sweep.batch("locked").is_dir() and sweep.batch("busy").is_dir()
+        packing = pack(sweep, grid, todo, states, 2)
+    assert [p.name for p in sorted(sweep.batches.iterdir())] == ["busy", "locked", "starting"]
     planned = [n for b in packing.batches for n in b.runs] + [c.name for c in packing.sequential]
     assert sorted(planned) == names[:3]  # a held run is planned (its task finds it busy); the busy one is not
-    pack(sweep, grid, list(grid.cells()), pending(grid), 2)  # once nothing holds them: deleted, packed afresh
-    assert not sweep.batch("locked").exists() and not sweep.batch("busy").exists()
+    pack(sweep, grid, todo, {**states, names[3]: RunInfo(PENDING, 0)}, 2)  # nothing holds them now
+    assert [p.name for p in sweep.batches.iterdir()] == ["starting"]
 
 
 def test_bad_batch_options_are_one_line_errors(tmp_path):

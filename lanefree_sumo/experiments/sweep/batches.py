@@ -37,6 +37,7 @@ from lanefree_sumo.errors import ConfigError, LaneFreeError, RunError
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir
 from lanefree_sumo.experiments.sweep.state import (
+    BUSY,
     COMPLETE,
     PARTIAL,
     PENDING,
@@ -158,11 +159,12 @@ def trained_in_batch(run: Path) -> bool:
         return False
 
 
-def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell]) -> list[Batch]:
+def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInfo]) -> list[Batch]:
     """The batches of ``sweep`` to continue: those with a batch checkpoint and a run in ``todo``. Deletes the
-    batch folders without a checkpoint (killed before their first: their runs start afresh) whose runs are all in
-    ``todo`` and held by no process — not one a batch started elsewhere is training towards its first checkpoint
-    (its runs busy, or their locks held)."""
+    batch folders without a checkpoint (killed before their first: their runs start afresh; or finished) that no
+    process is training: their ``batch.json`` names their runs (a batch writes it after claiming them), none of
+    which is busy elsewhere (``states``: its episodes.csv open in another process) or has its lock held by another
+    process (a sweep's batch between its start and its first checkpoint)."""
     found: list[Batch] = []
     if not sweep.batches.is_dir():
         return found
@@ -170,7 +172,9 @@ def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell]) -> list[B
     for folder in sorted(p for p in sweep.batches.iterdir() if p.is_dir()):
         runs = members(folder)
         if not has_checkpoint(folder):
-            if wanted.issuperset(runs) and not any(held_elsewhere(sweep, name) for name in runs):
+            idle = all(states.get(name, RunInfo(PENDING, 0)).state != BUSY and not held_elsewhere(sweep, name)
+                       for name in runs)
+            if runs and idle:
                 shutil.rmtree(folder)
         elif wanted.intersection(runs):
             strangers = sorted(set(runs) - known)
@@ -204,7 +208,7 @@ def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInf
     """Batches of at most ``size`` and single runs for ``todo`` (module docstring; ``why_single``: the plan's
     reason when ``size`` is 1); deletes batch folders without a checkpoint. RunError for a finished batched run
     the grid asks to extend (a batch is not extended)."""
-    packing = Packing(batches=interrupted_batches(sweep, grid, todo), size=size)
+    packing = Packing(batches=interrupted_batches(sweep, grid, todo, states), size=size)
     claimed = {name for batch in packing.batches for name in batch.runs}
     groups: dict[str, list[Cell]] = {}
     for cell in todo:
