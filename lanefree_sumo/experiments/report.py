@@ -9,7 +9,7 @@ writes into ``out``::
     curves_speed_dev.png    speed deviation mean |vx − v_d| per episode (m/s)
     summary.csv             one row per group: last-``last``-episode means, std over seeds, paper values
     summary.md              the same as a Markdown table, cells ``0.520 ± 0.100 (paper 0.449)``
-    claims.csv, claims.md   the paper's claims two of the groups decide (default runs on the ring; a sweep's
+    claims.csv, claims.md   the paper's claims two of the groups decide (their complete default runs; a sweep's
                             claims table, :func:`paper_claims`); not written when no claim compares two groups
 
 Definitions (specification §8, §10):
@@ -55,6 +55,7 @@ from typing import Any
 
 import pandas as pd
 
+from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments import markdown
 from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
@@ -81,6 +82,10 @@ TABLE_METRICS: tuple[tuple[str, str, str], ...] = (
     ("overtakes", "overtakes / episode", ".2f"),
 )
 """Metrics of the summary table, in column order."""
+
+PLANNED_EPISODES = LaneFreeConfig().train.episodes
+"""Training episodes of a default run (its planned length is part of a variant): a run with all of them is
+complete, for the paper's claims."""
 
 
 # -- results -------------------------------------------------------------------------------------
@@ -363,12 +368,10 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     files: dict[str, Any] = {
         name: (lambda path, column=column, ylabel=ylabel: plot_curves(groups, column, ylabel, path, smooth))
         for column, name, ylabel in CURVE_METRICS}
+    claim_files = _claim_files(groups, last, notes) if not source and first is None else {}
     files["summary.csv"] = table
     files["summary.md"] = summary_markdown(table, last, skipped, notes, source)
-    claims = paper_claims(groups, last) if not source and first is None else None
-    if claims is not None:
-        files["claims.csv"] = claims
-        files["claims.md"] = claims_markdown(claims)
+    files.update(claim_files)
     if baseline:
         files["verdict.md"] = _against_page(groups, set(baseline), skipped, first)
     elif compare:
@@ -376,13 +379,37 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     return ReportResult(table=table, files=_write_report(out, files), skipped=skipped, notes=notes)
 
 
-def paper_claims(groups: dict[RunKey, list[RunData]], last: int) -> pd.DataFrame | None:
-    """The paper's claims (:mod:`~lanefree_sumo.experiments.claims`) that two of the groups decide: groups of default
-    runs (no variant: the paper's settings, on its ring — another road is a variant), each claim over its two
-    settings' runs; None when no claim compares two of them."""
-    default = {key[:3]: members for key, members in groups.items() if key[3] == ""}
-    comparisons = decidable(default)
-    return check_claims(default, last, comparisons) if comparisons else None
+def paper_claims(groups: dict[RunKey, list[RunData]], last: int) -> tuple[pd.DataFrame | None, list[str]]:
+    """(the paper's claims (:mod:`~lanefree_sumo.experiments.claims`) that two of the groups decide — None when no
+    claim compares two of them —; the runs left out for being unfinished, ``NAME (done/planned episodes)``). A
+    claim is checked on the complete runs of default groups (no variant: the paper's settings, on its ring, another
+    road being a variant, and its :data:`PLANNED_EPISODES` episodes), as a sweep checks it on its complete runs."""
+    default: dict[tuple[str, str, float], list[RunData]] = {}
+    unfinished: list[str] = []
+    for key, members in groups.items():
+        if key[3] != "":
+            continue
+        for run in members:
+            if list(run.episodes.index) == list(range(1, PLANNED_EPISODES + 1)):
+                default.setdefault(key[:3], []).append(run)
+            else:
+                unfinished.append(f"{run.path.name} ({len(run.episodes)}/{PLANNED_EPISODES} episodes)")
+    comparisons = decidable({key[:3] for key, members in groups.items() if key[3] == ""})
+    if not comparisons:
+        return None, []
+    return check_claims(default, last, comparisons), unfinished
+
+
+def _claim_files(groups: dict[RunKey, list[RunData]], last: int, notes: list[str]) -> dict[str, Any]:
+    """``claims.csv`` and ``claims.md`` of :func:`paper_claims` (none when no claim compares two groups); a note
+    in ``notes`` names the unfinished runs left out."""
+    claims, unfinished = paper_claims(groups, last)
+    if claims is None:
+        return {}
+    if unfinished:
+        notes.append(f"the paper's claims count complete runs only (every one of the {PLANNED_EPISODES} planned "
+                     f"episodes); left out of claims.md: {', '.join(unfinished)}")
+    return {"claims.csv": claims, "claims.md": claims_markdown(claims)}
 
 
 def _verdict_page(groups: dict[RunKey, list[RunData]], first: int | None = None) -> str:

@@ -379,16 +379,18 @@ def _run_data(values: list[float], seed: int) -> RunData:
 
 
 def test_the_paper_claims_two_groups_of_default_runs_decide_are_checked(tmp_path: Path) -> None:
-    """DDPG (last-50 collisions 0.5, 0.6, 0.7) against DQN (2.0, 2.1, 2.2) at FZOC/70: Table 8's claim, every DQN run
-    above every DDPG run; a shielded DDPG run (a variant) and an on-ramp DQN run are not the paper's groups."""
+    """DDPG (last-50 collisions 0.5, 0.6, 0.7) against DQN (2.0, 2.1, 2.2) at FZOC/70, 625 episodes each: Table 8's
+    claim, every DQN run above every DDPG run; a shielded DDPG run (a variant), an on-ramp DQN run and a DDPG run
+    stopped at episode 80 of 625 (its last 50 are early training) are not counted."""
     runs = tmp_path / "runs"
-    folders = [make_run(runs, f"ddpg_s{k}", seed=k, collisions=early_then_last(9.0, [c] * 50))
+    folders = [make_run(runs, f"ddpg_s{k}", seed=k, collisions=early_then_last(9.0, [c] * 50, 625), episodes=625)
                for k, c in enumerate((0.5, 0.6, 0.7))]
-    folders += [make_run(runs, f"dqn_s{k}", algo="dqn", seed=k, collisions=early_then_last(9.0, [c] * 50))
-                for k, c in enumerate((2.0, 2.1, 2.2))]
+    folders += [make_run(runs, f"dqn_s{k}", algo="dqn", seed=k, collisions=early_then_last(9.0, [c] * 50, 625),
+                         episodes=625) for k, c in enumerate((2.0, 2.1, 2.2))]
     folders += [make_run(runs, "ddpg_shield", seed=5, collisions=[0.0] * 80, extra={"shield": {"enabled": True}}),
                 make_run(runs, "dqn_onramp", algo="dqn", seed=7, collisions=[9.0] * 80,
-                         extra={"road": {"kind": "onramp"}})]
+                         extra={"road": {"kind": "onramp"}}),
+                make_run(runs, "ddpg_s9", seed=9, collisions=[9.0] * 80)]
     result = report(folders, tmp_path / "rep")
     assert [p.name for p in result.files][-2:] == ["claims.csv", "claims.md"]
     claims = list(csv.DictReader(open(tmp_path / "rep" / "claims.csv")))
@@ -400,6 +402,8 @@ def test_the_paper_claims_two_groups_of_default_runs_decide_are_checked(tmp_path
     assert float(claim["difference"]) == pytest.approx(1.5) and float(claim["pairs_a_above_b"]) == 9
     assert float(claim["rank_p"]) == pytest.approx(0.05) and claim["verdict"] == "consistent with the paper"
     assert "| 3, 3 | +0.503 | +1.500 [" in (tmp_path / "rep" / "claims.md").read_text()
+    assert result.notes == ["the paper's claims count complete runs only (every one of the 625 planned episodes); "
+                            "left out of claims.md: ddpg_s9 (80/625 episodes)"]
     alone = report(folders[:3], tmp_path / "alone")  # one setting: no claim, no claims files
     assert "claims.md" not in [p.name for p in alone.files] and not (tmp_path / "alone" / "claims.md").exists()
     cut = report(folders[:6], tmp_path / "cut", first=60)  # the paper's claims are over whole runs
