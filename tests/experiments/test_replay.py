@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import subprocess
@@ -189,6 +190,37 @@ def test_sigterm_stops_a_replay_like_ctrl_c_and_leaves_no_file(display, recorded
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def _children(pid: int) -> list[tuple[int, str]]:
+    """(pid, name) of the processes whose parent is ``pid``."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:  # ended meanwhile
+            continue
+        name, rest = text[text.index("(") + 1:text.rindex(")")], text[text.rindex(")") + 2:].split()
+        if int(rest[1]) == pid:
+            found.append((int(stat.parent.name), name))
+    return found
+
+
+def test_sumo_gui_closed_mid_replay_is_one_line_not_a_bug(display, recorded, tmp_path):
+    """The user closes sumo-gui's window while the replay runs (here: its process ends): one line saying so, exit 1
+    — not an internal error with a traceback."""
+    fcd = tmp_path / "out.fcd.xml"
+    proc = subprocess.Popen([sys.executable, "-m", "lanefree_sumo.cli", "replay", str(recorded), "--delay", "0.2",
+                             "--fcd", str(fcd)], cwd=ROOT, env={**CLI_ENV, "DISPLAY": display},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wait_for(lambda: any("<timestep" in p.read_text() for p in tmp_path.glob(".out.fcd.xml.new-*")), proc,
+             "steps in the FCD output (sumo-gui connected and stepping)")
+    gui = [pid for pid, name in _children(proc.pid) if name == "sumo-gui"]
+    assert len(gui) == 1
+    os.kill(gui[0], signal.SIGKILL)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 1 and err.strip().count("\n") == 0, err
+    assert err.startswith("lanefree: error: sumo-gui closed before the end (its window was closed, or it stopped")
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ subscriptions (lane position, lateral lane position, speed, edge).
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import math
 import os
@@ -17,15 +18,16 @@ import subprocess
 import tempfile
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import sumo
 import traci
 import traci.constants as tc
 from sumolib.miscutils import getFreeSocketPort
+from traci.exceptions import FatalTraCIError
 
 from lanefree_sumo.config import LaneFreeConfig, ReplayConfig
 from lanefree_sumo.errors import SumoError
@@ -184,6 +186,23 @@ def lane_of(x: float, length_m: float) -> tuple[str, float]:
     return f"{edge_id(int(edge))}_0", float(pos)
 
 
+_Method = TypeVar("_Method", bound=Callable[..., Any])
+
+
+def _connected(method: _Method) -> _Method:
+    """``method`` of a backend with a lost TraCI connection (sumo-gui's window closed by its user, SUMO stopped)
+    said as one :class:`SumoError`, not a traceback."""
+
+    @functools.wraps(method)
+    def wrapper(self: SumoBackend, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return method(self, *args, **kwargs)
+        except FatalTraCIError:
+            raise SumoError(self.lost_message()) from None
+
+    return cast(_Method, wrapper)
+
+
 class SumoBackend:
     """Executes steps in SUMO through libsumo (in-process) or TraCI (a socket; needed for GUI).
 
@@ -230,6 +249,8 @@ class SumoBackend:
     # -- process ------------------------------------------------------------------------
     def _start(self) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="lanefree-")
+        self._gui_log = Path(self._tmp.name) / "sumo-gui.log"
+        """sumo-gui's output (its error lines are quoted when it fails or closes)."""
         additional = write_additional(self.cfg, Path(self._tmp.name) / "vtypes.add.xml")
         args = [sumo_binary("sumo-gui" if self.gui else "sumo"), *sumo_options(self.cfg, self.net, additional)]
         if self.gui:
@@ -263,26 +284,49 @@ class SumoBackend:
 
     def _start_gui(self, args: list[str]) -> Any:
         """Start sumo-gui and connect to it within ``gui_start_retries`` seconds, its output in a log beside the
-        simulation's files (so that a failure is one line: ours, quoting sumo-gui's last)."""
+        simulation's files (so that a failure is one line: ours, quoting sumo-gui's). A port taken between its
+        choice and sumo-gui's start is retried on another, as :func:`traci.start` does."""
         display = os.environ.get("DISPLAY")
         if not display:
             raise SumoError("sumo-gui needs a display and none is set (DISPLAY); "
                             "on a headless machine run the command under 'xvfb-run -a'")
-        log_path = Path(self._tmp.name) / "sumo-gui.log"
-        port = int(getFreeSocketPort())
-        with log_path.open("wb") as log:
-            proc = subprocess.Popen([*args, "--remote-port", str(port)], stdout=subprocess.DEVNULL, stderr=log)
+        for attempt in range(3):
+            port = int(getFreeSocketPort())
+            with self._gui_log.open("wb") as log:
+                proc = subprocess.Popen([*args, "--remote-port", str(port)], stdout=subprocess.DEVNULL, stderr=log)
+            try:
+                with contextlib.redirect_stdout(io.StringIO()):  # traci's "Retrying" noise; we say one line
+                    traci.init(port, numRetries=self.gui_start_retries, label=self._label, proc=proc)
+                return traci.getConnection(self._label)
+            except BaseException as exc:  # Ctrl-C too: sumo-gui does not outlive the start
+                proc.kill()
+                proc.wait()
+                if not isinstance(exc, Exception):
+                    raise
+                said = self._gui_said()
+                if "in use" in said and attempt < 2:  # the port taken meanwhile: another one
+                    continue
+                raise SumoError(f"sumo-gui did not open its window on display {display!r}"
+                                + (f" ({said})" if said else "")
+                                + "; check the display, or on a headless machine run under 'xvfb-run -a'") from None
+        raise AssertionError("unreachable")
+
+    def _gui_said(self) -> str:
+        """sumo-gui's first error line (an ``Error:``, or the toolkit's ``FXApp::…`` complaint), or "" (its other
+        output — font warnings and the like — explains nothing)."""
         try:
-            with contextlib.redirect_stdout(io.StringIO()):  # traci's "Retrying" noise; we say one line instead
-                traci.init(port, numRetries=self.gui_start_retries, label=self._label, proc=proc)
-        except Exception:
-            proc.kill()
-            proc.wait()
-            said = [line.strip() for line in log_path.read_text(errors="replace").splitlines() if line.strip()]
-            raise SumoError(f"sumo-gui did not open its window on display {display!r}"
-                            + (f" ({said[-1]})" if said else "")
-                            + "; check the display, or on a headless machine run under 'xvfb-run -a'") from None
-        return traci.getConnection(self._label)
+            lines = self._gui_log.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return next((line.strip() for line in lines if "Error" in line or "FXApp" in line), "")
+
+    def lost_message(self) -> str:
+        """One line for a lost connection to SUMO: the window closed, or SUMO stopped (quoting sumo-gui)."""
+        if self.gui:
+            said = self._gui_said()
+            return ("sumo-gui closed before the end (its window was closed, or it stopped"
+                    + (f": {said}" if said else "") + ")")
+        return "SUMO stopped before the end (its connection closed); run again, or use the libsumo backend"
 
     def close(self) -> None:
         """Stop SUMO (idempotent)."""
@@ -321,6 +365,7 @@ class SumoBackend:
         v.setLaneChangeMode(vid, 0)
         v.moveTo(vid, lane, pos)
 
+    @_connected
     def reset(self, state: VehicleState) -> None:
         """Remove all vehicles and place ``state``'s vehicles at their exact positions/speeds."""
         v = self._conn.vehicle
@@ -339,7 +384,7 @@ class SumoBackend:
                 v.subscribe(vid, self._subscribed)
             if self.gui and AGENT_ID in state.ids:
                 self._conn.gui.trackVehicle(GUI_VIEW, AGENT_ID)
-        except SumoError:
+        except (SumoError, FatalTraCIError):
             raise
         except Exception as exc:
             raise SumoError(f"SUMO refused to place the vehicles: {exc}") from None
@@ -347,6 +392,7 @@ class SumoBackend:
         self._y = state.y.copy()
         self._centre = np.array([centre for *_, centre in places])
 
+    @_connected
     def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(x, y, vx) of every vehicle in the order of the last ``reset`` (m, m, m/s)."""
         res = self._conn.vehicle.getAllSubscriptionResults()
@@ -361,6 +407,7 @@ class SumoBackend:
         self._y = y
         return x, y, vx
 
+    @_connected
     def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Command every vehicle, advance SUMO one step, and read the new state back.
 
@@ -388,19 +435,23 @@ class SumoBackend:
         self.sumo_step_seconds += time.perf_counter() - t0
         return self.read()
 
+    @_connected
     def set_color(self, vid: str, rgba: tuple[int, int, int, int]) -> None:
         """Colour of a vehicle in sumo-gui (0–255 each)."""
         self._conn.vehicle.setColor(vid, rgba)
 
+    @_connected
     def screenshot(self, path: Path, width: int, height: int) -> None:
         """Ask sumo-gui for a PNG of the view; SUMO writes it during the next simulation step."""
         self._conn.gui.screenshot(GUI_VIEW, str(path), width, height)
 
+    @_connected
     def track(self, vid: str, zoom: float) -> None:
         """Centre the sumo-gui view on ``vid`` and follow it, at ``zoom`` (%)."""
         self._conn.gui.setZoom(GUI_VIEW, zoom)
         self._conn.gui.trackVehicle(GUI_VIEW, vid)
 
+    @_connected
     def idle_step(self) -> None:
         """One simulation step without commands (lets SUMO finish pending screenshots)."""
         self._conn.simulationStep()
@@ -430,6 +481,7 @@ class OnRampSumoBackend(SumoBackend):
         return (ROUTE_RAMP if on_ramp else ROUTE_MAIN, f"{ONRAMP_EDGES[k]}_{lane}", x - float(self._offsets[k]),
                 -self._ramp_half if on_ramp else self._half_width)
 
+    @_connected
     def add(self, rows: VehicleState) -> None:
         """Vehicles entering the road where ``rows`` place them (appended, in order): inserted at once
         (``moveTo`` of a vehicle not yet on the road inserts it there, whatever SUMO's own insertion checks
@@ -445,7 +497,7 @@ class OnRampSumoBackend(SumoBackend):
                 v.setPreviousSpeed(vid, speed)
                 v.subscribe(vid, self._subscribed)
                 centres.append(centre)
-        except SumoError:
+        except (SumoError, FatalTraCIError):
             raise
         except Exception as exc:
             raise SumoError(f"SUMO refused an entering vehicle: {exc}") from None
@@ -453,6 +505,7 @@ class OnRampSumoBackend(SumoBackend):
         self._y = np.concatenate([self._y, rows.y])
         self._centre = np.concatenate([self._centre, centres])
 
+    @_connected
     def remove(self, keep: np.ndarray) -> None:
         """Take the vehicles where ``keep`` is False off the road."""
         v = self._conn.vehicle
@@ -463,6 +516,7 @@ class OnRampSumoBackend(SumoBackend):
         self._ids = [vid for vid, kept in zip(self._ids, keep.tolist()) if kept]
         self._y, self._centre = self._y[keep], self._centre[keep]
 
+    @_connected
     def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(x, y, vx) of every vehicle, in the order they entered (m, m, m/s)."""
         res = self._conn.vehicle.getAllSubscriptionResults()
@@ -479,6 +533,7 @@ class OnRampSumoBackend(SumoBackend):
         self._y = y
         return x, y, vx
 
+    @_connected
     def step(self, cmd: StepCommand) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Command every vehicle on the road, advance SUMO one step, read the new state back."""
         v = self._conn.vehicle
