@@ -74,8 +74,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         argv = list(sys.argv[1:] if argv is None else argv)
         args, unknown = parser.parse_known_args(argv)
-        if unknown:  # named by the verb's parser, whose --help lists what it takes
-            args.verb_parsers.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}")
+        if unknown:  # after the verb: named by the verb's parser, whose --help lists what it takes
+            after_verb = args.command in argv and argv.index(unknown[0]) > argv.index(args.command)
+            (args.verb_parsers[args.command] if after_verb else parser).error(
+                f"unrecognized arguments: {' '.join(unknown)}")
         args.given = {token.split("=", 1)[0] for token in argv if token.startswith("--")}
         if args.command is None:
             parser.print_help()

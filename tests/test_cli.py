@@ -70,6 +70,15 @@ def test_bad_input_is_one_line_and_nonzero(tmp_path, args, needle):
     assert "Traceback" not in res.stderr
 
 
+def test_an_unknown_option_is_named_by_the_parser_it_was_given_to():
+    before = lanefree("--frobnicate", "simulate")
+    assert before.returncode == 2
+    assert before.stderr.strip() == ("lanefree: error: lanefree: unrecognized arguments: --frobnicate "
+                                     "(see 'lanefree --help')")
+    after = lanefree("report", "a", "--frobnicate", "b")  # between a verb's positional arguments
+    assert after.returncode == 2 and "lanefree report: unrecognized arguments: --frobnicate b" in after.stderr
+
+
 def test_corrupt_network_is_one_line(tmp_path):
     bad = tmp_path / "bad.net.xml"
     bad.write_text("not xml at all <<<")
