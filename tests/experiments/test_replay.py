@@ -85,6 +85,14 @@ def test_missing_recording_says_how_to_make_one(tmp_path):
         load_recording(tmp_path, 1)
 
 
+def test_export_of_an_episode_not_recorded_makes_no_folder(recorded, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(recorded, run, ignore=shutil.ignore_patterns("export"))
+    res = lanefree("export", str(run), "--episode", "99")
+    assert res.returncode == 2 and "no recording of episode 99" in res.stderr and res.stderr.count("\n") == 1
+    assert not (run / "eval" / "export").exists()  # it was made, with its marker, before the error
+
+
 def test_export_writes_csv_and_fcd_with_lateral_positions(recorded, tmp_path):
     out = tmp_path / "export"
     res = lanefree("export", str(recorded), "--episode", "1", "--out", str(out))
