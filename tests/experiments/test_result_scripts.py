@@ -186,6 +186,20 @@ def test_the_remedy_report_is_what_the_run_folders_make(tmp_path):
                 (tmp_path / folder / name).read_text(), (folder, name)
 
 
+def test_table8_at_ten_seeds_is_what_the_run_folders_make(tmp_path):
+    """results/paper/table8_seeds10/ is `lanefree report` of Table 8's 50 runs (DDPG and the DQN family, the full
+    reward at 70 veh/km, seeds 0-9): its table and the claims 10 runs against 10 decide (docs/results.md)."""
+    paper = ROOT / "results" / "paper"
+    runs = sorted(run for algo in ("ddpg", "dqn", "ddqn", "dueling", "per")
+                  for run in (paper / "runs").glob(f"{algo}_fields_zones_overtake_collision_d70_s?"))
+    made = report(runs, tmp_path / "t8")
+    assert len(runs) == 50 and not made.skipped and not made.notes and len(made.table) == 5
+    claims = pd.read_csv(tmp_path / "t8" / "claims.csv")
+    assert len(claims) == 9 and set(claims.n_a) == set(claims.n_b) == {10}
+    for name in ("summary.md", "claims.md"):
+        assert (paper / "table8_seeds10" / name).read_text() == (tmp_path / "t8" / name).read_text()
+
+
 def copy_run(run: Path, to: Path) -> None:
     """A run folder's committed files: config, training episodes and every evaluation's episodes."""
     to.mkdir(parents=True)
