@@ -269,6 +269,26 @@ def test_a_batched_sweep_writes_the_run_folders_of_a_sequential_sweep(tmp_path):
 
 
 @pytest.mark.slow
+def test_only_trains_the_matching_runs_first_and_a_later_resume_the_rest(tmp_path):
+    grid = write_grid(tmp_path / "tiny.yaml", TINY)
+    out = tmp_path / "out"
+    bad = lanefree("sweep", str(grid), "--out", str(out), "--only", "dqn_*_d90_*", "--no-ray", "--no-progress")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and not out.exists()
+    assert "--only dqn_*_d90_* matches no run of the grid; its runs are named like ddpg_collision_d70_s0" in bad.stderr
+    first = lanefree("sweep", str(grid), "--out", str(out), "--only", "dqn_*", "--batch", "2", "--no-ray",
+                     "--no-progress", timeout=900)
+    assert first.returncode == 0, first.stderr  # every run asked for is complete
+    assert "2 run(s) not matching --only left for a later run of the sweep" in first.stdout
+    assert "2 run(s) in this process (no Ray): 2 run(s) in 1 batch(es)" in first.stdout
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["dqn_collision_d70_s0", "dqn_fields_collision_d70_s0"]
+    rest = lanefree("sweep", "--resume", str(out), "--batch", "2", "--no-ray", "--no-progress", timeout=900)
+    assert rest.returncode == 0 and "2 complete, 0 to resume, 2 to start" in rest.stdout, rest.stderr
+    assert "4/4 runs complete" in rest.stdout
+    status = lanefree("sweep", "--status", str(out), "--only", "dqn_*")
+    assert status.returncode == 2 and "--only does not go with --status" in status.stderr
+
+
+@pytest.mark.slow
 @pytest.mark.sumo
 def test_a_batched_sweep_killed_and_interrupted_resumes_exactly_beside_a_complete_run(tmp_path):
     """Seed 0 complete (trained alone); seeds 1 and 2 added as a batch, whose worker is SIGKILLed after its first batch

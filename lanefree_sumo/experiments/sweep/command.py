@@ -7,10 +7,12 @@ Exit codes: 0 every run complete; 1 some run failed, is damaged or busy elsewher
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import os
 import shlex
 import socket
 import sys
+from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -89,6 +91,10 @@ OPTIONS: tuple[Option, ...] = (
            "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU); "
            f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
            "one run per task"),
+    Option("--only", default=[], extra={"action": "append", "metavar": "GLOB"},
+           note="train only the runs whose folder names match GLOB (a shell pattern, e.g. "
+           "'*_fields_zones_overtake_collision_d70_*': Table 8 before the rest; repeatable), leaving the others for "
+           "a later run of the sweep; an interrupted batch holding a matching run continues whole"),
     Option("--no-progress", extra={"action": "store_true"}, note="no progress bar"),
     Option("--no-ray", extra={"action": "store_true"},
            note="train the batches and runs one after another in this process, without Ray (a machine without Ray, "
@@ -136,7 +142,7 @@ def _check_args(args: argparse.Namespace) -> tuple[str, Path]:
         raise UsageError("lanefree sweep: give a GRID (" + ", ".join(BUILTIN_GRIDS) + " or a YAML file), "
                          "--resume DIR, --status DIR or --summary DIR (see 'lanefree sweep --help')")
     budget = [o for o in ("--seeds", "--episodes", "--episode-steps", "--set") if o in given]
-    ray_opts = [o for o in ("--workers", "--address", "--retries", "--batch", "--no-progress", "--no-ray")
+    ray_opts = [o for o in ("--workers", "--address", "--retries", "--batch", "--only", "--no-progress", "--no-ray")
                 if o in given]
     if modes:
         mode = modes[0]
@@ -189,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
         folder = folder if folder is not None else Path("runs") / f"sweep_{grid.name}"
     address = None if args.no_ray else args.address or os.environ.get("RAY_ADDRESS") or None
     return _drive(folder, grid, mode, command, args.workers, address, args.retries, not args.no_progress, extend,
-                  args.batch, args.no_ray)
+                  args.batch, args.no_ray, args.only)
 
 
 def plan(folder: Path, grid: Grid, extend: bool = False) -> dict[str, RunInfo]:
@@ -226,7 +232,7 @@ def _ray_description(workers: int | None, address: str | None) -> str:
 
 def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | None, address: str | None,
            retries: int, progress: bool, extend: bool = False, batch: int | None = None,
-           in_process: bool = False) -> int:
+           in_process: bool = False, only: Sequence[str] = ()) -> int:
     from lanefree_sumo.experiments.rundir import check_writable
     from lanefree_sumo.experiments.sweep.batches import batch_size, pack
     from lanefree_sumo.experiments.sweep.runner import check_address, cluster_size, run_in_process, run_sweep
@@ -234,6 +240,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
 
     workers = 0 if in_process else (workers or default_workers()) if address is None else None
     states = plan(folder, grid, extend)  # every check before the first write
+    chosen = chosen_runs(grid, only)
     if address is not None:
         check_address(address)
     elif grid.on_cuda():
@@ -243,7 +250,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     check_writable(folder, folder=True)
     sweep = SweepDir(folder)
     cells: dict[str, Cell] = {c.name: c for c in grid.cells()}
-    todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED)]
+    todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED) and n in chosen]
     with driver_lock(folder, command):
         cpus = workers if address is None or batch is not None or not todo else cluster_size(address)
         size = batch_size(batch, len(todo), cpus)
@@ -264,6 +271,9 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
               + (f"; REDUCED BUDGET ({'; '.join(budget['notes'])})" if budget["reduced"] else ""), flush=True)
         for name, info in busy:
             print(f"  left alone: runs/{name}: {info.detail}", file=sys.stderr)
+        later = sum(1 for n, i in states.items() if n not in chosen and i.state not in (COMPLETE, BUSY, DAMAGED))
+        if later:
+            print(f"  {later} run(s) not matching --only left for a later run of the sweep", flush=True)
         interrupted = False
         if todo:
             print(f"  {len(todo)} run(s) {'in' if in_process else 'on the'} {_ray_description(workers, address)}: "
@@ -288,7 +298,20 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
         print(f"lanefree: interrupted; checkpoints saved. Continue with: lanefree sweep --resume {folder}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
-    return EXIT_OK if complete == len(cells) else EXIT_INCOMPLETE
+    return EXIT_OK if all(final[n].state == COMPLETE for n in chosen) else EXIT_INCOMPLETE
+
+
+def chosen_runs(grid: Grid, only: Sequence[str]) -> set[str]:
+    """The names of the grid's runs to train: every run, or those matching one of the ``--only`` patterns
+    (:func:`fnmatch.fnmatchcase`); UsageError for a pattern matching none."""
+    names = [c.name for c in grid.cells()]
+    if not only:
+        return set(names)
+    for pattern in only:
+        if not any(fnmatch.fnmatchcase(name, pattern) for name in names):
+            raise UsageError(f"lanefree sweep: --only {pattern} matches no run of the grid; its runs are named like "
+                             f"{names[0]} (algorithm_preset_d<density>_s<seed>)")
+    return {name for name in names if any(fnmatch.fnmatchcase(name, pattern) for pattern in only)}
 
 
 PARTIAL_PACE_EPISODES = 25
