@@ -1,7 +1,8 @@
 """``lanefree sweep``: the command line of sweeps (``add_parser`` registers it, ``run`` executes it).
 
-Exit codes: 0 every run complete; 1 some run failed, is damaged or busy elsewhere; 2 bad input
-(one line on stderr, nothing written); 130 interrupted (checkpoints saved; rerun to continue).
+Exit codes: 0 every run complete (with ``--only``, every run it asked for); 1 some run failed, is damaged or busy
+elsewhere; 2 bad input (one line on stderr, nothing written); 130 interrupted (checkpoints saved; rerun to
+continue).
 """
 
 from __future__ import annotations
