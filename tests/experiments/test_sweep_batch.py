@@ -17,7 +17,7 @@ import yaml
 
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, BATCH_FILE, train_batch
-from lanefree_sumo.experiments.sweep.batches import batch_size, pack
+from lanefree_sumo.experiments.sweep.batches import batch_size, pack, split_counts
 from lanefree_sumo.experiments.sweep.grid import load_grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, PARTIAL, PENDING, STALE, RunInfo, run_lock
@@ -112,6 +112,21 @@ def test_the_set_encoder_remedy_grids_train_as_one_batch_each(tmp_path, grid_nam
 def test_the_default_batch_keeps_every_worker_busy():
     assert batch_size(None, 4, 2) == 2 and batch_size(None, 1, 4) == 1 and batch_size(None, 150, 2) == 8
     assert batch_size(None, 10, None) == 8 and batch_size(3, 150, 2) == 3
+
+
+def test_a_given_batch_size_is_split_further_while_a_worker_would_idle(tmp_path):
+    """--batch K beside W workers: more, smaller batches while the new ones are fewer than W (2 runs at least),
+    the largest split first; unknown workers (a cluster under --batch) or --no-ray (0): K alone decides."""
+    assert split_counts([14], 16, 2) == [2] and split_counts([14], 16, None) == [1] and split_counts([14], 16, 0) == [1]
+    assert split_counts([3], 16, 2) == [1] and split_counts([4], 16, 4) == [2]  # batches keep 2 runs
+    assert split_counts([10, 4], 16, 3) == [2, 1] and split_counts([10, 4], 16, 4) == [3, 1]
+    assert split_counts([43], 16, 2) == [3]  # already enough: K decides
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {"reward_presets": ["collision"], "seeds": list(range(14)),
+                                                      "episodes": 2}))
+    cells = list(grid.cells())
+    packing = pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 16, workers=2)
+    assert [b.runs for b in packing.batches] == [tuple(c.name for c in cells[:7]), tuple(c.name for c in cells[7:])]
+    assert [len(b.runs) for b in pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 16).batches] == [14]
 
 
 def test_an_interrupted_batch_continues_as_that_batch_and_one_without_a_checkpoint_is_packed_afresh(tmp_path):

@@ -9,11 +9,12 @@ member is complete.
 
 Packing (:func:`pack`): the runs to start whose configs differ only in what a batch may differ in
 (:data:`PER_RUN_KEYS`: seed, density, reward preset, overtake bonus, the agent's top speed and lateral bound,
-DDPG's pre-tanh penalty) go together, in grid order, split into batches of at most K of near equal size. A run
-the batched path cannot train (:func:`batch_key`'s reason) goes one run per task. An interrupted batch (a batch
-folder with a batch checkpoint and an unfinished member) continues as that batch, whatever K is now: its members'
-checkpoints hold no replay buffer of their own. A batch folder without a checkpoint (killed before its first) is
-deleted and its runs are packed afresh.
+DDPG's pre-tanh penalty) go together, in grid order, split into batches of at most K of near equal size — into
+more, smaller ones (2 runs at least) while the new batches are fewer than the workers, so that none idles (14 runs
+at K = 16 on 2 workers: 7 + 7). A run the batched path cannot train (:func:`batch_key`'s reason) goes one run per
+task. An interrupted batch (a batch folder with a batch checkpoint and an unfinished member) continues as that
+batch, whatever K is now: its members' checkpoints hold no replay buffer of their own. A batch folder without a
+checkpoint (killed before its first) is deleted and its runs are packed afresh.
 """
 
 from __future__ import annotations
@@ -203,11 +204,26 @@ def _single_reason(sweep: SweepDir, grid: Grid, cell: Cell, info: RunInfo, size:
     return None
 
 
+def split_counts(groups: Sequence[int], size: int, workers: int | None) -> list[int]:
+    """How many batches each group of ``groups`` (their run counts) is split into: enough for at most ``size``
+    runs each, then — while the new batches are fewer than ``workers`` — one more for the group with the largest
+    batches, as long as each keeps 2 runs (``workers`` None: unknown, no such split)."""
+    counts = [math.ceil(n / size) for n in groups]
+    while workers and sum(counts) < workers:
+        fits = [i for i, n in enumerate(groups) if n // (counts[i] + 1) >= 2]
+        if not fits:
+            break
+        widest = max(fits, key=lambda i: groups[i] / counts[i])
+        counts[widest] += 1
+    return counts
+
+
 def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInfo], size: int,
-         why_single: str = "--batch 1") -> Packing:
+         why_single: str = "--batch 1", workers: int | None = None) -> Packing:
     """Batches of at most ``size`` and single runs for ``todo`` (module docstring; ``why_single``: the plan's
-    reason when ``size`` is 1); deletes batch folders without a checkpoint. RunError for a finished batched run
-    the grid asks to extend (a batch is not extended)."""
+    reason when ``size`` is 1; ``workers``: the workers the new batches share, see :func:`split_counts`);
+    deletes batch folders without a checkpoint. RunError for a finished batched run the grid asks to extend (a
+    batch is not extended)."""
     packing = Packing(batches=interrupted_batches(sweep, grid, todo, states), size=size)
     claimed = {name for batch in packing.batches for name in batch.runs}
     groups: dict[str, list[Cell]] = {}
@@ -220,8 +236,8 @@ def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInf
         else:
             packing.sequential.append(cell)
             packing.reasons[reason] = packing.reasons.get(reason, 0) + 1
-    for cells in groups.values():
-        count = math.ceil(len(cells) / size)
+    counts = split_counts([len(cells) for cells in groups.values()], size, workers if size > 1 else None)
+    for cells, count in zip(groups.values(), counts):
         start = 0
         for i in range(count):  # near equal sizes: 10 runs at K = 8 are 5 + 5, not 8 + 2
             n = len(cells) // count + (i < len(cells) % count)

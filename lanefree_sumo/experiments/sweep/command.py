@@ -88,8 +88,9 @@ OPTIONS: tuple[Option, ...] = (
            note=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})"),
     Option("--batch", type=argtypes.positive(int, "batch"), extra={"metavar": "K"},
            note="train runs of one algorithm (dqn and ddqn count as one) that differ only in seed, density, reward "
-           "preset, overtake bonus, agent top speed or agent lateral bound as "
-           "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU); "
+           "preset, overtake bonus, agent top speed, agent lateral bound or DDPG's pre-tanh penalty as "
+           "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU), "
+           "smaller ones where that keeps every worker busy; "
            f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
            "one run per task"),
     Option("--only", default=[], extra={"action": "append", "metavar": "GLOB"},
@@ -256,7 +257,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
         cpus = workers if address is None or batch is not None or not todo else cluster_size(address)
         size = batch_size(batch, len(todo), cpus)
         packing = pack(sweep, grid, todo, states, size,
-                       "--batch 1" if batch == 1 else "no more runs to train than workers")
+                       "--batch 1" if batch == 1 else "no more runs to train than workers", cpus)
         manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)
         manifest.grid = grid  # the same, or with the seeds --seeds added
         manifest.sessions.append({"started": datetime.now().isoformat(timespec="seconds"), "command": command,
