@@ -20,6 +20,7 @@ from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, BATCH_FILE, train
 from lanefree_sumo.experiments.sweep.batches import batch_size, pack, split_counts
 from lanefree_sumo.experiments.sweep.grid import load_grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
+from lanefree_sumo.experiments.sweep.runner import stop_text
 from lanefree_sumo.experiments.sweep.state import BUSY, COMPLETE, PARTIAL, PENDING, STALE, RunInfo, run_lock
 
 from conftest import CLI_ENV, lanefree, lanefree_popen, wait_for
@@ -112,6 +113,11 @@ def test_the_set_encoder_remedy_grids_train_as_one_batch_each(tmp_path, grid_nam
 def test_the_default_batch_keeps_every_worker_busy():
     assert batch_size(None, 4, 2) == 2 and batch_size(None, 1, 4) == 1 and batch_size(None, 150, 2) == 8
     assert batch_size(None, 10, None) == 8 and batch_size(3, 150, 2) == 3
+
+
+def test_a_stop_counts_runs_and_the_tasks_holding_them():
+    assert stop_text([("a",), ("b", "c", "d")]).startswith("4 run(s) in 2 task(s): those training save")
+    assert stop_text([("a",), ("b",)]).startswith("2 run(s): those training save a checkpoint and stop")
 
 
 def test_a_given_batch_size_is_split_further_while_a_worker_would_idle(tmp_path):
@@ -333,12 +339,13 @@ def test_a_batched_sweep_killed_and_interrupted_resumes_exactly_beside_a_complet
             len(rows(sweep.run(f"ddpg_collision_d70_s{s}") / "episodes.csv")) >= 2 * every for s in (1, 2)),
             proc, "the retried batch's episodes")
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=300)
+        said, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130, err
     assert "Traceback" not in err
+    assert "stopping: 2 run(s) in 1 task(s): those training save a checkpoint and stop" in said + err
     stopped = [len(rows(sweep.run(f"ddpg_collision_d70_s{s}") / "episodes.csv")) for s in (1, 2)]
     assert all(n < episodes for n in stopped)
 

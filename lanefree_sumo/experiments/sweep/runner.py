@@ -311,11 +311,19 @@ def run_tasks(ray: Any, sweep: SweepDir, grid: Grid, todo: list[Cell], retries: 
     return outcome
 
 
+def stop_text(tasks: list[tuple[str, ...]]) -> str:
+    """What a stop does to the unfinished ``tasks`` (each a run's name, or a batch's runs): counted in runs, and in
+    tasks where a batch holds several."""
+    runs = sum(len(names) for names in tasks)
+    within = f" in {len(tasks)} task(s)" if runs != len(tasks) else ""
+    return f"{runs} run(s){within}: those training save a checkpoint and stop, those queued do not start"
+
+
 def _stop(ray: Any, sweep: SweepDir, refs: dict[Any, tuple[str, ...]], outcome: SweepOutcome, bar: Any) -> None:
     """Cancel every task (running ones save a checkpoint and return); force after a second Ctrl-C
     or :data:`STOP_TIMEOUT_S`."""
-    bar.write(f"stopping: {len(refs)} run(s) save a checkpoint and stop (Ctrl-C again to kill them at once; "
-              "they then resume from their previous checkpoint)")
+    bar.write(f"stopping: {stop_text(list(refs.values()))} (Ctrl-C again to kill them at once; they then resume "
+              "from their previous checkpoint)")
     for ref in refs:
         try:
             ray.cancel(ref, force=False, recursive=False)
