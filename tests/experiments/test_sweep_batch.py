@@ -17,7 +17,7 @@ import yaml
 
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, BATCH_FILE, train_batch
-from lanefree_sumo.experiments.sweep.batches import batch_size, pack, split_counts
+from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH, pack, split_counts
 from lanefree_sumo.experiments.sweep.grid import load_grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.runner import stop_text
@@ -111,8 +111,11 @@ def test_the_set_encoder_remedy_grids_train_as_one_batch_each(tmp_path, grid_nam
 
 
 def test_the_default_batch_keeps_every_worker_busy():
-    assert batch_size(None, 4, 2) == 2 and batch_size(None, 1, 4) == 1 and batch_size(None, 150, 2) == 8
-    assert batch_size(None, 10, None) == 8 and batch_size(3, 150, 2) == 3
+    """Without --batch: at most DEFAULT_BATCH runs per batch, split further while a worker would idle."""
+    assert DEFAULT_BATCH == 8
+    assert split_counts([4], DEFAULT_BATCH, 2) == [2] and split_counts([150], DEFAULT_BATCH, 2) == [19]
+    assert split_counts([10], DEFAULT_BATCH, 2) == [2] and split_counts([10], DEFAULT_BATCH, None) == [2]
+    assert split_counts([1], DEFAULT_BATCH, 4) == [1] and split_counts([6], DEFAULT_BATCH, 3) == [3]
 
 
 def test_a_stop_counts_runs_and_the_tasks_holding_them():

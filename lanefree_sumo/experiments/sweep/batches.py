@@ -8,10 +8,9 @@ files (``batch.json``, ``batch_checkpoints/``) live in ``DIR/batches/<batch>/`` 
 member is complete.
 
 Packing (:func:`pack`): the runs to start whose configs differ only in what a batch may differ in
-(:data:`PER_RUN_KEYS`: seed, density, reward preset, overtake bonus, the agent's top speed and lateral bound,
-DDPG's pre-tanh penalty) go together, in grid order, split into batches of at most K of near equal size — into
-more, smaller ones (2 runs at least) while the new batches are fewer than the workers, so that none idles (14 runs
-at K = 16 on 2 workers: 7 + 7). A run the batched path cannot train (:func:`batch_key`'s reason) goes one run per
+(:data:`PER_RUN_KEYS`) go together, in grid order, split into batches of at most K (:data:`DEFAULT_BATCH` without
+``--batch``) of near equal size — into more, smaller ones (2 runs at least) while the new batches are fewer than
+the workers, so that none idles (:func:`split_counts`; 14 runs at K = 16 on 2 workers: 7 + 7). A run the batched path cannot train (:func:`batch_key`'s reason) goes one run per
 task. An interrupted batch (a batch folder with a batch checkpoint and an unfinished member) continues as that
 batch, whatever K is now: its members' checkpoints hold no replay buffer of their own. A batch folder without a
 checkpoint (killed before its first) is deleted and its runs are packed afresh.
@@ -54,7 +53,7 @@ from lanefree_sumo.experiments.sweep.state import (
 )
 
 DEFAULT_BATCH = 8
-"""The most runs a batch takes when ``--batch`` is not given (see :func:`batch_size`)."""
+"""The most runs a batch takes when ``--batch`` is not given."""
 
 PER_RUN_KEYS = ("seed", "scenario.density_veh_per_km", "reward.preset", "reward.overtake_bonus",
                 "scenario.agent_max_speed_mps", "scenario.agent_lateral_speed_ratio",
@@ -117,16 +116,6 @@ def batch_key(cfg: LaneFreeConfig) -> str:
         section.pop(last)
     data["train"]["algo"] = batch_group(cfg.train.algo)  # dqn and ddqn runs share batches
     return json.dumps(data, sort_keys=True, default=str)
-
-
-def batch_size(requested: int | None, batchable: int, workers: int | None) -> int:
-    """K: ``requested`` (``--batch``), else as many runs per batch as keep every worker busy, at most
-    :data:`DEFAULT_BATCH` (``workers``: the embedded Ray's workers or the cluster's CPUs; None or 0: unknown)."""
-    if requested is not None:
-        return requested
-    if not workers:
-        return DEFAULT_BATCH
-    return max(1, min(DEFAULT_BATCH, math.ceil(batchable / workers)))
 
 
 def batch_name(algos: Sequence[str], runs: list[str]) -> str:

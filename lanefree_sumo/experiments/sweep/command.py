@@ -22,7 +22,7 @@ from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
 from lanefree_sumo.experiments.rundir import EPISODES, read_sessions
-from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH, members
+from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH, PER_RUN_KEYS, members
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, builtin_descriptions, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
     Manifest,
@@ -87,12 +87,10 @@ OPTIONS: tuple[Option, ...] = (
     Option("--retries", type=argtypes.nonnegative(int, "retries"), default=DEFAULT_RETRIES, extra={"metavar": "N"},
            note=f"times Ray retries a run whose worker process died (default {DEFAULT_RETRIES})"),
     Option("--batch", type=argtypes.positive(int, "batch"), extra={"metavar": "K"},
-           note="train runs of one algorithm (dqn and ddqn count as one) that differ only in seed, density, reward "
-           "preset, overtake bonus, agent top speed, agent lateral bound or DDPG's pre-tanh penalty as "
-           "batches of at most K in one task each (the same episodes as one run per task, bit for bit on CPU), "
-           "smaller ones where that keeps every worker busy; "
-           f"default: enough runs per batch to keep every worker busy, at most {DEFAULT_BATCH}; --batch 1 trains "
-           "one run per task"),
+           note="train runs of one algorithm (dqn and ddqn count as one) whose configs differ only in "
+           f"{', '.join(PER_RUN_KEYS)} as batches of at most K (default {DEFAULT_BATCH}) in one task each (the same "
+           "episodes as one run per task, bit for bit on CPU), smaller ones while that keeps more workers busy; "
+           "--batch 1 trains one run per task"),
     Option("--only", default=[], extra={"action": "append", "metavar": "GLOB"},
            note="train only the runs whose folder names match GLOB (a shell pattern, e.g. "
            "'*_fields_zones_overtake_collision_d70_*': Table 8 before the rest; repeatable), leaving the others for "
@@ -236,7 +234,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
            retries: int, progress: bool, extend: bool = False, batch: int | None = None,
            in_process: bool = False, only: Sequence[str] = ()) -> int:
     from lanefree_sumo.experiments.rundir import check_writable
-    from lanefree_sumo.experiments.sweep.batches import batch_size, pack
+    from lanefree_sumo.experiments.sweep.batches import pack
     from lanefree_sumo.experiments.sweep.runner import check_address, cluster_size, run_in_process, run_sweep
     from lanefree_sumo.experiments.sweep.summary import summarize
 
@@ -255,7 +253,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     todo = [cells[n] for n, info in states.items() if info.state not in (COMPLETE, BUSY, DAMAGED) and n in chosen]
     with driver_lock(folder, command):
         cpus = workers if address is None or batch is not None or not todo else cluster_size(address)
-        size = batch_size(batch, len(todo), cpus)
+        size = DEFAULT_BATCH if batch is None else batch
         packing = pack(sweep, grid, todo, states, size,
                        "--batch 1" if batch == 1 else "no more runs to train than workers", cpus)
         manifest = read_manifest(folder) if sweep.manifest.exists() else Manifest(grid)
