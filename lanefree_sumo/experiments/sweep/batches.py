@@ -10,10 +10,11 @@ member is complete.
 Packing (:func:`pack`): the runs to start whose configs differ only in what a batch may differ in
 (:data:`PER_RUN_KEYS`) go together, in grid order, split into batches of at most K (:data:`DEFAULT_BATCH` without
 ``--batch``) of near equal size — into more, smaller ones (2 runs at least) while the new batches are fewer than
-the workers, so that none idles (:func:`split_counts`; 14 runs at K = 16 on 2 workers: 7 + 7). A run the batched path cannot train (:func:`batch_key`'s reason) goes one run per
-task. An interrupted batch (a batch folder with a batch checkpoint and an unfinished member) continues as that
-batch, whatever K is now: its members' checkpoints hold no replay buffer of their own. A batch folder without a
-checkpoint (killed before its first) is deleted and its runs are packed afresh.
+the workers, so that none idles (:func:`split_counts`; 14 runs at K = 16 on 2 workers: 7 + 7). A run the batched
+path cannot train (:func:`batch_key`'s reason) goes one run per task. An interrupted batch (a batch folder with a
+batch checkpoint and an unfinished member) continues as that batch, whatever K is now: its members' checkpoints
+hold no replay buffer of their own. A batch folder without a checkpoint (killed before its first) is deleted and
+its runs are packed afresh.
 """
 
 from __future__ import annotations
