@@ -365,6 +365,11 @@ class ShieldConfig:
     lateral_candidates: int = field(default=37, metadata={"range": (2, 10_001)})
     """Evenly spaced lateral accelerations across the agent's bounds that the shield searches
     besides the policy's own (–)."""
+    fallback_steers_clear: bool = False
+    """When no action is certified: among the least-violating candidates, take those whose committed
+    band reaches least deep (m) into the reach of the vehicles ahead whose gap they violate, then the
+    one closest to the policy's. Off: the closest among the least-violating, which keeps a policy's
+    steering towards a leader it is already too close to (the violation there is the gap's)."""
 
 
 @dataclass(frozen=True)

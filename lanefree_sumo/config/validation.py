@@ -82,7 +82,7 @@ ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_lea
                                "road.onramp", "observation.road_features",
                                "reward.overtake_bonus", "scenario.agent_lateral_speed_ratio", "train.profile",
                                "train.dqn.loss", "train.dqn.max_grad_norm", "train.actor_critic.warmup_actions",
-                               "train.device", "train.actor_critic.pre_tanh_penalty")
+                               "train.device", "train.actor_critic.pre_tanh_penalty", "shield.fallback_steers_clear")
 """Config keys added after run folders were first written; a saved config without them gets their
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 

@@ -42,7 +42,8 @@ the ay that stops lateral motion in one step and ``lateral_candidates`` evenly s
 certified (ax, ay) closest to the policy's clipped action (Euclidean, m/s²); the policy's action
 itself whenever it is certified. When no candidate is certified it falls back to the candidate
 (on a grid of ax too, braking at the bounds included) that minimises the largest violation in
-metres, ties going to the closest.
+metres, ties going to the closest (with ``shield.fallback_steers_clear``, first to those whose committed band
+reaches least deep into the reach of the vehicles ahead they are too close to).
 
 **Invariant.** I(s): no overlap; the gap of rule 1 to every vehicle ahead in the corridor of the
 agent's *current* committed interval; no vehicle alongside in that corridor.
@@ -111,6 +112,7 @@ class ShieldParams:
     lateral_candidates: int = ShieldConfig.lateral_candidates
     edge_clearance_m: float = 1e-3
     edge_contact_tolerance_m: float = 1e-6
+    fallback_steers_clear: bool = ShieldConfig.fallback_steers_clear
 
     def __post_init__(self) -> None:
         a, b = self.agent_bounds, self.background_bounds
@@ -127,7 +129,7 @@ class ShieldParams:
             cfg.sim.step_s, cfg.road.width_m, road_of(cfg).wrap_length, cfg.scenario.agent_bounds,
             cfg.scenario.driver.bounds,
             cfg.scenario.agent_max_speed_mps, s.horizon_s, s.margin_x_m, s.margin_y_m, s.lateral_candidates,
-            cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
+            cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m, s.fallback_steers_clear,
         )
 
     @property
@@ -341,6 +343,12 @@ def _candidate_bands(agent: int, state: VehicleState, ay: np.ndarray, params: Sh
 def _violations(v: float, ax: np.ndarray, corridor: np.ndarray, depth: np.ndarray, scene: _Scene,
                 params: ShieldParams) -> np.ndarray:
     """Largest violation (m) of rules 1–3 of each candidate (rows of ``corridor``, ``ax`` per row)."""
+    return _violation_table(v, ax, corridor, depth, scene, params).max(axis=1, initial=0.0)
+
+
+def _violation_table(v: float, ax: np.ndarray, corridor: np.ndarray, depth: np.ndarray, scene: _Scene,
+                     params: ShieldParams) -> np.ndarray:
+    """Violation (m) of rules 1–3 of each candidate (rows) with respect to each vehicle (columns)."""
     t, b, bl = params.step_s, params.agent_brake, params.leader_brake
     u = np.maximum(v + ax * t, 0.0)[:, None]
     vl = scene.vx
@@ -354,7 +362,7 @@ def _violations(v: float, ax: np.ndarray, corridor: np.ndarray, depth: np.ndarra
     worst = np.where(corridor & scene.behind & ~scene.in_current_corridor, np.maximum(behind_v, 0.0), worst)
     worst = np.where(corridor & scene.alongside, depth, worst)
     worst = np.where(scene.soon_alongside, np.maximum(worst, depth - scene.depth_now), worst)
-    return worst.max(axis=1, initial=0.0)
+    return worst
 
 
 def shield_action(agent: int, state: VehicleState, ax: float, ay: float, params: ShieldParams,
@@ -402,9 +410,13 @@ def shield_action(agent: int, state: VehicleState, ax: float, ay: float, params:
                                         [ax_p, max(-params.leader_brake, ax_min)]]))
     kk = np.repeat(np.arange(len(ay_c)), len(ax_grid))
     mm = np.tile(np.arange(len(ax_grid)), len(ay_c))
-    worst = _violations(v, ax_grid[mm], corridor[kk], depth[kk], scene, params)
+    table = _violation_table(v, ax_grid[mm], corridor[kk], depth[kk], scene, params)
+    worst = table.max(axis=1, initial=0.0)
     dist = np.hypot(ax_grid[mm] - ax_p, ay_c[kk] - ay_p)
     best = np.flatnonzero(worst <= worst.min() + _SAME)
+    if params.fallback_steers_clear:  # then the least deep into the reach of the leaders it is too close to
+        into = np.where(corridor[kk] & scene.ahead & (table > 0.0), depth[kk], 0.0).max(axis=1, initial=0.0)
+        best = best[into[best] <= into[best].min() + _SAME]
     k = int(best[np.argmin(dist[best])])
     return _decision(float(ax_grid[mm[k]]), float(ay_c[kk[k]]), ax_p, ay_p, False)
 

@@ -428,6 +428,29 @@ def test_params_need_every_acceleration_bound_strictly_off_zero(which, bound):
         ShieldParams(0.25, 10.2, 500.0, *bounds)
 
 
+def test_the_fallback_can_steer_clear_of_a_leader_it_is_too_close_to():
+    """A scene met in a shielded evaluation (positions rounded): the agent closes at 5 m/s on a slower car ahead
+    whose reach its committed band has just met, and no action is certified. Every lateral acceleration
+    violates that car's gap by the same amount, so by default the fallback keeps the policy's steering towards it
+    (it then touched the car two steps later); with ``fallback_steers_clear`` it brakes as hard and steers away,
+    its committed band reaching less deep into the car's reach."""
+    state = scene((264.864, 8.908, 14.737, 0.004), (257.816, 0.942, 16.153, -0.089), (260.568, 3.942, 18.919, 0.031),
+                  (256.284, 6.638, 14.010, 0.100), agent=(250.0, 4.183, 19.176, 0.776))
+    clear = dataclasses.replace(P, fallback_steers_clear=True)
+    kept, steered = shield_action(4, state, -4.5, 1.8, P), shield_action(4, state, -4.5, 1.8, clear)
+    assert not kept.certified and not steered.certified
+    assert (kept.ax, kept.ay) == (-4.5, 1.8) and not kept.intervened
+    assert steered.ax == kept.ax and steered.ay == CFG.scenario.agent_bounds.ay_min
+
+    def depth_into_leader(d: ShieldDecision) -> float:
+        _, y, _, vy = agent_next(state, d.ax, d.ay)
+        lo, hi = committed_band(y, vy, A_WID, P)
+        r_lo, r_hi = reach_band(state.y[3:4], state.vy[3:4], state.width[3:4], P)
+        return float(max(min(hi - r_lo[0], r_hi[0] - lo), 0.0))
+
+    assert depth_into_leader(steered) < depth_into_leader(kept)
+
+
 def test_params_from_a_config_take_every_setting_from_it():
     cfg = merge_config(LaneFreeConfig(), {
         "sim": {"step_s": 0.2, "edge_clearance_m": 0.01, "edge_contact_tolerance_m": 1e-4},
@@ -435,11 +458,12 @@ def test_params_from_a_config_take_every_setting_from_it():
         "scenario": {"agent_bounds": {"ax_min": -5.0, "ax_max": 2.5, "ay_min": -1.5, "ay_max": 1.6},
                      "agent_max_speed_mps": 28.0,
                      "driver": {"bounds": {"ax_min": -3.5, "ax_max": 1.5, "ay_min": -0.8, "ay_max": 0.9}}},
-        "shield": {"horizon_s": 1.5, "margin_x_m": 0.7, "margin_y_m": 0.3, "lateral_candidates": 11},
+        "shield": {"horizon_s": 1.5, "margin_x_m": 0.7, "margin_y_m": 0.3, "lateral_candidates": 11,
+                   "fallback_steers_clear": True},
     })
     assert ShieldParams.from_config(cfg) == ShieldParams(
         0.2, 9.0, 400.0, AccelerationBounds(-5.0, 2.5, -1.5, 1.6), AccelerationBounds(-3.5, 1.5, -0.8, 0.9),
-        28.0, 1.5, 0.7, 0.3, 11, 0.01, 1e-4)
+        28.0, 1.5, 0.7, 0.3, 11, 0.01, 1e-4, True)
     with pytest.raises(ConfigError):
         ShieldParams(0.25, 10.2, 500.0, AccelerationBounds(0.0, 2.0, -1.8, 1.8), AccelerationBounds(-4, 2, -1, 1))
 
