@@ -81,7 +81,7 @@ start() {
     local cli=(env PYTHONPATH="$tree" "$python" -c "import sys; del sys.argv[1]; from lanefree_sumo.cli import main; \
 sys.exit(main())" "$marker")
     cd "$tree"
-    # the paper sweep, every setting of Tables 5-8 with 3 seeds; its pid is the sweep driver's
+    # the paper sweep, every setting of Tables 5-8 with the paper's 10 seeds; its pid is the sweep driver's
     local paper="paper sweep ($workers worker(s))"
     if [ "$workers" -eq 0 ]; then
         paper="no paper sweep (0 workers asked for)"
@@ -89,7 +89,7 @@ sys.exit(main())" "$marker")
         nohup "${cli[@]}" sweep --resume "$root/results/paper" --workers "$workers" --no-progress >>"$logs/paper.log" 2>&1 &
         echo $! >"$logs/paper.pid"
     else
-        nohup "${cli[@]}" sweep paper --seeds 3 --out "$root/results/paper" --workers "$workers" --no-progress \
+        nohup "${cli[@]}" sweep paper --out "$root/results/paper" --workers "$workers" --no-progress \
             >>"$logs/paper.log" 2>&1 &
         echo $! >"$logs/paper.pid"
     fi
