@@ -13,6 +13,7 @@ from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig
 from lanefree_sumo.rl.shield import (
     ShieldDecision,
     ShieldParams,
+    _depth,
     _scene,
     _travel,
     _travel_inverse,
@@ -446,7 +447,7 @@ def test_the_fallback_can_steer_clear_of_a_leader_it_is_too_close_to():
         _, y, _, vy = agent_next(state, d.ax, d.ay)
         lo, hi = committed_band(y, vy, A_WID, P)
         r_lo, r_hi = reach_band(state.y[3:4], state.vy[3:4], state.width[3:4], P)
-        return float(max(min(hi - r_lo[0], r_hi[0] - lo), 0.0))
+        return float(_depth(lo, hi, r_lo, r_hi)[0])
 
     assert depth_into_leader(steered) < depth_into_leader(kept)
 
