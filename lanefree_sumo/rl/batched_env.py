@@ -164,18 +164,34 @@ class BatchedRingEnv:
         return NUMPY if self.device is None else torch_namespace(self.device)
 
     @property
+    def steps(self) -> np.ndarray:
+        """``[K]``: each run's steps since its episode began (a copy)."""
+        return self._steps.copy()
+
+    @property
     def cfg(self) -> LaneFreeConfig:
         """Run 0's config (the action and observation settings are every run's)."""
         return self.cfgs[0]
 
     # -- episodes -----------------------------------------------------------------------------
-    def reset(self, runs: Sequence[int] | None = None) -> Any:
-        """Start the next episode of ``runs`` (None: every run not stopped); returns every run's observation."""
-        chosen = [k for k in (range(self.runs) if runs is None else runs) if not self.stopped[k]]
+    def reset(self, runs: Sequence[int] | None = None, seeds: Sequence[int] | None = None) -> Any:
+        """Start the next episode of ``runs`` (None: every run not stopped); returns every run's observation.
+        ``seeds``: the traffic seeds of those episodes, one per run of ``runs`` (None: each run's training
+        schedule, :func:`~lanefree_sumo.rl.models.episode_seed`)."""
+        if runs is not None:
+            listed = list(runs)
+            if any(isinstance(k, bool) or not isinstance(k, int | np.integer) or not 0 <= k < self.runs
+                   for k in listed) or len(set(listed)) != len(listed):
+                raise ValueError(f"reset: runs are distinct indices 0 … {self.runs - 1} of this batch, got {runs!r}")
+        chosen = [int(k) for k in (range(self.runs) if runs is None else runs) if not self.stopped[k]]
+        if seeds is not None and len(seeds) != len(chosen):
+            raise ValueError(f"reset: {len(seeds)} seed(s) for {len(chosen)} run(s); give one seed per run")
+        given = dict(zip(chosen, seeds)) if seeds is not None else {}
         states = []
         for k in chosen:
             self.episode[k] += 1
-            self.episode_seeds[k] = episode_seed(self.cfgs[k].seed, 0, int(self.episode[k]))
+            self.episode_seeds[k] = given[k] if k in given else episode_seed(self.cfgs[k].seed, 0,
+                                                                             int(self.episode[k]))
             states.append(spawn(self.cfgs[k], np.random.default_rng(int(self.episode_seeds[k]))))
             self._t0[k] = time.perf_counter()
             self._steps[k] = 0
@@ -248,7 +264,12 @@ class BatchedRingEnv:
         (its acceleration is then 0)."""
         cfg = self.cfg
         values = np.asarray(NUMPY.to_numpy(actions) if isinstance(actions, np.ndarray)
-                            else self.xp.to_numpy(actions), dtype=float).reshape(self.runs, -1)
+                            else self.xp.to_numpy(actions), dtype=float)
+        want = ((self.runs,), (self.runs, 1)) if cfg.action.kind == "discrete" else ((self.runs, 2),)
+        if values.shape not in want:
+            raise ValueError(f"step: actions of shape {' or '.join(str(w) for w in want)} expected (one row per run "
+                             f"of the batch's {self.runs}), got shape {values.shape}")
+        values = values.reshape(self.runs, -1)
         bad = ~np.isfinite(values).all(axis=1)
         values = np.where(bad[:, None], 0.0, values)
         if cfg.action.kind == "discrete":

@@ -78,11 +78,10 @@ Decisions where the paper is silent or where we deviate (documented)
 
 Public API
 ----------
-``PRESETS`` / ``ENCODER_NAMES`` / ``encoder_kwargs(name)``   named configurations
-``SetEncoder``             torch module: (..., N, f) with presence last -> (..., out_dim)
-``SetFeaturesExtractor``   SB3 ``BaseFeaturesExtractor`` for a Box (N, f) or a
-                           Dict {"ego": Box(k,), "others": Box(N, f)} space;
-                           output = concat(ego passthrough, encoder features).
+* ``PRESETS`` / ``ENCODER_NAMES`` / ``encoder_kwargs(name)``: named configurations.
+* ``SetEncoder``: torch module, (..., N, f) with presence last -> (..., out_dim).
+* ``SetFeaturesExtractor``: SB3 ``BaseFeaturesExtractor`` for a Box (N, f) or a Dict {"ego": Box(k,), "others":
+  Box(N, f)} space; output = concat(ego passthrough, encoder features).
 """
 
 from __future__ import annotations

@@ -363,24 +363,79 @@ def as_seed(seed: Any) -> int | None:
     return int(seed)
 
 
-class LaneFreeEnv(gym.Env):
-    """Gymnasium environment of the paper's MDP on the SUMO ring road.
+RENDER_MODES = ("rgb_array", "human")
+"""The render modes of every face: ``rgb_array`` frames drawn from the simulation's arrays (:mod:`.render`),
+``human`` the run in sumo-gui (the TraCI backend under a display)."""
+RENDER_FPS = 4
+"""Frames per second of real time: one frame per 0.25 s step."""
 
-    ``config``: a :class:`~lanefree_sumo.config.LaneFreeConfig` or a nested dict of overrides.
+
+def face_config(config: LaneFreeConfig | Mapping[str, Any] | None,
+                render_mode: str | None = None) -> LaneFreeConfig | Mapping[str, Any]:
+    """The config a face (LaneFree-v0, the vector env, the PettingZoo env) runs: a dict of overrides (or
+    none) runs on the ``numpy`` backend unless it names ``backend`` or ``gui`` — the same episodes as libsumo
+    bit for bit, many environments per process —, a :class:`~lanefree_sumo.config.LaneFreeConfig` as it is;
+    ``render_mode="human"`` turns on sumo-gui. ValueError for a render mode other than :data:`RENDER_MODES`."""
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode {render_mode!r} is not one of {', '.join(RENDER_MODES)} (or None)")
+    if config is None or (isinstance(config, Mapping) and not isinstance(config, LaneFreeConfig)):
+        given = dict(config or {})
+        if "backend" not in given and not given.get("gui"):
+            given["backend"] = "numpy"
+        config = given
+    if render_mode == "human":
+        config = merge_config(config, {"gui": True}) if isinstance(config, LaneFreeConfig) else {**config,
+                                                                                                  "gui": True}
+    return config
+
+
+def numpy_info(info: dict[str, Any]) -> dict[str, Any]:
+    """A step's ``info`` with numpy-typed scalars (``np.float64``, ``np.int64``, ``np.bool_``), as array libraries
+    read them; other values (``episode_metrics``: the episode's CSV row) as they are."""
+    out: dict[str, Any] = {}
+    for key, value in info.items():
+        if isinstance(value, bool | np.bool_):
+            out[key] = np.bool_(value)
+        elif isinstance(value, numbers.Integral):
+            out[key] = np.int64(value)
+        elif isinstance(value, numbers.Real):
+            out[key] = np.float64(value)
+        else:
+            out[key] = value
+    return out
+
+
+def scene_of(state: Any, overlap: np.ndarray | None, road: Any, time_s: float) -> Any:
+    """The :class:`~lanefree_sumo.rl.render.Scene` of a simulation state (:class:`~lanefree_sumo.sim.state.
+    VehicleState`), its ``[N, N]`` overlap matrix (None: none) and the road."""
+    from lanefree_sumo.rl.render import Scene
+
+    n = state.n
+    fits = overlap is not None and overlap.shape == (n, n)
+    touching = np.asarray(overlap.any(axis=1)) if fits and overlap is not None else np.zeros(n, dtype=bool)
+    return Scene(state.x, state.y, state.vx, state.vy, state.length, state.width, ~state.controlled, touching,
+                 road, time_s)
+
+
+class LaneFreeEnv(gym.Env):
+    """Gymnasium environment of the paper's MDP on the ring road (or the on-ramp).
+
+    ``config``: a :class:`~lanefree_sumo.config.LaneFreeConfig` or a nested dict of overrides; a dict runs on
+    the ``numpy`` backend unless it names ``backend`` (``libsumo``, ``traci``) or ``gui`` (:func:`face_config`).
     Episodes last ``sim.episode_steps`` steps and end by truncation; collisions end them only
     with ``episode.terminate_on_collision``; on the on-ramp (``road.kind``) leaving the road ends them
-    (terminated).  ``reset(seed=...)`` is reproducible.
+    (terminated).  ``reset(seed=...)`` is reproducible. ``render_mode``: ``"rgb_array"`` (``render()`` returns
+    an ``H × W × 3`` uint8 frame, :mod:`.render`) or ``"human"`` (sumo-gui).
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": RENDER_FPS}
 
     def __init__(
         self, config: LaneFreeConfig | Mapping[str, Any] | None = None, render_mode: str | None = None
     ) -> None:
         super().__init__()
-        if render_mode is not None:
-            raise ValueError("LaneFree-v0 renders through sumo-gui: pass config={'gui': True} instead of render_mode")
-        self.cfg = resolve_config(config)
+        self.render_mode = render_mode
+        self.cfg = resolve_config(face_config(config, render_mode))
         if self.cfg.scenario.agents != 1:
             raise ConfigError(f"LaneFree-v0 drives one agent (scenario.agents = {self.cfg.scenario.agents}); "
                               "use lanefree_sumo.rl.multi_agent.parallel_env for several")
@@ -392,6 +447,7 @@ class LaneFreeEnv(gym.Env):
         """Wall time of the env's own work in ``step`` (observation, reward, books) (s)."""
         self.vehicle = LearningVehicle(self.cfg, self.sim, feature_scales(self.cfg))
         self._episode_seed = 0
+        self._overlap: np.ndarray | None = None
 
     @property
     def _agent(self) -> int:
@@ -410,7 +466,8 @@ class LaneFreeEnv(gym.Env):
         state = self.sim.reset(self._episode_seed)
         self.episode += 1
         obs = self.vehicle.start(state.n - 1)
-        return obs, {"episode_seed": self._episode_seed}
+        self._overlap = None
+        return obs, {"episode_seed": np.int64(self._episode_seed)}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         if self._agent < 0:
@@ -424,12 +481,26 @@ class LaneFreeEnv(gym.Env):
         result = self.sim.step((ax, ay))
         t0 = time.perf_counter()
         obs, reward, collided, info = self.vehicle.score(result, ax, ay, decision)
+        self._overlap = result.overlap
         terminated = bool(self.cfg.episode.terminate_on_collision and collided) or self.vehicle.left_road()
         truncated = self.sim.steps >= self.cfg.sim.episode_steps
+        info = numpy_info(info)
         if terminated or truncated:
             info["episode_metrics"] = self.episode_metrics()
         self.env_seconds += time.perf_counter() - t0
         return obs, reward, terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        """The current frame (``render_mode="rgb_array"``: ``H × W × 3`` uint8, :mod:`.render`); None without a
+        render mode or under ``"human"`` (sumo-gui shows every step itself)."""
+        if self.render_mode != "rgb_array":
+            return None
+        if self._agent < 0:
+            raise RuntimeError("call reset() before render()")
+        from lanefree_sumo.rl.render import draw_frame
+
+        state = self.sim.current()[0]
+        return draw_frame(scene_of(state, self._overlap, self.sim.road, self.sim.steps * self.cfg.sim.step_s))
 
     def close(self) -> None:
         self.sim.close()

@@ -24,7 +24,8 @@ one learner trains one policy on every agent's transitions (parameter sharing; `
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -35,13 +36,18 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.rl.env import (
+    RENDER_FPS,
+    RENDER_MODES,
     LearningVehicle,
     action_space,
     action_to_acceleration,
     as_seed,
+    face_config,
     feature_scales,
+    numpy_info,
     observation_space,
     resolve_config,
+    scene_of,
 )
 from lanefree_sumo.sim.simulation import Simulation
 from lanefree_sumo.sim.spawn import agent_id
@@ -50,15 +56,15 @@ from lanefree_sumo.sim.spawn import agent_id
 class LaneFreeParallelEnv(ParallelEnv):
     """k learning vehicles on the lane-free ring (module docstring); ``config`` as for LaneFree-v0."""
 
-    metadata = {"name": "lanefree_ring_v0", "render_modes": [], "is_parallelizable": True}
+    metadata = {"name": "lanefree_ring_v0", "render_modes": list(RENDER_MODES), "render_fps": RENDER_FPS,
+                "is_parallelizable": True}
 
     def __init__(self, config: LaneFreeConfig | Mapping[str, Any] | None = None,
                  render_mode: str | None = None) -> None:
-        if render_mode is not None:
-            raise ValueError("the lane-free ring renders through sumo-gui: pass config={'gui': True} instead")
-        self.cfg = resolve_config(config)
-        self.render_mode = None
+        self.cfg = resolve_config(face_config(config, render_mode))
+        self.render_mode = render_mode
         self.sim = Simulation(self.cfg)
+        self._overlap: np.ndarray | None = None
         self.possible_agents: list[str] = [agent_id(i) for i in range(self.cfg.scenario.agents)]
         self.agents: list[str] = []
         scales = feature_scales(self.cfg)
@@ -92,7 +98,18 @@ class LaneFreeParallelEnv(ParallelEnv):
         self._rows = np.flatnonzero(~state.controlled)
         self.agents = list(self.possible_agents)
         observations = {name: self.vehicles[name].start(int(row)) for name, row in zip(self.agents, self._rows)}
-        return observations, {name: {"episode_seed": self.episode_seed} for name in self.agents}
+        self._overlap = None
+        return observations, {name: {"episode_seed": np.int64(self.episode_seed)} for name in self.agents}
+
+    def render(self) -> np.ndarray | None:
+        """The current frame (``render_mode="rgb_array"``: ``H × W × 3`` uint8, every agent in green,
+        :mod:`~lanefree_sumo.rl.render`); None without a render mode or under ``"human"`` (sumo-gui)."""
+        if self.render_mode != "rgb_array":
+            return None
+        from lanefree_sumo.rl.render import draw_frame
+
+        state = self.sim.current()[0]
+        return draw_frame(scene_of(state, self._overlap, self.sim.road, self.sim.steps * self.cfg.sim.step_s))
 
     @property
     def agent_rows(self) -> np.ndarray:
@@ -128,6 +145,7 @@ class LaneFreeParallelEnv(ParallelEnv):
             decisions.append(decision)
         self.env_seconds += time.perf_counter() - t0
         result = self.sim.step(commands)
+        self._overlap = result.overlap
         t0 = time.perf_counter()
         observations, rewards, infos = {}, {}, {}
         any_collided = False
@@ -135,7 +153,7 @@ class LaneFreeParallelEnv(ParallelEnv):
         for k, name in enumerate(self.agents):
             obs, reward, collided, info = self.vehicles[name].score(
                 result, float(commands[k, 0]), float(commands[k, 1]), decisions[k], rows)
-            observations[name], rewards[name], infos[name] = obs, reward, info
+            observations[name], rewards[name], infos[name] = obs, reward, numpy_info(info)
             any_collided |= collided
         crashed = bool(self.cfg.episode.terminate_on_collision and any_collided)
         truncated = self.sim.steps >= self.cfg.sim.episode_steps
@@ -161,9 +179,15 @@ class LaneFreeParallelEnv(ParallelEnv):
         self.sim.close()
 
 
-def parallel_env(config: LaneFreeConfig | Mapping[str, Any] | None = None) -> LaneFreeParallelEnv:
+def parallel_env(config: LaneFreeConfig | Mapping[str, Any] | None = None,
+                 render_mode: str | None = None) -> LaneFreeParallelEnv:
     """The multi-agent ring (:class:`LaneFreeParallelEnv`) for ``config`` (a config or nested overrides)."""
-    return LaneFreeParallelEnv(config)
+    return LaneFreeParallelEnv(config, render_mode)
+
+
+def _offset_seed(base: int, episode: int) -> int:
+    """Episode ``episode``'s traffic seed when ``SharedPolicyVecEnv`` is given one int ``base``."""
+    return base + episode - 1
 
 
 def _stack(observations: Sequence[Any], space: spaces.Space) -> VecEnvObs:
@@ -181,9 +205,15 @@ class SharedPolicyVecEnv(VecEnv):
     first agent to leave the road ends the episode of the others too (truncated: their values are
     bootstrapped). Then each agent's ``info`` carries ``terminal_observation`` and ``episode`` (SB3's
     Monitor record) and the next episode starts, with the traffic seed ``seeds(episode)`` (episodes
-    numbered from ``first_episode``)."""
+    numbered from ``first_episode``; ``seeds`` an int s: episode e gets s + e − 1)."""
 
-    def __init__(self, env: LaneFreeParallelEnv, seeds: Any, first_episode: int = 1) -> None:
+    def __init__(self, env: LaneFreeParallelEnv, seeds: int | Callable[[int], int], first_episode: int = 1) -> None:
+        if isinstance(seeds, bool) or not (callable(seeds) or isinstance(seeds, int | np.integer)):
+            raise TypeError(f"seeds is an int (episode e gets seed + e - 1) or a function of the episode number "
+                            f"giving its traffic seed, not {type(seeds).__name__}")
+        if not callable(seeds):
+            base = int(as_seed(seeds) or 0)
+            seeds = partial(_offset_seed, base)
         self.par_env = env
         self.names = list(env.possible_agents)
         first = self.names[0]

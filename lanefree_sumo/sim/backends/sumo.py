@@ -262,8 +262,8 @@ class SumoBackend:
 
                 if libsumo.simulation.isLoaded():
                     raise SumoError(
-                        "libsumo already runs a simulation in this process; use one environment per "
-                        "process (--envs N starts processes) or the traci backend"
+                        "libsumo already runs a simulation in this process; pass config={'backend': 'numpy'} "
+                        "(the same episodes, many per process), the traci backend, or one environment per process"
                     )
                 libsumo.start(args)
                 self._conn = libsumo

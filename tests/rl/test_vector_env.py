@@ -1,0 +1,170 @@
+"""The vector entry point: K LaneFree-v0 environments as one batched world, bit for bit the single env."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.wrappers.vector import ClipAction, NormalizeObservation, RecordEpisodeStatistics
+
+import lanefree_sumo  # noqa: F401 - registers LaneFree-v0 and its vector entry point
+from lanefree_sumo.config import ConfigError
+from lanefree_sumo.rl.vector_env import LaneFreeVectorEnv
+
+SHORT = {"sim": {"episode_steps": 25}, "scenario": {"density_veh_per_km": 90}}
+STEP_KEYS = ("c_x", "c_y", "c_f", "y_d", "v_d_eff", "blocked", "collided", "overtook", "reward", "overtakes",
+             "collision_events", "boundary_contact", "ax", "ay", "shield_intervened", "shield_correction")
+
+
+def make_vec(num_envs: int, config: dict | None = None, **kwargs) -> LaneFreeVectorEnv:
+    env = gym.make_vec("LaneFree-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                       config=SHORT if config is None else config, **kwargs)
+    assert isinstance(env, LaneFreeVectorEnv)
+    return env
+
+
+def actions_for(space: gym.Space, rng: np.random.Generator, k: int, kind: str) -> np.ndarray:
+    if kind == "discrete":
+        return rng.integers(0, space.n, size=k)
+    return rng.uniform(-1.2, 1.2, size=(k, 2)).astype(np.float32)  # beyond the bounds: clipped alike
+
+
+def assert_obs_equal(vector_obs, k: int, single_obs) -> None:
+    if isinstance(single_obs, dict):
+        for key in single_obs:
+            np.testing.assert_array_equal(vector_obs[key][k], single_obs[key])
+    else:
+        np.testing.assert_array_equal(vector_obs[k], single_obs)
+
+
+@pytest.mark.parametrize("obs_kind,action_kind", [("vector", "continuous"), ("vector", "discrete"),
+                                                  ("set", "continuous")])
+def test_each_sub_env_is_lanefree_v0_with_its_seed_across_episode_ends(obs_kind, action_kind):
+    config = {**SHORT, "observation": {"kind": obs_kind}, "action": {"kind": action_kind}}
+    k = 3
+    vec = make_vec(k, config)
+    singles = [gym.make("LaneFree-v0", config=config) for _ in range(k)]
+    assert vec.single_observation_space == singles[0].observation_space
+    assert vec.single_action_space == singles[0].action_space
+    obs, info = vec.reset(seed=11)
+    for i, env in enumerate(singles):
+        single_obs, single_info = env.reset(seed=11 + i)
+        assert_obs_equal(obs, i, single_obs)
+        assert info["episode_seed"][i] == single_info["episode_seed"] == 11 + i
+    rng = np.random.default_rng(4)
+    pending = [False] * k
+    ends = resets = 0
+    for t in range(2 * SHORT["sim"]["episode_steps"] + 5):
+        act = actions_for(singles[0].action_space, rng, k, action_kind)
+        obs, reward, terminated, truncated, info = vec.step(act)
+        for i, env in enumerate(singles):
+            if pending[i]:  # NEXT_STEP: this step is the next episode's reset, the action unused
+                single_obs, single_info = env.reset()
+                pending[i] = False
+                resets += 1
+                assert_obs_equal(obs, i, single_obs)
+                assert (reward[i], terminated[i], truncated[i]) == (0.0, False, False)
+                assert info["_episode_seed"][i] and info["episode_seed"][i] == single_info["episode_seed"]
+                assert not info["_c_x"][i]
+                continue
+            single_obs, single_reward, single_term, single_trunc, single_info = env.step(act[i])
+            assert_obs_equal(obs, i, single_obs)
+            assert reward[i] == single_reward, (t, i)
+            assert (terminated[i], truncated[i]) == (single_term, single_trunc)
+            for key in STEP_KEYS:
+                assert info[f"_{key}"][i] and info[key][i] == single_info[key], (t, i, key)
+                assert info[key].dtype == np.asarray(single_info[key]).dtype, key
+            if single_term or single_trunc:
+                ends += 1
+                pending[i] = True
+                assert info["episode_metrics"]["_episode"][i]
+                for key, value in single_info["episode_metrics"].items():
+                    if key != "wall_s":
+                        assert info["episode_metrics"][key][i] == value, (key, i)
+            else:
+                assert "episode_metrics" not in info or not info["episode_metrics"]["_episode"][i]
+    assert ends == 2 * k and resets == 2 * k
+    vec.close()
+
+
+def test_seed_lists_partial_resets_and_reproducibility():
+    vec = make_vec(2)
+    obs_a, info = vec.reset(seed=[7, 3])
+    assert list(info["episode_seed"]) == [7, 3]
+    again = make_vec(2)
+    obs_b, _ = again.reset(seed=[7, 3])
+    np.testing.assert_array_equal(obs_a, obs_b)
+    for _ in range(5):
+        step_a = vec.step(np.zeros((2, 2)))[0]
+        step_b = again.step(np.zeros((2, 2)))[0]
+    np.testing.assert_array_equal(step_a, step_b)
+    obs, info = vec.reset(seed=[9, 9], options={"reset_mask": np.array([False, True])})
+    assert list(info["_episode_seed"]) == [False, True] and info["episode_seed"][1] == 9
+    np.testing.assert_array_equal(obs[0], step_a[0])  # the unmasked world goes on where it was
+    fresh = make_vec(1)
+    np.testing.assert_array_equal(obs[1], fresh.reset(seed=9)[0][0])
+
+
+def test_gymnasium_vector_wrappers_run_on_it():
+    vec = ClipAction(NormalizeObservation(RecordEpisodeStatistics(make_vec(4))))
+    assert vec.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    obs, _ = vec.reset(seed=0)
+    assert obs.shape == (4, 24)
+    finished = 0
+    for _ in range(SHORT["sim"]["episode_steps"] + 2):
+        obs, reward, terminated, truncated, info = vec.step(vec.action_space.sample() * 3)
+        if "episode" in info:
+            finished += int(info["_episode"].sum())
+            assert np.all(info["episode"]["l"][info["_episode"]] == SHORT["sim"]["episode_steps"])
+    assert finished == 4
+    assert np.isfinite(obs).all()
+
+
+@pytest.mark.parametrize("bad,message", [
+    (np.zeros((2, 2)), r"shape \(3, 2\)"),
+    (np.zeros(6), r"shape \(3, 2\)"),
+    (np.array([[0.0, 0.0], [np.nan, 0.0], [0.0, 0.0]]), "environment\\(s\\) 1 are not finite"),
+])
+def test_bad_actions_are_one_clear_error_and_step_nothing(bad, message):
+    vec = make_vec(3)
+    vec.reset(seed=0)
+    before = vec.batch.steps
+    with pytest.raises(ValueError, match=message):
+        vec.step(bad)
+    np.testing.assert_array_equal(vec.batch.steps, before)
+
+
+def test_bad_discrete_actions_and_arguments():
+    vec = make_vec(2, {**SHORT, "action": {"kind": "discrete"}})
+    vec.reset(seed=0)
+    with pytest.raises(ValueError, match="whole number 0 … 8"):
+        vec.step(np.array([3, 9]))
+    with pytest.raises(ValueError, match="one seed per environment"):
+        vec.reset(seed=[1, 2, 3])
+    with pytest.raises(ValueError, match="reset_mask"):
+        vec.reset(options={"reset_mask": [1, 0]})
+    with pytest.raises(ValueError, match="num_envs"):
+        LaneFreeVectorEnv(0)
+    with pytest.raises(RuntimeError, match="reset"):
+        make_vec(1).step(np.zeros((1, 2)))
+
+
+@pytest.mark.parametrize("config,named", [
+    ({"backend": "libsumo"}, "backend 'libsumo'"),
+    ({"road": {"kind": "onramp"}}, "road.kind = 'onramp'"),
+    ({"scenario": {"agents": 2}}, "scenario.agents = 2"),
+    ({"shield": {"enabled": True}}, "shield.enabled"),
+])
+def test_what_is_not_batched_is_refused_in_one_line_naming_sync(config, named):
+    with pytest.raises(ConfigError, match=named) as err:
+        make_vec(2, config)
+    assert "vectorization_mode='sync'" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_frames_of_every_world():
+    vec = make_vec(2, render_mode="rgb_array")
+    vec.reset(seed=1)
+    vec.step(np.zeros((2, 2)))
+    frames = vec.render()
+    assert len(frames) == 2 and frames[0].dtype == np.uint8 and frames[0].ndim == 3
+    assert not np.array_equal(frames[0], frames[1])  # two seeds, two scenes
