@@ -8,6 +8,7 @@ from typing import Any
 
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import ReplayConfig
+from lanefree_sumo.errors import UsageError
 from lanefree_sumo.options import Option, add_options
 
 REPLAY = ReplayConfig()
@@ -29,7 +30,12 @@ OPTIONS: tuple[Option, ...] = (
            note=f"default {REPLAY.zoom_percent:g} % on the ring, {REPLAY.onramp_zoom_percent:g} % on the on-ramp"),
     Option("--no-gui", note="replay without a window (with --fcd: export only)", extra={"action": "store_true"}),
     Option("--fcd", type=Path, note="also write SUMO FCD XML (with posLat) of the replay"),
+    Option("--video", type=Path, note="write the episode as a video drawn from the recording, without SUMO or a "
+           "display: PATH.mp4 or PATH.gif, real time (4 frames/s, fewer with --every)"),
+    Option("--overwrite", note="replace an existing --video file", extra={"action": "store_true"}),
 )
+GUI_ONLY = ("screenshot", "screenshot_step", "frames", "gif", "fcd", "no_gui")
+"""Options of the sumo-gui replay that --video does not take."""
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -47,8 +53,16 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree replay``: print the largest deviation from the recording."""
-    from lanefree_sumo.experiments.replay import replay
+    from lanefree_sumo.experiments.replay import replay, write_video
 
+    if args.video is not None:
+        given = [name for name in GUI_ONLY if getattr(args, name) not in (None, False)]
+        if given:
+            raise UsageError(f"--video draws the recording without SUMO; drop --{given[0].replace('_', '-')} "
+                             "(sumo-gui's options) or --video")
+        n = write_video(args.run, args.video, episode=args.episode, every=args.every, overwrite=args.overwrite)
+        print(f"wrote {n} frames of episode {args.episode} to {args.video}")
+        return 0
     result = replay(args.run, episode=args.episode, gui=not args.no_gui, delay_s=args.delay,
                     screenshot=args.screenshot, screenshot_step=args.screenshot_step, frames=args.frames,
                     every=args.every, gif=args.gif, fcd=args.fcd, size=args.size, zoom=args.zoom)

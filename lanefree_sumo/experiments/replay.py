@@ -328,3 +328,51 @@ def _write_gif(frames: list[Path], path: Path, seconds_per_frame: float) -> None
     images = [Image.open(p).convert("P", palette=Image.Palette.ADAPTIVE) for p in frames]
     path.parent.mkdir(parents=True, exist_ok=True)
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 * seconds_per_frame), loop=0)
+
+
+VIDEO_SUFFIXES = (".mp4", ".gif")
+"""What ``lanefree replay --video`` writes, by the file's suffix: H.264 MP4 (moviepy/ffmpeg) or an animated GIF."""
+
+
+def recording_frames(rec: Recording, every: int = 1) -> list[np.ndarray]:
+    """The recording drawn from above (:func:`~lanefree_sumo.rl.render.draw_frame`), one frame every ``every``
+    steps from the initial state; no SUMO."""
+    from lanefree_sumo.rl.render import Scene, draw_frame
+
+    road = road_of(rec.cfg)
+    agent = np.array([is_agent_id(vid) for vid in rec.ids])
+    frames = []
+    for k in range(0, rec.steps + 1, every):
+        cols = np.flatnonzero(rec.present[k])
+        scene = Scene(rec.x[k, cols], rec.y[k, cols], rec.vx[k, cols], rec.vy[k, cols], rec.length[cols],
+                      rec.width[cols], agent[cols], rec.overlap[k, cols], road, float(rec.t[k]))
+        frames.append(draw_frame(scene))
+    return frames
+
+
+def write_video(run: Path, path: Path, episode: int = 1, every: int = 1, overwrite: bool = False,
+                verb: str = "replay") -> int:
+    """Write recorded episode ``episode`` of RUN as a video at ``path`` (:data:`VIDEO_SUFFIXES`), in real time
+    (one frame per ``every`` steps of 0.25 s), without SUMO; returns the number of frames. The file is checked
+    before any work and appears whole or not at all."""
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ReplayError(f"--video {path}: the file's suffix says what to write; use {' or '.join(VIDEO_SUFFIXES)}")
+    check_new_file(path, overwrite, verb)
+    rec = load_recording(run, episode)
+    frames = recording_frames(rec, every)
+    fps = 1.0 / (rec.cfg.sim.step_s * every)
+    with new_file(path, verb) as tmp:
+        if path.suffix.lower() == ".gif":
+            from PIL import Image
+
+            images = [Image.fromarray(f).convert("P", palette=Image.Palette.ADAPTIVE) for f in frames]
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                           duration=int(1000 / fps), loop=0)
+        else:
+            from moviepy import ImageSequenceClip
+
+            clip = ImageSequenceClip(frames, fps=fps)
+            clip.write_videofile(str(tmp), codec="libx264", audio=False, logger=None,
+                                 ffmpeg_params=["-f", "mp4", "-pix_fmt", "yuv420p"])
+            clip.close()
+    return len(frames)

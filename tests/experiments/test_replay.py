@@ -306,3 +306,33 @@ def test_onramp_recording_of_several_agents_keeps_each_agents_rows_and_last_step
     assert episodes.sum() > 0
     result = replay(recorded, episode=1, gui=False)
     assert result.max_dx_m <= 0.01 and result.max_dy_m <= 0.01
+
+
+def test_video_of_a_recording_without_sumo_or_a_display(recorded, tmp_path):
+    res = lanefree("replay", str(recorded), "--episode", "2", "--video", str(tmp_path / "ep2.mp4"))
+    assert res.returncode == 0, res.stderr
+    assert "wrote 61 frames of episode 2" in res.stdout
+    video = tmp_path / "ep2.mp4"
+    assert video.stat().st_size > 1000 and video.read_bytes()[4:8] == b"ftyp"  # an MP4 container
+    again = lanefree("replay", str(recorded), "--video", str(video))
+    assert again.returncode != 0 and again.stderr.count("\n") == 1 and "exists" in again.stderr
+    gif = tmp_path / "ep1.gif"
+    assert lanefree("replay", str(recorded), "--video", str(gif), "--every", "4").returncode == 0
+    with Image.open(gif) as image:
+        assert image.n_frames == 16  # steps 0, 4, …, 60
+
+
+def test_video_frames_follow_the_recording(recorded):
+    from lanefree_sumo.experiments.replay import recording_frames
+    from lanefree_sumo.rl.render import AGENT
+
+    frames = recording_frames(load_recording(recorded, 1), every=30)
+    assert len(frames) == 3 and not np.array_equal(frames[0], frames[2])
+    assert all(np.all(f == np.array(AGENT, dtype=np.uint8), axis=-1).sum() > 100 for f in frames)
+
+
+@pytest.mark.parametrize("args,named", [(["--video", "x.avi"], ".mp4 or .gif"),
+                                        (["--video", "x.mp4", "--screenshot", "s.png"], "drop --screenshot")])
+def test_video_mistakes_are_one_line(recorded, tmp_path, args, named):
+    res = lanefree("replay", str(recorded), *args, cwd=tmp_path)
+    assert res.returncode != 0 and named in res.stderr and res.stderr.count("\n") == 1
