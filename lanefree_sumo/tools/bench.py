@@ -13,7 +13,8 @@ against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), inte
 :func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
 (``--training-only`` runs just these sections, ``--dqn-only`` the last), and :func:`batch_speed`: runs per
 core-hour of sequential runs against batches of K runs in one process, then :func:`set_update_speed`: the set
-observation's update, sequential against batched (``--batch-only``). ``--gpu``: the
+observation's update, sequential against batched (``--batch-only``), and :func:`vector_speed`: the vector entry
+point against gymnasium's SyncVectorEnv and the cost of a frame (``--vector-only``). ``--gpu``: the
 batched path on a torch device instead (:mod:`lanefree_sumo.tools.bench_gpu`, ``make bench-gpu``).
 """
 
@@ -506,6 +507,59 @@ def set_update_speed(seed: int, updates: int = 30, fill: int = 1000) -> str:
     return "\n".join(lines)
 
 
+def _vector_rate(make: Callable[[], Any], k: int, steps: int, render: bool = False) -> float:
+    """Env steps/s (summed over the K environments) of the vector env ``make()`` gives, zero actions, after 10
+    warm-up steps; ``render``: a frame of every environment each step too."""
+    env = make()
+    try:
+        env.reset(seed=0)
+        actions = np.zeros((k, *env.single_action_space.shape), dtype=np.float32)
+        for _ in range(10):
+            env.step(actions)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            env.step(actions)
+            if render:
+                env.render()
+        return steps * k / (time.perf_counter() - t0)
+    finally:
+        env.close()
+
+
+def vector_speed(sizes: tuple[int, ...] = (8, 64), steps: int = 200, repeats: int = REPEATS) -> str:
+    """LaneFree-v0's vector entry point (K worlds as one batched array program) against gymnasium's
+    SyncVectorEnv over K LaneFree-v0 (numpy backend), the defaults' 70 veh/km, interleaved ``repeats`` times
+    (median); then what an ``rgb_array`` frame costs beside a step, for one LaneFree-v0."""
+    import gymnasium as gym
+
+    import lanefree_sumo  # noqa: F401 - registers LaneFree-v0
+
+    lines = ["Vector environments (LaneFree-v0, 70 veh/km, numpy worlds, zero actions; env steps/s summed over K, "
+             f"median of {repeats} interleaved repeats of {steps} steps):", "",
+             "| K | vector entry point | SyncVectorEnv | × |", "|---|---|---|---|"]
+    for k in sizes:
+        vector, sync = [], []
+        n = max(10, steps * 8 // k)
+        for _ in range(repeats):
+            vector.append(_vector_rate(functools.partial(gym.make_vec, "LaneFree-v0", num_envs=k,
+                                                         vectorization_mode="vector_entry_point"), k, n))
+            sync.append(_vector_rate(functools.partial(gym.make_vec, "LaneFree-v0", num_envs=k,
+                                                       vectorization_mode="sync"), k, n))
+        v, y = statistics.median(vector), statistics.median(sync)
+        lines.append(f"| {k} | {v:.0f} | {y:.0f} | {v / y:.2f}× |")
+    plain, drawn = [], []
+    for _ in range(repeats):
+        plain.append(_vector_rate(lambda: gym.make_vec("LaneFree-v0", num_envs=1, vectorization_mode="sync"), 1,
+                                  steps))
+        drawn.append(_vector_rate(lambda: gym.make_vec("LaneFree-v0", num_envs=1, vectorization_mode="sync",
+                                                       render_mode="rgb_array"), 1, steps, render=True))
+    p, d = statistics.median(plain), statistics.median(drawn)
+    lines += ["", "| LaneFree-v0, one env | steps/s | ms per step |", "|---|---|---|",
+              f"| step | {p:.0f} | {1000.0 / p:.2f} |", f"| step + rgb_array frame | {d:.0f} | {1000.0 / d:.2f} |",
+              f"| the frame alone | | {1000.0 / d - 1000.0 / p:.2f} |"]
+    return "\n".join(lines)
+
+
 def run(steps: int, seed: int, out_dir: Path) -> str:
     from lanefree_sumo.sim.backends.sumo import bare_step_rate
 
@@ -564,7 +618,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         rate = training_rate(algo, seed)
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
-    lines += ["", training_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
+    lines += ["", vector_speed(), "", training_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -601,6 +655,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/bench"), help="folder for the table")
     parser.add_argument("--training-only", action="store_true", help="only the training-speed sections")
     parser.add_argument("--dqn-only", action="store_true", help="only the DQN family's training-speed section")
+    parser.add_argument("--vector-only", action="store_true",
+                        help="only the vector environments and the cost of a frame (--steps per row)")
     parser.add_argument("--batch-only", action="store_true",
                         help="only the batched-training section (sequential against batches of 1, 4, 8, 16 runs)")
     gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
@@ -628,6 +684,8 @@ def main() -> None:
                           args.train_steps, args.budget_s, args.seed, per_sizes=args.per_sizes)
         except LaneFreeError as exc:
             raise SystemExit(f"error: {exc}") from None
+    elif args.vector_only:
+        print(vector_speed(steps=args.steps))
     elif args.batch_only:
         print(batch_speed(args.seed, steps=args.steps))
         print()
