@@ -38,21 +38,34 @@ def seed(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+MAX_BATCH_SEEDS = 4096
+"""The most seeds ``--seeds`` trains as one batch (each run holds its own replay buffer: a DDPG run's is ≈ 20 MiB,
+so 4096 runs ≈ 80 GiB — more than a single machine's memory is refused before anything is written)."""
+
+
 def seeds(text: str) -> list[int]:
-    """Seeds of a batch: a range ``A-B`` (both included) or a list ``A,B,C`` of distinct seeds."""
+    """Seeds of a batch: a range ``A-B`` (both included) or a list ``A,B,C`` of distinct seeds, each within the
+    config's range of ``seed``, at most :data:`MAX_BATCH_SEEDS` of them."""
     try:
         if "-" in text:
             low, high = (int(part) for part in text.split("-", 1))
             if high < low:
                 raise ValueError
-            values = list(range(low, high + 1))
+            ends = [low, high]
         else:
-            values = [int(part) for part in text.split(",")]
+            ends = [int(part) for part in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected seeds as A-B (A <= B) or A,B,C, got {text!r}") from None
+    for value in ends:  # the bounds before any list is built: 0-99999999999999999999 is refused at once
+        seed(str(value))
+    count = ends[1] - ends[0] + 1 if "-" in text else len(ends)
+    if count > MAX_BATCH_SEEDS:
+        raise argparse.ArgumentTypeError(f"{count} seeds in {text!r}; a batch trains at most {MAX_BATCH_SEEDS} "
+                                         "(each run keeps its own replay buffer): split them over several batches")
+    values = list(range(ends[0], ends[1] + 1)) if "-" in text else ends
     if len(set(values)) != len(values):
         raise argparse.ArgumentTypeError(f"seeds repeat in {text!r}; give each seed once")
-    return [seed(str(v)) for v in values]
+    return values
 
 
 def _of(kind: type, unit: str) -> str:

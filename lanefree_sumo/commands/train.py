@@ -111,8 +111,9 @@ def _train_batch(args: argparse.Namespace, cfg: LaneFreeConfig) -> list[tuple[Pa
 
     from lanefree_sumo.experiments.batch import check_batchable, train_batch
 
-    if "--seed" in args.given:
-        raise UsageError("--seed and --seeds exclude each other; give the batch's seeds with --seeds only")
+    if "--seed" in args.given or any(key == "seed" for key, _ in args.settings):
+        given = "--seed" if "--seed" in args.given else "--set seed=…"
+        raise UsageError(f"{given} and --seeds exclude each other; give the batch's seeds with --seeds only")
     check_batchable(cfg)
     seeds = args.seeds
     out = args.out or Path("runs") / (f"{datetime.now():%Y%m%d-%H%M%S}_{cfg.train.algo}_{cfg.reward.preset}"

@@ -39,8 +39,8 @@ import numpy as np
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
-from lanefree_sumo.experiments.rundir import RunDir, append_command, record_session, write_config
-from lanefree_sumo.experiments.train import _Stop, new_run_folder, versions
+from lanefree_sumo.experiments.rundir import RunDir, append_command, claim, record_session, write_config
+from lanefree_sumo.experiments.train import _Stop, check_episode_rows, new_run_folder, versions
 
 BATCH_FILE = "batch.json"
 BATCH_CHECKPOINTS = "batch_checkpoints"
@@ -184,6 +184,7 @@ class _Batch:
                 raise RunError(f"batch checkpoint {path} is unusable ({type(exc).__name__}: {exc}); delete it to "
                                "resume from the older one") from None
             for k, run in enumerate(self.folders):
+                check_episode_rows(run, books.done[k], cfgs[k].scenario.agents)  # a damaged file is said, not hidden
                 EpisodeLog.truncate(run.episodes, books.done[k], episode_columns(cfgs[k]))
         else:
             env = BatchedRingEnv(cfgs, device=self.device)
@@ -358,11 +359,10 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
     paths = folders or [batch_dir / batch_name(c) for c in cfgs]
     if len(set(paths)) != len(paths):
         raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")
-    batch_dir.mkdir(parents=True, exist_ok=True)
-    if any((batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt")):  # a batch killed before its first starts afresh
-        raise RunError(f"{batch_dir} holds a batch already; resume it with --resume {batch_dir} or choose another "
-                       "--out")
     with contextlib.ExitStack() as stack:
+        stack.enter_context(claim(batch_dir, "train"))  # one batch writes a batch folder at a time
+        check_batch_folder(batch_dir, paths)
+        batch_dir.mkdir(parents=True, exist_ok=True)
         runs = []
         for cfg, path in zip(cfgs, paths):
             run = RunDir(new_run_folder(cfg, path))
@@ -378,6 +378,37 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
         return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device,
                       lockstep).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")
+
+
+def check_batch_folder(batch_dir: Path, paths: list[Path]) -> None:
+    """Refuse, before anything is written, a batch folder that holds anything but this batch killed before its
+    first checkpoint (the same run folders in its ``batch.json``, no batch checkpoint): a user's folder, a run's,
+    a sweep's, another batch's — RunError saying what it holds and what to do."""
+    if not batch_dir.exists():
+        return
+    if not batch_dir.is_dir():
+        raise RunError(f"{batch_dir} exists and is not a folder; choose another --out")
+    entries = sorted(p.name for p in batch_dir.iterdir())
+    if not entries:
+        return
+    listed = None
+    if is_batch(batch_dir):
+        try:
+            listed = json.loads((batch_dir / BATCH_FILE).read_text())["runs"]
+        except (OSError, ValueError, KeyError, TypeError):
+            listed = None
+    mine = [os.path.relpath(p, batch_dir) for p in paths]
+    if listed is not None and listed and all(RunDir(batch_dir / p).model.is_file() for p in listed):
+        raise RunError(f"{batch_dir} holds a finished batch (every run has its model.zip); choose another --out")
+    if listed is not None and any((batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt")):
+        raise RunError(f"{batch_dir} holds a batch already; resume it with --resume {batch_dir} or choose another "
+                       "--out")
+    if listed is not None and listed == mine:
+        return  # this batch, killed before its first checkpoint: it starts afresh
+    what = ("another batch" if listed is not None else "a run" if (batch_dir / "config.yaml").is_file()
+            else f"{len(entries)} file(s) or folder(s), e.g. {entries[0]}")
+    raise RunError(f"{batch_dir} exists and holds {what}; a batch writes into a new or empty folder: choose "
+                   "another --out")
 
 
 def is_batch(folder: Path) -> bool:
@@ -396,6 +427,7 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
     if all(run.model.is_file() for run in runs):
         raise RunError(f"{batch_dir} is finished (every run has its model.zip); nothing to resume")
     with contextlib.ExitStack() as stack:
+        stack.enter_context(claim(batch_dir, "train"))
         cfgs = [run.load_config() for run in runs]
         check_device(cfgs[0].train.device)
         for run in runs:

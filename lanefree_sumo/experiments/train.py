@@ -239,7 +239,7 @@ def _resume_point(folder: RunDir, cfg: LaneFreeConfig, episodes: int | None) -> 
     return ckpt, target
 
 
-def _check_episode_rows(folder: RunDir, done: int, agents: int) -> None:
+def check_episode_rows(folder: RunDir, done: int, agents: int) -> None:
     """Refuse to continue a run whose ``episodes.csv`` lacks rows of the checkpoint's episodes (or holds one
     twice): continuing would hide the gap in every report."""
     missing = EpisodeLog.missing(folder.episodes, done, agents)
@@ -337,7 +337,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     try:
         if ckpt is not None:
             model = _load_checkpoint(spec, ckpt, env, folder)  # validated before anything changes
-            _check_episode_rows(folder, done, cfg.scenario.agents)
+            check_episode_rows(folder, done, cfg.scenario.agents)
             EpisodeLog.truncate(folder.episodes, done, episode_columns(cfg))
             if target != cfg.train.episodes:
                 cfg = merge_config(cfg, {"train": {"episodes": target}})

@@ -334,7 +334,7 @@ def test_a_batched_sweep_killed_and_interrupted_resumes_exactly_beside_a_complet
                           "--no-progress")
     try:
         wait_for(lambda: any(sweep.batches.glob(f"*/{BATCH_CHECKPOINTS}/step_*.pt")), proc, "a batch checkpoint")
-        (batch,) = list(sweep.batches.iterdir())
+        (batch,) = [p for p in sweep.batches.iterdir() if p.is_dir()]  # beside it: its claim, .<batch>.lock
         victim = json.loads(sweep.heartbeat("ddpg_collision_d70_s1").read_text())["pid"]
         os.kill(victim, signal.SIGKILL)
         log = sweep.log(batch.name)

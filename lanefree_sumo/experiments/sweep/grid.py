@@ -325,6 +325,9 @@ def parse_grid(data: Any, name: str, source: str) -> Grid:
     if not _whole(episodes) or episodes < 1:
         raise ConfigError(f"{where}: episodes must be a whole number ≥ 1, got {episodes!r}")
     overrides = data.get("overrides") or {}
+    if not isinstance(overrides, Mapping):
+        raise ConfigError(f"{where}: overrides must be a mapping of config keys (e.g. overrides: {{sim: "
+                          f"{{episode_steps: 400}}}}), got {overrides!r}")
     variants = _variants(where, data.get("variants"))
     compare = _compare(where, data.get("compare"), variants)
     settings = tuple(make_setting(a, p, d, v) for v in (variants or [""]) for a, p, d in cells)

@@ -1,0 +1,143 @@
+"""A batch claims its folder (never writes into a user's, a run's or another batch's), resume refuses a damaged
+episodes.csv, and the CLI's batch mistakes are one line before anything is written."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments import batch
+from lanefree_sumo.experiments.batch import resume_batch, train_batch
+from lanefree_sumo.experiments.rundir import claim
+from lanefree_sumo.rl.batched_env import BatchedRingEnv
+
+from conftest import lanefree
+
+TINY = {"sim": {"episode_steps": 30},
+        "train": {"algo": "dqn", "episodes": 2, "checkpoint_every_episodes": 1,
+                  "dqn": {"learning_starts_steps": 20, "buffer_size": 200, "target_update_steps": 20}}}
+
+
+def tiny(seed: int) -> LaneFreeConfig:
+    return merge_config(LaneFreeConfig(), {**TINY, "seed": seed})
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("holds,named", [("user", "2 file(s) or folder(s), e.g. notes.txt"), ("run", "a run")])
+def test_a_batch_never_writes_into_a_folder_that_holds_something(tmp_path, holds, named):
+    out = tmp_path / "out"
+    out.mkdir()
+    if holds == "user":
+        (out / "notes.txt").write_text("mine")
+        (out / "zz").mkdir()
+    else:
+        (out / "config.yaml").write_text("seed: 0\n")
+    before = snapshot(out)
+    with pytest.raises(RunError, match=re.escape(f"holds {named}; a batch writes into a new or empty folder")):
+        train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
+    assert snapshot(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_second_batch_is_refused_while_one_writes_and_after_it_stopped(tmp_path, monkeypatch):
+    out = tmp_path / "batch"
+    with claim(out, "train"):  # another process's batch holds the folder: flock is per open file, as across processes
+        with pytest.raises(RunError, match="is being written by process"):
+            train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
+    assert not out.exists()
+    step = batch._Batch._step
+
+    def stopped(self: Any, env: Any, learner: Any, *args: Any) -> bool:
+        checkpoint = step(self, env, learner, *args)
+        if learner.num_timesteps == 45:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return checkpoint
+
+    monkeypatch.setattr(batch._Batch, "_step", stopped)
+    first = train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
+    monkeypatch.undo()
+    assert [done for _, done in first] == [1, 1]
+    before = snapshot(out)
+    with pytest.raises(RunError, match="holds a batch already; resume it with --resume"):
+        train_batch([tiny(5), tiny(6)], out, progress=False, command="test")
+    assert snapshot(out) == before
+    resumed = resume_batch(out, progress=False, command="test")  # the first batch is whole and resumes
+    assert [done for _, done in resumed] == [2, 2]
+    with pytest.raises(RunError, match="holds a finished batch"):
+        train_batch([tiny(5), tiny(6)], out, progress=False, command="test")
+
+
+@pytest.mark.parametrize("damage", ["rows", "file"])
+def test_resuming_a_batch_whose_episodes_csv_lost_rows_is_refused(tmp_path, monkeypatch, damage):
+    out = tmp_path / "batch"
+    step = batch._Batch._step
+
+    def stopped(self: Any, env: Any, learner: Any, *args: Any) -> bool:
+        checkpoint = step(self, env, learner, *args)
+        if learner.num_timesteps == 45:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return checkpoint
+
+    monkeypatch.setattr(batch._Batch, "_step", stopped)
+    runs = train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
+    monkeypatch.undo()
+    episodes = runs[1][0] / "episodes.csv"
+    if damage == "rows":
+        episodes.write_text(episodes.read_text().splitlines()[0] + "\n")
+    else:
+        episodes.unlink()
+    with pytest.raises(RunError, match=r"episodes.csv does not hold episode 1 of the 1 its newest checkpoint"):
+        resume_batch(out, progress=False, command="test")
+    assert (episodes.read_text().count("\n") if episodes.exists() else 0) <= 1  # left as it was, not rewritten
+
+
+@pytest.mark.parametrize("seeds,said", [
+    ("0-99999999999999999999", "out of range; allowed 0 … 2147483647"),
+    ("0-100000", "100001 seeds in '0-100000'; a batch trains at most 4096"),
+    ("0-2147483647", "a batch trains at most 4096"),
+])
+def test_seed_ranges_beyond_a_batch_are_one_line_and_write_nothing(tmp_path, seeds, said):
+    res = lanefree("train", "--seeds", seeds, "--out", str(tmp_path / "b"), timeout=120)
+    assert res.returncode == 2 and said in res.stderr and res.stderr.count("\n") == 1
+    assert not (tmp_path / "b").exists()
+
+
+def test_set_seed_with_seeds_is_refused(tmp_path):
+    res = lanefree("train", "--seeds", "0-1", "--set", "seed=7", "--out", str(tmp_path / "b"), timeout=120)
+    assert res.returncode != 0 and "--set seed=… and --seeds exclude each other" in res.stderr
+    assert not (tmp_path / "b").exists()
+
+
+def test_a_grid_whose_overrides_are_not_a_mapping_is_one_line(tmp_path):
+    grid = tmp_path / "g.yaml"
+    grid.write_text("algorithms: [ddpg]\nreward_presets: [collision]\noverrides: [1, 2]\n")
+    res = lanefree("sweep", str(grid), "--out", str(tmp_path / "s"), "--no-ray", timeout=120)
+    assert res.returncode != 0 and "overrides must be a mapping of config keys" in res.stderr
+    assert "internal error" not in res.stderr and not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("actions,named", [(np.zeros((2, 3)), r"shape \(3, 2\)"), (np.zeros(5), r"shape \(3, 2\)"),
+                                           (np.zeros((1, 2)), r"shape \(3, 2\)")])
+def test_the_batched_env_validates_its_actions(actions, named):
+    env = BatchedRingEnv([{"seed": s, "backend": "numpy"} for s in range(3)])
+    env.reset()
+    with pytest.raises(ValueError, match=named):
+        env.step(actions)
+
+
+@pytest.mark.parametrize("runs", [[5], [-1], [0, 0], [True]])
+def test_the_batched_env_validates_the_runs_it_resets(runs):
+    env = BatchedRingEnv([{"seed": s, "backend": "numpy"} for s in range(2)])
+    env.reset()
+    with pytest.raises(ValueError, match=r"runs are distinct indices 0 … 1"):
+        env.reset(runs=runs)
