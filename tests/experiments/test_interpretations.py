@@ -1,0 +1,94 @@
+"""The interpretation study's score and pick (results/interpretations/protocol.md) on hand-made run tables."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pandas as pd
+import pytest
+
+from lanefree_sumo.experiments.interpretations import (
+    BONUS_CELLS,
+    CELLS,
+    SEEDS,
+    cell_values,
+    distance,
+    phase1_markdown,
+    pick,
+    scores,
+)
+from lanefree_sumo.experiments.paper import paper_reference
+
+
+def table(variant: str, presets, collisions_factor: float, speed_factor: float) -> list[dict]:
+    rows = []
+    for preset in presets:
+        ref = paper_reference("ddpg", preset, 70.0)
+        for seed in SEEDS:
+            rows.append({"variant": variant, "reward_preset": preset, "density": 70.0, "seed": seed,
+                         "collisions": ref.collisions * collisions_factor, "speed_dev_mps": ref.speed_dev_mps
+                         * speed_factor})
+    return rows
+
+
+def runs() -> pd.DataFrame:
+    return pd.DataFrame(table("", CELLS, 2.0, 1.0)  # the default: collisions twice the paper's everywhere
+                        + table("once_per_vehicle", BONUS_CELLS, 1.0, 1.0)  # the paper's values where it applies
+                        + table("cap25", CELLS, 1.0, math.e)
+                        + table("both", BONUS_CELLS, 1.0, 1.0 / math.e))
+
+
+def test_the_distance_is_the_mean_absolute_log_ratio_over_fourteen_figures():
+    values = cell_values(runs(), "default")
+    d, ratios = distance(values)
+    assert d == pytest.approx(7 * math.log(2) / 14)
+    assert all(r == (pytest.approx(math.log(2)), pytest.approx(0.0)) for r in ratios.values())
+    cap = distance(cell_values(runs(), "cap25"))[0]
+    assert cap == pytest.approx(0.5)  # speed off by e in every cell: |ln e| = 1 in 7 of 14 figures
+
+
+def test_bonus_variants_take_the_other_runs_where_no_bonus_is_paid():
+    once = distance(cell_values(runs(), "once_per_vehicle"))[0]
+    assert once == pytest.approx(3 * math.log(2) / 14)  # the three cells without a bonus are the default's
+    both = distance(cell_values(runs(), "both"))[0]
+    assert both == pytest.approx((4 * 1 + 3 * 1) / 14)  # speed /e in the bonus cells, cap25's e in the others
+
+
+def test_the_pick_is_the_smallest_distance_with_ties_to_the_earlier_variant():
+    results = scores(runs(), resamples=200)
+    assert [s.variant for s in results] == ["default", "once_per_vehicle", "cap25", "both"]
+    assert pick(results).variant == "once_per_vehicle"
+    tied = [results[2], replace(results[0], distance=results[2].distance)]
+    assert pick(tied).variant == "default"
+    page = phase1_markdown(results)
+    assert "| **once_per_vehicle** |" in page and "Picked: **once_per_vehicle**" in page
+
+
+def test_the_bootstrap_is_paired_by_seed_and_constant_runs_give_a_point_interval():
+    once = scores(runs(), resamples=200)[1]
+    assert once.low == pytest.approx(once.difference) and once.high == pytest.approx(once.difference)
+
+
+def test_a_missing_run_is_named():
+    partial = runs()
+    partial = partial.drop(partial[(partial["variant"] == "cap25") & (partial["seed"] == 3)
+                                   & (partial["reward_preset"] == "fields")].index)
+    with pytest.raises(ValueError, match=r"variant cap25: the fields cell \(cap25's runs\) has seeds \[0, 1, 2, 4\]"):
+        cell_values(partial, "cap25")
+    with pytest.raises(ValueError, match="variant both: the fields cell"):
+        cell_values(partial, "both")
+
+
+def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
+    from lanefree_sumo.experiments.interpretations import write_phase1
+
+    all_runs = runs()
+    for folder, variants in (("paper", [""]), ("interpretations/phase1_bonus", ["once_per_vehicle", "both"]),
+                             ("interpretations/phase1_cap25", ["cap25"])):
+        (tmp_path / folder).mkdir(parents=True)
+        part = all_runs[all_runs["variant"].isin(variants)].assign(algorithm="ddpg")
+        part.to_csv(tmp_path / folder / "runs.csv", index=False)
+    page = write_phase1(tmp_path)
+    assert "Picked: **once_per_vehicle**" in page.read_text()
+    assert (tmp_path / "interpretations" / "ours_vs_paper.png").stat().st_size > 10_000
