@@ -1,0 +1,52 @@
+"""Golden files: the single-run ``episodes.csv`` of every batchable algorithm on a small config, frozen, so that
+a rewrite of the trainers (one trainer for K ≥ 1) must reproduce them, and batched run k equals them too.
+
+``LANEFREE_WRITE_GOLDEN=1 pytest tests/experiments/test_golden_runs.py`` rewrites them (only on purpose: say why
+in the commit)."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import pytest
+
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.experiments.batch import train_batch
+from lanefree_sumo.experiments.train import train
+
+pytestmark = [pytest.mark.slow]
+
+GOLDEN = Path(__file__).resolve().parents[1] / "golden"
+SMALL = {"sim": {"episode_steps": 50}, "scenario": {"density_veh_per_km": 90},
+         "train": {"episodes": 3, "checkpoint_every_episodes": 1,
+                   "actor_critic": {"learning_starts_steps": 40, "buffer_size": 500},
+                   "dqn": {"learning_starts_steps": 40, "buffer_size": 500, "target_update_steps": 30}}}
+ALGORITHMS = ("ddpg", "td3", "dqn", "ddqn", "dueling", "per")
+
+
+def config(algo: str, seed: int = 3) -> LaneFreeConfig:
+    return merge_config(LaneFreeConfig(), {**SMALL, "seed": seed, "train": {**SMALL["train"], "algo": algo}})
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)]
+
+
+@pytest.mark.parametrize("algo", ALGORITHMS)
+def test_a_single_run_reproduces_its_golden_episodes(tmp_path, algo):
+    run, done = train(config(algo), run=tmp_path / "run", progress=False)
+    assert done == 3
+    golden = GOLDEN / f"{algo}_episodes.csv"
+    if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":
+        golden.write_text((run / "episodes.csv").read_text())
+    assert rows(run / "episodes.csv") == rows(golden)
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "dqn", "per"])
+def test_batched_run_k_reproduces_the_golden_single_run(tmp_path, algo):
+    runs = train_batch([config(algo, seed=7), config(algo, seed=3)], tmp_path / "batch", progress=False,
+                       command="test")
+    assert rows(runs[1][0] / "episodes.csv") == rows(GOLDEN / f"{algo}_episodes.csv")
