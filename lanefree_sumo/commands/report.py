@@ -65,6 +65,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree report``: write the report and print its summary table."""
+    from lanefree_sumo.experiments.batch import batch_runs
     from lanefree_sumo.experiments.report import report
     from lanefree_sumo.experiments.sweep.manifest import MANIFEST
 
@@ -72,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.runs:
         raise UsageError("lanefree report needs at least one RUN folder (or one sweep folder), before --eval or "
                          "--against")
+    args.runs = batch_runs(args.runs)  # a 'lanefree train --seeds' folder stands for its runs
     sweeps = [path for path in args.runs if (path / MANIFEST).is_file()]
     if sweeps and len(sweeps) < len(args.runs):
         other = next(path for path in args.runs if path not in sweeps)

@@ -37,12 +37,18 @@ from typing import Any, Literal
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
-from lanefree_sumo.errors import ConfigError, RunError
+from lanefree_sumo.errors import ConfigError, OperatingSystemError, RunError, os_error_message
 from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
-from lanefree_sumo.experiments.rundir import RunDir, append_command, claim, record_session, write_config
+from lanefree_sumo.experiments.rundir import (
+    BATCH_FILE,
+    RunDir,
+    append_command,
+    claim,
+    record_session,
+    write_config,
+)
 from lanefree_sumo.experiments.train import _Stop, check_episode_rows, new_run_folder, versions
 
-BATCH_FILE = "batch.json"
 BATCH_CHECKPOINTS = "batch_checkpoints"
 KEEP_BATCH_CHECKPOINTS = 2
 
@@ -135,9 +141,18 @@ class _Batch:
         folder.mkdir(exist_ok=True)
         path = folder / f"step_{books.steps:010d}.pt"
         tmp = path.with_name(path.name + ".tmp")
-        torch.save({"learner": learner.state_dict(), "env": pickle.dumps(env), "obs": obs,
-                    "books": pickle.dumps(books), "lockstep": None if loop is None else loop.state_dict()}, tmp)
-        os.replace(tmp, path)
+        try:
+            torch.save({"learner": learner.state_dict(), "env": pickle.dumps(env), "obs": obs,
+                        "books": pickle.dumps(books), "lockstep": None if loop is None else loop.state_dict()}, tmp)
+            os.replace(tmp, path)
+        except (OSError, RuntimeError) as exc:  # torch.save reports a full disk as a RuntimeError of its own
+            tmp.unlink(missing_ok=True)
+            said = os_error_message(exc) if isinstance(exc, OSError) else " ".join(str(exc).split())[:160]
+            kept = sorted(folder.glob("step_*.pt"))
+            raise OperatingSystemError(
+                f"could not write the batch checkpoint {path} ({said}); "
+                + (f"the previous one ({kept[-1].name}) is kept: free some space and resume with --resume "
+                   f"{self.batch_dir}" if kept else "free some space and start the batch again")) from None
         saved = datetime.now().isoformat(timespec="seconds")
         for k, run in enumerate(self.folders):
             if books.finished[k] or books.done[k] == 0:
@@ -409,6 +424,22 @@ def check_batch_folder(batch_dir: Path, paths: list[Path]) -> None:
             else f"{len(entries)} file(s) or folder(s), e.g. {entries[0]}")
     raise RunError(f"{batch_dir} exists and holds {what}; a batch writes into a new or empty folder: choose "
                    "another --out")
+
+
+def batch_runs(paths: list[Path]) -> list[Path]:
+    """``paths`` with every batch folder (``lanefree train --seeds``) replaced by its run folders, in its order;
+    RunError for a batch folder whose ``batch.json`` is unusable."""
+    out: list[Path] = []
+    for path in paths:
+        if not is_batch(path):
+            out.append(path)
+            continue
+        try:
+            listed = json.loads((path / BATCH_FILE).read_text())["runs"]
+            out += [path / str(p) for p in listed]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise RunError(f"{path / BATCH_FILE} is unusable ({exc}); pass the batch's run folders instead") from None
+    return out
 
 
 def is_batch(folder: Path) -> bool:

@@ -44,6 +44,8 @@ from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, m
 from lanefree_sumo.errors import ConfigError, RunError
 
 CONFIG = "config.yaml"
+BATCH_FILE = "batch.json"
+"""A batch folder's list of its run folders (``lanefree train --seeds``, :mod:`~lanefree_sumo.experiments.batch`)."""
 COMMAND = "command.txt"
 VERSIONS = "versions.json"
 EPISODES = "episodes.csv"
@@ -364,6 +366,11 @@ def read_config(folder: Path) -> LaneFreeConfig:
     """The configuration saved in ``folder/config.yaml`` (a run or an evaluation), validated whole:
     unreadable text, a missing or unknown key, a wrong type or value is a RunError naming it."""
     path = folder / CONFIG
+    if not path.is_file() and (folder / BATCH_FILE).is_file():
+        runs = sorted(p.name for p in folder.iterdir() if (p / CONFIG).is_file())
+        raise RunError(f"{folder} is a batch of 'lanefree train --seeds' ({len(runs)} runs); pass one of its run "
+                       f"folders, e.g. {folder / (runs[0] if runs else '<run>')} ('lanefree report {folder}' reports "
+                       "them all)")
     if not path.is_file():
         raise RunError(f"{folder} is not a run folder (no {CONFIG}); pass the folder that 'lanefree train' made")
     try:

@@ -141,3 +141,55 @@ def test_the_batched_env_validates_the_runs_it_resets(runs):
     env.reset()
     with pytest.raises(ValueError, match=r"runs are distinct indices 0 … 1"):
         env.reset(runs=runs)
+
+
+def test_a_full_disk_at_a_batch_checkpoint_is_one_line_and_the_previous_one_resumes(tmp_path, monkeypatch):
+    import csv
+
+    import torch
+
+    from lanefree_sumo.errors import OperatingSystemError
+
+    cfgs = [merge_config(tiny(s), {"train": {"episodes": 3}}) for s in (0, 1)]
+    whole = train_batch(cfgs, tmp_path / "whole", progress=False, command="test")
+    save, calls = torch.save, []
+
+    def full_disk(obj: Any, path: Any, *args: Any, **kwargs: Any) -> None:
+        if not str(path).endswith(".pt.tmp"):  # a model.zip's parts, written by SB3
+            return save(obj, path, *args, **kwargs)
+        calls.append(path)
+        if len(calls) == 2:  # what torch.save raises when the disk fills mid-write
+            Path(path).write_bytes(b"half")
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . PytorchStreamWriter failed writing file")
+        save(obj, path, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    out = tmp_path / "batch"
+    with pytest.raises(OperatingSystemError, match=r"could not write the batch checkpoint .*PytorchStreamWriter failed "
+                       r"writing file\); the previous one \(step_\d+\.pt\) is kept: free some space and resume") as err:
+        train_batch(cfgs, out, progress=False, command="test")
+    assert "\n" not in str(err.value)
+    monkeypatch.undo()
+    assert [p.name for p in (out / "batch_checkpoints").iterdir()] == [Path(calls[0]).name.removesuffix(".tmp")]
+    resumed = resume_batch(out, progress=False, command="test")
+    assert [done for _, done in resumed] == [3, 3]
+
+    def rows(path: Path) -> list[dict[str, str]]:
+        with open(path, newline="") as fh:
+            return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)]
+
+    for (a, _), (b, _) in zip(resumed, whole):
+        assert rows(a / "episodes.csv") == rows(b / "episodes.csv")
+
+
+def test_the_verbs_understand_a_batch_folder(tmp_path):
+    out = tmp_path / "batch"
+    train = lanefree("train", "--seeds", "0-1", "--algo", "dqn", "--episodes", "1", "--set", "sim.episode_steps=30",
+                     "--set", "train.dqn.learning_starts_steps=20", "--out", str(out), timeout=300)
+    assert train.returncode == 0, train.stderr
+    report = lanefree("report", str(out), "--out", str(tmp_path / "report"), timeout=300)
+    assert report.returncode == 0, report.stderr
+    assert "| 2 |" in (tmp_path / "report" / "summary.md").read_text()  # one group of the batch's two runs
+    evaluate = lanefree("evaluate", str(out), "--episodes", "1", timeout=300)
+    assert evaluate.returncode == 2 and evaluate.stderr.count("\n") == 1
+    assert "is a batch of 'lanefree train --seeds' (2 runs); pass one of its run folders, e.g." in evaluate.stderr
