@@ -131,6 +131,8 @@ class _Batch:
         None: on CUDA where the batch allows it."""
         self.runs = len(cfgs)
         self._ended = np.zeros(self.runs, dtype=bool)
+        self._boards: list[_Board] = []
+        """Each run's TensorBoard log (:class:`_Board`), for the length of :meth:`run`."""
 
     # -- checkpoints ------------------------------------------------------------------------------------
     def save(self, env: Any, learner: Any, obs: Any, books: _Books, loop: Any = None) -> Path:
@@ -209,6 +211,7 @@ class _Batch:
         first = list(books.done)
         steps0 = books.steps
         logs = [EpisodeLog(run.episodes, episode_columns(c)) for run, c in zip(self.folders, cfgs)]
+        self._boards = [_Board(run.tensorboard / "batch") for run in self.folders]
         for run in self.folders:
             append_command(run.path, command)
         names = [_seed_name(r.path) for r in self.folders]
@@ -232,6 +235,8 @@ class _Batch:
                 signal.signal(sig, handler)
             for log in logs:
                 log.close()
+            for board in self._boards:
+                board.close()
             bar.close()
         wall = time.perf_counter() - t0
         ended = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -312,6 +317,7 @@ class _Batch:
         books.done[k] += 1
         cfg = self.cfgs[k]
         logs[k].append({**metrics, "episode": books.done[k], "algorithm": cfg.train.algo, "timesteps": timesteps})
+        self._boards[k].episode(metrics, timesteps)
         bar.update(1)
         if books.done[k] >= books.target[k]:
             books.finished[k] = True  # the sequential run stops here: its final model is this one
@@ -393,6 +399,33 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
         return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device,
                       lockstep).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")
+
+
+TENSORBOARD_SCALARS = ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps", "shield_interventions")
+"""The episode metrics a run's TensorBoard log gets at each episode's end, as ``episode/<name>`` (a single run's
+SB3 logger writes the same names)."""
+
+
+class _Board:
+    """One run's TensorBoard log of a batch (``RUN/tb/batch``), opened at its first episode end."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self._writer: Any = None
+
+    def episode(self, metrics: dict[str, Any], timesteps: int) -> None:
+        """The episode's :data:`TENSORBOARD_SCALARS` at the batch's step ``timesteps``."""
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(log_dir=str(self.folder))
+        for key in TENSORBOARD_SCALARS:
+            self._writer.add_scalar(f"episode/{key}", float(metrics[key]), timesteps)
+        self._writer.flush()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
 
 
 def check_batch_folder(batch_dir: Path, paths: list[Path]) -> None:

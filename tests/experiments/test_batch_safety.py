@@ -3,6 +3,7 @@ episodes.csv, and the CLI's batch mistakes are one line before anything is writt
 
 from __future__ import annotations
 
+import csv
 import os
 import re
 import signal
@@ -144,8 +145,6 @@ def test_the_batched_env_validates_the_runs_it_resets(runs):
 
 
 def test_a_full_disk_at_a_batch_checkpoint_is_one_line_and_the_previous_one_resumes(tmp_path, monkeypatch):
-    import csv
-
     import torch
 
     from lanefree_sumo.errors import OperatingSystemError
@@ -193,3 +192,18 @@ def test_the_verbs_understand_a_batch_folder(tmp_path):
     evaluate = lanefree("evaluate", str(out), "--episodes", "1", timeout=300)
     assert evaluate.returncode == 2 and evaluate.stderr.count("\n") == 1
     assert "is a batch of 'lanefree train --seeds' (2 runs); pass one of its run folders, e.g." in evaluate.stderr
+
+
+def test_every_run_of_a_batch_writes_its_tensorboard_log(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    runs = train_batch([tiny(0), tiny(1)], tmp_path / "batch", progress=False, command="test")
+    for run, done in runs:
+        events = EventAccumulator(str(run / "tb" / "batch"))
+        events.Reload()
+        returns = events.Scalars("episode/return")
+        assert [e.step for e in returns] == [30, 60] and done == 2
+        with open(run / "episodes.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        for event, row in zip(returns, rows):  # each episode's own return (TensorBoard keeps float32)
+            assert event.value == pytest.approx(float(row["return"]), rel=1e-6)
