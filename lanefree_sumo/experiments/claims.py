@@ -29,6 +29,7 @@ import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -95,8 +96,23 @@ MIN_RUNS = 3
 ALPHA = 0.05
 """The rank test's p at or below which a verdict leaves *undecided*."""
 
+EQUIVALENCE_SHARE = 0.2
+"""The equivalence margin of a claim of no difference: ± this share of the paper's value of group b. The paper
+treats a 22 % difference as an effect ("slight improvement in collision occurrences": Fields RF 1.761 against
+Collision Avoidance RF 2.256, Table 5) and speaks of no difference where its cells differ by 2 % (Collision 2.256
+against Overtake and Avoid Collision 2.293): a fifth of the value lies between the two."""
+
 COLUMNS = ("claim", "metric", "a", "b", "n_a", "n_b", "paper_difference", "difference", "ci95_low", "ci95_high",
-           "pairs_a_above_b", "rank_p", "rank_p_against", "verdict")
+           "pairs_a_above_b", "rank_p", "rank_p_against", "verdict", "test_p", "holm_p", "paper_in_ci",
+           "equivalence_margin", "equivalent", "shares_group_with", "verdict_holm")
+"""The claims table's columns: the verdict of each claim alone (``verdict``), then the family's: ``test_p`` the
+rank test's p of the direction the CI lies on (two-sided for a claim of no difference), ``holm_p`` it adjusted by
+Holm's step-down over every claim of the table with data, ``paper_in_ci`` whether the paper's own difference lies
+in our CI (magnitude, not only sign), ``equivalent`` for a claim of no difference whether the 90 % CI lies within
+± ``equivalence_margin`` (two one-sided tests at 0.05, :data:`EQUIVALENCE_SHARE`), ``shares_group_with`` the rows
+(1-based) of the same metric that use one of this claim's groups (their verdicts are not independent), and
+``verdict_holm`` the verdict read with ``holm_p`` and, for a claim of no difference, equivalence instead of a CI
+that contains 0."""
 
 
 def per_run(runs: Sequence[RunData], metric: str, last: int, window: tuple[int, int] | None) -> list[float]:
@@ -159,6 +175,8 @@ def rank_test(a: Sequence[float], b: Sequence[float], expect: int) -> tuple[floa
 CONSISTENT, AGAINST, UNDECIDED, NO_DATA = ("consistent with the paper", "against the paper", "undecided",
                                           "no data")
 NO_DIFFERENCE = f"{CONSISTENT} (no difference detected)"
+EQUIVALENT = f"{CONSISTENT} (equivalent within the margin)"
+NOT_SHOWN_EQUIVALENT = f"{UNDECIDED} (no difference detected, equivalence not shown)"
 
 
 def verdict(expect: int, low: float, high: float, p_paper: float, p_against: float) -> str:
@@ -177,6 +195,59 @@ def verdict(expect: int, low: float, high: float, p_paper: float, p_against: flo
     if side == -expect and p_against <= ALPHA:
         return AGAINST
     return UNDECIDED
+
+
+def holm(pvalues: Sequence[float]) -> list[float]:
+    """Holm's step-down adjustment of ``pvalues`` (NaNs left out of the family and kept NaN): the i-th smallest of
+    the m p-values becomes max over j ≤ i of min(1, (m − j + 1) · p_(j))."""
+    finite = [(p, i) for i, p in enumerate(pvalues) if not math.isnan(p)]
+    out = [math.nan] * len(pvalues)
+    running = 0.0
+    for rank, (p, i) in enumerate(sorted(finite)):
+        running = max(running, min(1.0, (len(finite) - rank) * p))
+        out[i] = running
+    return out
+
+
+def _side(low: float, high: float) -> int:
+    return 1 if low > 0 else (-1 if high < 0 else 0)
+
+
+def _test_p(expect: int, low: float, high: float, p_paper: float, p_against: float) -> float:
+    """The rank test's p of the direction the CI lies on (the paper's when it contains 0; two-sided for a claim
+    of no difference): the one p of this claim in the family Holm adjusts."""
+    if math.isnan(low) or expect == 0:
+        return p_paper if not math.isnan(low) else math.nan
+    return p_against if _side(low, high) == -expect else p_paper
+
+
+def family_verdict(expect: int, low: float, high: float, holm_p: float, equivalent: bool) -> str:
+    """A claim's verdict read with its Holm-adjusted p (the same rule as :func:`verdict`); a claim of no
+    difference is consistent only when shown equivalent (TOST), not for a CI that merely contains 0."""
+    if math.isnan(low):
+        return NO_DATA
+    side = _side(low, high)
+    if expect == 0:
+        if equivalent:
+            return EQUIVALENT
+        if side == 0:
+            return NOT_SHOWN_EQUIVALENT
+        return AGAINST if holm_p <= ALPHA else UNDECIDED
+    if side == expect and holm_p <= ALPHA:
+        return CONSISTENT
+    if side == -expect and holm_p <= ALPHA:
+        return AGAINST
+    return UNDECIDED
+
+
+def _shared(comparisons: Sequence[Comparison]) -> list[str]:
+    """For each comparison the rows (1-based) of the same metric that use one of its groups."""
+    out = []
+    for i, c in enumerate(comparisons):
+        rows = [str(j + 1) for j, d in enumerate(comparisons) if j != i and d.metric == c.metric
+                and {c.a, c.b} & {d.a, d.b}]
+        out.append(", ".join(rows))
+    return out
 
 
 def _label(key: Key) -> str:
@@ -205,19 +276,36 @@ def check_claims(groups: Mapping[Key, Sequence[RunData]], last: int = 50,
                  comparisons: Sequence[Comparison] = COMPARISONS) -> pd.DataFrame:
     """One row per comparison (default every :data:`COMPARISONS` entry; columns :data:`COLUMNS`) from
     runs grouped by setting."""
-    rows = []
-    for c in comparisons:
+    rows: list[dict[str, Any]] = []
+    shared = _shared(comparisons)
+    for c, shares in zip(comparisons, shared):
         a = per_run(groups.get(c.a, ()), c.metric, last, c.window)
         b = per_run(groups.get(c.b, ()), c.metric, last, c.window)
         diff, low, high = difference_ci(a, b)
         above, p = rank_test(a, b, c.expect)
         p_against = p if c.expect == 0 else rank_test(a, b, -c.expect)[1]
+        paper = _paper_difference(c)
+        margin, equivalent = math.nan, False
+        if c.expect == 0:
+            ref = paper_reference(*c.b)
+            if ref is not None:
+                margin = EQUIVALENCE_SHARE * (ref.collisions if c.metric == "collisions" else ref.speed_dev_mps)
+                _, low90, high90 = difference_ci(a, b, level=0.90)
+                equivalent = not math.isnan(low90) and -margin < low90 and high90 < margin
         rows.append({"claim": c.claim, "metric": c.metric + (f" (episodes {c.window[0]}–{c.window[1]})" if c.window
                                                              else f" (last {last})"),
                      "a": _label(c.a), "b": _label(c.b),
-                     "n_a": len(a), "n_b": len(b), "paper_difference": _paper_difference(c), "difference": diff,
+                     "n_a": len(a), "n_b": len(b), "paper_difference": paper, "difference": diff,
                      "ci95_low": low, "ci95_high": high, "pairs_a_above_b": above, "rank_p": p,
-                     "rank_p_against": p_against, "verdict": verdict(c.expect, low, high, p, p_against)})
+                     "rank_p_against": p_against, "verdict": verdict(c.expect, low, high, p, p_against),
+                     "test_p": _test_p(c.expect, low, high, p, p_against),
+                     "paper_in_ci": (None if math.isnan(low) or math.isnan(paper) else bool(low <= paper <= high)),
+                     "equivalence_margin": margin, "equivalent": equivalent, "shares_group_with": shares,
+                     "_expect": c.expect})
+    adjusted = holm([r["test_p"] for r in rows])
+    for r, q in zip(rows, adjusted):
+        r["holm_p"] = q
+        r["verdict_holm"] = family_verdict(r.pop("_expect"), r["ci95_low"], r["ci95_high"], q, r["equivalent"])
     return pd.DataFrame(rows, columns=list(COLUMNS))
 
 
@@ -243,15 +331,27 @@ def claims_markdown(table: pd.DataFrame) -> str:
              f"*{NO_DIFFERENCE}* for a claim of no difference whose CI contains 0 (with few runs: low power, not "
              f"equivalence); *{NO_DATA}* below {MIN_RUNS} complete runs per group. With 3 runs per group the rank "
              "test cannot go below p = 0.05 one-sided (every a above every b) or 0.10 two-sided, and the "
-             "percentile bootstrap is narrow: read n beside the verdict.", ""]
+             "percentile bootstrap is narrow: read n beside the verdict.", "",
+             "**The claims as one family.** Each claim's p in the direction its CI lies on is adjusted by Holm's "
+             "step-down over every claim of this table with data (*Holm p*), and the verdict read again with it "
+             "(*verdict, as a family*); there a claim of no difference is consistent only when its 90 % CI lies "
+             f"within ± {EQUIVALENCE_SHARE:g} × the paper's value of group b (two one-sided tests at 0.05; the "
+             "margin's reason: `EQUIVALENCE_SHARE` in claims.py), not for a CI that merely contains 0. *Paper in "
+             "CI*: whether the paper's own difference lies inside our CI (the magnitude, beyond the sign). "
+             "*Shares a group with*: the rows of the same metric that use one of its groups (their verdicts are "
+             "not independent facts).", ""]
     rows = []
-    for r in table.itertuples():
+    for number, r in enumerate(table.itertuples(), start=1):
         ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
         rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {p_text(r.rank_p)}"
         if not math.isnan(r.rank_p) and r.rank_p_against != r.rank_p:
             rank += f" (other way {p_text(r.rank_p_against)})"
-        rows.append([str(r.claim), str(r.metric), f"{r.n_a}, {r.n_b}", num(r.paper_difference),
-                     f"{num(r.difference)}{ci}", rank, str(r.verdict)])
-    lines += markdown.table(["claim", "metric", "n (a, b)", "paper", "ours [95 % CI]",
-                             "rank: a > b, p in the paper's direction", "verdict"], rows)
+        inside = "–" if r.paper_in_ci is None or pd.isna(r.paper_in_ci) else ("yes" if r.paper_in_ci else "no")
+        holm_p = "–" if math.isnan(r.holm_p) else p_text(r.holm_p)
+        rows.append([str(number), str(r.claim), str(r.metric), f"{r.n_a}, {r.n_b}", num(r.paper_difference),
+                     f"{num(r.difference)}{ci}", rank, str(r.verdict), holm_p, inside,
+                     str(r.shares_group_with) or "–", str(r.verdict_holm)])
+    lines += markdown.table(["#", "claim", "metric", "n (a, b)", "paper", "ours [95 % CI]",
+                             "rank: a > b, p in the paper's direction", "verdict", "Holm p", "paper in CI",
+                             "shares a group with", "verdict, as a family"], rows)
     return "\n".join(lines) + "\n"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 import warnings
 from pathlib import Path
 
@@ -15,13 +16,18 @@ from lanefree_sumo.experiments.claims import (
     COLUMNS,
     COMPARISONS,
     CONSISTENT,
+    EQUIVALENT,
+    NO_DATA,
     NO_DIFFERENCE,
+    NOT_SHOWN_EQUIVALENT,
     UNDECIDED,
     Comparison,
     check_claims,
     claims_markdown,
     decidable,
     difference_ci,
+    family_verdict,
+    holm,
     per_run,
     rank_test,
     verdict,
@@ -318,15 +324,59 @@ def test_claims_markdown_rows_with_and_without_data():
     comparisons = (COMPARISONS[0], Comparison("unknown", ("ddpg", "collision", 55.0), ("ddpg", "collision", 70.0)))
     text = claims_markdown(check_claims(groups, last=2, comparisons=comparisons))
     assert text.startswith("# The paper's claims, checked\n\nDifference of per-run means")
-    assert text.endswith("\n") and "read n beside the verdict.\n\n" + TABLE_BEGIN + "\n" in text
+    assert text.endswith("\n") and "not independent facts).\n\n" + TABLE_BEGIN + "\n" in text
     rows = fenced_rows(text)
-    assert rows[0] == ("| claim | metric | n (a, b) | paper | ours [95 % CI] | rank: a > b, p in the paper's direction "
-                       "| verdict |")
-    assert rows[1] == "|---|---|---|---|---|---|---|"
-    # a − b = mean(3, 4, 5) − 1 = 3; every a above every b: 9 of 9 pairs, p = 1/20; paper 2.256 − 0.726
+    assert rows[0] == ("| # | claim | metric | n (a, b) | paper | ours [95 % CI] | rank: a > b, p in the paper's "
+                       "direction | verdict | Holm p | paper in CI | shares a group with | verdict, as a family |")
+    assert rows[1] == "|---|---|---|---|---|---|---|---|---|---|---|---|"
+    # a − b = mean(3, 4, 5) − 1 = 3; every a above every b: 9 of 9 pairs, p = 1/20; paper 2.256 − 0.726; the
+    # family holds one claim with data, so Holm leaves p alone; the paper's +1.53 lies below our CI
     low, high = check_claims(groups, last=2, comparisons=comparisons[:1]).iloc[0][["ci95_low", "ci95_high"]]
-    assert rows[2] == (f"| {COMPARISONS[0].claim} | collisions (last 2) | 3, 3 | +1.530 | +3.000 [{low:+.3f}, "
-                       f"{high:+.3f}] | 9/9, p = 0.05 (other way 1.00) | {CONSISTENT} |")
-    # no runs at 55 veh/km and no paper value: dashes, no CI, no rank
-    assert rows[3] == "| unknown | collisions (last 2) | 0, 3 | – | – | – | no data |"
+    assert rows[2] == (f"| 1 | {COMPARISONS[0].claim} | collisions (last 2) | 3, 3 | +1.530 | +3.000 [{low:+.3f}, "
+                       f"{high:+.3f}] | 9/9, p = 0.05 (other way 1.00) | {CONSISTENT} | 0.05 | no | 2 | "
+                       f"{CONSISTENT} |")
+    # no runs at 55 veh/km and no paper value: dashes, no CI, no rank; the two share the collision group
+    assert rows[3] == "| 2 | unknown | collisions (last 2) | 0, 3 | – | – | – | no data | – | – | 1 | no data |"
     assert len(rows) == 4
+
+
+def test_holm_adjusts_step_down_and_leaves_nans_out_of_the_family():
+    assert holm([0.01, 0.04, 0.03, math.nan, 0.2]) == [0.04, 0.09, 0.09, pytest.approx(math.nan, nan_ok=True), 0.2]
+    assert holm([0.5, 0.6]) == [1.0, 1.0] and holm([]) == []
+    out = holm([0.01, math.nan])
+    assert out[0] == 0.01 and math.isnan(out[1])
+
+
+def test_the_family_verdict_needs_the_adjusted_p_and_equivalence():
+    assert family_verdict(1, 0.5, 2.0, 0.04, False) == CONSISTENT
+    assert family_verdict(1, 0.5, 2.0, 0.06, False) == UNDECIDED  # the same CI, its p adjusted past 0.05
+    assert family_verdict(1, -2.0, -0.5, 0.01, False) == AGAINST
+    assert family_verdict(0, -0.1, 0.1, 0.9, True) == EQUIVALENT
+    assert family_verdict(0, -1.0, 0.1, 0.9, False) == NOT_SHOWN_EQUIVALENT  # contains 0, too wide to be equivalent
+    assert family_verdict(0, 0.2, 1.0, 0.01, False) == AGAINST
+    assert family_verdict(1, math.nan, math.nan, math.nan, False) == NO_DATA
+
+
+def test_a_claim_of_no_difference_is_equivalent_only_within_the_margin():
+    claim = COMPARISONS[2]  # collision − overtake_collision ≈ 0; margin 0.2 × the paper's 2.293
+    assert claim.expect == 0
+
+    def groups(shift: float, spread: float) -> dict:
+        return {claim.a: [run(*claim.a, s, [2.0 + spread * (s - 1)] * 4) for s in range(3)],
+                claim.b: [run(*claim.b, s, [2.0 + shift + spread * (s - 1)] * 4) for s in range(3)]}
+
+    tight = check_claims(groups(0.05, 0.01), last=2, comparisons=(claim,)).iloc[0]
+    assert tight["equivalence_margin"] == pytest.approx(0.2 * 2.293) and tight["equivalent"]
+    assert tight["verdict_holm"] == EQUIVALENT
+    wide = check_claims(groups(0.05, 0.8), last=2, comparisons=(claim,)).iloc[0]
+    assert not wide["equivalent"] and wide["verdict"] == NO_DIFFERENCE
+    assert wide["verdict_holm"] == NOT_SHOWN_EQUIVALENT
+
+
+def test_claims_that_share_a_group_are_marked():
+    table = check_claims({}, comparisons=COMPARISONS)
+    speed = [i for i, c in enumerate(COMPARISONS) if "smaller speed deviation than DDPG" in c.claim]
+    assert len(speed) == 4  # DQN, DDQN, dueling, PER, each against the same DDPG runs
+    for i in speed:
+        shared = set(table["shares_group_with"].iloc[i].split(", "))
+        assert {str(j + 1) for j in speed if j != i} <= shared and str(i + 1) not in shared
