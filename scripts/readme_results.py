@@ -11,6 +11,7 @@ over runs] (the paper's value). Everything outside the markers is left as it is;
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -24,7 +25,11 @@ BEGIN, END = "<!-- results-table -->", "<!-- /results-table -->"
 ALGORITHM_LABELS = {"ddpg": "", "dqn": "**DQN**", "ddqn": "**DDQN**", "dueling": "**dueling DDQN**",
                     "per": "**PER** (DDQN, prioritised replay)"}
 HEADER = ("| DDPG unless noted, reward preset (70 veh/km unless noted) | runs | collisions / episode (paper) "
-          "| speed deviation, m/s (paper) |\n|---|---|---|---|")
+          "| speed deviation per step, mean \\|v_x − v_d\\| in m/s (paper) | per episode, \\|mean (v_x − v_d)\\| "
+          "| signed, mean (v_x − v_d) | \\|ln(ours / paper)\\|: collisions, per step, per episode, \\|signed\\| |"
+          "\n|---|---|---|---|---|---|---|")
+"""The paper's speed figure read three ways (docs/interpretation.md): the headline one per step, as the paper words
+it and results/interpretations/protocol.md argues; the per-episode magnitude and the signed mean beside it."""
 
 
 def cell(row: pd.Series, metric: str) -> str:
@@ -32,6 +37,23 @@ def cell(row: pd.Series, metric: str) -> str:
     text = interval_text(row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"], digits=2)
     paper = row[f"paper_{metric}"]
     return text if pd.isna(paper) else f"{text} ({paper:g})"
+
+
+def distances(row: pd.Series) -> str:
+    """|ln(ours / paper)| of collisions and of each speed reading (the signed one by its magnitude); – without a
+    paper value."""
+    pairs = [("collisions", "paper_collisions")] + [(m, "paper_speed_dev_mps") for m in
+                                                   ("speed_dev_mps", "speed_dev_episode_mps", "speed_error_mps")]
+    out = []
+    for metric, paper in pairs:
+        ours, ref = abs(float(row[f"{metric}_mean"])), row[paper]
+        out.append("–" if pd.isna(ref) or ours <= 0 else f"{abs(math.log(ours / float(ref))):.2f}")
+    return ", ".join(out)
+
+
+def plain(row: pd.Series, metric: str) -> str:
+    """``mean [low, high]`` of ``metric`` to 2 decimals, no paper value (the paper gives one reading)."""
+    return interval_text(row[f"{metric}_mean"], row[f"{metric}_ci95_low"], row[f"{metric}_ci95_high"], digits=2)
 
 
 def label(row: pd.Series) -> str:
@@ -52,7 +74,8 @@ def table(summary: Path) -> str:
     for _, row in rows.iterrows():
         complete, planned = int(row["n_runs"]), int(row["runs_planned"])
         runs = str(complete) if complete == planned else f"{complete} of {planned}"
-        lines.append(f"| {label(row)} | {runs} | {cell(row, 'collisions')} | {cell(row, 'speed_dev_mps')} |")
+        lines.append(f"| {label(row)} | {runs} | {cell(row, 'collisions')} | {cell(row, 'speed_dev_mps')} "
+                     f"| {plain(row, 'speed_dev_episode_mps')} | {plain(row, 'speed_error_mps')} | {distances(row)} |")
     return "\n".join(lines)
 
 
