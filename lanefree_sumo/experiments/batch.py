@@ -71,10 +71,9 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
                         (cfg.train.overlap, "--overlap")):
         if wrong:
             raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
-    if cfg.train.algo in ("ddpg", "td3"):
-        from lanefree_sumo.rl.models import check_actor_critic_choices
+    from lanefree_sumo.rl.models import check_trainable
 
-        check_actor_critic_choices(cfg, own_ddpg=cfg.train.algo == "ddpg")
+    check_trainable(cfg)  # the single run's check: what one run refuses, a batch refuses
     check_device(cfg.train.device)
 
 

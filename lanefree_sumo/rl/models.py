@@ -146,8 +146,20 @@ def check_actor_critic_choices(cfg: LaneFreeConfig, own_ddpg: bool, fast_update:
                           f"fast DDPG update only; set it to 0 for {algo}"
                           + ("" if algo != "ddpg" else " without train.fast_learner"))
     if ac.warmup_actions != "uniform" and algo not in ("ppo", *(("ddpg",) if own_ddpg else ())):
-        raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions} is built for ddpg only; "
-                          f"{algo} takes SB3's uniform warm-up")
+        by_profile = cfg.train.profile == "kerasrl" and ac.warmup_actions == "policy"
+        raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions}"
+                          + (" (what train.profile = kerasrl sets)" if by_profile else "")
+                          + f" is built for ddpg only; {algo} takes SB3's uniform warm-up"
+                          + ("; add --set train.actor_critic.warmup_actions=uniform beside the profile"
+                             if by_profile else ""))
+
+
+def check_trainable(cfg: LaneFreeConfig) -> None:
+    """The learner choices a run of ``cfg`` must be able to train, checked alike for one run, a batch and every
+    run of a sweep's grid before anything starts (:func:`check_actor_critic_choices` with the config's own
+    ``train.fast_learner``)."""
+    if get_algorithm(cfg.train.algo).config_section == "actor_critic":
+        check_actor_critic_choices(cfg, own_ddpg=cfg.train.algo == "ddpg", fast_update=cfg.train.fast_learner)
 
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:

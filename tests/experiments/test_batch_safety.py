@@ -207,3 +207,26 @@ def test_every_run_of_a_batch_writes_its_tensorboard_log(tmp_path):
             rows = list(csv.DictReader(fh))
         for event, row in zip(returns, rows):  # each episode's own return (TensorBoard keeps float32)
             assert event.value == pytest.approx(float(row["return"]), rel=1e-6)
+
+
+@pytest.mark.parametrize("args,said", [
+    (["--algo", "td3", "--set", "train.profile=kerasrl"],
+     "(what train.profile = kerasrl sets) is built for ddpg only; td3 takes SB3's uniform warm-up; add --set "
+     "train.actor_critic.warmup_actions=uniform beside the profile"),
+    (["--seeds", "0-1", "--set", "train.actor_critic.pre_tanh_penalty=0.01", "--set", "train.fast_learner=false"],
+     "pre_tanh_penalty = 0.01 is built into the fast DDPG update only"),
+])
+def test_one_validation_for_one_run_and_a_batch(tmp_path, args, said):
+    res = lanefree("train", *args, "--episodes", "1", "--out", str(tmp_path / "x"), timeout=120)
+    assert res.returncode == 2 and said in res.stderr and res.stderr.count("\n") == 1
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_grid_whose_runs_cannot_train_is_refused_before_it_starts(tmp_path):
+    grid = tmp_path / "g.yaml"
+    grid.write_text("algorithms: [td3]\nreward_presets: [collision]\nn_seeds: 1\nvariants:\n"
+                    "  keras: {train.profile: kerasrl}\n")
+    res = lanefree("sweep", str(grid), "--out", str(tmp_path / "s"), "--no-ray", timeout=120)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert "td3 / collision / d70 / keras: train.actor_critic.warmup_actions = policy" in res.stderr
+    assert not (tmp_path / "s").exists()

@@ -365,3 +365,28 @@ def test_a_batched_sweep_killed_and_interrupted_resumes_exactly_beside_a_complet
         assert done == episodes and rows(run / "episodes.csv") == rows(folder / "episodes.csv")
         assert (run / "model.zip").is_file()
 
+
+
+@pytest.mark.slow
+def test_resume_only_says_which_runs_continue_in_an_interrupted_batch(tmp_path):
+    """An interrupted batch goes on whole: with --only naming one of its runs, the other is said to train too
+    (not to be left for later), and it does."""
+    grid = write_grid(tmp_path / "g.yaml", {
+        "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 40,
+        "overrides": {"sim": {"episode_steps": 20}, "train": {
+            "checkpoint_every_episodes": 2, "actor_critic": {"learning_starts_steps": 10**6}}}})
+    out = tmp_path / "sweep"
+    sweep = SweepDir(out)
+    proc = lanefree_popen("sweep", str(grid), "--out", str(out), "--batch", "2", "--no-ray", "--no-progress")
+    try:
+        wait_for(lambda: any(sweep.batches.glob(f"*/{BATCH_CHECKPOINTS}/step_*.pt")), proc, "a batch checkpoint")
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    rest = lanefree("sweep", "--resume", str(out), "--only", "*_s0", "--no-ray", "--no-progress", timeout=900)
+    assert rest.returncode == 0, rest.stderr
+    assert "1 run(s) not matching --only train too: they continue in an interrupted batch" in rest.stdout
+    assert "left for a later run" not in rest.stdout and "2/2 runs complete" in rest.stdout

@@ -271,9 +271,14 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
               + (f"; REDUCED BUDGET ({'; '.join(budget['notes'])})" if budget["reduced"] else ""), flush=True)
         for name, info in busy:
             print(f"  left alone: runs/{name}: {info.detail}", file=sys.stderr)
-        later = sum(1 for n, i in states.items() if n not in chosen and i.state not in (COMPLETE, BUSY, DAMAGED))
-        if later:
-            print(f"  {later} run(s) not matching --only left for a later run of the sweep", flush=True)
+        trained = {n for b in packing.batches for n in b.runs} | {c.name for c in packing.sequential}
+        waiting = [n for n, i in states.items() if n not in chosen and i.state not in (COMPLETE, BUSY, DAMAGED)]
+        along = sum(1 for n in waiting if n in trained)
+        if len(waiting) > along:
+            print(f"  {len(waiting) - along} run(s) not matching --only left for a later run of the sweep", flush=True)
+        if along:
+            print(f"  {along} run(s) not matching --only train too: they continue in an interrupted batch with runs "
+                  "that match (a batch goes on whole)", flush=True)
         interrupted = False
         if todo:
             print(f"  {len(todo)} run(s) {'in' if in_process else 'on the'} {_ray_description(workers, address)}: "

@@ -414,6 +414,7 @@ def _owned(overrides: Mapping[str, Any], path: str = "") -> list[str]:
 
 def validate_grid(grid: Grid, source: str) -> Grid:
     """Check the overrides and that every setting's traffic fits on the road (before any run starts)."""
+    from lanefree_sumo.rl.models import check_trainable
     from lanefree_sumo.sim.spawn import check_fits
 
     where = f"grid {source}"
@@ -455,6 +456,7 @@ def validate_grid(grid: Grid, source: str) -> Grid:
         cell = Cell(setting, grid.seeds[0])
         try:
             cfg = grid.config(cell)
+            check_trainable(cfg)  # a run the grid holds must be able to train: said before any run starts
             if (setting.density, cfg.road.length_m) not in checked:
                 check_fits(cfg)
                 checked.add((setting.density, cfg.road.length_m))
