@@ -55,11 +55,11 @@ KEEP_BATCH_CHECKPOINTS = 2
 
 def check_batchable(cfg: LaneFreeConfig) -> None:
     """ConfigError (one line) for a run the batched path cannot train."""
+    from lanefree_sumo.rl.algorithms import BATCHED
     from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
 
-    algorithms = ("ddpg", "td3", *FAMILY)
-    if cfg.train.algo not in algorithms:
-        raise ConfigError(f"batched training covers {', '.join(algorithms)}, not {cfg.train.algo}; "
+    if cfg.train.algo not in BATCHED:
+        raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {cfg.train.algo}; "
                           "train it with --seed (one run)")
     for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
                         (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),

@@ -35,7 +35,14 @@ from lanefree_sumo.rl.env import (
 )
 from lanefree_sumo.rl.fields_zones import field_terms, zone_targets
 from lanefree_sumo.rl.models import episode_seed
-from lanefree_sumo.rl.rewards import get_preset, lateral_cost, longitudinal_cost, pass_events, reciprocal_reward
+from lanefree_sumo.rl.rewards import (
+    OVERTAKE_BONUS_MODES,
+    get_preset,
+    lateral_cost,
+    longitudinal_cost,
+    pass_events,
+    reciprocal_reward,
+)
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import row_sum, take_rows
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
@@ -47,8 +54,6 @@ SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
 PER_RUN_REWARD = ("preset", "overtake_bonus")
 """The reward's keys the runs of one batch may differ in."""
 
-OVERTAKE_BONUS_MODES = ("every_pass", "once_per_vehicle", "net_passes")
-"""``reward.overtake_bonus``'s values, as :class:`~lanefree_sumo.rl.rewards.OvertakeLedger` books them."""
 
 BOOKS = ("return", "return_bonus", "return_collision", "collisions", "collision_steps", "background_collisions",
          "speed_dev_sum", "speed_error_sum", "speed_sum", "overtakes", "boundary_contacts",

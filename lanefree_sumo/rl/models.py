@@ -239,17 +239,18 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
     """The batched learner of runs ``cfgs`` (run k seeded ``seeds[k]``): for each run the hyperparameters
     :func:`build_model` gives it; ConfigError when the runs cannot share a batch."""
     from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN, BatchedTD3
-    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY, batch_group
+    from lanefree_sumo.rl.algorithms.batched.dqn import batch_group
 
     algo = cfgs[0].train.algo
     spec = get_algorithm(algo)
     if any(batch_group(c.train.algo) != batch_group(algo) for c in cfgs):
         raise ConfigError("the runs of one batch must share train.algo (dqn and ddqn may mix); "
                           f"got {', '.join(sorted({c.train.algo for c in cfgs}))}")
-    actor_critic = ("ddpg", "td3")
-    if algo not in actor_critic and algo not in FAMILY:
-        raise ConfigError(f"batched training covers {', '.join((*actor_critic, *FAMILY))}, not {algo}; "
-                          "train it run by run")
+    from lanefree_sumo.rl.algorithms import BATCHED
+
+    actor_critic = tuple(name for name in BATCHED if get_algorithm(name).config_section == "actor_critic")
+    if algo not in BATCHED:
+        raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {algo}; train it run by run")
     if len(seeds) != len(cfgs):
         raise ConfigError(f"{len(cfgs)} configs but {len(seeds)} seeds: give one seed per run")
     if algo not in actor_critic and any(c.observation.kind != "vector" for c in cfgs):

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from lanefree_sumo.config import RewardConfig, RewardPreset
+from lanefree_sumo.config.schema import OvertakeBonus
 from lanefree_sumo.rl.fields_zones import _rows, ellipsoid, field_cost, zone_target
 from lanefree_sumo.sim.xp import namespace
 
@@ -154,6 +155,11 @@ def detect_overtakes(
     return int(np.count_nonzero(pass_events(prev_dx, dx, range_m, ring_length)[0]))
 
 
+OVERTAKE_BONUS_MODES: tuple[str, ...] = get_args(OvertakeBonus)
+"""``reward.overtake_bonus``'s values (the config's :data:`~lanefree_sumo.config.schema.OvertakeBonus`), as
+:class:`OvertakeLedger` and the batched environment book them."""
+
+
 class OvertakeLedger:
     """Which passes earn the overtake bonus in one episode (``reward.overtake_bonus``), by vehicle id.
 
@@ -162,7 +168,7 @@ class OvertakeLedger:
     highest value it had in the episode (passing back a vehicle that just passed the agent earns nothing)."""
 
     def __init__(self, mode: str) -> None:
-        if mode not in ("every_pass", "once_per_vehicle", "net_passes"):
+        if mode not in OVERTAKE_BONUS_MODES:
             raise ValueError(f"unknown overtake bonus mode {mode!r}")
         self.mode = mode
         self.net: dict[str, int] = {}

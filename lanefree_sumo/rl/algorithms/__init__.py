@@ -40,6 +40,9 @@ class AlgorithmSpec:
     """The class takes ``fast_learner=`` and ``lean_loop=`` (from ``train``); False runs SB3's own update."""
     overlap: bool = False
     """The class takes ``overlap=`` (``train.overlap``: the env steps on a second core, one update behind)."""
+    batched: bool = False
+    """Trained as a batch of K runs in one array program (``lanefree train --seeds``, ``sweep --batch``, the GPU:
+    :mod:`.batched`)."""
     unread_keys: tuple[str, ...] = ()
     """Keys of its own ``config_section`` the model never reads (PPO keeps no replay buffer, SAC adds no
     Ornstein-Uhlenbeck noise, the off-policy algorithms have no rollout length)."""
@@ -58,20 +61,21 @@ _SPECS: dict[str, AlgorithmSpec] = {
     for spec in (
         AlgorithmSpec("ddpg", f"{_ALGOS}.fast_ddpg:FastDDPG", "continuous", True, "actor_critic",
                       "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", fast_learner=True,
-                      overlap=True, unread_keys=("ppo_n_steps",)),
-        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3",
+                      overlap=True, batched=True, unread_keys=("ppo_n_steps",)),
+        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3", batched=True,
                       unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC",
                       unread_keys=("ppo_n_steps", *_OU)),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
                       unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
-        AlgorithmSpec("dqn", f"{_ALGOS}.fast_dqn:FastDQN", "discrete", True, "dqn", "DQN", fast_learner=True),
+        AlgorithmSpec("dqn", f"{_ALGOS}.fast_dqn:FastDQN", "discrete", True, "dqn", "DQN", fast_learner=True,
+                      batched=True),
         AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN",
-                      fast_learner=True),
+                      fast_learner=True, batched=True),
         AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
-                      "dueling double DQN", fast_learner=True),
+                      "dueling double DQN", fast_learner=True, batched=True),
         AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
-                      "double DQN with prioritised replay", fast_learner=True),
+                      "double DQN with prioritised replay", fast_learner=True, batched=True),
     )
 }
 ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)
@@ -80,6 +84,10 @@ if set(_SPECS) != set(ALGORITHM_NAMES):  # a name without a class, or a class th
     raise ImportError(f"the registry's algorithms {sorted(_SPECS)} are not the config's {sorted(ALGORITHM_NAMES)}")
 ALGORITHMS: dict[str, AlgorithmSpec] = {name: _SPECS[name] for name in ALGORITHM_NAMES}
 """THE registry, keyed by the config's algorithm names."""
+
+
+BATCHED: tuple[str, ...] = tuple(name for name, spec in ALGORITHMS.items() if spec.batched)
+"""The algorithms a batch trains (:attr:`AlgorithmSpec.batched`), in the registry's order."""
 
 
 def get_algorithm(name: str) -> AlgorithmSpec:
