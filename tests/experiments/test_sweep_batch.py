@@ -270,8 +270,9 @@ def test_a_batched_sweep_writes_the_run_folders_of_a_sequential_sweep(tmp_path):
         a, b = batched / "runs" / name, sequential / "runs" / name
         assert rows(a / "episodes.csv") == rows(b / "episodes.csv") and len(rows(a / "episodes.csv")) == 2
         assert (a / "config.yaml").read_text() == (b / "config.yaml").read_text()
-        # the same files, but SB3's TensorBoard log, which the batched learners do not keep
-        assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir() if p.name != "tb")
+        # the same files, a TensorBoard log in each (the batch's under tb/batch)
+        assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+        assert list((a / "tb" / "batch").glob("events.out.tfevents.*"))
     summary = [{k: v for k, v in r.items() if "wall" not in k} for r in csv.DictReader(open(batched / "summary.csv"))]
     assert summary == [{k: v for k, v in r.items() if "wall" not in k}
                        for r in csv.DictReader(open(sequential / "summary.csv"))]
