@@ -1,4 +1,4 @@
-# Sourced by scripts/evaluate-runs.sh and scripts/varobs-transfer.sh (not run on its own).
+# Sourced by scripts/varobs-transfer.sh (not run on its own).
 # evaluate RUN FOLDER [OPTIONS...]: `lanefree evaluate RUN --out RUN/FOLDER` with $episodes episodes unless
 # RUN/FOLDER already holds that many; an evaluation stopped part-way (it keeps what it finished) is run again
 # whole. Needs $bin (the lanefree command) and $episodes.

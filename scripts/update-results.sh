@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Bring the committed result files up to date after runs finish. Evaluates every finished run of
-# the paper sweep that still has its model (deterministic and shielded, 50 episodes each), rewrites the
+# the paper sweep that still has its model and lacks an evaluation (`lanefree evaluate SWEEP`, deterministic and
+# shielded, 50 episodes each), rewrites the
 # sweep's summary, claims and curves (of the seeds complete in every setting), both evaluation tables, the
 # collisions-against-overtakes figure and README.md's results table (scripts/collisions_vs_overtakes.py,
 # readme_results.py) from the committed episodes.csv files, then runs the variable-dimension evaluations and
@@ -14,7 +15,8 @@ bin=.venv/bin/lanefree
 paper=results/paper
 episodes=${1:-50}
 [[ $episodes =~ ^[1-9][0-9]*$ ]] || { echo "update-results: EPISODES must be a whole number >= 1, got '$episodes'" >&2; exit 2; }
-scripts/evaluate-runs.sh "$paper" "$episodes"
+"$bin" evaluate "$paper" --episodes "$episodes"  # every finished run lacking a complete evaluation
+"$bin" evaluate "$paper" --episodes "$episodes" --shield
 # the tables' seeds 0 … seeds−1: those complete in every setting (while the sweep is extended to more seeds,
 # its tables stay those of the seeds it has everywhere; every seed once it is complete); before any seed is
 # complete everywhere, every complete run

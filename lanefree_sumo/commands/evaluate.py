@@ -10,13 +10,14 @@ from typing import Any
 
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import EvaluationConfig
-from lanefree_sumo.errors import EXIT_INTERRUPTED
+from lanefree_sumo.errors import EXIT_INTERRUPTED, UsageError
 from lanefree_sumo.options import DENSITY, Option, add_options
 
 EVAL = EvaluationConfig()
 
 OPTIONS: tuple[Option, ...] = (
-    Option("run", type=Path, extra={"metavar": "RUN"}, note="run folder made by 'lanefree train'"),
+    Option("run", type=Path, extra={"metavar": "RUN"}, note="run folder made by 'lanefree train'; a sweep folder "
+           "or a 'train --seeds' folder: every finished run of it whose evaluation is not complete yet"),
     Option("--episodes", "episodes", schema=EvaluationConfig, unit="episodes"),
     replace(DENSITY, default=None, note="default: the training density"),
     Option("--seed", type=argtypes.seed, default=None,
@@ -48,9 +49,45 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+def runs_of(folder: Path) -> list[Path] | None:
+    """The run folders of a sweep folder (its ``runs/``) or a batch folder (its ``batch.json``), in order; None
+    when ``folder`` is neither (a run folder, or a mistake the one-run path names)."""
+    from lanefree_sumo.experiments.batch import batch_runs, is_batch
+    from lanefree_sumo.experiments.sweep.manifest import MANIFEST
+
+    if (folder / MANIFEST).is_file():
+        return sorted(p for p in (folder / "runs").iterdir() if p.is_dir()) if (folder / "runs").is_dir() else []
+    if is_batch(folder):
+        return batch_runs([folder])
+    return None
+
+
+def _run_many(args: argparse.Namespace, runs: list[Path]) -> int:
+    """``lanefree evaluate SWEEP|BATCH``: every finished run whose evaluation is missing or short, one summary
+    line each, then the tally."""
+    from lanefree_sumo.experiments.evaluate import evaluate_many, summary_line
+
+    if args.out is not None:
+        raise UsageError(f"--out names one output folder; each run of {args.run} is evaluated into its own "
+                         "(drop --out)")
+    done = evaluate_many(runs, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
+                         overwrite=args.overwrite, shield=args.shield, scenario=args.scenario,
+                         report=lambda result: print(summary_line(result), flush=True))
+    print(f"{args.run}: {len(done.evaluated)} run(s) evaluated, {len(done.complete)} already complete, "
+          f"{len(done.unfinished)} without a final model (not finished)")
+    if done.interrupted:
+        print(f"lanefree: interrupted; rerun the same command to evaluate the rest of {args.run}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     """``lanefree evaluate``: print the summary line; EXIT_INTERRUPTED when stopped early."""
     from lanefree_sumo.experiments.evaluate import evaluate, summary_line
+
+    many = runs_of(args.run)
+    if many is not None:
+        return _run_many(args, many)
 
     result = evaluate(args.run, episodes=args.episodes, density=args.density, seed=args.seed, record=args.record,
                       out=args.out, overwrite=args.overwrite, shield=args.shield,

@@ -103,6 +103,22 @@ def evaluate(
     shield on/off for the evaluation only (None: as the run's config). ``scenario`` ``"onramp"`` drives a
     ring-trained policy on the on-ramp (:func:`on_another_road`)."""
     folder = RunDir(run)
+    cfg, default = evaluation_config(folder, density, shield, scenario)
+    out = out or default
+    check_replaceable(out, overwrite, "evaluate")
+    model_path = folder.find_model()
+    model = load_model(folder, cfg)
+    base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
+    try:
+        return _evaluate_into(out, overwrite, cfg, model, model_path, base_seed, episodes, record, progress)
+    except _IncompleteError:
+        return EvaluationResult(out, 0, True, kept_earlier=True)
+
+
+def evaluation_config(folder: RunDir, density: float | None = None, shield: bool | None = None,
+                      scenario: str | None = None) -> tuple[LaneFreeConfig, Path]:
+    """The config an evaluation of ``folder``'s run drives (its own, with another density, shield or road) and
+    its default output folder (``RUN/eval``, ``RUN/eval_d<density>``, …: :meth:`RunDir.eval_dir`)."""
     cfg = folder.load_config()
     trained_density, trained_shield, trained_road = cfg.scenario.density_veh_per_km, cfg.shield.enabled, cfg.road.kind
     if scenario is not None and scenario != trained_road:
@@ -112,17 +128,57 @@ def evaluate(
     if shield is not None:
         cfg = merge_config(cfg, {"shield": {"enabled": shield}})
     d = cfg.scenario.density_veh_per_km
-    out = out or folder.eval_dir(None if d == trained_density else d,
-                                 None if cfg.shield.enabled == trained_shield else cfg.shield.enabled,
-                                 None if cfg.road.kind == trained_road else cfg.road.kind)
-    check_replaceable(out, overwrite, "evaluate")
-    model_path = folder.find_model()
-    model = load_model(folder, cfg)
-    base_seed = (cfg.seed if seed is None else seed) + EVALUATION.seed_offset
-    try:
-        return _evaluate_into(out, overwrite, cfg, model, model_path, base_seed, episodes, record, progress)
-    except _IncompleteError:
-        return EvaluationResult(out, 0, True, kept_earlier=True)
+    return cfg, folder.eval_dir(None if d == trained_density else d,
+                                None if cfg.shield.enabled == trained_shield else cfg.shield.enabled,
+                                None if cfg.road.kind == trained_road else cfg.road.kind)
+
+
+@dataclass
+class ManyResult:
+    """What :func:`evaluate_many` did: the runs evaluated (their results), those whose evaluation was complete
+    already, those without a final model (still training or unfinished), and whether it was interrupted."""
+
+    evaluated: list[EvaluationResult]
+    complete: list[Path]
+    unfinished: list[Path]
+    interrupted: bool
+
+
+def evaluate_many(runs: list[Path], episodes: int = EVALUATION.episodes, density: float | None = None,
+                  seed: int | None = None, record: bool = False, overwrite: bool = False, progress: bool = True,
+                  shield: bool | None = None, scenario: str | None = None,
+                  report: Any = None) -> ManyResult:
+    """Evaluate every finished run of ``runs`` (one with its ``model.zip``) into its default output folder, unless
+    that folder already holds ``episodes`` episodes (``overwrite``: every one again); an evaluation stopped
+    part-way is run again whole. ``report(result)`` is called after each. Stops at the first interrupted one."""
+    out = ManyResult([], [], [], False)
+    for run in runs:
+        folder = RunDir(run)
+        if not folder.model.is_file():
+            out.unfinished.append(run)
+            continue
+        _, target = evaluation_config(folder, density, shield, scenario)
+        if not overwrite and _episodes_in(target) >= episodes:
+            out.complete.append(run)
+            continue
+        result = evaluate(run, episodes=episodes, density=density, seed=seed, record=record, out=target,
+                          overwrite=True, progress=progress, shield=shield, scenario=scenario)
+        out.evaluated.append(result)
+        if report is not None:
+            report(result)
+        if result.interrupted or result.kept_earlier:
+            out.interrupted = True
+            break
+    return out
+
+
+def _episodes_in(out: Path) -> int:
+    """Complete episode rows of an evaluation folder's ``episodes.csv`` (0 when there is none)."""
+    path = out / "episodes.csv"
+    if not path.is_file():
+        return 0
+    with open(path, newline="") as fh:
+        return max(sum(1 for _ in fh) - 1, 0)
 
 
 def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, model_path: Path, base_seed: int,

@@ -189,9 +189,23 @@ def test_the_verbs_understand_a_batch_folder(tmp_path):
     report = lanefree("report", str(out), "--out", str(tmp_path / "report"), timeout=300)
     assert report.returncode == 0, report.stderr
     assert "| 2 |" in (tmp_path / "report" / "summary.md").read_text()  # one group of the batch's two runs
-    evaluate = lanefree("evaluate", str(out), "--episodes", "1", timeout=300)
-    assert evaluate.returncode == 2 and evaluate.stderr.count("\n") == 1
-    assert "is a batch of 'lanefree train --seeds' (2 runs); pass one of its run folders, e.g." in evaluate.stderr
+    rollout = lanefree("rollout", "--run", str(out), "--episodes", "1", timeout=300)
+    assert rollout.returncode == 2 and rollout.stderr.count("\n") == 1
+    assert "is a batch of 'lanefree train --seeds' (2 runs); pass one of its run folders, e.g." in rollout.stderr
+    evaluate = lanefree("evaluate", str(out), "--episodes", "2", timeout=300)  # every finished run of the batch
+    assert evaluate.returncode == 0, evaluate.stderr
+    assert f"{out}: 2 run(s) evaluated, 0 already complete, 0 without a final model" in evaluate.stdout
+    for run in sorted(p for p in out.iterdir() if (p / "config.yaml").is_file()):
+        assert len((run / "eval" / "episodes.csv").read_text().splitlines()) == 3
+    again = lanefree("evaluate", str(out), "--episodes", "2", timeout=300)  # nothing missing: nothing redone
+    assert again.returncode == 0 and "0 run(s) evaluated, 2 already complete" in again.stdout
+    shielded = lanefree("evaluate", str(out), "--episodes", "1", "--shield", timeout=300)
+    assert shielded.returncode == 0 and "2 run(s) evaluated" in shielded.stdout
+    assert all((p / "eval_shield" / "episodes.csv").is_file() for p in out.iterdir() if (p / "config.yaml").is_file())
+    with_out = lanefree("evaluate", str(out), "--out", str(tmp_path / "e"), timeout=120)
+    assert with_out.returncode == 2 and "each run of" in with_out.stderr and not (tmp_path / "e").exists()
+    missing = lanefree("evaluate", str(tmp_path / "nowhere"), timeout=120)
+    assert missing.returncode != 0 and missing.stderr.count("\n") == 1
 
 
 def test_every_run_of_a_batch_writes_its_tensorboard_log(tmp_path):

@@ -25,7 +25,7 @@ from lanefree_sumo.experiments.sweep.summary import complete_seeds
 
 from conftest import ROOT, lanefree
 
-SCRIPTS = ("update-results.sh", "evaluate-runs.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py",
+SCRIPTS = ("update-results.sh", "evaluation-helper.sh", "varobs-transfer.sh", "readme_results.py",
            "collisions_vs_overtakes.py")
 CELL = "ddpg_fields_zones_overtake_collision_d70_s0"  # a paper sweep cell and the vector baseline's seed 0
 EPISODES = 4  # per evaluation (50 in make results)
