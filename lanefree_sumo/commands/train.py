@@ -77,6 +77,10 @@ def run(args: argparse.Namespace) -> int:
                              "given (a batch is not extended)")
         return report_batch(_resume_batch(args.resume))
     if args.resume is not None and is_batch(args.resume.parent):
+        if (args.resume / "model.zip").is_file():  # finished: the batch cannot go on, and its runs are not extended
+            raise UsageError(f"{args.resume} is a finished run of the batch {args.resume.parent}; a batch's runs are "
+                             "not extended: train more episodes as a new batch (lanefree train --seeds … --episodes N "
+                             "--out NEW), or evaluate and report it as it is")
         raise UsageError(f"{args.resume} is a run of the batch {args.resume.parent}; resume the whole batch with: "
                          f"lanefree train --resume {args.resume.parent}")
     if args.resume is not None:

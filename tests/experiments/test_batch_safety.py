@@ -244,3 +244,14 @@ def test_a_grid_whose_runs_cannot_train_is_refused_before_it_starts(tmp_path):
     assert res.returncode == 2 and res.stderr.count("\n") == 1
     assert "td3 / collision / d70 / keras: train.actor_critic.warmup_actions = policy" in res.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_a_finished_batch_gets_advice_that_leads_somewhere(tmp_path):
+    out = tmp_path / "batch"
+    runs = train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
+    extend = lanefree("train", "--resume", str(runs[0][0]), "--episodes", "5", timeout=120)
+    assert extend.returncode == 2 and "is a finished run of the batch" in extend.stderr
+    assert "train more episodes as a new batch" in extend.stderr and "--resume" not in extend.stderr.split(";")[1]
+    status = lanefree("sweep", "--status", str(out), timeout=120)
+    assert status.returncode != 0 and status.stderr.count("\n") == 1
+    assert "is a 'lanefree train --seeds' batch, not a sweep folder" in status.stderr

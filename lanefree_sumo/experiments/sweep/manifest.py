@@ -24,7 +24,7 @@ from typing import Any
 import yaml
 
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
-from lanefree_sumo.experiments.rundir import write_atomic
+from lanefree_sumo.experiments.rundir import BATCH_FILE, write_atomic
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 
 MANIFEST = "sweep.yaml"
@@ -150,6 +150,10 @@ class Manifest:
 def read_manifest(folder: Path) -> Manifest:
     """The manifest of sweep folder ``folder``; RunError naming the problem."""
     path = SweepDir(folder).manifest
+    if not path.is_file() and (folder / BATCH_FILE).is_file():
+        raise RunError(f"{folder} is a 'lanefree train --seeds' batch, not a sweep folder; its runs: "
+                       f"'lanefree report {folder}', and 'lanefree train --resume {folder}' continues it while "
+                       "unfinished")
     if not path.is_file():
         raise RunError(f"{folder} is not a sweep folder (no {MANIFEST}); start one with "
                        f"'lanefree sweep GRID --out {folder}'")
