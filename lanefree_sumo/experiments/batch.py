@@ -38,7 +38,7 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ConfigError, OperatingSystemError, RunError, os_error_message
-from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
+from lanefree_sumo.experiments.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import (
     BATCH_FILE,
     RunDir,
@@ -398,11 +398,6 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
         return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device,
                       lockstep).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
     raise AssertionError("unreachable")
-
-
-TENSORBOARD_SCALARS = ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps", "shield_interventions")
-"""The episode metrics a run's TensorBoard log gets at each episode's end, as ``episode/<name>`` (a single run's
-SB3 logger writes the same names)."""
 
 
 class _Board:

@@ -30,6 +30,11 @@ def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
             + (ONRAMP_COLUMNS if cfg.road.kind == "onramp" else ()))
 
 
+TENSORBOARD_SCALARS = ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps", "shield_interventions")
+"""The episode metrics a run's TensorBoard log gets at each episode's end, as ``episode/<name>`` (a single run's
+logger and a batch's run alike)."""
+
+
 class EpisodeLog:
     """``episodes.csv``: one row per finished episode (and agent), appended and flushed at once."""
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError, RunError
-from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
+from lanefree_sumo.experiments.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.env import resolve_config
@@ -172,8 +172,7 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
                 for metrics in group:
                     log.append({**metrics, "episode": self.episodes, "algorithm": algo,
                                 "timesteps": self.num_timesteps})
-                for key in ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps",
-                            "shield_interventions"):
+                for key in TENSORBOARD_SCALARS:
                     self.logger.record(f"episode/{key}", float(np.mean([m[key] for m in group])))
                 self.logger.dump(self.num_timesteps)
                 self.bar.update(1)
