@@ -5,10 +5,10 @@ episodes 1–12, about the 10 000 steps over which Liu et al. compare training r
 over the last 50; the last 50 episodes of each evaluation folder the runs have): the difference variant −
 baseline of the per-run means of the return, collisions per episode and speed deviation (m/s), with the
 95 % percentile-bootstrap CI over runs and the two-sided rank test of
-:mod:`lanefree_sumo.experiments.claims` (the paper's claims use the same). Verdicts: *<variant> worse* /
-*<variant> better* when the CI excludes 0 (worse: a lower return, more collisions, a larger speed
-deviation), *no difference detected* when it contains 0 (few runs a side: low power, not equivalence),
-*too few runs* below :data:`MIN_RUNS` runs on a side.
+:mod:`lanefree_sumo.experiments.claims`, decided by the claims' one rule: *<variant> worse* /
+*<variant> better* when the CI excludes 0 and the rank test has p ≤ ``ALPHA`` (worse: a lower return, more
+collisions, a larger speed deviation), *undecided* when only the CI does, *no difference detected* when it
+contains 0 (few runs a side: low power, not equivalence), *too few runs* below :data:`MIN_RUNS` runs on a side.
 
 A sweep whose grid names variants in ``compare`` writes this page as ``verdict.md``
 (:func:`lanefree_sumo.experiments.sweep.summary.summarize`); the second paper's comparison is the
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import MIN_RUNS, difference_ci, per_run, rank_test
+from lanefree_sumo.experiments.claims import ALPHA, MIN_RUNS, difference_ci, per_run, rank_test
 from lanefree_sumo.experiments.rundata import RunData, RunKey, UnusableRunError, read_run
 
 LIU_EPISODES = (1, 12)
@@ -75,13 +75,21 @@ def against_defaults(groups: Mapping[RunKey, Sequence[RunData]]) -> dict[str, li
     return out
 
 
-def reading(better: int, low: float, high: float, variant: str = "set") -> str:
-    """The verdict of a variant − baseline difference whose CI is [low, high] (``better`` +1 when higher is
-    better)."""
+UNDECIDED = "undecided"
+"""A CI off zero whose rank test does not reach :data:`~lanefree_sumo.experiments.claims.ALPHA` (3 runs a side
+never does, two-sided: its smallest p is 0.10)."""
+
+
+def reading(better: int, low: float, high: float, p: float, variant: str = "set") -> str:
+    """The verdict of a variant − baseline difference whose CI is [low, high] and whose two-sided rank test gives
+    ``p`` (``better`` +1 when higher is better): the claims' one rule, both at
+    :data:`~lanefree_sumo.experiments.claims.ALPHA`."""
     if math.isnan(low):
         return TOO_FEW
     if low <= 0 <= high:
         return "no difference detected"
+    if not p <= ALPHA:
+        return UNDECIDED
     return f"{variant} better" if (low > 0) == (better > 0) else f"{variant} worse"
 
 
@@ -140,7 +148,7 @@ def rows(comparisons: Sequence[Sides], episodes: int, variant: str = "set",
                 rank = "–" if math.isnan(p) else f"{above:g}/{len(a) * len(b)}, p = {p:.2f}"
                 out.append([sides.label, label, name, f"{len(a)}, {len(b)}", _mean_text(a), _mean_text(b),
                             ("–" if math.isnan(diff) else f"{diff:+.2f}") + ci, rank,
-                            reading(better, low, high, variant)])
+                            reading(better, low, high, p, variant)])
     return out
 
 
@@ -157,12 +165,13 @@ def verdict_markdown(comparisons: Sequence[Sides], episodes: int, title: str, se
              f"compare training rewards, and over all {episodes}), then {variant} − {baseline} with a 95 % "
              "percentile-bootstrap CI over runs and the two-sided rank test (pairs of runs with "
              f"{variant} above {baseline}, ties ½; exact permutation p). "
-             f"Verdict: *{variant} worse* or "
-             f"*{variant} better* when the CI excludes 0 (worse: lower return, more collisions, larger speed "
-             "deviation), *no difference detected* when it contains 0 (3 runs a side: low power, not equivalence), "
-             f"*too few runs* below {MIN_RUNS} runs on a side. With 3 runs against 3 the percentile bootstrap "
-             "resamples few distinct means and its CI is narrow, and the two-sided rank test cannot go below "
-             f"p = 0.10 (every {variant} run on one side of every {baseline} run): read both. Written by "
+             f"Verdict, the rule of the paper's claims: *{variant} worse* or "
+             f"*{variant} better* when the CI excludes 0 and the rank test has p ≤ {ALPHA} (worse: lower return, more "
+             f"collisions, larger speed deviation), *{UNDECIDED}* when the CI excludes 0 but the rank test does "
+             "not reach it, *no difference detected* when the CI contains 0 (few runs a side: low power, not "
+             f"equivalence), *too few runs* below {MIN_RUNS} runs on a side. With 3 runs against 3 the two-sided "
+             f"rank test cannot go below p = 0.10 (every {variant} run on one side of every {baseline} run), so "
+             "no difference is decided there: more runs a side decide. Written by "
              f"{written_by} from the run folders.", ""]
     lines += markdown.table([label, "source", "metric", f"n ({variant}, {baseline})", variant, baseline,
                              f"{variant} − {baseline} [95 % CI]", f"rank: {variant} > {baseline}, p", "verdict"],
