@@ -28,7 +28,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -115,16 +115,33 @@ in our CI (magnitude, not only sign), ``equivalent`` for a claim of no differenc
 that contains 0."""
 
 
+OTHER_READINGS: tuple[tuple[str, str], ...] = (
+    ("speed_dev_episode_mps", "per episode, |mean (v_x − v_d)|"),
+    ("speed_error_mps", "signed, |mean (v_x − v_d)| of the run"))
+"""The speed metric's other two readings (docs/interpretation.md), under which the speed claims are decided too
+(:func:`reading_comparisons`); the signed one by the magnitude of the run's mean (a deviation's size)."""
+MAGNITUDE_OF_MEAN = frozenset({"speed_error_mps"})
+"""Metrics whose per-run statistic is the magnitude of the run's mean (a signed deviation read by its size)."""
+
+
 def per_run(runs: Sequence[RunData], metric: str, last: int, window: tuple[int, int] | None) -> list[float]:
-    """The statistic of each run: mean of ``metric`` over its last ``last`` episodes or over ``window``."""
+    """The statistic of each run: mean of ``metric`` over its last ``last`` episodes or over ``window`` (its
+    magnitude for :data:`MAGNITUDE_OF_MEAN`)."""
     values = []
     for run in runs:
         column = run.episodes[metric]
         if window and column.index.max() < window[1]:
             continue  # does not cover the window: not a value of this statistic
         part = column.loc[window[0]:window[1]] if window else column.iloc[-last:]
-        values.append(float(part.mean()))
+        mean = float(part.mean())
+        values.append(abs(mean) if metric in MAGNITUDE_OF_MEAN else mean)
     return values
+
+
+def reading_comparisons(comparisons: Sequence[Comparison]) -> tuple[Comparison, ...]:
+    """The speed claims of ``comparisons`` once more under each of :data:`OTHER_READINGS`."""
+    return tuple(replace(c, metric=metric) for metric, _ in OTHER_READINGS for c in comparisons
+                 if c.metric == "speed_dev_mps")
 
 
 def difference_ci(a: Sequence[float], b: Sequence[float], resamples: int = 10_000, seed: int = 0,
@@ -314,8 +331,36 @@ def p_text(p: float) -> str:
     return f"{p:.2f}" if p >= 0.01 else f"{p:.1e}"
 
 
-def claims_markdown(table: pd.DataFrame) -> str:
-    """The claims table as Markdown, with how to read it."""
+def readings_markdown(table: pd.DataFrame) -> list[str]:
+    """The speed claims under the other readings (``table``: :func:`check_claims` of :func:`reading_comparisons`):
+    a section of the claims page, fenced as ``readings``."""
+    if table.empty:
+        return []
+    labels = dict(OTHER_READINGS)
+
+    def num(x: float) -> str:
+        return "–" if math.isnan(x) else f"{x:+.3f}"
+
+    rows = []
+    for r in table.itertuples():
+        metric = str(r.metric).split(" (")[0]
+        ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
+        rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {p_text(r.rank_p)}"
+        label = labels.get(metric, metric).replace("|", "\\|")  # a pipe inside a Markdown table cell
+        rows.append([str(r.claim), label, f"{r.n_a}, {r.n_b}", num(r.paper_difference),
+                     f"{num(r.difference)}{ci}", rank, str(r.verdict),
+                     "–" if math.isnan(r.holm_p) else p_text(r.holm_p), str(r.verdict_holm)])
+    return ["", "## The speed claims under the other two readings", "",
+            "The same claims with the speed deviation read per episode and signed (docs/interpretation.md); the "
+            "paper's difference is its one number, the same as above. Holm's adjustment here runs over these rows "
+            "alone.", "", *markdown.table(["claim", "reading", "n (a, b)", "paper", "ours [95 % CI]",
+                                           "rank: a > b, p in the paper's direction", "verdict", "Holm p",
+                                           "verdict, as a family"], rows, fence="readings")]
+
+
+def claims_markdown(table: pd.DataFrame, readings: pd.DataFrame | None = None) -> str:
+    """The claims table as Markdown, with how to read it; ``readings`` (:func:`check_claims` of
+    :func:`reading_comparisons`) adds the speed claims under the other readings."""
 
     def num(x: float) -> str:
         return "–" if math.isnan(x) else f"{x:+.3f}"
@@ -354,4 +399,6 @@ def claims_markdown(table: pd.DataFrame) -> str:
     lines += markdown.table(["#", "claim", "metric", "n (a, b)", "paper", "ours [95 % CI]",
                              "rank: a > b, p in the paper's direction", "verdict", "Holm p", "paper in CI",
                              "shares a group with", "verdict, as a family"], rows)
+    if readings is not None:
+        lines += readings_markdown(readings)
     return "\n".join(lines) + "\n"

@@ -58,7 +58,7 @@ import pandas as pd
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ReportError, RunError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable
+from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable, reading_comparisons
 from lanefree_sumo.experiments.comparison import Sides, against_defaults, verdict_markdown
 from lanefree_sumo.experiments.curves import (
     CURVE_METRICS,
@@ -400,6 +400,17 @@ def paper_claims(groups: dict[RunKey, list[RunData]], last: int) -> tuple[pd.Dat
     return check_claims(default, last, comparisons), unfinished
 
 
+def reading_claims(groups: dict[RunKey, list[RunData]], last: int) -> pd.DataFrame:
+    """The speed claims the default complete runs decide, under the other readings (:func:`reading_comparisons`)."""
+    default: dict[tuple[str, str, float], list[RunData]] = {}
+    for key, members in groups.items():
+        if key[3] == "":
+            default.setdefault(key[:3], []).extend(run for run in members
+                                                   if list(run.episodes.index) == list(range(1, PLANNED_EPISODES + 1)))
+    comparisons = decidable({key[:3] for key in groups if key[3] == ""})
+    return check_claims(default, last, reading_comparisons(comparisons))
+
+
 def _claim_files(groups: dict[RunKey, list[RunData]], last: int, notes: list[str]) -> dict[str, Any]:
     """``claims.csv`` and ``claims.md`` of :func:`paper_claims` (none when no claim compares two groups); a note
     in ``notes`` names the unfinished runs left out."""
@@ -409,7 +420,7 @@ def _claim_files(groups: dict[RunKey, list[RunData]], last: int, notes: list[str
     if unfinished:
         notes.append(f"the paper's claims count complete runs only (every one of the {PLANNED_EPISODES} planned "
                      f"episodes); left out of claims.md: {', '.join(unfinished)}")
-    return {"claims.csv": claims, "claims.md": claims_markdown(claims)}
+    return {"claims.csv": claims, "claims.md": claims_markdown(claims, reading_claims(groups, last))}
 
 
 def _verdict_page(groups: dict[RunKey, list[RunData]], first: int | None = None) -> str:

@@ -30,6 +30,7 @@ from lanefree_sumo.experiments.claims import (
     holm,
     per_run,
     rank_test,
+    reading_comparisons,
     verdict,
 )
 from lanefree_sumo.experiments.markdown import TABLE_BEGIN
@@ -380,3 +381,20 @@ def test_claims_that_share_a_group_are_marked():
     for i in speed:
         shared = set(table["shares_group_with"].iloc[i].split(", "))
         assert {str(j + 1) for j in speed if j != i} <= shared and str(i + 1) not in shared
+
+
+def test_the_speed_claims_under_the_other_readings():
+    speed = [c for c in COMPARISONS if c.metric == "speed_dev_mps"]
+    others = reading_comparisons(COMPARISONS)
+    assert len(others) == 2 * len(speed) and {c.metric for c in others} == {"speed_dev_episode_mps",
+                                                                            "speed_error_mps"}
+    # the signed reading by the magnitude of each run's mean: −2 and +2 are the same size of deviation
+    runs = [run("ddpg", "fields_zones_overtake_collision", 70.0, s, [0.0] * 4) for s in range(3)]
+    for r, sign in zip(runs, (-1, 1, -1)):
+        r.episodes["speed_error_mps"] = sign * 2.0
+    assert per_run(runs, "speed_error_mps", 2, None) == [2.0, 2.0, 2.0]
+    text = claims_markdown(check_claims({}, comparisons=COMPARISONS[:1]),
+                           check_claims({}, comparisons=others[:1]))
+    assert "## The speed claims under the other two readings" in text and "<!-- readings -->" in text
+    line = next(line for line in text.splitlines() if line.startswith("| Speed deviation grows"))
+    assert "per episode, \\|mean (v_x − v_d)\\|" in line and line.count(" | ") == 8  # nine cells, pipes escaped

@@ -51,7 +51,13 @@ import pandas as pd
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError, UsageError
 from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import Comparison, check_claims, claims_markdown, decidable
+from lanefree_sumo.experiments.claims import (
+    Comparison,
+    check_claims,
+    claims_markdown,
+    decidable,
+    reading_comparisons,
+)
 from lanefree_sumo.experiments.comparison import Sides, setting_label, verdict_markdown
 from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
 from lanefree_sumo.experiments.effects import effect_table, effects_markdown, study_markdown
@@ -377,10 +383,11 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None,
         claimed = claimed_variant(grid)
         comparisons = paper_comparisons(grid)
         if comparisons:
-            claims = check_claims({key[:3]: members for key, members in groups.items() if key[3] == claimed},
-                                  last, comparisons)
+            claimed_groups = {key[:3]: members for key, members in groups.items() if key[3] == claimed}
+            claims = check_claims(claimed_groups, last, comparisons)
             claims.to_csv(sweep.claims_csv, index=False)
-            write_atomic(sweep.claims_md, claims_markdown(claims))
+            write_atomic(sweep.claims_md, claims_markdown(
+                claims, check_claims(claimed_groups, last, reading_comparisons(comparisons))))
             files += [sweep.claims_csv, sweep.claims_md]
         else:  # no claim compares two of this grid's settings (one written by an earlier version goes)
             sweep.claims_csv.unlink(missing_ok=True)
