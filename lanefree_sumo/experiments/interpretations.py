@@ -159,6 +159,47 @@ def phase1_runs(results: Path) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True)
 
 
+RUN_FOLDERS: Mapping[str, str] = {"default": "paper", "once_per_vehicle": "interpretations/phase1_bonus",
+                                  "both": "interpretations/phase1_bonus", "cap25": "interpretations/phase1_cap25"}
+"""The sweep folder under ``results/`` holding each variant's run folders."""
+
+
+def run_folder(results: Path, variant: str, preset: str, seed: int) -> Path:
+    """The run folder of ``variant``'s ``preset`` cell, seed ``seed`` (the variant it stands for where it does not
+    differ: :func:`source_variant`)."""
+    source = source_variant(variant, preset)
+    suffix = "" if source == "default" else f"_{source}"
+    return results / RUN_FOLDERS[source] / "runs" / f"ddpg_{preset}_d{DEFAULT_DENSITY:g}{suffix}_s{seed}"
+
+
+def claims_by_variant(results: Path, variants: Sequence[str] = VARIANTS) -> pd.DataFrame:
+    """The paper's claims of Tables 5–6 decided under each variant (the claims' own rule and columns, one block of
+    rows per variant, column ``variant``), from the run folders' ``episodes.csv``."""
+    from lanefree_sumo.experiments.claims import check_claims, decidable
+    from lanefree_sumo.experiments.rundata import read_run
+
+    comparisons = decidable({("ddpg", preset, DEFAULT_DENSITY) for preset in CELLS})
+    tables = []
+    for variant in variants:
+        groups = {("ddpg", preset, DEFAULT_DENSITY): [read_run(run_folder(results, variant, preset, seed))
+                                                      for seed in SEEDS] for preset in CELLS}
+        tables.append(check_claims(groups, comparisons=comparisons).assign(variant=variant))
+    return pd.concat(tables, ignore_index=True)
+
+
+def claims_markdown(table: pd.DataFrame) -> str:
+    """One row per claim, one verdict column per variant (alone; and as a family, after the slash)."""
+    variants = list(dict.fromkeys(table["variant"]))
+    lines = ["| claim | " + " | ".join(variants) + " |", "|---|" + "---|" * len(variants)]
+    for claim in dict.fromkeys(table["claim"]):
+        cells = []
+        for v in variants:
+            row = table[(table["claim"] == claim) & (table["variant"] == v)].iloc[0]
+            cells.append(f"{row['verdict']} / {row['verdict_holm']}")
+        lines.append(f"| {claim} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def ours_vs_paper(results: Sequence[Score], path: Path) -> None:
     """The log-log figure: each cell's value against the paper's, per metric and variant (the diagonal: equal)."""
     import matplotlib
@@ -197,7 +238,10 @@ def write_phase1(results: Path) -> Path:
             "Computed by `python -m lanefree_sumo.experiments.interpretations` from the `runs.csv` of "
             + ", ".join(f"`results/{name}`" for name in PHASE1_SOURCES)
             + " as `protocol.md` defines it: 7 DDPG cells of Tables 5–6 at 70 veh/km, seeds 0–4, each run's last 50 "
-            "training episodes.\n\n" + phase1_markdown(found) + "\n![ours against the paper](ours_vs_paper.png)\n")
+            "training episodes.\n\n" + phase1_markdown(found) + "\n![ours against the paper](ours_vs_paper.png)\n\n"
+            "## The paper's claims of Tables 5–6 under each variant\n\nEach cell: the verdict of the claim alone / as "
+            "one family of this variant's claims (Holm; `lanefree_sumo/experiments/claims.py`), 5 runs a side.\n\n"
+            + claims_markdown(claims_by_variant(results)))
     (out / "phase1.md").write_text(page)
     ours_vs_paper(found, out / "ours_vs_paper.png")
     return out / "phase1.md"

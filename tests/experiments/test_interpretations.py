@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -12,10 +14,14 @@ from lanefree_sumo.experiments.interpretations import (
     BONUS_CELLS,
     CELLS,
     SEEDS,
+    VARIANTS,
     cell_values,
+    claims_by_variant,
+    claims_markdown,
     distance,
     phase1_markdown,
     pick,
+    run_folder,
     scores,
 )
 from lanefree_sumo.experiments.paper import paper_reference
@@ -80,6 +86,34 @@ def test_a_missing_run_is_named():
         cell_values(partial, "both")
 
 
+def copy_cells(results: Path) -> None:
+    """Every run folder phase 1 reads, as copies (config.yaml, episodes.csv) of the committed default runs of
+    seeds 0-4: each variant then holds the defaults' numbers."""
+    paper = Path(__file__).resolve().parents[2] / "results" / "paper" / "runs"
+    for variant in VARIANTS:
+        for preset in CELLS:
+            for seed in SEEDS:
+                to = run_folder(results, variant, preset, seed)
+                if to.exists():
+                    continue
+                to.mkdir(parents=True)
+                for name in ("config.yaml", "episodes.csv"):
+                    shutil.copy(paper / f"ddpg_{preset}_d70_s{seed}" / name, to / name)
+
+
+def test_the_claims_of_tables_5_and_6_under_each_variant(tmp_path):
+    copy_cells(tmp_path)
+    table = claims_by_variant(tmp_path)
+    assert list(dict.fromkeys(table["variant"])) == list(VARIANTS)
+    blocks = [table[table["variant"] == v].reset_index(drop=True) for v in VARIANTS]
+    assert len(blocks[0]) == 5 and set(blocks[0]["n_a"]) == {5}  # the claims of Tables 5-6 among the 7 cells
+    for block in blocks[1:]:  # the same runs under every name: the same verdicts
+        assert list(block["verdict"]) == list(blocks[0]["verdict"])
+    page = claims_markdown(table)
+    assert page.count("\n") == 2 + 5 and "| claim | default | once_per_vehicle | cap25 | both |" in page
+    assert run_folder(tmp_path, "both", "collision", 3).parent.parent.name == "phase1_cap25"  # no bonus: cap25's
+
+
 def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
     from lanefree_sumo.experiments.interpretations import write_phase1
 
@@ -89,6 +123,8 @@ def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
         (tmp_path / folder).mkdir(parents=True)
         part = all_runs[all_runs["variant"].isin(variants)].assign(algorithm="ddpg")
         part.to_csv(tmp_path / folder / "runs.csv", index=False)
+    copy_cells(tmp_path)
     page = write_phase1(tmp_path)
-    assert "Picked: **once_per_vehicle**" in page.read_text()
+    text = page.read_text()
+    assert "Picked: **once_per_vehicle**" in text and "## The paper's claims of Tables 5–6 under each variant" in text
     assert (tmp_path / "interpretations" / "ours_vs_paper.png").stat().st_size > 10_000
