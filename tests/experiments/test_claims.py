@@ -31,6 +31,7 @@ from lanefree_sumo.experiments.claims import (
     per_run,
     rank_test,
     reading_comparisons,
+    readings_markdown,
     verdict,
 )
 from lanefree_sumo.experiments.markdown import TABLE_BEGIN
@@ -398,3 +399,56 @@ def test_the_speed_claims_under_the_other_readings():
     assert "## The speed claims under the other two readings" in text and "<!-- readings -->" in text
     line = next(line for line in text.splitlines() if line.startswith("| Speed deviation grows"))
     assert "per episode, \\|mean (v_x − v_d)\\|" in line and line.count(" | ") == 8  # nine cells, pipes escaped
+
+
+def test_the_family_columns_at_their_boundaries():
+    """Each claim's p in the family is the one of the side its CI lies on; the equivalence test is at 90 %."""
+    fields, plain = ("ddpg", "fields_collision", 70.0), ("ddpg", "collision", 70.0)
+    claim = COMPARISONS[0]  # collision − fields_collision > 0
+    against = {plain: [run(*plain, s, [1.0 + 0.1 * s] * 4) for s in range(3)],
+               fields: [run(*fields, s, [3.0 + 0.1 * s] * 4) for s in range(3)]}
+    row = check_claims(against, last=2, comparisons=(claim,)).iloc[0]
+    assert row["verdict"] == AGAINST and row["test_p"] == row["rank_p_against"] != row["rank_p"]
+    assert not row["equivalent"] and not row["paper_in_ci"]
+    assert row["holm_p"] == row["test_p"]  # a family of one
+    same = COMPARISONS[2]  # collision − overtake_collision ≈ 0: two-sided, both p the same
+    assert same.expect == 0
+    spread = 0.53  # a 95 % CI beyond the margin of 0.2 × 2.293 whose 90 % CI lies within it
+    a = [2.0 - spread, 2.0, 2.0 + spread, 2.0 + 0.5 * spread]
+    b = [2.0 - 0.5 * spread, 2.0, 2.0 + 0.8 * spread, 2.1]
+    groups = {same.a: [run(*same.a, s, [v] * 4) for s, v in enumerate(a)],
+              same.b: [run(*same.b, s, [v] * 4) for s, v in enumerate(b)]}
+    row = check_claims(groups, last=2, comparisons=(same,)).iloc[0]
+    margin = 0.2 * 2.293
+    assert row["ci95_low"] < -margin or row["ci95_high"] > margin
+    assert row["equivalent"] and row["verdict_holm"] == EQUIVALENT
+    assert row["rank_p_against"] == row["rank_p"] == row["test_p"]
+    empty = check_claims({}, comparisons=(same, claim))
+    assert empty["test_p"].isna().all() and empty["holm_p"].isna().all() and set(empty["verdict_holm"]) == {NO_DATA}
+
+
+def test_the_readings_table_rows():
+    speed = next(c for c in COMPARISONS if c.metric == "speed_dev_mps" and c.a[2] == 120.0)
+    (episode, signed) = [c for c in reading_comparisons(COMPARISONS) if c.a == speed.a and c.b == speed.b]
+    groups = {}
+    for key, level in ((speed.a, 3.0), (speed.b, 1.0)):
+        groups[key] = [run(*key, s, [0.0] * 4) for s in range(3)]
+        for s, r in enumerate(groups[key]):
+            r.episodes["speed_dev_episode_mps"] = level + 0.1 * s
+            r.episodes["speed_error_mps"] = -(level + 0.1 * s)  # slower than desired: its size is the reading
+    table = check_claims(groups, last=2, comparisons=(episode, signed))
+    assert list(table["difference"].round(9)) == [2.0, 2.0]
+    lines = [line for line in readings_markdown(table) if line.startswith("| Speed")]
+    low, high = table.iloc[0][["ci95_low", "ci95_high"]]
+    assert lines[0] == (f"| {speed.claim} | per episode, \\|mean (v_x − v_d)\\| | 3, 3 | +0.995 | +2.000 "
+                        f"[{low:+.3f}, {high:+.3f}] | 9/9, p = 0.05 | {CONSISTENT} | 0.10 | {UNDECIDED} |")
+    assert "| signed, \\|mean (v_x − v_d)\\| of the run |" in lines[1]
+    assert readings_markdown(table.iloc[0:0]) == []
+
+
+def test_family_verdicts_and_holm_at_their_edges():
+    assert family_verdict(0, 0.2, 1.0, 0.06, False) == UNDECIDED  # a difference the family does not decide
+    assert family_verdict(1, 0.0, 1.0, 0.01, False) == UNDECIDED  # a CI bound of exactly 0 decides nothing
+    assert family_verdict(-1, -1.0, 0.0, 0.01, False) == UNDECIDED
+    assert family_verdict(1, 0.2, 1.0, 0.05, False) == CONSISTENT  # p at exactly the level decides
+    assert holm([0.6, 0.7]) == [1.0, 1.0]  # capped at 1
