@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import math
-import shutil
 from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
+from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.experiments.claims import AGAINST
+from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
 from lanefree_sumo.experiments.interpretations import (
     BONUS_CELLS,
     CELLS,
@@ -25,6 +27,7 @@ from lanefree_sumo.experiments.interpretations import (
     scores,
 )
 from lanefree_sumo.experiments.paper import paper_reference
+from lanefree_sumo.experiments.rundir import write_config
 
 
 def table(variant: str, presets, collisions_factor: float, speed_factor: float) -> list[dict]:
@@ -86,27 +89,38 @@ def test_a_missing_run_is_named():
         cell_values(partial, "both")
 
 
-def copy_cells(results: Path) -> None:
-    """Every run folder phase 1 reads, as copies (config.yaml, episodes.csv) of the committed default runs of
-    seeds 0-4: each variant then holds the defaults' numbers."""
-    paper = Path(__file__).resolve().parents[2] / "results" / "paper" / "runs"
+def make_cells(results: Path, episodes: int = 60) -> None:
+    """Every run folder phase 1 reads, made here (config.yaml, episodes.csv of ``episodes`` rows): seed s of a
+    preset collides 10 × (the preset's place in CELLS) + s times per episode in every variant, so each variant
+    holds the same numbers."""
     for variant in VARIANTS:
-        for preset in CELLS:
+        for p, preset in enumerate(CELLS):
             for seed in SEEDS:
                 to = run_folder(results, variant, preset, seed)
                 if to.exists():
                     continue
                 to.mkdir(parents=True)
-                for name in ("config.yaml", "episodes.csv"):
-                    shutil.copy(paper / f"ddpg_{preset}_d70_s{seed}" / name, to / name)
+                cfg = merge_config(LaneFreeConfig(), {"seed": seed, "reward": {"preset": preset}})
+                write_config(to, cfg)
+                log = EpisodeLog(to / "episodes.csv", episode_columns(cfg))
+                for e in range(1, episodes + 1):
+                    log.append({"episode": e, "steps": 800, "collisions": 10 * p + seed,
+                                "speed_dev_mps": 1.0 + 0.1 * seed, "speed_dev_episode_mps": 0.5,
+                                "speed_error_mps": -0.5, "mean_speed_mps": 19.5,
+                                "return": 100.0, "overtakes": 3, "algorithm": "ddpg", "reward_preset": preset,
+                                "density": 70.0, "seed": seed})
+                log.close()
 
 
 def test_the_claims_of_tables_5_and_6_under_each_variant(tmp_path):
-    copy_cells(tmp_path)
+    make_cells(tmp_path)
     table = claims_by_variant(tmp_path)
     assert list(dict.fromkeys(table["variant"])) == list(VARIANTS)
     blocks = [table[table["variant"] == v].reset_index(drop=True) for v in VARIANTS]
     assert len(blocks[0]) == 5 and set(blocks[0]["n_a"]) == {5}  # the claims of Tables 5-6 among the 7 cells
+    # collision (place 0) − fields_collision (place 2): 20 fewer collisions, every pair of runs one way
+    first = blocks[0].iloc[0]
+    assert first["difference"] == -20.0 and first["verdict"] == AGAINST
     for block in blocks[1:]:  # the same runs under every name: the same verdicts
         assert list(block["verdict"]) == list(blocks[0]["verdict"])
     page = claims_markdown(table)
@@ -123,7 +137,7 @@ def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
         (tmp_path / folder).mkdir(parents=True)
         part = all_runs[all_runs["variant"].isin(variants)].assign(algorithm="ddpg")
         part.to_csv(tmp_path / folder / "runs.csv", index=False)
-    copy_cells(tmp_path)
+    make_cells(tmp_path)
     page = write_phase1(tmp_path)
     text = page.read_text()
     assert "Picked: **once_per_vehicle**" in text and "## The paper's claims of Tables 5–6 under each variant" in text
