@@ -331,24 +331,31 @@ def p_text(p: float) -> str:
     return f"{p:.2f}" if p >= 0.01 else f"{p:.1e}"
 
 
+def _num(x: float) -> str:
+    return "–" if math.isnan(x) else f"{x:+.3f}"
+
+
+def _row_cells(r: Any, other_way: bool = True) -> list[str]:
+    """A claims row's shared cells: n (a, b), the paper's difference, ours with its CI, the rank test (with the
+    other direction's p where it differs and ``other_way``)."""
+    ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
+    rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {p_text(r.rank_p)}"
+    if other_way and not math.isnan(r.rank_p) and r.rank_p_against != r.rank_p:
+        rank += f" (other way {p_text(r.rank_p_against)})"
+    return [f"{r.n_a}, {r.n_b}", _num(r.paper_difference), f"{_num(r.difference)}{ci}", rank]
+
+
 def readings_markdown(table: pd.DataFrame) -> list[str]:
     """The speed claims under the other readings (``table``: :func:`check_claims` of :func:`reading_comparisons`):
     a section of the claims page, fenced as ``readings``."""
     if table.empty:
         return []
     labels = dict(OTHER_READINGS)
-
-    def num(x: float) -> str:
-        return "–" if math.isnan(x) else f"{x:+.3f}"
-
     rows = []
     for r in table.itertuples():
         metric = str(r.metric).split(" (")[0]
-        ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
-        rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {p_text(r.rank_p)}"
         label = labels.get(metric, metric).replace("|", "\\|")  # a pipe inside a Markdown table cell
-        rows.append([str(r.claim), label, f"{r.n_a}, {r.n_b}", num(r.paper_difference),
-                     f"{num(r.difference)}{ci}", rank, str(r.verdict),
+        rows.append([str(r.claim), label, *_row_cells(r, other_way=False), str(r.verdict),
                      "–" if math.isnan(r.holm_p) else p_text(r.holm_p), str(r.verdict_holm)])
     return ["", "## The speed claims under the other two readings", "",
             "The same claims with the speed deviation read per episode and signed (docs/interpretation.md); the "
@@ -361,10 +368,6 @@ def readings_markdown(table: pd.DataFrame) -> list[str]:
 def claims_markdown(table: pd.DataFrame, readings: pd.DataFrame | None = None) -> str:
     """The claims table as Markdown, with how to read it; ``readings`` (:func:`check_claims` of
     :func:`reading_comparisons`) adds the speed claims under the other readings."""
-
-    def num(x: float) -> str:
-        return "–" if math.isnan(x) else f"{x:+.3f}"
-
     lines = ["# The paper's claims, checked", "",
              "Difference of per-run means (group a − group b) with a 95 % percentile-bootstrap CI over runs "
              "(`lanefree_sumo/experiments/claims.py`); collisions per episode, speed deviation in m/s. "
@@ -387,14 +390,9 @@ def claims_markdown(table: pd.DataFrame, readings: pd.DataFrame | None = None) -
              "not independent facts).", ""]
     rows = []
     for number, r in enumerate(table.itertuples(), start=1):
-        ci = "" if math.isnan(r.ci95_low) else f" [{r.ci95_low:+.3f}, {r.ci95_high:+.3f}]"
-        rank = "–" if math.isnan(r.rank_p) else f"{r.pairs_a_above_b:g}/{r.n_a * r.n_b}, p = {p_text(r.rank_p)}"
-        if not math.isnan(r.rank_p) and r.rank_p_against != r.rank_p:
-            rank += f" (other way {p_text(r.rank_p_against)})"
         inside = "–" if r.paper_in_ci is None or pd.isna(r.paper_in_ci) else ("yes" if r.paper_in_ci else "no")
         holm_p = "–" if math.isnan(r.holm_p) else p_text(r.holm_p)
-        rows.append([str(number), str(r.claim), str(r.metric), f"{r.n_a}, {r.n_b}", num(r.paper_difference),
-                     f"{num(r.difference)}{ci}", rank, str(r.verdict), holm_p, inside,
+        rows.append([str(number), str(r.claim), str(r.metric), *_row_cells(r), str(r.verdict), holm_p, inside,
                      str(r.shares_group_with) or "–", str(r.verdict_holm)])
     lines += markdown.table(["#", "claim", "metric", "n (a, b)", "paper", "ours [95 % CI]",
                              "rank: a > b, p in the paper's direction", "verdict", "Holm p", "paper in CI",

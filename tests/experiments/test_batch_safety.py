@@ -31,6 +31,20 @@ def tiny(seed: int) -> LaneFreeConfig:
     return merge_config(LaneFreeConfig(), {**TINY, "seed": seed})
 
 
+def stop_after_first_checkpoint(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The next batch is stopped by SIGTERM at its 45th step, after its first batch checkpoint (episode 1 of 30
+    steps; checkpoint_every_episodes 1); ``monkeypatch.undo()`` restores the loop."""
+    step = batch._Batch._step
+
+    def stopped(self: Any, env: Any, learner: Any, *args: Any) -> bool:
+        checkpoint = step(self, env, learner, *args)
+        if learner.num_timesteps == 45:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return checkpoint
+
+    monkeypatch.setattr(batch._Batch, "_step", stopped)
+
+
 def snapshot(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
@@ -56,15 +70,7 @@ def test_a_second_batch_is_refused_while_one_writes_and_after_it_stopped(tmp_pat
         with pytest.raises(RunError, match="is being written by process"):
             train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
     assert not out.exists()
-    step = batch._Batch._step
-
-    def stopped(self: Any, env: Any, learner: Any, *args: Any) -> bool:
-        checkpoint = step(self, env, learner, *args)
-        if learner.num_timesteps == 45:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return checkpoint
-
-    monkeypatch.setattr(batch._Batch, "_step", stopped)
+    stop_after_first_checkpoint(monkeypatch)
     first = train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
     monkeypatch.undo()
     assert [done for _, done in first] == [1, 1]
@@ -81,15 +87,7 @@ def test_a_second_batch_is_refused_while_one_writes_and_after_it_stopped(tmp_pat
 @pytest.mark.parametrize("damage", ["rows", "file"])
 def test_resuming_a_batch_whose_episodes_csv_lost_rows_is_refused(tmp_path, monkeypatch, damage):
     out = tmp_path / "batch"
-    step = batch._Batch._step
-
-    def stopped(self: Any, env: Any, learner: Any, *args: Any) -> bool:
-        checkpoint = step(self, env, learner, *args)
-        if learner.num_timesteps == 45:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return checkpoint
-
-    monkeypatch.setattr(batch._Batch, "_step", stopped)
+    stop_after_first_checkpoint(monkeypatch)
     runs = train_batch([tiny(0), tiny(1)], out, progress=False, command="test")
     monkeypatch.undo()
     episodes = runs[1][0] / "episodes.csv"
