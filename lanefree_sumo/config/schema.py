@@ -474,10 +474,11 @@ class TrainConfig:
     ``tests/experiments/test_train_backends.py``), ~2.6× faster; ``libsumo``/``traci`` train inside SUMO.
     Evaluation, rollout and replay of the run can use any backend."""
     device: Device = "cpu"
-    """Where batched training (``train --seeds``, a sweep's batches) keeps the simulation and the learners:
-    ``cpu`` (the numpy simulation, bit for bit the single runs) or ``cuda`` (the same functions as torch on the GPU,
-    float64, the networks float32; each iteration one CUDA graph, the random numbers drawn on the GPU, so equal to
-    the single runs in distribution, not bit for bit). Single runs train on the CPU."""
+    """Where batched training (``train --seeds``, a sweep's batches, and a single run the batched path trains:
+    DDPG, TD3, the DQN family on the ring) keeps the simulation and the learners: ``cpu`` (the numpy simulation) or
+    ``cuda`` (the same functions as torch on the GPU, float64, the networks float32; each iteration one CUDA graph,
+    the random numbers drawn on the GPU, so equal to the CPU's runs in distribution, not bit for bit). Runs of SB3's
+    loop (SAC, PPO, the shield, the on-ramp, several agents) train on the CPU."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
 

@@ -26,6 +26,7 @@ import json
 import os
 import pickle
 import shlex
+import shutil
 import signal
 import sys
 import time
@@ -36,10 +37,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError, OperatingSystemError, RunError, os_error_message
 from lanefree_sumo.experiments.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import (
+    BATCH_CHECKPOINTS,
     BATCH_FILE,
     RunDir,
     append_command,
@@ -47,20 +49,19 @@ from lanefree_sumo.experiments.rundir import (
     record_session,
     write_config,
 )
-from lanefree_sumo.experiments.train import _Stop, check_episode_rows, new_run_folder, versions
+from lanefree_sumo.experiments.session import Stop, check_episode_rows, new_run_folder, versions
 
-BATCH_CHECKPOINTS = "batch_checkpoints"
 KEEP_BATCH_CHECKPOINTS = 2
 
 
-def check_batchable(cfg: LaneFreeConfig) -> None:
-    """ConfigError (one line) for a run the batched path cannot train."""
+def batch_refusal(cfg: LaneFreeConfig) -> str | None:
+    """What of ``cfg`` the batched path cannot train (one phrase, e.g. ``the safety shield (--shield)``), or None
+    when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer."""
     from lanefree_sumo.rl.algorithms import BATCHED
     from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
 
     if cfg.train.algo not in BATCHED:
-        raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {cfg.train.algo}; "
-                          "train it with --seed (one run)")
+        return f"the {cfg.train.algo} algorithm (--algo)"
     for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
                         (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
@@ -70,7 +71,20 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
                         (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),
                         (cfg.train.overlap, "--overlap")):
         if wrong:
-            raise ConfigError(f"batched training does not support {what}; train such runs with --seed (one run)")
+            return what
+    return None
+
+
+def check_batchable(cfg: LaneFreeConfig) -> None:
+    """ConfigError (one line) for a run the batched path cannot train."""
+    from lanefree_sumo.rl.algorithms import BATCHED
+
+    if cfg.train.algo not in BATCHED:
+        raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {cfg.train.algo}; "
+                          "train it with --seed (one run)")
+    why = batch_refusal(cfg)
+    if why is not None:
+        raise ConfigError(f"batched training does not support {why}; train such runs with --seed (one run)")
     from lanefree_sumo.rl.models import check_trainable
 
     check_trainable(cfg)  # the single run's check: what one run refuses, a batch refuses
@@ -132,6 +146,8 @@ class _Batch:
         self._ended = np.zeros(self.runs, dtype=bool)
         self._boards: list[_Board] = []
         """Each run's TensorBoard log (:class:`_Board`), for the length of :meth:`run`."""
+        self.interrupted = False
+        """Whether :meth:`run` ended on Ctrl-C or SIGTERM."""
 
     # -- checkpoints ------------------------------------------------------------------------------------
     def save(self, env: Any, learner: Any, obs: Any, books: _Books, loop: Any = None) -> Path:
@@ -168,15 +184,30 @@ class _Batch:
             old.unlink(missing_ok=True)
         return path
 
+    def _save_final(self, env: Any, learner: Any, obs: Any, books: _Books, loop: Any) -> None:
+        """The finished single run's last batch checkpoint, from which ``--episodes N`` extends it. The run is
+        complete without it: a failure to write it is said in one line, and the run stands."""
+        try:
+            self.save(env, learner, obs, books, loop)
+        except OperatingSystemError as exc:
+            reason = str(exc).split("; ", 1)[0]
+            print(f"{self.batch_dir}: finished (model.zip), but {reason}; extending it with --episodes N needs that "
+                  "checkpoint", file=sys.stderr)
+
     def newest(self) -> Path:
         found = sorted((self.batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt"))
+        if not found and self.folders == [RunDir(self.batch_dir)]:
+            raise RunError(f"{self.batch_dir} has no usable checkpoint under {BATCH_CHECKPOINTS}/ (it never reached "
+                           f"its first); start it afresh with 'lanefree train … --out {self.batch_dir}' (no --resume)")
         if not found:
             raise RunError(f"{self.batch_dir} has no batch checkpoint under {BATCH_CHECKPOINTS}/ (it never reached "
                            "its first); start the batch afresh")
         return found[-1]
 
     # -- the loop ---------------------------------------------------------------------------------------
-    def run(self, resume: bool, progress: bool, command: str) -> list[tuple[Path, int]]:
+    def run(self, resume: bool, progress: bool, command: str, extend: int | None = None) -> list[tuple[Path, int]]:
+        """Train (``resume``: from the newest batch checkpoint) until every run has its episodes or a stop;
+        ``extend``: first raise the single run's target to that many episodes (:meth:`_extend`)."""
         import torch
         from tqdm import tqdm
 
@@ -202,6 +233,8 @@ class _Batch:
             for k, run in enumerate(self.folders):
                 check_episode_rows(run, books.done[k], cfgs[k].scenario.agents)  # a damaged file is said, not hidden
                 EpisodeLog.truncate(run.episodes, books.done[k], episode_columns(cfgs[k]))
+            if extend is not None:
+                obs = self._extend(extend, env, obs, books)
         else:
             env = BatchedRingEnv(cfgs, device=self.device)
             obs = env.reset()
@@ -214,9 +247,10 @@ class _Batch:
         for run in self.folders:
             append_command(run.path, command)
         names = [_seed_name(r.path) for r in self.folders]
-        bar = tqdm(total=sum(books.target), initial=sum(books.done), unit="ep", disable=not progress,
-                   desc=f"{cfgs[0].train.algo} x{self.runs}", dynamic_ncols=True, postfix=_bar_text(books, names))
-        stop = _Stop()
+        desc = cfgs[0].train.algo if self.runs == 1 else f"{cfgs[0].train.algo} x{self.runs}"
+        bar = tqdm(total=sum(books.target), initial=sum(books.done), unit="ep", disable=not progress, desc=desc,
+                   dynamic_ncols=True, postfix=_bar_text(books, names))
+        stop = Stop()
         previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
         t0 = time.perf_counter()
         try:
@@ -229,6 +263,8 @@ class _Batch:
                     bar.set_postfix_str(_bar_text(books, names))
                 if checkpoint or (stop.requested and any(books.active(k) for k in range(self.runs))):
                     self.save(env, learner, obs, books)
+            if self.runs == 1 and books.finished[0] and not books.stopped:
+                self._save_final(env, learner, obs if loop is None else loop.obs, books, loop)
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -238,6 +274,7 @@ class _Batch:
                 board.close()
             bar.close()
         wall = time.perf_counter() - t0
+        self.interrupted = stop.requested
         ended = datetime.now(timezone.utc).isoformat(timespec="seconds")
         for k, run in enumerate(self.folders):
             record_session(run.path, {
@@ -247,6 +284,25 @@ class _Batch:
                 "first_episode": first[k] + 1, "started": started, "ended": ended, "versions": session_versions,
                 "batch": {"folder": os.path.relpath(self.batch_dir, run.path), "run": k, "runs": self.runs}})
         return [(run.path, books.done[k]) for k, run in enumerate(self.folders)]
+
+    def _extend(self, target: int, env: Any, obs: Any, books: _Books) -> Any:
+        """Raise the single run's target to ``target`` episodes (its config says so from now on); a finished run
+        starts its next episode. Returns the observation to go on from. RunError for a target it has reached, or
+        for a finished run whose final batch checkpoint is missing (extending would retrain episodes)."""
+        run, done = self.folders[0], books.done[0]
+        if target <= done:
+            raise RunError(f"{run.path} already has {done} episodes; --episodes must exceed that")
+        if run.model.is_file() and not books.finished[0]:
+            raise RunError(f"{run.path} finished without a final checkpoint (newest: {done} episodes); extending it "
+                           "would retrain episodes: start a new run")
+        books.target[0] = target
+        self.cfgs[0] = merge_config(self.cfgs[0], {"train": {"episodes": target}})
+        write_config(run.path, self.cfgs[0])
+        if books.finished[0]:
+            books.finished[0] = False
+            env.stopped[0] = False
+            obs = env.reset([0])
+        return obs
 
     def _lockstep(self, env: Any, learner: Any, state: dict[str, Any] | None) -> Any:
         """The lockstep loop of this batch, or None (the exact loop)."""
@@ -390,13 +446,23 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
             if run.never_checkpointed():
                 run.clear()
             runs.append(run)
-        for cfg, run in zip(cfgs, runs):
-            write_config(run.path, cfg)
-            run.versions.write_text(json.dumps(versions(), indent=2) + "\n")
-        (batch_dir / BATCH_FILE).write_text(json.dumps(
-            {"runs": [os.path.relpath(r.path, batch_dir) for r in runs]}, indent=2) + "\n")
-        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device,
-                      lockstep).run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+        single = paths == [batch_dir]  # a single run, its own batch: nothing of it stays unless it learned
+        try:
+            for cfg, run in zip(cfgs, runs):
+                write_config(run.path, cfg)
+                run.versions.write_text(json.dumps(versions(), indent=2) + "\n")
+            (batch_dir / BATCH_FILE).write_text(json.dumps(
+                {"runs": [os.path.relpath(r.path, batch_dir) for r in runs]}, indent=2) + "\n")
+            batch = _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device, lockstep)
+            result = batch.run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+        except BaseException:
+            if single and not runs[0].has_checkpoint():
+                shutil.rmtree(batch_dir, ignore_errors=True)
+            raise
+        if single and batch.interrupted and not runs[0].has_checkpoint():
+            shutil.rmtree(batch_dir, ignore_errors=True)
+            raise KeyboardInterrupt  # stopped before its first checkpoint: nothing to resume
+        return result
     raise AssertionError("unreachable")
 
 
@@ -431,8 +497,8 @@ def check_batch_folder(batch_dir: Path, paths: list[Path]) -> None:
     if not batch_dir.is_dir():
         raise RunError(f"{batch_dir} exists and is not a folder; choose another --out")
     entries = sorted(p.name for p in batch_dir.iterdir())
-    if not entries:
-        return
+    if not entries or (paths == [batch_dir] and RunDir(batch_dir).never_checkpointed()):
+        return  # new, or a single run (its own batch) killed before its first checkpoint: it starts afresh
     listed = None
     if is_batch(batch_dir):
         try:
@@ -470,19 +536,37 @@ def batch_runs(paths: list[Path]) -> list[Path]:
 
 
 def is_batch(folder: Path) -> bool:
-    """Whether ``folder`` is a batch folder (holds ``batch.json``)."""
-    return (folder / BATCH_FILE).is_file()
+    """Whether ``folder`` is a batch folder of several runs (``lanefree train --seeds``: its ``batch.json`` lists
+    run folders below it); a single run trained as a batch of one (:func:`is_single_run`) is a run folder."""
+    return (folder / BATCH_FILE).is_file() and not is_single_run(folder)
+
+
+def is_single_run(folder: Path) -> bool:
+    """Whether ``folder`` is a run trained as a batch of one in its own folder (``lanefree train --seed``): its
+    ``batch.json`` lists the folder itself."""
+    try:
+        return json.loads((folder / BATCH_FILE).read_text()).get("runs") == ["."]
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = None,
-                 lockstep: bool | None = None) -> list[tuple[Path, int]]:
-    """Continue the batch in ``batch_dir`` from its newest batch checkpoint (the same episodes as uninterrupted)."""
+                 lockstep: bool | None = None, episodes: int | None = None) -> list[tuple[Path, int]]:
+    """Continue the batch in ``batch_dir`` from its newest batch checkpoint (the same episodes as uninterrupted).
+    ``episodes``: extend a single run (:func:`is_single_run`), finished or not, to that many episodes."""
     try:
         listed = json.loads((batch_dir / BATCH_FILE).read_text())["runs"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise RunError(f"{batch_dir / BATCH_FILE} is unusable ({exc}); it is not a batch folder") from None
     runs = [RunDir(batch_dir / p) for p in listed]
-    if all(run.model.is_file() for run in runs):
+    if episodes is not None and listed != ["."]:
+        raise RunError(f"{batch_dir} is a batch of {len(runs)} runs; a batch is not extended: train more episodes "
+                       "as a new batch")
+    if episodes is None and all(run.model.is_file() for run in runs):
+        if listed == ["."]:
+            have = runs[0].load_config().train.episodes
+            raise RunError(f"{batch_dir} is finished ({have} episodes); nothing to resume. To train it further pass "
+                           f"--episodes N with N > {have}")
         raise RunError(f"{batch_dir} is finished (every run has its model.zip); nothing to resume")
     with contextlib.ExitStack() as stack:
         stack.enter_context(claim(batch_dir, "train"))
@@ -491,5 +575,5 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
         for run in runs:
             stack.enter_context(run.writer_lock())
         return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]), lockstep).run(
-            True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
+            True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]), extend=episodes)
     raise AssertionError("unreachable")

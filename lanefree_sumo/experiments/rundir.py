@@ -45,7 +45,10 @@ from lanefree_sumo.errors import ConfigError, RunError
 
 CONFIG = "config.yaml"
 BATCH_FILE = "batch.json"
-"""A batch folder's list of its run folders (``lanefree train --seeds``, :mod:`~lanefree_sumo.experiments.batch`)."""
+"""A batch folder's list of its run folders (``lanefree train --seeds``, :mod:`~lanefree_sumo.experiments.batch`);
+a single run trained as a batch of one is its own batch folder (``{"runs": ["."]}``)."""
+BATCH_CHECKPOINTS = "batch_checkpoints"
+"""A batch folder's checkpoints of the whole batch (learners, replay, random streams, environment)."""
 COMMAND = "command.txt"
 VERSIONS = "versions.json"
 EPISODES = "episodes.csv"
@@ -106,7 +109,7 @@ def check_writable(path: Path, folder: bool = False) -> None:
 
 
 RUN_OWNED: tuple[str, ...] = (CONFIG, COMMAND, VERSIONS, EPISODES, MODEL, LAST_SESSION, SESSIONS, LOCK, CHECKPOINTS,
-                               TENSORBOARD)
+                               TENSORBOARD, BATCH_FILE, BATCH_CHECKPOINTS)
 """Top-level names in a run folder that only training writes."""
 
 

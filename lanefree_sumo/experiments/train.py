@@ -3,25 +3,26 @@ per-episode CSV, checkpoints, interruption and resume.
 
 The run folder layout is defined in :mod:`lanefree_sumo.experiments.rundir`.
 
-``resume`` continues from the newest checkpoint: model and replay buffer are restored,
-``episodes.csv`` is cut back to the checkpoint's episode count, and episode numbers continue.
+One trainer: a run the batched path trains (DDPG, TD3 and the DQN family, one agent on the ring, the numpy
+simulation: :func:`~lanefree_sumo.experiments.batch.batch_refusal`) is a batch of one in its own folder
+(:func:`~lanefree_sumo.experiments.batch.train_batch`); its resume continues the whole state (learner, replay,
+random streams, environment) and gives the uninterrupted run's episodes bit for bit, and ``--episodes N``
+extends it the same way. Every other run (SAC, PPO; the shield, the on-ramp, several agents, several environments,
+the SUMO backends) trains in SB3's loop below: ``resume`` continues from the newest checkpoint (model and replay
+buffer restored, ``episodes.csv`` cut back to the checkpoint's episode count, episode numbers continued).
 Episode k's traffic seed depends only on the run's seed and k (:func:`~lanefree_sumo.rl.models.episode_seed`;
 with several environments, on the environment too), so a resumed one-environment run sees the traffic an
-uninterrupted one sees; the exploration noise state and the
-torch/numpy random streams are not checkpointed: a resumed run is a valid continuation, not a
-bit-identical replay of an uninterrupted one.
+uninterrupted one sees; SB3's exploration noise state and the torch/numpy random streams are not checkpointed:
+there, a resumed run is a valid continuation, not a bit-identical replay of an uninterrupted one.
 """
 
 from __future__ import annotations
 
 import contextlib
-import itertools
 import json
-import platform
 import shlex
 import shutil
 import signal
-import subprocess
 import sys
 import time
 from datetime import datetime, timezone
@@ -34,79 +35,11 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.experiments.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
 from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
+from lanefree_sumo.experiments.session import Stop, check_episode_rows, new_run_folder, versions
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.env import resolve_config
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import check_fits
-
-# -- provenance ----------------------------------------------------------------------------------
-
-def numpy_simd() -> str:
-    """The SIMD kernel tiers numpy runs on (its baseline and the dispatched ones in use, as
-    ``numpy.show_runtime`` lists them), e.g. ``X86_V2 X86_V3``; ``unknown`` if numpy does not say."""
-    try:
-        from numpy._core._multiarray_umath import (
-            __cpu_baseline__,
-            __cpu_dispatch__,
-            __cpu_features__,
-        )
-    except ImportError:
-        return "unknown"
-    return " ".join([*__cpu_baseline__, *(f for f in __cpu_dispatch__ if __cpu_features__.get(f))])
-
-
-def cpu_model() -> str:
-    """The processor's model name (``/proc/cpuinfo``; elsewhere what :mod:`platform` says), e.g. ``AMD EPYC 9B14``:
-    torch's BLAS picks its code paths per CPU model and vendor, so a run's later episodes repeat bit for bit only
-    on a like CPU (docs/training.md)."""
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine() or "unknown"
-
-
-def versions() -> dict[str, str]:
-    """Versions of everything that shapes a result, with the SIMD kernels numpy and torch run on (they round
-    differently from one CPU generation to the next: :mod:`lanefree_sumo.numerics`) and the CPU's model."""
-    import gymnasium
-    import stable_baselines3
-    import torch
-
-    try:  # a machine that trains on the numpy simulation or a GPU may have no SUMO
-        from lanefree_sumo.sim.backends.sumo import sumo_version
-
-        sumo = sumo_version()
-    except ImportError:
-        sumo = "not installed"
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False,
-            cwd=Path(__file__).resolve().parent,
-        ).stdout.strip()
-    except OSError:
-        commit = ""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        package = version("lanefree_sumo")
-    except PackageNotFoundError:  # run from a source tree on PYTHONPATH
-        package = "not installed (source tree)"
-
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "stable_baselines3": stable_baselines3.__version__,
-        "gymnasium": gymnasium.__version__,
-        "numpy": np.__version__,
-        "numpy_simd": numpy_simd(),
-        "torch_cpu": torch.backends.cpu.get_cpu_capability(),
-        "cpu": cpu_model(),
-        "sumo": sumo,
-        "lanefree_sumo": package,
-        "git_commit": commit or "unknown",
-    }
-
 
 # -- episode log and checkpoints ------------------------------------------------------------------
 
@@ -130,19 +63,7 @@ def save_checkpoint(model: Any, run: RunDir, episodes: int, algo: str) -> Path:
 
 # -- the training loop ----------------------------------------------------------------------------
 
-class _Stop:
-    """Set by SIGINT/SIGTERM; the callback ends learning at the next step."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self.signal_name = ""
-
-    def __call__(self, signum: int, _frame: Any) -> None:
-        self.requested = True
-        self.signal_name = signal.Signals(signum).name
-
-
-def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int, stop: _Stop, progress: bool) -> Any:
+def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int, stop: Stop, progress: bool) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
     from tqdm import tqdm
 
@@ -191,34 +112,6 @@ def _make_callback(run: RunDir, cfg: LaneFreeConfig, log: EpisodeLog, done: int,
     return EpisodeCallback()
 
 
-def run_name(cfg: LaneFreeConfig) -> str:
-    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    agents = f"_k{cfg.scenario.agents}" if cfg.scenario.agents > 1 else ""
-    road = "_onramp" if cfg.road.kind == "onramp" else ""
-    return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}{road}_d{cfg.scenario.density_veh_per_km:g}{agents}"
-            f"_s{cfg.seed}{'_shield' if cfg.shield.enabled else ''}")
-
-
-def new_run_folder(cfg: LaneFreeConfig, run: Path | None) -> Path:
-    """Create the run folder atomically: ``run`` (refused if it holds anything but a new run that never reached
-    its first checkpoint, :meth:`RunDir.never_checkpointed`, which the caller clears under the writer lock), else a
-    fresh ``runs/<date-time>_...`` (``-2``, ``-3``, … when two runs start in the same second)."""
-    if run is not None:
-        if run.exists() and (not run.is_dir() or any(run.iterdir())) and not RunDir(run).never_checkpointed():
-            raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
-        run.mkdir(parents=True, exist_ok=True)
-        return run
-    base = Path("runs") / run_name(cfg)
-    for k in itertools.count(1):
-        candidate = base if k == 1 else base.with_name(f"{base.name}-{k}")
-        try:
-            candidate.mkdir(parents=True)
-            return candidate
-        except FileExistsError:
-            continue
-    raise AssertionError("unreachable")
-
-
 def _resume_point(folder: RunDir, cfg: LaneFreeConfig, episodes: int | None) -> tuple[Checkpoint, int]:
     """The checkpoint to continue from and the episode target; refuses what would lose episodes."""
     have = cfg.train.episodes
@@ -236,16 +129,6 @@ def _resume_point(folder: RunDir, cfg: LaneFreeConfig, episodes: int | None) -> 
     if target <= ckpt.episodes:
         raise RunError(f"{folder.path} already has {ckpt.episodes} episodes; --episodes must exceed that")
     return ckpt, target
-
-
-def check_episode_rows(folder: RunDir, done: int, agents: int) -> None:
-    """Refuse to continue a run whose ``episodes.csv`` lacks rows of the checkpoint's episodes (or holds one
-    twice): continuing would hide the gap in every report."""
-    missing = EpisodeLog.missing(folder.episodes, done, agents)
-    if missing:
-        span = f"{missing[0]}" if len(missing) == 1 else f"{missing[0]}–{missing[-1]} ({len(missing)} episodes)"
-        raise RunError(f"{folder.episodes} does not hold episode {span} of the {done} its newest checkpoint "
-                       "has learned (once each); restore the file, or start the run again")
 
 
 def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any, folder: RunDir) -> Any:
@@ -274,13 +157,36 @@ def train(
     command: str | None = None,
     episodes: int | None = None,
 ) -> tuple[Path, int]:
-    """Train (or resume) a run; return (run folder, episodes done).  Ctrl-C/SIGTERM save a
+    """Train (or resume) a run; return (run folder, episodes done): as a batch of one when the batched path
+    trains it (module docstring), else in SB3's loop.  Ctrl-C/SIGTERM save a
     checkpoint and return early.  ``resume`` with ``episodes`` extends a run (finished or not)
     to that many episodes; a finished run is never resumed without it.  A new run that fails
     before its first checkpoint (an error such as a full disk, Ctrl-C or SIGTERM) leaves no folder behind, and one
     killed outright there is started afresh by the next start into its folder, so the same command can simply be run
     again.  The process holds the run's writer lock
     (:meth:`RunDir.writer_lock`) throughout: a second training of the same folder is refused."""
+    from lanefree_sumo.experiments.batch import (
+        batch_refusal,
+        check_batchable,
+        is_single_run,
+        resume_batch,
+        train_batch,
+    )
+
+    command = command or shlex.join(["lanefree", *sys.argv[1:]])
+    if resume and run is not None and is_single_run(run):
+        return resume_batch(run, progress, command, episodes=episodes)[0]
+    if not resume:
+        cfg = training_config(cfg)
+        why = batch_refusal(cfg)
+        if why is None:  # one trainer: a single run is a batch of one, in its own folder
+            check_batchable(cfg)
+            check_fits(cfg)  # before the folder is made
+            path = new_run_folder(cfg, run)
+            return train_batch([cfg], path, [path], progress, command)[0]
+        if cfg.train.device != "cpu":
+            raise ConfigError(f"train.device = {cfg.train.device} trains on the batched path, which does not "
+                              f"support {why}; leave --device out to train this run on the CPU")
     with contextlib.ExitStack() as stack:
         created = False
         if resume:
@@ -292,10 +198,6 @@ def train(
             ckpt, target = _resume_point(folder, cfg, episodes)
             timesteps = ckpt.timesteps
         else:
-            cfg = training_config(cfg)
-            if cfg.train.device != "cpu":
-                raise ConfigError(f"train.device = {cfg.train.device} is for batches; train on the GPU with --seeds "
-                                  "(one seed or several), or leave --device out for one run on the CPU")
             check_fits(cfg)  # the density fits, before anything is written
             run = new_run_folder(cfg, run)
             folder = RunDir(run)
@@ -308,8 +210,7 @@ def train(
             if created:
                 write_config(run, cfg)
                 folder.versions.write_text(json.dumps(versions(), indent=2) + "\n")
-            return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress,
-                                  command or shlex.join(["lanefree", *sys.argv[1:]]))
+            return _train_session(cfg, folder, ckpt if resume else None, timesteps, target, progress, command)
         except BaseException:
             if created and not folder.has_checkpoint():  # nothing to resume (also a first checkpoint that failed)
                 shutil.rmtree(run, ignore_errors=True)
@@ -330,7 +231,7 @@ def _train_session(cfg: LaneFreeConfig, folder: RunDir, ckpt: Checkpoint | None,
     algo = cfg.train.algo
     spec = get_algorithm(algo)
     env = make_vec_env(cfg, done)
-    stop = _Stop()
+    stop = Stop()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     log: EpisodeLog | None = None
     try:

@@ -11,7 +11,8 @@ machine noise hits both alike.  Timings are not tests: the numbers are for readi
 Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's update and the fast one,
 against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved, and
 :func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
-(``--training-only`` runs just these sections, ``--dqn-only`` the last), and :func:`batch_speed`: runs per
+(``--training-only`` runs just these sections, ``--dqn-only`` the last), :func:`single_run_speed`: one run in
+SB3's loop against one run as a batch of one (``--single-only``), and :func:`batch_speed`: runs per
 core-hour of sequential runs against batches of K runs in one process, then :func:`set_update_speed`: the set
 observation's update, sequential against batched (``--batch-only``), and :func:`vector_speed`: the vector entry
 point against gymnasium's SyncVectorEnv and the cost of a frame (``--vector-only``). ``--gpu``: the
@@ -423,6 +424,35 @@ def batched_rate(algo: str, runs: int, seed: int, steps: int, density: float = P
     return rate, replay / runs
 
 
+def single_run_speed(seed: int, steps: int = 800, repeats: int = REPEATS) -> str:
+    """Markdown: env steps/s of one run of DDPG and of DQN (the paper's settings at 90 veh/km, one thread) along
+    the two single-run paths, measured ``repeats`` times interleaved (medians): SB3's loop with the written-out
+    update and the lean loop (the single run's path before the one trainer; today SAC's and PPO's loop, and the
+    shield's, the on-ramp's, …) and a batch of one (``lanefree train`` for every batchable run)."""
+    cases: dict[tuple[str, str], Callable[[], float]] = {}
+    for algo in ("ddpg", "dqn"):
+        cases[(algo, "sb3")] = functools.partial(training_rate, algo, seed, steps=steps)
+        cases[(algo, "one")] = functools.partial(lambda a: batched_rate(a, 1, seed, steps)[0], algo)
+    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
+    for _ in range(repeats):
+        for case, measure in cases.items():
+            samples[case].append(measure())
+            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
+    rate = {case: statistics.median(v) for case, v in samples.items()}
+    lines = [
+        f"One run, the two paths (paper settings, {PEER_DENSITY:g} veh/km, one thread; {steps} steps timed after "
+        f"learning starts; median of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on "
+        f"{os.cpu_count()} cores at the end), env steps/s:",
+        "",
+        "| algorithm | SB3's loop, written-out update, lean loop (before) | a batch of one (`lanefree train`) | × |",
+        "|---|---|---|---|",
+    ]
+    for algo in ("ddpg", "dqn"):
+        before, now = rate[(algo, "sb3")], rate[(algo, "one")]
+        lines.append(f"| {algo} | {before:.1f} | {now:.1f} | {now / before:.2f}× |")
+    return "\n".join(lines)
+
+
 def batch_speed(seed: int, steps: int = 800) -> str:
     """Markdown: runs per core-hour of sequential ``lanefree train`` against batches of K runs (one process, one
     thread each, measured one after another in this run), DDPG and DQN, and the replay memory per run."""
@@ -437,7 +467,7 @@ def batch_speed(seed: int, steps: int = 800) -> str:
     for algo in ("ddpg", "dqn"):
         sequential = training_rate(algo, seed, steps=steps)
         base = sequential * 3600 / PAPER_RUN_STEPS
-        lines.append(f"| {algo} | sequential `lanefree train` | {sequential:.0f} | {base:.2f} | 1.00× | |")
+        lines.append(f"| {algo} | one run in SB3's loop (fast update) | {sequential:.0f} | {base:.2f} | 1.00× | |")
         for k in BATCH_SIZES:
             rate, replay = batched_rate(algo, k, seed, steps)
             per_hour = k * rate * 3600 / PAPER_RUN_STEPS
@@ -618,7 +648,8 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         rate = training_rate(algo, seed)
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
-    lines += ["", vector_speed(), "", training_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
+    lines += ["", vector_speed(), "", training_speed(seed),
+              "", single_run_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -659,6 +690,8 @@ def main() -> None:
                         help="only the vector environments and the cost of a frame (--steps per row)")
     parser.add_argument("--batch-only", action="store_true",
                         help="only the batched-training section (sequential against batches of 1, 4, 8, 16 runs)")
+    parser.add_argument("--single-only", action="store_true",
+                        help="only one run's two paths: SB3's loop (fast update) against a batch of one")
     gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
     gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
     gpu.add_argument("--device", default="cuda", help="torch device of --gpu (default cuda; cpu runs it on the CPU)")
@@ -686,7 +719,11 @@ def main() -> None:
             raise SystemExit(f"error: {exc}") from None
     elif args.vector_only:
         print(vector_speed(steps=args.steps))
+    elif args.single_only:
+        print(single_run_speed(args.seed, steps=args.steps))
     elif args.batch_only:
+        print(single_run_speed(args.seed, steps=args.steps))
+        print()
         print(batch_speed(args.seed, steps=args.steps))
         print()
         print(set_update_speed(args.seed))

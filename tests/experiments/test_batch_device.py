@@ -52,10 +52,14 @@ def test_cuda_without_a_gpu_is_one_line_and_a_nonzero_exit(tmp_path: Path, capsy
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1 and "cuda" in err and "--device cpu" in err
     assert not (tmp_path / "b").exists()  # refused before anything was written
-    code = main(["train", "--seed", "0", "--device", "cuda", "--out", str(tmp_path / "one")])
+    code = main(["train", "--seed", "0", "--device", "cuda", "--out", str(tmp_path / "one")])  # a batch of one
     err = capsys.readouterr().err.strip()
-    assert code != 0 and len(err.splitlines()) == 1 and "--seeds" in err
+    assert code != 0 and len(err.splitlines()) == 1 and "cuda" in err and "--device cpu" in err
     assert not (tmp_path / "one").exists()
+    code = main(["train", "--algo", "sac", "--device", "cuda", "--out", str(tmp_path / "sac")])  # SB3's loop
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1 and "does not support the sac algorithm" in err
+    assert not (tmp_path / "sac").exists()
 
 
 

@@ -13,6 +13,7 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -21,16 +22,17 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import LaneFreeError, RunError
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, RunDir, fresh_output, read_config, write_config
-from lanefree_sumo.experiments.train import new_run_folder, train
+from lanefree_sumo.experiments.session import new_run_folder
+from lanefree_sumo.experiments.train import train
 
 from conftest import CLI_ENV, TINY_TRAINING, lanefree, lanefree_popen, wait_for
 
 pytestmark = pytest.mark.sumo
 
 
-def tiny(episodes: int = 2, **extra) -> LaneFreeConfig:
-    """A DQN run of ``episodes`` episodes of 100 steps."""
-    train_cfg = {**TINY_TRAINING["train"], "algo": "dqn", "episodes": episodes}
+def tiny(episodes: int = 2, algo: str = "dqn", **extra) -> LaneFreeConfig:
+    """A run of ``episodes`` episodes of 100 steps (DQN: a batch of one; SAC: SB3's loop)."""
+    train_cfg = {**TINY_TRAINING["train"], "algo": algo, "episodes": episodes}
     return merge_config(LaneFreeConfig(), {**TINY_TRAINING, **extra, "train": train_cfg})
 
 
@@ -122,13 +124,20 @@ def test_overwrite_that_fails_keeps_the_previous_output(tmp_path):
 # -- 4. a corrupt checkpoint is found before episodes.csv is cut ------------------------------------
 
 @pytest.mark.slow
-def test_resume_with_a_corrupt_checkpoint_cuts_nothing(tmp_path):
-    run, _ = train(tiny(episodes=3), run=tmp_path / "run", progress=False)
+@pytest.mark.parametrize(("algo", "said"), [("dqn", "batch checkpoint .* is unusable"), ("sac", "is corrupt")])
+def test_resume_with_a_corrupt_checkpoint_cuts_nothing(tmp_path, algo, said):
+    """A batch of one (dqn) resumes from its batch checkpoint, SB3's loop (sac) from the checkpoint's model.zip:
+    either damaged, the error names it and episodes.csv is as it was."""
+    run, _ = train(tiny(episodes=3, algo=algo), run=tmp_path / "run", progress=False)
     (run / "model.zip").unlink()  # as if interrupted after episode 3 ...
-    newest = sorted((run / "checkpoints").glob("ep_*"))[-1]
-    (newest / "model.zip").write_bytes(b"garbage")  # ... with a damaged newest checkpoint
+    if algo == "dqn":
+        newest = sorted((run / "batch_checkpoints").glob("step_*.pt"))[-1]
+        newest.write_bytes(b"garbage")  # ... with a damaged newest checkpoint
+    else:
+        newest = sorted((run / "checkpoints").glob("ep_*"))[-1]
+        (newest / "model.zip").write_bytes(b"garbage")
     rows = (run / "episodes.csv").read_bytes()
-    with pytest.raises(RunError, match="is corrupt"):
+    with pytest.raises(RunError, match=said):
         train(LaneFreeConfig(), run=run, resume=True, progress=False, episodes=5)
     assert (run / "episodes.csv").read_bytes() == rows
 
@@ -404,8 +413,34 @@ def test_a_new_run_whose_first_checkpoint_fails_leaves_nothing(tmp_path, monkeyp
     monkeypatch.setattr(train_module, "save_checkpoint", full_disk)
     run = tmp_path / "run"
     with pytest.raises(OSError, match="No space left"):
-        train(tiny(episodes=1), run=run, progress=False)
+        train(tiny(episodes=1, algo="sac"), run=run, progress=False)
     assert not run.exists()
     monkeypatch.setattr(train_module, "save_checkpoint", real)
-    _, done = train(tiny(episodes=1), run=run, progress=False)
+    _, done = train(tiny(episodes=1, algo="sac"), run=run, progress=False)
     assert done == 1
+
+
+@pytest.mark.slow
+def test_a_batch_of_one_whose_first_checkpoint_fails_leaves_nothing(tmp_path, monkeypatch):
+    """The same for a single run trained as a batch of one: the disk fills while its first batch checkpoint is
+    written (after episode 1 of 2); one line says so, and no folder is left to block the same command."""
+    import torch
+
+    from lanefree_sumo.errors import OperatingSystemError
+
+    save = torch.save
+
+    def full_disk(obj: Any, path: Any, *args: Any, **kwargs: Any) -> None:
+        if not str(path).endswith(".pt.tmp"):  # a model.zip's parts, written by SB3
+            return save(obj, path, *args, **kwargs)
+        Path(path).write_bytes(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    run = tmp_path / "run"
+    with pytest.raises(OperatingSystemError, match=r"could not write the batch checkpoint .*No space left") as err:
+        train(tiny(episodes=2), run=run, progress=False)
+    assert "\n" not in str(err.value) and not run.exists()
+    monkeypatch.undo()
+    _, done = train(tiny(episodes=2), run=run, progress=False)
+    assert done == 2

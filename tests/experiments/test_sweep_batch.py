@@ -270,8 +270,11 @@ def test_a_batched_sweep_writes_the_run_folders_of_a_sequential_sweep(tmp_path):
         a, b = batched / "runs" / name, sequential / "runs" / name
         assert rows(a / "episodes.csv") == rows(b / "episodes.csv") and len(rows(a / "episodes.csv")) == 2
         assert (a / "config.yaml").read_text() == (b / "config.yaml").read_text()
-        # the same files, a TensorBoard log in each (the batch's under tb/batch)
-        assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+        # the same files, a TensorBoard log in each (the batch's under tb/batch); a run of its own is its own batch
+        # (batch.json, batch_checkpoints/), a batched run's batch files are the batch folder's
+        assert sorted(p.name for p in a.iterdir()) == sorted(
+            p.name for p in b.iterdir() if p.name not in ("batch.json", "batch_checkpoints"))
+        assert (b / "batch.json").is_file() and not (a / "batch.json").exists()
         assert list((a / "tb" / "batch").glob("events.out.tfevents.*"))
     summary = [{k: v for k, v in r.items() if "wall" not in k} for r in csv.DictReader(open(batched / "summary.csv"))]
     assert summary == [{k: v for k, v in r.items() if "wall" not in k}

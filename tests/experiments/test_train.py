@@ -14,6 +14,7 @@ import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
+from lanefree_sumo.experiments.batch import is_single_run
 from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.evaluate import evaluate
 from lanefree_sumo.experiments.train import train
@@ -52,13 +53,15 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
     assert {"python", "torch", "stable_baselines3", "sumo", "lanefree_sumo", "git_commit"} <= set(versions)
     ckpt = run / "checkpoints" / "ep_00001"
     assert (ckpt / "model.zip").is_file() and (ckpt / "state.json").is_file()
-    assert (ckpt / "replay_buffer.pkl").is_file() == (algo != "ppo")
-    model = get_algorithm(algo).cls.load(run / "model.zip", device="cpu")
+    spec = get_algorithm(algo)
+    # the batchable algorithms train as a batch of one: the replay buffer is in the batch checkpoint, and the
+    # run folder is its own batch; SB3's (sac) keeps it beside each checkpoint's model
+    assert (ckpt / "replay_buffer.pkl").is_file() == (spec.off_policy and not spec.batched)
+    assert is_single_run(run) == spec.batched
+    assert any((run / "batch_checkpoints").glob("step_*.pt")) == spec.batched
+    model = spec.cls.load(run / "model.zip", device="cpu")
     if algo == "dueling":
         assert type(model.q_net).__name__ == "DuelingQNetwork"
-    if algo == "per":
-        model.load_replay_buffer(ckpt / "replay_buffer.pkl")
-        assert type(model.replay_buffer).__name__ == "PrioritizedReplayBuffer"
     if algo == "ddqn":
         assert type(model).__name__ == "DoubleDQN"
 
@@ -146,7 +149,7 @@ def test_evaluate_a_saved_model_with_recording(tmp_path):
 
 
 def test_broken_checkpoints_give_clear_errors(tmp_path):
-    run, _ = train(tiny_config("dqn"), run=tmp_path / "run", progress=False)
+    run, _ = train(tiny_config("sac"), run=tmp_path / "run", progress=False)  # SB3's loop: checkpoints/ep_N
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     (run / "checkpoints" / "ep_00002" / "model.zip").write_bytes(b"not a zip")
     with pytest.raises(RunError, match="is corrupt"):
@@ -178,7 +181,7 @@ def test_parallel_environments_in_separate_processes(tmp_path):
     assert len({r["seed"] for r in table}) == 4
 
 
-@pytest.mark.parametrize("state", ["config.yaml", "tb"])
+@pytest.mark.parametrize("state", ["config.yaml", "command.txt"])
 def test_a_new_run_stopped_before_its_first_episode_leaves_nothing_behind(tmp_path, state):
     """SIGTERM (as Ctrl-C) while the run folder is being set up, or while the first (long) episode runs: exit
     130, no folder left, and the same command then simply runs."""
@@ -220,3 +223,40 @@ def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_
     log.write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 3])
     with pytest.raises(RunError, match="does not hold episode 4 of the 4"):
         train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
+
+
+def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path, monkeypatch):
+    """One trainer: a single DDPG run is a batch of one in its own folder, so SIGTERM in the middle of episode 2
+    and --resume, and a finished 2-episode run extended with --episodes 3, give the uninterrupted 3-episode run's
+    episodes.csv (every column but wall time) and TensorBoard events in the run folder."""
+    import os
+
+    from lanefree_sumo.experiments import batch
+
+    def table(run: Path) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]
+
+    cfg = merge_config(tiny_config("ddpg"), {"train": {"episodes": 3}})
+    whole, done = train(cfg, run=tmp_path / "whole", progress=False, command="test")
+    assert done == 3 and any((whole / "tb").rglob("events.out.tfevents*"))
+    step = batch._Batch._step
+
+    def interrupted(self, env, learner, *args):
+        checkpoint = step(self, env, learner, *args)
+        if learner.num_timesteps == 150:  # half way through episode 2, after episode 1's checkpoint
+            os.kill(os.getpid(), signal.SIGTERM)
+        return checkpoint
+
+    monkeypatch.setattr(batch._Batch, "_step", interrupted)
+    cut, done = train(cfg, run=tmp_path / "cut", progress=False, command="test")
+    monkeypatch.undo()
+    assert done == 1 and not (cut / "model.zip").exists()
+    assert train(LaneFreeConfig(), run=cut, resume=True, progress=False, command="test") == (cut, 3)
+    assert table(cut) == table(whole)
+
+    short, _ = train(merge_config(cfg, {"train": {"episodes": 2}}), run=tmp_path / "short", progress=False)
+    with pytest.raises(RunError, match="is finished .*--episodes N with N > 2"):
+        train(LaneFreeConfig(), run=short, resume=True, progress=False)
+    assert train(LaneFreeConfig(), run=short, resume=True, episodes=3, progress=False) == (short, 3)
+    assert table(short) == table(whole) and yaml.safe_load((short / "config.yaml").read_text())["train"][
+        "episodes"] == 3

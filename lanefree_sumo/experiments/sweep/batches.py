@@ -137,15 +137,18 @@ def members(folder: Path) -> list[str]:
 
 
 def has_checkpoint(folder: Path) -> bool:
-    from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS
+    from lanefree_sumo.experiments.rundir import BATCH_CHECKPOINTS
 
     return any((folder / BATCH_CHECKPOINTS).glob("step_*.pt"))
 
 
 def trained_in_batch(run: Path) -> bool:
-    """Whether run folder ``run``'s last session was a batch's."""
+    """Whether run folder ``run``'s last session was a batch's of several runs (a single run trained as a batch of
+    one, :func:`~lanefree_sumo.experiments.batch.is_single_run`, is extended as a run is)."""
+    from lanefree_sumo.experiments.batch import is_single_run
+
     try:
-        return "batch" in json.loads((run / "last_session.json").read_text())
+        return "batch" in json.loads((run / "last_session.json").read_text()) and not is_single_run(run)
     except (OSError, ValueError, TypeError):
         return False
 
@@ -277,7 +280,7 @@ def run_batch(out: str, batch: str, runs: list[str], configs: list[dict[str, Any
     """Ray task: train batch ``batch`` of sweep folder ``out`` (runs ``runs`` with configs ``configs``). Returns
     one :func:`~.worker.run_cell` result per run: ``complete``, ``interrupted``, ``failed`` (a run stopped for a
     non-finite action, or the batch's error) or ``busy``."""
-    from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS
+    from lanefree_sumo.experiments.rundir import BATCH_CHECKPOINTS
     from lanefree_sumo.experiments.sweep.worker import _node_id, _redirect_output
 
     sweep = SweepDir(Path(out))
