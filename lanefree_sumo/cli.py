@@ -19,8 +19,8 @@ from typing import Any
 
 from lanefree_sumo.commands import config, evaluate, export, net, replay, report, simulate, train
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, OperatingSystemError, UsageError, os_error_message
-from lanefree_sumo.experiments import mixed_autonomy, rollout
-from lanefree_sumo.experiments.signals import sigterm_as_interrupt
+from lanefree_sumo.experiments.runners import mixed_autonomy, rollout
+from lanefree_sumo.experiments.runners.signals import sigterm_as_interrupt
 from lanefree_sumo.experiments.sweep import command as sweep_command
 
 EXIT_BAD_INPUT = 2

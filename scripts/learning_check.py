@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from lanefree_sumo.experiments.claims import difference_ci  # noqa: E402
+from lanefree_sumo.experiments.analysis.claims import difference_ci  # noqa: E402
 
 METRICS = ("collisions", "speed_dev_mps", "overtakes", "return")
 

@@ -24,8 +24,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from lanefree_sumo.config import merge_config  # noqa: E402
-from lanefree_sumo.experiments.evaluate import EVALUATION, load_model  # noqa: E402
-from lanefree_sumo.experiments.rundir import RunDir  # noqa: E402
+from lanefree_sumo.experiments.runners.evaluate import EVALUATION, load_model  # noqa: E402
+from lanefree_sumo.experiments.storage.rundir import RunDir  # noqa: E402
 from lanefree_sumo.rl.env import LaneFreeEnv  # noqa: E402
 
 TAIL_STEPS = 300

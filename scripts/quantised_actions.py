@@ -30,8 +30,8 @@ from typing import Any  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config  # noqa: E402
-from lanefree_sumo.experiments.evaluate import EVALUATION, load_model  # noqa: E402
-from lanefree_sumo.experiments.rundir import RunDir  # noqa: E402
+from lanefree_sumo.experiments.runners.evaluate import EVALUATION, load_model  # noqa: E402
+from lanefree_sumo.experiments.storage.rundir import RunDir  # noqa: E402
 from lanefree_sumo.rl.env import DISCRETE_ACTIONS, LaneFreeEnv, action_to_acceleration  # noqa: E402
 
 MODES = ("continuous", "nearest", "sigma-delta")

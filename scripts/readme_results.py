@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from lanefree_sumo.experiments.rundir import write_atomic
+from lanefree_sumo.experiments.storage.rundir import write_atomic
 from lanefree_sumo.experiments.sweep.summary import interval_text
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from lanefree_sumo.experiments.markdown import TABLE_BEGIN, TABLE_END
+from lanefree_sumo.experiments.analysis.markdown import TABLE_BEGIN, TABLE_END
 
 ROOT = Path(__file__).resolve().parent.parent
 """The repository root (the CLI runs from here)."""

@@ -77,7 +77,7 @@ def test_the_circle_finder_finds_a_circle():
 
 
 def test_evaluation_does_not_import_training():
-    assert "lanefree_sumo.experiments.train" not in _graph()["lanefree_sumo.experiments.evaluate"]
+    assert "lanefree_sumo.experiments.runners.train" not in _graph()["lanefree_sumo.experiments.runners.evaluate"]
 
 
 def test_the_scripts_use_public_names_only():
@@ -117,3 +117,21 @@ def test_the_algorithm_names_are_the_configs_and_the_registry_is_keyed_by_them()
     assert tuple(ALGORITHMS) == get_args(AlgorithmName)
     assert all(spec.name == name for name, spec in ALGORITHMS.items())
     assert not any(m.startswith("lanefree_sumo.rl") for m in _graph()["lanefree_sumo.config.schema"])
+
+
+def test_the_experiment_rooms_point_down():
+    """``experiments/`` by trade: storage imports no other room, analysis no runner and no sweep, a runner no
+    sweep (runners → analysis → storage; sweep → all three)."""
+    graph = _graph()
+    room = "lanefree_sumo.experiments."
+    allowed = {"storage": {"storage"}, "analysis": {"analysis", "storage"},
+               "runners": {"runners", "analysis", "storage"}}
+    seen = set()
+    for name, imports in graph.items():
+        mine = name.removeprefix(room).split(".")[0]
+        if not name.startswith(room) or mine not in allowed:
+            continue
+        seen.add(mine)
+        theirs = {m.removeprefix(room).split(".")[0] for m in imports if m.startswith(room)}
+        assert theirs <= allowed[mine], f"{name} imports from {sorted(theirs - allowed[mine])}"
+    assert seen == set(allowed)

@@ -52,7 +52,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def runs_of(folder: Path) -> list[Path] | None:
     """The run folders of a sweep folder (its ``runs/``) or a batch folder (its ``batch.json``), in order; None
     when ``folder`` is neither (a run folder, or a mistake the one-run path names)."""
-    from lanefree_sumo.experiments.batch import batch_runs, is_batch
+    from lanefree_sumo.experiments.runners.batch import batch_runs, is_batch
     from lanefree_sumo.experiments.sweep.manifest import MANIFEST
 
     if (folder / MANIFEST).is_file():
@@ -65,7 +65,7 @@ def runs_of(folder: Path) -> list[Path] | None:
 def _run_many(args: argparse.Namespace, runs: list[Path]) -> int:
     """``lanefree evaluate SWEEP|BATCH``: every finished run whose evaluation is missing or short, one summary
     line each, then the tally."""
-    from lanefree_sumo.experiments.evaluate import evaluate_many, summary_line
+    from lanefree_sumo.experiments.runners.evaluate import evaluate_many, summary_line
 
     if args.out is not None:
         raise UsageError(f"--out names one output folder; each run of {args.run} is evaluated into its own "
@@ -83,7 +83,7 @@ def _run_many(args: argparse.Namespace, runs: list[Path]) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree evaluate``: print the summary line; EXIT_INTERRUPTED when stopped early."""
-    from lanefree_sumo.experiments.evaluate import evaluate, summary_line
+    from lanefree_sumo.experiments.runners.evaluate import evaluate, summary_line
 
     many = runs_of(args.run)
     if many is not None:

@@ -32,8 +32,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree export``: write both files, never over a run's own."""
-    from lanefree_sumo.experiments.replay import load_recording, replay
-    from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, check_new_file, find_eval_dir, new_file, trajectory_path
+    from lanefree_sumo.experiments.runners.replay import load_recording, replay
+    from lanefree_sumo.experiments.storage.rundir import (
+        OUTPUT_MARKER,
+        check_new_file,
+        find_eval_dir,
+        new_file,
+        trajectory_path,
+    )
 
     load_recording(args.run, args.episode)  # a missing or damaged recording is said before any folder is made
     source = trajectory_path(find_eval_dir(args.run), args.episode)

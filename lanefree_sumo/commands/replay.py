@@ -53,7 +53,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree replay``: print the largest deviation from the recording."""
-    from lanefree_sumo.experiments.replay import replay, write_video
+    from lanefree_sumo.experiments.runners.replay import replay, write_video
 
     if args.video is not None:
         given = [name for name in GUI_ONLY if getattr(args, name) not in (None, False)]

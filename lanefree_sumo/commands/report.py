@@ -65,8 +65,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree report``: write the report and print its summary table."""
-    from lanefree_sumo.experiments.batch import batch_runs
-    from lanefree_sumo.experiments.report import report
+    from lanefree_sumo.experiments.analysis.report import report
+    from lanefree_sumo.experiments.runners.batch import batch_runs
     from lanefree_sumo.experiments.sweep.manifest import MANIFEST
 
     sources = _evaluation_names(args.eval)

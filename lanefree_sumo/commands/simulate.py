@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     """``lanefree simulate``: print the summary; EXIT_INTERRUPTED when stopped early."""
     cfg = verb_config(args, OPTIONS, GUI if args.gui else None)
     _check_road_options(args, cfg)
-    from lanefree_sumo.experiments.simulate import simulate
+    from lanefree_sumo.experiments.runners.simulate import simulate
 
     road = "" if cfg.road.kind == "ring" else f"{cfg.road.kind}-"  # a ring and an on-ramp run do not collide
     out = args.out or Path("runs") / f"sim-{road}d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"

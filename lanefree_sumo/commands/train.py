@@ -67,8 +67,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """``lanefree train``: train (or resume) and say how many episodes; EXIT_INTERRUPTED when stopped early."""
-    from lanefree_sumo.experiments.batch import is_batch
-    from lanefree_sumo.experiments.train import train
+    from lanefree_sumo.experiments.runners.batch import is_batch
+    from lanefree_sumo.experiments.runners.train import train
 
     if args.resume is not None and is_batch(args.resume):
         extra = ", ".join(sorted(args.given - {"--resume"}))
@@ -100,8 +100,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"stopped after {done}/{target} episodes; checkpoint saved. Resume with: lanefree train --resume {run}",
               file=sys.stderr)
         return EXIT_INTERRUPTED
-    from lanefree_sumo.experiments.markdown import count
-    from lanefree_sumo.experiments.rundir import read_sessions
+    from lanefree_sumo.experiments.analysis.markdown import count
+    from lanefree_sumo.experiments.storage.rundir import read_sessions
 
     sessions = read_sessions(run)  # this session's first episode: a resume trains the rest only
     now = done - int(sessions[-1].get("first_episode", 1)) + 1 if sessions else done
@@ -113,7 +113,7 @@ def _train_batch(args: argparse.Namespace, cfg: LaneFreeConfig) -> list[tuple[Pa
     """``lanefree train --seeds``: the seeds as one batch under ``--out``."""
     from datetime import datetime
 
-    from lanefree_sumo.experiments.batch import check_batchable, train_batch
+    from lanefree_sumo.experiments.runners.batch import check_batchable, train_batch
 
     if "--seed" in args.given or any(key == "seed" for key, _ in args.settings):
         given = "--seed" if "--seed" in args.given else "--set seed=…"
@@ -126,7 +126,7 @@ def _train_batch(args: argparse.Namespace, cfg: LaneFreeConfig) -> list[tuple[Pa
 
 
 def _resume_batch(folder: Path) -> list[tuple[Path, int]]:
-    from lanefree_sumo.experiments.batch import resume_batch
+    from lanefree_sumo.experiments.runners.batch import resume_batch
 
     return resume_batch(folder, command=command_line())
 
@@ -134,8 +134,8 @@ def _resume_batch(folder: Path) -> list[tuple[Path, int]]:
 def report_batch(results: list[tuple[Path, int]]) -> int:
     """Print each run's outcome; EXIT_INTERRUPTED when a run is short of its episodes by an interruption (a run
     stopped for a non-finite action is named with its reason: resuming would not continue it)."""
-    from lanefree_sumo.experiments.markdown import count
-    from lanefree_sumo.experiments.rundir import read_sessions
+    from lanefree_sumo.experiments.analysis.markdown import count
+    from lanefree_sumo.experiments.storage.rundir import read_sessions
 
     short = False
     for run, done in results:
@@ -151,6 +151,6 @@ def report_batch(results: list[tuple[Path, int]]) -> int:
 
 
 def _episodes_target(run: Path) -> int:
-    from lanefree_sumo.experiments.rundir import read_config
+    from lanefree_sumo.experiments.storage.rundir import read_config
 
     return read_config(run).train.episodes

@@ -17,10 +17,10 @@ end by the time limit only, all runs of a batch together (they share the episode
 host reads the books once (:meth:`Lockstep.take_flagged`, the env's books), resets the rings (spawning is host
 work) and :meth:`Lockstep.start` copies the new state into the iteration's buffers.
 
-What differs from the exact path (:mod:`lanefree_sumo.experiments.batch` on the CPU): run k draws from the device's
-generator, not from its own numpy streams, so it agrees with ``lanefree train --seed k`` in distribution, not bit
-for bit; prioritised replay keeps its priorities on the device (sampled through their running sum rather than the
-host's sum tree: the same distribution); ``episode.terminate_on_collision`` is not run here.
+What differs from the exact path (:mod:`lanefree_sumo.experiments.runners.batch` on the CPU): run k draws from the
+device's generator, not from its own numpy streams, so it agrees with ``lanefree train --seed k`` in distribution,
+not bit for bit; prioritised replay keeps its priorities on the device (sampled through their running sum rather than
+the host's sum tree: the same distribution); ``episode.terminate_on_collision`` is not run here.
 """
 
 from __future__ import annotations

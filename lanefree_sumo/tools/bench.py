@@ -405,7 +405,7 @@ PAPER_RUN_STEPS = 625 * 800
 
 def batched_rate(algo: str, runs: int, seed: int, steps: int, density: float = PEER_DENSITY) -> tuple[float, float]:
     """(batch steps/s, replay bytes per run) of ``runs`` runs of ``algo`` (the paper's settings, seeds ``seed`` …)
-    trained as one batch, as :mod:`lanefree_sumo.experiments.batch` trains them (act, env step, store, update),
+    trained as one batch, as :mod:`lanefree_sumo.experiments.runners.batch` trains them (act, env step, store, update),
     timed over ``steps`` steps once learning has started; one thread."""
     import torch
 

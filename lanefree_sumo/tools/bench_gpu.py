@@ -165,8 +165,8 @@ def compiled_drift(device: str, runs: int = 64, steps: int = 100, seed: int = 0,
 
 def lockstep_rate(env: Any, learner: Any, warm: int, steps: int, device: Any = None) -> float:
     """Lockstep iterations/s of a batched ``learner`` on its ``env`` (act, env step, store, update, reset the runs
-    whose episode ended, as :mod:`lanefree_sumo.experiments.batch` trains), timed over ``steps`` iterations after
-    ``warm`` untimed ones; ``device``: the torch device to wait for around the timing (None: the CPU, numpy)."""
+    whose episode ended, as :mod:`lanefree_sumo.experiments.runners.batch` trains), timed over ``steps`` iterations
+    after ``warm`` untimed ones; ``device``: the torch device to wait for around the timing (None: the CPU, numpy)."""
     obs = env.reset()
     t0 = 0.0
     for step in range(warm + steps):
@@ -200,7 +200,7 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
     """The benchmark's text (module docstring); each row is printed as soon as it is measured."""
     import torch
 
-    from lanefree_sumo.experiments.batch import check_device
+    from lanefree_sumo.experiments.runners.batch import check_device
 
     check_device(torch.device(device).type)
     import torch._dynamo

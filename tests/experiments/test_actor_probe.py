@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.actor_probe import feature_dependence, main, probe_markdown, probe_run
+from lanefree_sumo.experiments.analysis.actor_probe import feature_dependence, main, probe_markdown, probe_run
 
 from conftest import lanefree
 

@@ -14,9 +14,9 @@ import pytest
 
 from lanefree_sumo.commands.train import report_batch
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, batch_name, resume_batch, train_batch
-from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
-from lanefree_sumo.experiments.train import train
+from lanefree_sumo.experiments.runners.batch import BATCH_CHECKPOINTS, batch_name, resume_batch, train_batch
+from lanefree_sumo.experiments.runners.train import train
+from lanefree_sumo.experiments.storage.episodes import EPISODE_COLUMNS
 from lanefree_sumo.rl.algorithms import get_algorithm
 
 from conftest import lanefree_popen, wait_for
@@ -148,7 +148,7 @@ def test_a_stopped_batch_resumes_exactly_with_td3_and_the_set_observation(tmp_pa
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """SIGTERM in the middle of episode 2 (after the first batch checkpoint): --resume continues TD3's target-noise
     streams and the set observation's batch, and every run's episodes equal an uninterrupted batch's."""
-    from lanefree_sumo.experiments import batch
+    from lanefree_sumo.experiments.runners import batch
 
     extra = {"observation": {"kind": "set", "encoder": "paper"}} if obs == "set" else {}
     cfgs = [merge_config(small(algo, seed), extra) for seed in (0, 1)]

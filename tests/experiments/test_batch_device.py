@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from lanefree_sumo.cli import main
-from lanefree_sumo.experiments.batch import train_batch
+from lanefree_sumo.experiments.runners.batch import train_batch
 from lanefree_sumo.sim.xp_torch import numpy_transcendentals
 from tests.experiments.test_batch import rows, small
 

@@ -14,7 +14,7 @@ import pytest
 import torch as th
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, resume_batch, train_batch
+from lanefree_sumo.experiments.runners.batch import BATCH_CHECKPOINTS, resume_batch, train_batch
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.lockstep import Lockstep
 from tests.experiments.test_batch import rows

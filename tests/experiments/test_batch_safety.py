@@ -15,9 +15,9 @@ import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments import batch
-from lanefree_sumo.experiments.batch import resume_batch, train_batch
-from lanefree_sumo.experiments.rundir import claim
+from lanefree_sumo.experiments.runners import batch
+from lanefree_sumo.experiments.runners.batch import resume_batch, train_batch
+from lanefree_sumo.experiments.storage.rundir import claim
 from lanefree_sumo.rl.batched_env import BatchedRingEnv
 
 from conftest import lanefree
@@ -253,3 +253,27 @@ def test_a_finished_batch_gets_advice_that_leads_somewhere(tmp_path):
     status = lanefree("sweep", "--status", str(out), timeout=120)
     assert status.returncode != 0 and status.stderr.count("\n") == 1
     assert "is a 'lanefree train --seeds' batch, not a sweep folder" in status.stderr
+
+
+def test_books_load_from_a_dict_and_from_a_checkpoint_of_the_former_module_path(monkeypatch):
+    """A batch checkpoint keeps its books as a dict; one written while the batch module was
+    ``lanefree_sumo.experiments.batch`` (its pickled books name that module) still resumes."""
+    import dataclasses
+    import pickle
+    import sys
+    import types
+
+    from lanefree_sumo.experiments.runners.batch import _Books, _load_books
+
+    books = _Books(done=[3, 1], target=[5, 5], finished=[False, False], stopped={1: "not finite"}, steps=240)
+    assert _load_books(dataclasses.asdict(books)) == books
+    former = types.ModuleType("lanefree_sumo.experiments.batch")
+    old = dataclasses.make_dataclass("_Books", [(f.name, f.type) for f in dataclasses.fields(_Books)])
+    old.__module__ = former.__name__
+    former._Books = old
+    monkeypatch.setitem(sys.modules, former.__name__, former)
+    saved = pickle.dumps(old(**dataclasses.asdict(books)))
+    monkeypatch.delitem(sys.modules, former.__name__)
+    assert _load_books(saved) == books
+    with pytest.raises(TypeError, match="the books are a dict"):
+        _load_books(pickle.dumps({"done": [1]}))

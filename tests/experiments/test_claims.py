@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lanefree_sumo.experiments.claims import (
+from lanefree_sumo.experiments.analysis.claims import (
     AGAINST,
     COLUMNS,
     COMPARISONS,
@@ -34,9 +34,9 @@ from lanefree_sumo.experiments.claims import (
     readings_markdown,
     verdict,
 )
-from lanefree_sumo.experiments.markdown import TABLE_BEGIN
-from lanefree_sumo.experiments.report import RunData
-from lanefree_sumo.experiments.statistics import bootstrap_ci, bootstrap_difference_ci
+from lanefree_sumo.experiments.analysis.markdown import TABLE_BEGIN
+from lanefree_sumo.experiments.analysis.report import RunData
+from lanefree_sumo.experiments.analysis.statistics import bootstrap_ci, bootstrap_difference_ci
 
 from conftest import fenced_rows
 

@@ -20,10 +20,10 @@ import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import LaneFreeError, RunError
-from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.rundir import OUTPUT_MARKER, RunDir, fresh_output, read_config, write_config
-from lanefree_sumo.experiments.session import new_run_folder
-from lanefree_sumo.experiments.train import train
+from lanefree_sumo.experiments.runners.evaluate import evaluate
+from lanefree_sumo.experiments.runners.session import new_run_folder
+from lanefree_sumo.experiments.runners.train import train
+from lanefree_sumo.experiments.storage.rundir import OUTPUT_MARKER, RunDir, fresh_output, read_config, write_config
 
 from conftest import CLI_ENV, TINY_TRAINING, lanefree, lanefree_popen, wait_for
 
@@ -289,7 +289,7 @@ def test_evaluate_and_mixed_autonomy_refuse_an_output_another_process_writes(tmp
     holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
         import sys, time
         from pathlib import Path
-        from lanefree_sumo.experiments.rundir import claim
+        from lanefree_sumo.experiments.storage.rundir import claim
         with claim(Path({str(out)!r}), "evaluate"):
             print("held", flush=True)
             sys.stdin.read()
@@ -402,7 +402,7 @@ def test_a_new_run_killed_before_its_first_checkpoint_is_started_afresh(tmp_path
 def test_a_new_run_whose_first_checkpoint_fails_leaves_nothing(tmp_path, monkeypatch):
     """A full disk at the first checkpoint: the error, and no folder that blocks the same command once space is
     freed (nothing in it could be resumed)."""
-    import lanefree_sumo.experiments.train as train_module
+    import lanefree_sumo.experiments.runners.train as train_module
 
     def full_disk(_model, folder: RunDir, episodes: int, _algo: str):
         folder.checkpoint(episodes).mkdir(parents=True)

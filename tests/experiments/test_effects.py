@@ -8,8 +8,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from lanefree_sumo.experiments.effects import COLUMNS, effect_table, effects_markdown, overview, verdict
-from lanefree_sumo.experiments.rundata import RunData
+from lanefree_sumo.experiments.analysis.effects import COLUMNS, effect_table, effects_markdown, overview, verdict
+from lanefree_sumo.experiments.storage.rundata import RunData
 
 CELL = ("dqn", "fields_zones_overtake_collision", 70.0)
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.experiments.batch import train_batch
-from lanefree_sumo.experiments.train import train
+from lanefree_sumo.experiments.runners.batch import train_batch
+from lanefree_sumo.experiments.runners.train import train
 
 pytestmark = [pytest.mark.slow]
 

@@ -10,9 +10,8 @@ import pandas as pd
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.experiments.claims import AGAINST
-from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
-from lanefree_sumo.experiments.interpretations import (
+from lanefree_sumo.experiments.analysis.claims import AGAINST
+from lanefree_sumo.experiments.analysis.interpretations import (
     BONUS_CELLS,
     CELLS,
     SEEDS,
@@ -26,8 +25,9 @@ from lanefree_sumo.experiments.interpretations import (
     run_folder,
     scores,
 )
-from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.rundir import write_config
+from lanefree_sumo.experiments.analysis.paper import paper_reference
+from lanefree_sumo.experiments.storage.episodes import EpisodeLog, episode_columns
+from lanefree_sumo.experiments.storage.rundir import write_config
 
 
 def table(variant: str, presets, collisions_factor: float, speed_factor: float) -> list[dict]:
@@ -129,7 +129,7 @@ def test_the_claims_of_tables_5_and_6_under_each_variant(tmp_path):
 
 
 def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
-    from lanefree_sumo.experiments.interpretations import write_phase1
+    from lanefree_sumo.experiments.analysis.interpretations import write_phase1
 
     all_runs = runs()
     for folder, variants in (("paper", [""]), ("interpretations/phase1_bonus", ["once_per_vehicle", "both"]),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from lanefree_sumo.experiments.markdown import count, table
+from lanefree_sumo.experiments.analysis.markdown import count, table
 
 from conftest import fenced_rows
 

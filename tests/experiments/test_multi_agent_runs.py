@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
-from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS, MULTI_AGENT_COLUMNS
-from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.replay import replay
-from lanefree_sumo.experiments.rollout import rollout
-from lanefree_sumo.experiments.rundata import read_episodes
-from lanefree_sumo.experiments.train import train
+from lanefree_sumo.experiments.runners.evaluate import evaluate
+from lanefree_sumo.experiments.runners.replay import replay
+from lanefree_sumo.experiments.runners.rollout import rollout
+from lanefree_sumo.experiments.runners.train import train
+from lanefree_sumo.experiments.storage.episodes import EPISODE_COLUMNS, MULTI_AGENT_COLUMNS
+from lanefree_sumo.experiments.storage.rundata import read_episodes
 
 from conftest import TINY_TRAINING, lanefree
 

@@ -18,10 +18,10 @@ from PIL import Image
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError, SumoError
-from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.replay import ReplayError, load_recording, replay
-from lanefree_sumo.experiments.rundir import write_config
-from lanefree_sumo.experiments.train import train
+from lanefree_sumo.experiments.runners.evaluate import evaluate
+from lanefree_sumo.experiments.runners.replay import ReplayError, load_recording, replay
+from lanefree_sumo.experiments.runners.train import train
+from lanefree_sumo.experiments.storage.rundir import write_config
 from lanefree_sumo.sim.road import road_of
 
 from conftest import CLI_ENV, ROOT, lanefree, wait_for
@@ -323,7 +323,7 @@ def test_video_of_a_recording_without_sumo_or_a_display(recorded, tmp_path):
 
 
 def test_video_frames_follow_the_recording(recorded):
-    from lanefree_sumo.experiments.replay import recording_frames
+    from lanefree_sumo.experiments.runners.replay import recording_frames
     from lanefree_sumo.rl.render import AGENT
 
     frames = recording_frames(load_recording(recorded, 1), every=30)

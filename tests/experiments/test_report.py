@@ -12,11 +12,11 @@ import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ReportError
-from lanefree_sumo.experiments.curves import evaluation_series, smoothed_curve
-from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
-from lanefree_sumo.experiments.paper import PAPER_REFERENCE
-from lanefree_sumo.experiments.report import RunData, report
-from lanefree_sumo.experiments.rundir import write_config
+from lanefree_sumo.experiments.analysis.curves import evaluation_series, smoothed_curve
+from lanefree_sumo.experiments.analysis.paper import PAPER_REFERENCE
+from lanefree_sumo.experiments.analysis.report import RunData, report
+from lanefree_sumo.experiments.storage.episodes import EPISODE_COLUMNS
+from lanefree_sumo.experiments.storage.rundir import write_config
 
 from conftest import fenced_rows, lanefree
 

@@ -45,7 +45,7 @@ def _kernels(**env: str) -> tuple[set[str], str]:
     """(numpy's kernel tiers, the variable a child process sees) in a fresh interpreter that imports the package
     first, as ``lanefree`` does."""
     lines = _python("import os, subprocess, sys, lanefree_sumo, numpy\n"
-                    "from lanefree_sumo.experiments.session import numpy_simd\nprint(numpy_simd())\n"
+                    "from lanefree_sumo.experiments.runners.session import numpy_simd\nprint(numpy_simd())\n"
                     f"print(subprocess.run([sys.executable, '-c', 'import os; print(os.environ.get(\"{VARIABLE}\"))'],"
                     " capture_output=True, text=True).stdout.strip())", **env)
     return set(lines[0].split()), lines[1]

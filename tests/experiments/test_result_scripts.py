@@ -19,8 +19,8 @@ import pandas as pd
 import pytest
 
 from lanefree_sumo.errors import ReportError
-from lanefree_sumo.experiments import comparison
-from lanefree_sumo.experiments.report import report
+from lanefree_sumo.experiments.analysis import comparison
+from lanefree_sumo.experiments.analysis.report import report
 from lanefree_sumo.experiments.sweep.summary import complete_seeds
 
 from conftest import ROOT, lanefree

@@ -1,4 +1,4 @@
-"""The run-folder guard (:mod:`lanefree_sumo.experiments.rundir`): which earlier output ``--overwrite``
+"""The run-folder guard (:mod:`lanefree_sumo.experiments.storage.rundir`): which earlier output ``--overwrite``
 may replace, which files a run folder owns, and the atomic replacement (files made by hand, no SUMO)."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import (
+from lanefree_sumo.experiments.storage.rundir import (
     OUTPUT_MARKER,
     RunDir,
     append_command,
@@ -366,7 +366,7 @@ def test_a_claim_held_by_another_process_names_it(tmp_path):
     out = tmp_path / "out"
     holder = subprocess.Popen([sys.executable, "-c", "import sys\n"
                                "from pathlib import Path\n"
-                               "from lanefree_sumo.experiments.rundir import claim\n"
+                               "from lanefree_sumo.experiments.storage.rundir import claim\n"
                                f"with claim(Path({str(out)!r}), 'evaluate'):\n"
                                "    print('held', flush=True); sys.stdin.read()"],
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_child_env())

@@ -33,8 +33,8 @@ import yaml
 from lanefree_sumo.cli import main
 from lanefree_sumo.config import merge_config
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
-from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
-from lanefree_sumo.experiments.rundir import RunDir, record_session, write_config
+from lanefree_sumo.experiments.storage.episodes import EPISODE_COLUMNS
+from lanefree_sumo.experiments.storage.rundir import RunDir, record_session, write_config
 from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
 from lanefree_sumo.experiments.sweep.grid import (
     BUILTIN_GRIDS,
@@ -987,7 +987,7 @@ def test_an_on_ramp_sweep_and_report_are_not_compared_with_the_papers_ring():
     the report's table of on-ramp runs has no paper column values either."""
     import pandas as pd
 
-    from lanefree_sumo.experiments.report import RunData, summary_table
+    from lanefree_sumo.experiments.analysis.report import RunData, summary_table
     from lanefree_sumo.experiments.sweep.summary import _rows, paper_comparisons
 
     settings = {"reward_presets": ["fields_overtake_collision", "fields_zones_overtake_collision"],

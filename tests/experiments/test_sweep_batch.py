@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.batch import BATCH_CHECKPOINTS, BATCH_FILE, train_batch
+from lanefree_sumo.experiments.runners.batch import BATCH_CHECKPOINTS, BATCH_FILE, train_batch
 from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH, pack, split_counts
 from lanefree_sumo.experiments.sweep.grid import load_grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir, read_manifest

@@ -14,10 +14,10 @@ import yaml
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.batch import is_single_run
-from lanefree_sumo.experiments.episodes import EPISODE_COLUMNS
-from lanefree_sumo.experiments.evaluate import evaluate
-from lanefree_sumo.experiments.train import train
+from lanefree_sumo.experiments.runners.batch import is_single_run
+from lanefree_sumo.experiments.runners.evaluate import evaluate
+from lanefree_sumo.experiments.runners.train import train
+from lanefree_sumo.experiments.storage.episodes import EPISODE_COLUMNS
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES, get_algorithm
 from lanefree_sumo.rl.models import episode_seed
 
@@ -231,7 +231,7 @@ def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path,
     episodes.csv (every column but wall time) and TensorBoard events in the run folder."""
     import os
 
-    from lanefree_sumo.experiments import batch
+    from lanefree_sumo.experiments.runners import batch
 
     def table(run: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]

@@ -404,7 +404,7 @@ def test_ddpg_learning_updates_the_paper_encoder(tmp_path):
     from stable_baselines3 import DDPG
 
     from lanefree_sumo.config import LaneFreeConfig, merge_config
-    from lanefree_sumo.experiments.train import train
+    from lanefree_sumo.experiments.runners.train import train
 
     from conftest import TINY_TRAINING
 

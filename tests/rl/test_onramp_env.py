@@ -156,7 +156,7 @@ def test_the_shield_keeps_a_random_policy_from_colliding_on_the_on_ramp():
     """The shield with each vehicle's own boundaries and the open road's offsets: a random policy's
     collisions on the same traffic (main road 3000 veh/h) with and without it."""
     from lanefree_sumo.config import LaneFreeConfig, merge_config
-    from lanefree_sumo.experiments.rollout import rollout
+    from lanefree_sumo.experiments.runners.rollout import rollout
 
     road = {"kind": "onramp", "onramp": {"main_flow_veh_per_h": 3000}}
     base = merge_config(LaneFreeConfig(), {**ONRAMP, "road": road, "sim": {"episode_steps": 400}})

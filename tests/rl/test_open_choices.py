@@ -168,7 +168,7 @@ def test_the_pre_tanh_penalty_holds_the_actor_off_its_bound_and_is_refused_where
     """``train.actor_critic.pre_tanh_penalty``: λ·mean(u²) in DDPG's actor loss (u before the tanh) keeps the actor's
     pre-tanh output near 0 where λ = 0 lets it grow; TD3 (single or batched) and SB3's own update refuse a λ > 0,
     the batched DDPG takes it per run."""
-    from lanefree_sumo.experiments.batch import check_batchable
+    from lanefree_sumo.experiments.runners.batch import check_batchable
     from lanefree_sumo.rl.models import build_batched, build_model, make_vec_env, training_config
 
     cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"episode_steps": 50}, "train": {

@@ -55,7 +55,7 @@ def _counting(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
 def test_a_training_run_resolves_its_config_once(tmp_path, monkeypatch, algo, on_resume):
     """SB3's path (sac) resolves the saved config once when it resumes; a batch of one (ddpg) resolves it once
     when it starts and continues its checkpointed environment, resolving nothing."""
-    from lanefree_sumo.experiments.train import train
+    from lanefree_sumo.experiments.runners.train import train
 
     cfg = merge_config(LaneFreeConfig(), {**TINY_TRAINING, "backend": "numpy", "sim": {"episode_steps": 30},
                                           "train": {**TINY_TRAINING["train"], "episodes": 1, "backend": "numpy",

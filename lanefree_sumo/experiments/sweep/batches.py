@@ -1,6 +1,7 @@
 """Batched sweeps (``lanefree sweep --batch K``): runs packed into batches, each trained in one Ray task.
 
-A batch is :mod:`lanefree_sumo.experiments.batch`'s: K runs of one algorithm (dqn and ddqn as one) in one process (the
+A batch is :mod:`lanefree_sumo.experiments.runners.batch`'s: K runs of one algorithm (dqn and ddqn as one) in one
+process (the
 batched simulation and learners), run k bit for bit the sequential ``lanefree train`` of its config on CPU. Its run
 folders stay ``DIR/runs/<name>/``, the same folders with the same contents a sequential sweep writes; the batch's own
 files (``batch.json``, ``batch_checkpoints/``) live in ``DIR/batches/<batch>/`` and its log is
@@ -104,7 +105,7 @@ class Packing:
 def batch_key(cfg: LaneFreeConfig) -> str:
     """What the runs of one batch share, as text (the config without :data:`PER_RUN_KEYS`); ConfigError (one
     line, the reason) for a run the batched path cannot train."""
-    from lanefree_sumo.experiments.batch import check_batchable
+    from lanefree_sumo.experiments.runners.batch import check_batchable
     from lanefree_sumo.rl.algorithms.batched.dqn import batch_group
 
     check_batchable(cfg)
@@ -128,7 +129,7 @@ def batch_name(algos: Sequence[str], runs: list[str]) -> str:
 
 def members(folder: Path) -> list[str]:
     """The names of the runs of batch ``folder`` (its ``batch.json``); empty when it has none or it is unreadable."""
-    from lanefree_sumo.experiments.batch import BATCH_FILE
+    from lanefree_sumo.experiments.runners.batch import BATCH_FILE
 
     try:
         return [Path(p).name for p in json.loads((folder / BATCH_FILE).read_text())["runs"]]
@@ -137,15 +138,15 @@ def members(folder: Path) -> list[str]:
 
 
 def has_checkpoint(folder: Path) -> bool:
-    from lanefree_sumo.experiments.rundir import BATCH_CHECKPOINTS
+    from lanefree_sumo.experiments.storage.rundir import BATCH_CHECKPOINTS
 
     return any((folder / BATCH_CHECKPOINTS).glob("step_*.pt"))
 
 
 def trained_in_batch(run: Path) -> bool:
     """Whether run folder ``run``'s last session was a batch's of several runs (a single run trained as a batch of
-    one, :func:`~lanefree_sumo.experiments.batch.is_single_run`, is extended as a run is)."""
-    from lanefree_sumo.experiments.batch import is_single_run
+    one, :func:`~lanefree_sumo.experiments.runners.batch.is_single_run`, is extended as a run is)."""
+    from lanefree_sumo.experiments.runners.batch import is_single_run
 
     try:
         return "batch" in json.loads((run / "last_session.json").read_text()) and not is_single_run(run)
@@ -257,7 +258,7 @@ def train_batch_task(sweep: SweepDir, batch: str, runs: list[str], configs: list
     """Bring batch ``batch``'s runs to ``target`` episodes: continue it from its newest batch checkpoint, or start
     it (a run folder left by a start killed before its first checkpoint is cleared)."""
     from lanefree_sumo.config import merge_config
-    from lanefree_sumo.experiments.batch import resume_batch, train_batch
+    from lanefree_sumo.experiments.runners.batch import resume_batch, train_batch
 
     folder = sweep.batch(batch)
     if has_checkpoint(folder):
@@ -280,7 +281,7 @@ def run_batch(out: str, batch: str, runs: list[str], configs: list[dict[str, Any
     """Ray task: train batch ``batch`` of sweep folder ``out`` (runs ``runs`` with configs ``configs``). Returns
     one :func:`~.worker.run_cell` result per run: ``complete``, ``interrupted``, ``failed`` (a run stopped for a
     non-finite action, or the batch's error) or ``busy``."""
-    from lanefree_sumo.experiments.rundir import BATCH_CHECKPOINTS
+    from lanefree_sumo.experiments.storage.rundir import BATCH_CHECKPOINTS
     from lanefree_sumo.experiments.sweep.worker import _node_id, _redirect_output
 
     sweep = SweepDir(Path(out))

@@ -21,7 +21,7 @@ from typing import Any
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import nested_overrides
 from lanefree_sumo.errors import EXIT_INTERRUPTED, LaneFreeError, UsageError
-from lanefree_sumo.experiments.rundir import EPISODES, read_sessions
+from lanefree_sumo.experiments.storage.rundir import EPISODES, read_sessions
 from lanefree_sumo.experiments.sweep.batches import DEFAULT_BATCH, PER_RUN_KEYS, members
 from lanefree_sumo.experiments.sweep.grid import BUILTIN_GRIDS, Cell, Grid, builtin_descriptions, load_grid
 from lanefree_sumo.experiments.sweep.manifest import (
@@ -233,7 +233,7 @@ def _ray_description(workers: int | None, address: str | None) -> str:
 def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | None, address: str | None,
            retries: int, progress: bool, extend: bool = False, batch: int | None = None,
            in_process: bool = False, only: Sequence[str] = ()) -> int:
-    from lanefree_sumo.experiments.rundir import check_writable
+    from lanefree_sumo.experiments.storage.rundir import check_writable
     from lanefree_sumo.experiments.sweep.batches import pack
     from lanefree_sumo.experiments.sweep.runner import check_address, cluster_size, run_in_process, run_sweep
     from lanefree_sumo.experiments.sweep.summary import summarize
@@ -244,7 +244,7 @@ def _drive(folder: Path, grid: Grid, mode: str, command: str, workers: int | Non
     if address is not None:
         check_address(address)
     elif grid.on_cuda():
-        from lanefree_sumo.experiments.batch import check_device
+        from lanefree_sumo.experiments.runners.batch import check_device
 
         check_device("cuda")  # the embedded Ray's batches train on this machine's GPU
     check_writable(folder, folder=True)

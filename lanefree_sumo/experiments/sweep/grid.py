@@ -4,7 +4,7 @@ a YAML file.
 A grid is a list of *settings* (algorithm, reward preset, density in veh/km) × a list of seeds,
 with an episode budget and config overrides applied to every run. The built-in grids are the YAML
 files of :data:`GRIDS_DIR`, each selected by its file name: ``table5`` … ``table8`` (the settings of
-that table of :data:`~lanefree_sumo.experiments.paper.PAPER_ROWS`), ``paper`` (their union, each
+that table of :data:`~lanefree_sumo.experiments.analysis.paper.PAPER_ROWS`), ``paper`` (their union, each
 setting once) and ``varobs`` (the variable-size observation through the set encoder against the fixed
 vector), each with the paper's 10 seeds and 625 episodes. A YAML grid::
 
@@ -42,7 +42,7 @@ import yaml
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_density
 from lanefree_sumo.config.validation import load_yaml
 from lanefree_sumo.errors import ConfigError, UsageError
-from lanefree_sumo.experiments.paper import PAPER_ROWS
+from lanefree_sumo.experiments.analysis.paper import PAPER_ROWS
 
 PAPER_EPISODES = 625
 """Training episodes per run in the paper (specification §9)."""

@@ -24,7 +24,7 @@ from typing import Any
 import yaml
 
 from lanefree_sumo.errors import ConfigError, RunError, UsageError
-from lanefree_sumo.experiments.rundir import BATCH_FILE, write_atomic
+from lanefree_sumo.experiments.storage.rundir import BATCH_FILE, write_atomic
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 
 MANIFEST = "sweep.yaml"
@@ -40,7 +40,8 @@ CLAIMS_MD = "claims.md"
 EFFECTS_CSV = "effects.csv"
 EFFECTS_MD = "effects.md"
 VERDICT_MD = "verdict.md"
-"""Each variant against the grid's ``default`` (:mod:`lanefree_sumo.experiments.effects`), in a grid with variants."""
+"""Each variant against the grid's ``default`` (:mod:`lanefree_sumo.experiments.analysis.effects`), in a grid with
+variants."""
 RUNS_CSV = "runs.csv"
 CURVES = "curves"
 FORMAT = 1

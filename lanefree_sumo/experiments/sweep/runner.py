@@ -34,7 +34,7 @@ from typing import Any
 
 from lanefree_sumo.config import config_to_dict
 from lanefree_sumo.errors import RunError, UsageError
-from lanefree_sumo.experiments.rundir import write_atomic
+from lanefree_sumo.experiments.storage.rundir import write_atomic
 from lanefree_sumo.experiments.sweep.batches import Batch
 from lanefree_sumo.experiments.sweep.grid import Cell, Grid
 from lanefree_sumo.experiments.sweep.manifest import SweepDir

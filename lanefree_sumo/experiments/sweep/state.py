@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import RunDir, write_atomic
+from lanefree_sumo.experiments.storage.rundir import RunDir, write_atomic
 from lanefree_sumo.experiments.sweep.manifest import SweepDir
 
 HEARTBEAT_S = 10.0

@@ -3,7 +3,7 @@
 Definitions (specification §8, §10):
 
 * **Per run**: the mean of a metric over its last ``last`` episodes (50, the paper's; all of them
-  when a run has fewer), as :mod:`lanefree_sumo.experiments.report` computes it. Only *complete*
+  when a run has fewer), as :mod:`lanefree_sumo.experiments.analysis.report` computes it. Only *complete*
   runs count (every episode of the budget and ``model.zip``; a copy of the results without the
   models, e.g. committed to git, counts when its ``episodes.csv`` holds exactly every episode of the
   budget); the others are listed.
@@ -16,11 +16,11 @@ Definitions (specification §8, §10):
   last-``last`` means, and the means over all episodes of its deterministic (``eval/``) and shielded
   (``eval_shield/``) evaluations where it has them (``lanefree evaluate``; empty where it has none).
 * **Claims**: ``claims.csv``/``claims.md``, the paper's claims that compare two of the grid's
-  settings, checked on the complete runs (:mod:`lanefree_sumo.experiments.claims`); neither file
+  settings, checked on the complete runs (:mod:`lanefree_sumo.experiments.analysis.claims`); neither file
   when no claim does (a grid of one setting).
 * **Verdict**: ``verdict.md`` when the grid names variants in ``compare``: each of them against the variant
   ``default`` per setting, over training windows and every evaluation the runs have
-  (:mod:`lanefree_sumo.experiments.comparison`).
+  (:mod:`lanefree_sumo.experiments.analysis.comparison`).
 * **Curves**: one PNG per table of the paper and metric (``curves/table7_collisions.png``; settings
   in no table in ``curves/other_*.png``) drawn by :func:`curves.plot_curves` (mean ± std over runs).
 
@@ -50,21 +50,21 @@ import pandas as pd
 
 from lanefree_sumo.config import ReportConfig
 from lanefree_sumo.errors import ReportError, UsageError
-from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import (
+from lanefree_sumo.experiments.analysis import markdown
+from lanefree_sumo.experiments.analysis.claims import (
     Comparison,
     check_claims,
     claims_markdown,
     decidable,
     reading_comparisons,
 )
-from lanefree_sumo.experiments.comparison import Sides, setting_label, verdict_markdown
-from lanefree_sumo.experiments.curves import CURVE_METRICS, plot_curves
-from lanefree_sumo.experiments.effects import effect_table, effects_markdown, study_markdown
-from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.rundata import RunData, UnusableRunError, read_episodes, read_run
-from lanefree_sumo.experiments.rundir import EPISODES, RunDir, write_atomic
-from lanefree_sumo.experiments.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
+from lanefree_sumo.experiments.analysis.comparison import Sides, setting_label, verdict_markdown
+from lanefree_sumo.experiments.analysis.curves import CURVE_METRICS, plot_curves
+from lanefree_sumo.experiments.analysis.effects import effect_table, effects_markdown, study_markdown
+from lanefree_sumo.experiments.analysis.paper import paper_reference
+from lanefree_sumo.experiments.analysis.statistics import BOOTSTRAP_RESAMPLES, CI_LEVEL, bootstrap_ci
+from lanefree_sumo.experiments.storage.rundata import RunData, UnusableRunError, read_episodes, read_run
+from lanefree_sumo.experiments.storage.rundir import EPISODES, RunDir, write_atomic
 from lanefree_sumo.experiments.sweep.grid import DEFAULT_VARIANT, Cell, Grid, Setting
 from lanefree_sumo.experiments.sweep.manifest import EFFECTS_CSV, EFFECTS_MD, SweepDir, read_manifest
 from lanefree_sumo.experiments.sweep.state import COMPLETE, RunInfo, episode_numbers, inspect_run
@@ -99,8 +99,8 @@ class SweepSummary:
     """(run name, state and episodes) of the runs left out."""
     notes: list[str] = field(default_factory=list)
     effects: pd.DataFrame | None = None
-    """Each variant against ``default`` (:func:`~lanefree_sumo.experiments.effects.effect_table`), in a grid with
-    variants; else None."""
+    """Each variant against ``default`` (:func:`~lanefree_sumo.experiments.analysis.effects.effect_table`), in a grid
+    with variants; else None."""
 
 
 def _key(setting: Setting) -> tuple[str, str, float, str]:
@@ -411,7 +411,8 @@ def summarize(folder: Path, last: int | None = None, smooth: int | None = None,
 def summarize_study(folders: Sequence[Path], out: Path, last: int | None = None,
                     smooth: int | None = None) -> tuple[list[SweepSummary], Path]:
     """Several sweeps' summaries (:func:`summarize`, each written into its folder), then their effects on one
-    page: ``out/effects.md`` (:func:`~lanefree_sumo.experiments.effects.study_markdown`: each choice's verdict in
+    page: ``out/effects.md`` (:func:`~lanefree_sumo.experiments.analysis.effects.study_markdown`: each choice's
+    verdict in
     every cell, then each cell's figures) and ``out/effects.csv`` (the sweeps' rows); returns the summaries and
     the page. A cell may come from one sweep only; at least one sweep must have variants."""
     summaries = [summarize(folder, last, smooth) for folder in folders]

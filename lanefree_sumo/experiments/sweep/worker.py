@@ -68,7 +68,7 @@ def config_difference(existing: Any, expected: Any) -> str | None:
 def check_adoptable(folder: Path, expected: Any) -> None:
     """RunError unless existing run folder ``folder`` is a run of ``expected`` (the same config;
     at most as many episodes): a sweep adopts such folders, started by it or by hand."""
-    from lanefree_sumo.experiments.rundir import read_config
+    from lanefree_sumo.experiments.storage.rundir import read_config
 
     if not (folder / "config.yaml").is_file():
         raise RunError(f"{folder} exists but is not a run folder (no config.yaml); move it away or choose "
@@ -85,8 +85,8 @@ def check_adoptable(folder: Path, expected: Any) -> None:
 def _finish_from_checkpoint(folder: Path, target: int) -> bool:
     """A run killed between its final checkpoint and writing model.zip: finish it from that
     checkpoint (its model IS the final model). True when done."""
-    from lanefree_sumo.experiments.episodes import EpisodeLog
-    from lanefree_sumo.experiments.rundir import RunDir
+    from lanefree_sumo.experiments.storage.episodes import EpisodeLog
+    from lanefree_sumo.experiments.storage.rundir import RunDir
 
     run = RunDir(folder)
     try:
@@ -106,8 +106,8 @@ def _finish_from_checkpoint(folder: Path, target: int) -> bool:
 def train_cell(folder: Path, config: dict[str, Any], target: int, command: str) -> None:
     """Bring run ``folder`` to ``target`` episodes: start, resume, extend or finish it."""
     from lanefree_sumo.config import LaneFreeConfig, merge_config
-    from lanefree_sumo.experiments.rundir import read_config
-    from lanefree_sumo.experiments.train import train
+    from lanefree_sumo.experiments.runners.train import train
+    from lanefree_sumo.experiments.storage.rundir import read_config
 
     expected = merge_config(LaneFreeConfig(), config)
     info = inspect_run(folder, target)

@@ -1,7 +1,7 @@
 """Reports over training runs: learning curves and the paper-style results table.
 
 ``report(runs, out)`` reads run folders written by ``lanefree train`` (layout in
-:mod:`lanefree_sumo.experiments.rundir`), groups them by (algorithm, reward preset, density) and
+:mod:`lanefree_sumo.experiments.storage.rundir`), groups them by (algorithm, reward preset, density) and
 writes into ``out``::
 
     curves_return.png       episode return per training episode
@@ -57,19 +57,19 @@ import pandas as pd
 
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ReportError, RunError
-from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import check_claims, claims_markdown, decidable, reading_comparisons
-from lanefree_sumo.experiments.comparison import Sides, against_defaults, verdict_markdown
-from lanefree_sumo.experiments.curves import (
+from lanefree_sumo.experiments.analysis import markdown
+from lanefree_sumo.experiments.analysis.claims import check_claims, claims_markdown, decidable, reading_comparisons
+from lanefree_sumo.experiments.analysis.comparison import Sides, against_defaults, verdict_markdown
+from lanefree_sumo.experiments.analysis.curves import (
     CURVE_METRICS,
     EVALUATION_FIGURES,
     group_label,
     plot_curves,
     plot_evaluations,
 )
-from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.rundata import RunData, RunKey, UnusableRunError, read_run
-from lanefree_sumo.experiments.rundir import check_writable, fresh_output
+from lanefree_sumo.experiments.analysis.paper import paper_reference
+from lanefree_sumo.experiments.storage.rundata import RunData, RunKey, UnusableRunError, read_run
+from lanefree_sumo.experiments.storage.rundir import check_writable, fresh_output
 from lanefree_sumo.rl.algorithms import ALGORITHM_NAMES
 
 # -- constants -----------------------------------------------------------------------------------
@@ -320,7 +320,7 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
     Several names: :func:`evaluations_report` (the evaluations side by side, no learning curves).
     ``compare``: also ``verdict.md`` (training episodes only): each way the runs differ from the defaults against
     the default runs of the same setting, over training windows and every evaluation the runs have
-    (:func:`~lanefree_sumo.experiments.comparison.verdict_markdown`).
+    (:func:`~lanefree_sumo.experiments.analysis.comparison.verdict_markdown`).
     ``first``: read every run over its training episodes 1 … ``first`` only (runs of different lengths compared
     over the same episodes; a run with fewer is skipped), the planned number of episodes then not part of a
     run's variant; not with evaluations.
@@ -380,8 +380,8 @@ def report(runs: Sequence[Path], out: Path, last: int = 50, smooth: int = 20,
 
 
 def paper_claims(groups: dict[RunKey, list[RunData]], last: int) -> tuple[pd.DataFrame | None, list[str]]:
-    """(the paper's claims (:mod:`~lanefree_sumo.experiments.claims`) that two of the groups decide — None when no
-    claim compares two of them —; the runs left out for being unfinished, ``NAME (done/planned episodes)``). A
+    """(the paper's claims (:mod:`~lanefree_sumo.experiments.analysis.claims`) that two of the groups decide — None
+    when no claim compares two of them —; the runs left out for being unfinished, ``NAME (done/planned episodes)``). A
     claim is checked on the complete runs of default groups (no variant: the paper's settings, on its ring, another
     road being a variant, and its :data:`PLANNED_EPISODES` episodes), as a sweep checks it on its complete runs."""
     default: dict[tuple[str, str, float], list[RunData]] = {}

@@ -45,8 +45,9 @@ from lanefree_sumo.errors import ConfigError, RunError
 
 CONFIG = "config.yaml"
 BATCH_FILE = "batch.json"
-"""A batch folder's list of its run folders (``lanefree train --seeds``, :mod:`~lanefree_sumo.experiments.batch`);
-a single run trained as a batch of one is its own batch folder (``{"runs": ["."]}``)."""
+"""A batch folder's list of its run folders (``lanefree train --seeds``,
+:mod:`~lanefree_sumo.experiments.runners.batch`); a single run trained as a batch of one is its own batch folder
+(``{"runs": ["."]}``)."""
 BATCH_CHECKPOINTS = "batch_checkpoints"
 """A batch folder's checkpoints of the whole batch (learners, replay, random streams, environment)."""
 COMMAND = "command.txt"

@@ -8,7 +8,7 @@ switched (a grid's ``variants``). Per cell and variant, over the runs' last ``la
 * per metric (collisions, the speed deviation per step and per episode, overtakes, the return and its three
   parts): the variant's mean over runs minus the default's, the 95 % percentile-bootstrap CI of that
   difference (each group resampled on its own) and the exact two-sided permutation p of the rank test
-  (:func:`~lanefree_sumo.experiments.claims.rank_test`).
+  (:func:`~lanefree_sumo.experiments.analysis.claims.rank_test`).
 
 Verdict per cell and variant (:func:`verdict`):
 
@@ -16,7 +16,7 @@ Verdict per cell and variant (:func:`verdict`):
   p ≤ :data:`ALPHA`);
 * *moves the numbers*: otherwise, a metric whose CI excludes 0 with p ≤ :data:`ALPHA`;
 * *no effect detected*: neither (with few runs a lack of power, not evidence of no effect);
-* *too few runs*: fewer than :data:`~lanefree_sumo.experiments.claims.MIN_RUNS` complete runs on a side.
+* *too few runs*: fewer than :data:`~lanefree_sumo.experiments.analysis.claims.MIN_RUNS` complete runs on a side.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import ALPHA, MIN_RUNS, difference_ci, rank_test
-from lanefree_sumo.experiments.rundata import RunData, RunKey
+from lanefree_sumo.experiments.analysis import markdown
+from lanefree_sumo.experiments.analysis.claims import ALPHA, MIN_RUNS, difference_ci, rank_test
+from lanefree_sumo.experiments.storage.rundata import RunData, RunKey
 
 RACING_SPEED_MPS = 24.0
 """A run races when its mean speed over its last episodes is above this (m/s)."""

@@ -17,8 +17,8 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.episodes import EpisodeLog
-from lanefree_sumo.experiments.rundir import RunDir
+from lanefree_sumo.experiments.storage.episodes import EpisodeLog
+from lanefree_sumo.experiments.storage.rundir import RunDir
 
 # -- provenance ----------------------------------------------------------------------------------
 

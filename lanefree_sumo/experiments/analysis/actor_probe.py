@@ -15,7 +15,7 @@ The probe states are observations of the run's own environment (its config: obse
 driven by uniformly random actions from a fixed seed (:data:`PROBE_SEED`), every :data:`PROBE_EVERY` th step:
 the same states for every checkpoint, none drawn from the run's own random streams.
 
-    python -m lanefree_sumo.experiments.actor_probe RUN [RUN ...] [--states 256] [--out FILE.md]
+    python -m lanefree_sumo.experiments.analysis.actor_probe RUN [RUN ...] [--states 256] [--out FILE.md]
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ import numpy as np  # noqa: E402
 
 from lanefree_sumo.config import LaneFreeConfig  # noqa: E402
 from lanefree_sumo.errors import LaneFreeError, RunError  # noqa: E402
-from lanefree_sumo.experiments import markdown  # noqa: E402
-from lanefree_sumo.experiments.rundir import CHECKPOINTS, MODEL, read_config, write_atomic  # noqa: E402
+from lanefree_sumo.experiments.analysis import markdown  # noqa: E402
+from lanefree_sumo.experiments.storage.rundir import CHECKPOINTS, MODEL, read_config, write_atomic  # noqa: E402
 from lanefree_sumo.rl.algorithms import get_algorithm  # noqa: E402
 from lanefree_sumo.rl.models import build_model, make_vec_env  # noqa: E402
 
@@ -183,7 +183,8 @@ def probe_run(run: Path, states: int = 256) -> list[Probe]:
 def probe_markdown(runs: Sequence[tuple[Path, Sequence[Probe]]], states: int) -> str:
     """One table per run."""
     lines = ["# The actor's inputs and pre-tanh output, checkpoint by checkpoint", "",
-             f"`python -m lanefree_sumo.experiments.actor_probe`: {states} probe states of each run's environment "
+             "`python -m lanefree_sumo.experiments.analysis.actor_probe`: "
+             f"{states} probe states of each run's environment "
              f"under uniformly random actions (seed {PROBE_SEED}, every {PROBE_EVERY}rd step). Cosine: the mean "
              "cosine similarity between the actor's inputs of two different states (1: one direction for all); "
              "varying: the share of the input's energy that varies across states; median abs(u): the median |pre-tanh| "

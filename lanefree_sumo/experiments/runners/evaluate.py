@@ -6,8 +6,8 @@ switched on or off against the run's config; ``eval_onramp…`` first for a ring
 on-ramp, :func:`on_another_road`), one row per episode with the specification §8 columns, and
 with ``record`` one trajectory file per episode, ``trajectories/episode_NNNN.csv`` — every
 vehicle on the road at every step including the initial state (on the on-ramp vehicles come and
-go: see :mod:`lanefree_sumo.experiments.trajectory`), in the format of
-:mod:`lanefree_sumo.experiments.trajectory` with the ``overlap`` column; the agents' ids are
+go: see :mod:`lanefree_sumo.experiments.storage.trajectory`), in the format of
+:mod:`lanefree_sumo.experiments.storage.trajectory` with the ``overlap`` column; the agents' ids are
 ``agent`` (``agent1``, … in a run of several agents, with one ``episodes.csv`` row per agent) — and
 ``episode_NNNN.vehicles.csv`` with the length, width and desired speed of every vehicle seen.  ``recording.json``
 beside them names the network and the config so that a replay can rebuild the scene.  A shielded
@@ -24,9 +24,10 @@ from typing import Any
 
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config, validate_density
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.episodes import EpisodeLog, episode_columns
-from lanefree_sumo.experiments.markdown import count
-from lanefree_sumo.experiments.rundir import (
+from lanefree_sumo.experiments.analysis.markdown import count
+from lanefree_sumo.experiments.runners.signals import StopRequest, stop_requested
+from lanefree_sumo.experiments.storage.episodes import EpisodeLog, episode_columns
+from lanefree_sumo.experiments.storage.rundir import (
     EPISODES,
     RECORDING,
     TRAJECTORIES,
@@ -37,7 +38,6 @@ from lanefree_sumo.experiments.rundir import (
     vehicles_path,
     write_config,
 )
-from lanefree_sumo.experiments.signals import StopRequest, stop_requested
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.spawn import agent_id
@@ -195,7 +195,7 @@ def _evaluate_into(out: Path, overwrite: bool, cfg: LaneFreeConfig, model: Any, 
                 "model": str(model_path), "net_file": cfg.net_file, "road_length_m": road_of(cfg).length_m,
                 "road_width_m": cfg.road.width_m, "step_s": cfg.sim.step_s, "density_veh_per_km": d,
                 "agent_ids": [agent_id(i) for i in range(cfg.scenario.agents)],
-                "format": "lanefree_sumo.experiments.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
+                "format": "lanefree_sumo.experiments.storage.trajectory (t,id,x,y,vx,vy,ax,ay,overlap"
                 + (",shielded)" if cfg.shield.enabled else ")"),
             }, indent=2) + "\n")
         done = _run_episodes(model, cfg, tmp, base_seed, episodes, record, progress, stop)
@@ -238,7 +238,7 @@ def _run_episodes(model: Any, cfg: LaneFreeConfig, out: Path, base_seed: int, ep
     requested: the episode in progress is dropped with its recording)."""
     from tqdm import tqdm
 
-    from lanefree_sumo.experiments.trajectory import TrajectoryWriter
+    from lanefree_sumo.experiments.storage.trajectory import TrajectoryWriter
     from lanefree_sumo.rl.multi_agent import PolicyDriver
 
     log = EpisodeLog(out / EPISODES, episode_columns(cfg))

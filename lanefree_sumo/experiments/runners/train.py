@@ -1,11 +1,11 @@
 """Training and evaluation runs: run folders, algorithms with the paper's hyperparameters,
 per-episode CSV, checkpoints, interruption and resume.
 
-The run folder layout is defined in :mod:`lanefree_sumo.experiments.rundir`.
+The run folder layout is defined in :mod:`lanefree_sumo.experiments.storage.rundir`.
 
 One trainer: a run the batched path trains (DDPG, TD3 and the DQN family, one agent on the ring, the numpy
-simulation: :func:`~lanefree_sumo.experiments.batch.batch_refusal`) is a batch of one in its own folder
-(:func:`~lanefree_sumo.experiments.batch.train_batch`); its resume continues the whole state (learner, replay,
+simulation: :func:`~lanefree_sumo.experiments.runners.batch.batch_refusal`) is a batch of one in its own folder
+(:func:`~lanefree_sumo.experiments.runners.batch.train_batch`); its resume continues the whole state (learner, replay,
 random streams, environment) and gives the uninterrupted run's episodes bit for bit, and ``--episodes N``
 extends it the same way. Every other run (SAC, PPO; the shield, the on-ramp, several agents, several environments,
 the SUMO backends) trains in SB3's loop below: ``resume`` continues from the newest checkpoint (model and replay
@@ -33,9 +33,9 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError, RunError
-from lanefree_sumo.experiments.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
-from lanefree_sumo.experiments.rundir import Checkpoint, RunDir, append_command, record_session, write_config
-from lanefree_sumo.experiments.session import Stop, check_episode_rows, new_run_folder, versions
+from lanefree_sumo.experiments.runners.session import Stop, check_episode_rows, new_run_folder, versions
+from lanefree_sumo.experiments.storage.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
+from lanefree_sumo.experiments.storage.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.env import resolve_config
 from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
@@ -165,7 +165,7 @@ def train(
     killed outright there is started afresh by the next start into its folder, so the same command can simply be run
     again.  The process holds the run's writer lock
     (:meth:`RunDir.writer_lock`) throughout: a second training of the same folder is refused."""
-    from lanefree_sumo.experiments.batch import (
+    from lanefree_sumo.experiments.runners.batch import (
         batch_refusal,
         check_batchable,
         is_single_run,

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from lanefree_sumo.experiments.paper import DEFAULT_DENSITY, paper_reference
+from lanefree_sumo.experiments.analysis.paper import DEFAULT_DENSITY, paper_reference
 
 VARIANTS: tuple[str, ...] = ("default", "once_per_vehicle", "cap25", "both")
 """The variants of the protocol, in the order that breaks ties."""
@@ -175,8 +175,8 @@ def run_folder(results: Path, variant: str, preset: str, seed: int) -> Path:
 def claims_by_variant(results: Path, variants: Sequence[str] = VARIANTS) -> pd.DataFrame:
     """The paper's claims of Tables 5–6 decided under each variant (the claims' own rule and columns, one block of
     rows per variant, column ``variant``), from the run folders' ``episodes.csv``."""
-    from lanefree_sumo.experiments.claims import check_claims, decidable
-    from lanefree_sumo.experiments.rundata import read_run
+    from lanefree_sumo.experiments.analysis.claims import check_claims, decidable
+    from lanefree_sumo.experiments.storage.rundata import read_run
 
     comparisons = decidable({("ddpg", preset, DEFAULT_DENSITY) for preset in CELLS})
     tables = []
@@ -235,12 +235,13 @@ def write_phase1(results: Path) -> Path:
     out = results / "interpretations"
     found = scores(phase1_runs(results))
     page = ("# Interpretation study, phase 1: the distance to the paper\n\n"
-            "Computed by `python -m lanefree_sumo.experiments.interpretations` from the `runs.csv` of "
+            "Computed by `python -m lanefree_sumo.experiments.analysis.interpretations` from the `runs.csv` of "
             + ", ".join(f"`results/{name}`" for name in PHASE1_SOURCES)
             + " as `protocol.md` defines it: 7 DDPG cells of Tables 5–6 at 70 veh/km, seeds 0–4, each run's last 50 "
             "training episodes.\n\n" + phase1_markdown(found) + "\n![ours against the paper](ours_vs_paper.png)\n\n"
             "## The paper's claims of Tables 5–6 under each variant\n\nEach cell: the verdict of the claim alone / as "
-            "one family of this variant's claims (Holm; `lanefree_sumo/experiments/claims.py`), 5 runs a side.\n\n"
+            "one family of this variant's claims (Holm; `lanefree_sumo/experiments/analysis/claims.py`), 5 runs a "
+            "side.\n\n"
             + claims_markdown(claims_by_variant(results)))
     (out / "phase1.md").write_text(page)
     ours_vs_paper(found, out / "ours_vs_paper.png")

@@ -22,6 +22,8 @@ no ``model.zip``; the other runs go on.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import io
 import json
 import os
 import pickle
@@ -39,8 +41,9 @@ import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError, OperatingSystemError, RunError, os_error_message
-from lanefree_sumo.experiments.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
-from lanefree_sumo.experiments.rundir import (
+from lanefree_sumo.experiments.runners.session import Stop, check_episode_rows, new_run_folder, versions
+from lanefree_sumo.experiments.storage.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
+from lanefree_sumo.experiments.storage.rundir import (
     BATCH_CHECKPOINTS,
     BATCH_FILE,
     RunDir,
@@ -49,7 +52,6 @@ from lanefree_sumo.experiments.rundir import (
     record_session,
     write_config,
 )
-from lanefree_sumo.experiments.session import Stop, check_episode_rows, new_run_folder, versions
 
 KEEP_BATCH_CHECKPOINTS = 2
 
@@ -123,6 +125,22 @@ class _Books:
         return not self.finished[k] and k not in self.stopped
 
 
+def _load_books(saved: dict[str, Any] | bytes) -> _Books:
+    """A checkpoint's books: a dict (:func:`dataclasses.asdict`), or the pickled :class:`_Books` of a checkpoint
+    written while this module was ``lanefree_sumo.experiments.batch`` (still resumable)."""
+    if isinstance(saved, dict):
+        return _Books(**{**saved, "stopped": {int(k): v for k, v in saved["stopped"].items()}})
+
+    class Moved(pickle.Unpickler):
+        def find_class(self, module: str, name: str) -> Any:
+            return super().find_class(__name__ if module == "lanefree_sumo.experiments.batch" else module, name)
+
+    books = Moved(io.BytesIO(saved)).load()
+    if not isinstance(books, _Books):
+        raise TypeError(f"the books are a {type(books).__name__}")
+    return books
+
+
 def _bar_text(books: _Books, names: list[str]) -> str:
     return " ".join(f"{n}:{'x' if k in books.stopped else books.done[k]}" for k, n in enumerate(names))
 
@@ -160,7 +178,8 @@ class _Batch:
         tmp = path.with_name(path.name + ".tmp")
         try:
             torch.save({"learner": learner.state_dict(), "env": pickle.dumps(env), "obs": obs,
-                        "books": pickle.dumps(books), "lockstep": None if loop is None else loop.state_dict()}, tmp)
+                        "books": dataclasses.asdict(books),
+                        "lockstep": None if loop is None else loop.state_dict()}, tmp)
             os.replace(tmp, path)
         except (OSError, RuntimeError) as exc:  # torch.save reports a full disk as a RuntimeError of its own
             tmp.unlink(missing_ok=True)
@@ -226,7 +245,7 @@ class _Batch:
             try:
                 state = torch.load(path, weights_only=False)
                 learner.load_state_dict(state["learner"])
-                env, obs, books = pickle.loads(state["env"]), state["obs"], pickle.loads(state["books"])
+                env, obs, books = pickle.loads(state["env"]), state["obs"], _load_books(state["books"])
             except Exception as exc:
                 raise RunError(f"batch checkpoint {path} is unusable ({type(exc).__name__}: {exc}); delete it to "
                                "resume from the older one") from None

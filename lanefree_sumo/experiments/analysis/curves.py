@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 
 from lanefree_sumo.errors import ReportError
-from lanefree_sumo.experiments.paper import GroupKey, paper_reference
-from lanefree_sumo.experiments.rundata import RunData, RunKey
+from lanefree_sumo.experiments.analysis.paper import GroupKey, paper_reference
+from lanefree_sumo.experiments.storage.rundata import RunData, RunKey
 
 CURVE_METRICS: tuple[tuple[str, str, str], ...] = (
     # (column, file name, y-axis label with unit)

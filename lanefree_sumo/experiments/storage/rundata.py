@@ -14,7 +14,7 @@ import pandas as pd
 
 from lanefree_sumo.config import SAME_RESULTS, LaneFreeConfig, config_differences
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import EPISODES, read_config
+from lanefree_sumo.experiments.storage.rundir import EPISODES, read_config
 from lanefree_sumo.rl.algorithms import unused_config
 
 RunKey = tuple[str, str, float, str]

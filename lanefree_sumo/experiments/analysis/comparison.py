@@ -5,7 +5,7 @@ episodes 1–12, about the 10 000 steps over which Liu et al. compare training r
 over the last 50; the last 50 episodes of each evaluation folder the runs have): the difference variant −
 baseline of the per-run means of the return, collisions per episode and speed deviation (m/s), with the
 95 % percentile-bootstrap CI over runs and the two-sided rank test of
-:mod:`lanefree_sumo.experiments.claims`, decided by the claims' one rule: *<variant> worse* /
+:mod:`lanefree_sumo.experiments.analysis.claims`, decided by the claims' one rule: *<variant> worse* /
 *<variant> better* when the CI excludes 0 and the rank test has p ≤ ``ALPHA`` (worse: a lower return, more
 collisions, a larger speed deviation), *undecided* when only the CI does, *no difference detected* when it
 contains 0 (few runs a side: low power, not equivalence), *too few runs* below :data:`MIN_RUNS` runs on a side.
@@ -23,9 +23,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.claims import ALPHA, MIN_RUNS, difference_ci, per_run, rank_test
-from lanefree_sumo.experiments.rundata import RunData, RunKey, UnusableRunError, read_run
+from lanefree_sumo.experiments.analysis import markdown
+from lanefree_sumo.experiments.analysis.claims import ALPHA, MIN_RUNS, difference_ci, per_run, rank_test
+from lanefree_sumo.experiments.storage.rundata import RunData, RunKey, UnusableRunError, read_run
 
 LIU_EPISODES = (1, 12)
 """Liu et al. compare rewards over 10 000 training steps: episodes 1–12 (800 steps each; 9600 steps)."""
@@ -76,14 +76,14 @@ def against_defaults(groups: Mapping[RunKey, Sequence[RunData]]) -> dict[str, li
 
 
 UNDECIDED = "undecided"
-"""A CI off zero whose rank test does not reach :data:`~lanefree_sumo.experiments.claims.ALPHA` (3 runs a side
+"""A CI off zero whose rank test does not reach :data:`~lanefree_sumo.experiments.analysis.claims.ALPHA` (3 runs a side
 never does, two-sided: its smallest p is 0.10)."""
 
 
 def reading(better: int, low: float, high: float, p: float, variant: str = "set") -> str:
     """The verdict of a variant − baseline difference whose CI is [low, high] and whose two-sided rank test gives
     ``p`` (``better`` +1 when higher is better): the claims' one rule, both at
-    :data:`~lanefree_sumo.experiments.claims.ALPHA`."""
+    :data:`~lanefree_sumo.experiments.analysis.claims.ALPHA`."""
     if math.isnan(low):
         return TOO_FEW
     if low <= 0 <= high:

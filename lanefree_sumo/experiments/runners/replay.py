@@ -26,7 +26,7 @@ import pandas as pd
 
 from lanefree_sumo.config import LaneFreeConfig, ReplayConfig, merge_config
 from lanefree_sumo.errors import RunError
-from lanefree_sumo.experiments.rundir import (
+from lanefree_sumo.experiments.storage.rundir import (
     CONFIG,
     TRAJECTORIES,
     check_new_file,

@@ -34,10 +34,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from lanefree_sumo.experiments import markdown
-from lanefree_sumo.experiments.paper import paper_reference
-from lanefree_sumo.experiments.rundata import RunData
-from lanefree_sumo.experiments.statistics import bootstrap_difference_ci
+from lanefree_sumo.experiments.analysis import markdown
+from lanefree_sumo.experiments.analysis.paper import paper_reference
+from lanefree_sumo.experiments.analysis.statistics import bootstrap_difference_ci
+from lanefree_sumo.experiments.storage.rundata import RunData
 
 FZOC, FOC = "fields_zones_overtake_collision", "fields_overtake_collision"
 Key = tuple[str, str, float]
@@ -370,7 +370,7 @@ def claims_markdown(table: pd.DataFrame, readings: pd.DataFrame | None = None) -
     :func:`reading_comparisons`) adds the speed claims under the other readings."""
     lines = ["# The paper's claims, checked", "",
              "Difference of per-run means (group a − group b) with a 95 % percentile-bootstrap CI over runs "
-             "(`lanefree_sumo/experiments/claims.py`); collisions per episode, speed deviation in m/s. "
+             "(`lanefree_sumo/experiments/analysis/claims.py`); collisions per episode, speed deviation in m/s. "
              "Rank: in how many pairs of runs a's value is above b's (the Mann–Whitney U, ties ½), and its exact "
              "permutation p-value in the paper's direction (two-sided for a claim of no difference). Verdicts: "
              f"*{CONSISTENT}* when the CI excludes 0 on the paper's side and the rank test's p ≤ {ALPHA}; "

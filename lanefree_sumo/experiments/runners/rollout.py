@@ -30,8 +30,8 @@ import numpy as np
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig
 from lanefree_sumo.errors import EXIT_INTERRUPTED
-from lanefree_sumo.experiments.markdown import count
-from lanefree_sumo.experiments.signals import StopRequest, stop_requested
+from lanefree_sumo.experiments.analysis.markdown import count
+from lanefree_sumo.experiments.runners.signals import StopRequest, stop_requested
 from lanefree_sumo.options import DENSITY, Option, add_options, verb_config
 
 POLICIES = ("random", "idle")
@@ -115,7 +115,7 @@ def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
     then the options, then every ``--set``."""
     folder = None
     if args.run is not None:
-        from lanefree_sumo.experiments.rundir import RunDir
+        from lanefree_sumo.experiments.storage.rundir import RunDir
 
         folder = RunDir(args.run)
     base = LaneFreeConfig() if folder is None else folder.load_config()
@@ -123,7 +123,7 @@ def _setup(args: argparse.Namespace) -> tuple[LaneFreeConfig, Any]:
     cfg = verb_config(args, OPTIONS, {"backend": args.backend}, base=base)
     if folder is None:
         return cfg, None
-    from lanefree_sumo.experiments.evaluate import load_model
+    from lanefree_sumo.experiments.runners.evaluate import load_model
 
     return cfg, load_model(folder, cfg)
 

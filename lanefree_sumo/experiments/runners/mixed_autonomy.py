@@ -30,8 +30,8 @@ import numpy as np
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import EvaluationConfig, LaneFreeConfig, merge_config
 from lanefree_sumo.errors import EXIT_INTERRUPTED, RunError
-from lanefree_sumo.experiments.rundir import MIXED_AUTONOMY, RunDir, fresh_output, write_config
-from lanefree_sumo.experiments.signals import StopRequest, stop_requested
+from lanefree_sumo.experiments.runners.signals import StopRequest, stop_requested
+from lanefree_sumo.experiments.storage.rundir import MIXED_AUTONOMY, RunDir, fresh_output, write_config
 from lanefree_sumo.options import Option, add_options
 
 EVALUATION = EvaluationConfig()
@@ -116,7 +116,7 @@ def measure(run_path: Path, counts: Sequence[int], vehicles: int | None, episode
             overwrite: bool) -> Path | None:
     """Run the measurement of the module docstring; returns the output folder (None when Ctrl-C/SIGTERM
     stopped it: then nothing is written)."""
-    from lanefree_sumo.experiments.evaluate import load_model
+    from lanefree_sumo.experiments.runners.evaluate import load_model
 
     folder = RunDir(run_path)
     cfg = folder.load_config()

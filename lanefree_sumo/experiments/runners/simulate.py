@@ -1,7 +1,7 @@
 """``lanefree simulate``: background traffic alone, written to an output folder.
 
 Writes ``trajectory.csv`` (flushed every simulated second), ``summary.json``, ``config.yaml`` and
-``command.txt`` (names in :mod:`lanefree_sumo.experiments.rundir`).
+``command.txt`` (names in :mod:`lanefree_sumo.experiments.storage.rundir`).
 """
 
 from __future__ import annotations
@@ -13,14 +13,14 @@ from typing import Any
 
 from lanefree_sumo.config import LaneFreeConfig, SimulationConfig
 from lanefree_sumo.errors import ConfigError
-from lanefree_sumo.experiments.rundir import (
+from lanefree_sumo.experiments.storage.rundir import (
     SIM_SUMMARY,
     SIM_TRAJECTORY,
     append_command,
     fresh_output,
     write_config,
 )
-from lanefree_sumo.experiments.trajectory import TrajectoryWriter
+from lanefree_sumo.experiments.storage.trajectory import TrajectoryWriter
 from lanefree_sumo.sim.simulation import run_simulation
 from lanefree_sumo.sim.spawn import check_fits
 
