@@ -568,8 +568,9 @@ class ReplayConfig:
     """Colour of vehicles while they overlap another (0–255 each)."""
     shield_color_rgb: tuple[int, int, int] = (230, 0, 230)
     """Colour of the agent on the steps the safety shield changed its action (0–255 each)."""
-    display_timeout_s: float = 10.0
-    """How long sumo-gui may take to open its window before replay or ``simulate --gui`` gives up (s)."""
+    display_timeout_s: float = 60.0
+    """How long sumo-gui may take to open its window before replay or ``simulate --gui`` gives up (s); a sumo-gui
+    that exits (no such display) is reported at once. A loaded machine can take over 10 s to open it."""
 
 
 @dataclass(frozen=True)

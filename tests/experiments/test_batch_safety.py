@@ -277,3 +277,49 @@ def test_books_load_from_a_dict_and_from_a_checkpoint_of_the_former_module_path(
     assert _load_books(saved) == books
     with pytest.raises(TypeError, match="the books are a dict"):
         _load_books(pickle.dumps({"done": [1]}))
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return [{k: v for k, v in row.items() if k != "wall_s"} for row in csv.DictReader(fh)]
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_a_batch_whose_checkpoints_are_all_damaged_starts_afresh_with_the_same_command(tmp_path, monkeypatch, single):
+    """A batch (or a single run, its own batch) stopped after its first checkpoint, its two batch checkpoints then
+    damaged: --resume says to delete the newest and resume from the older; that one unusable too, it says to start
+    afresh with the command that made it, and that command trains the runs again — to the episodes of an
+    uninterrupted batch (the runs of a batch finish together: none of them had finished)."""
+    from lanefree_sumo.experiments.runners.train import train
+
+    cfgs = [merge_config(tiny(seed), {"train": {"episodes": 2}}) for seed in ((0,) if single else (0, 1))]
+
+    def start(out: Path) -> list[tuple[Path, int]]:
+        return [train(cfgs[0], run=out, progress=False, command="test")] if single else \
+            train_batch(cfgs, out, progress=False, command="test")
+
+    def resume(out: Path) -> Any:
+        return train(LaneFreeConfig(), run=out, resume=True, progress=False, command="test") if single else \
+            resume_batch(out, progress=False, command="test")
+
+    whole = start(tmp_path / "whole")
+    out = tmp_path / "batch"
+    stop_after_first_checkpoint(monkeypatch)
+    assert [done for _, done in start(out)] == [1] * len(cfgs)
+    monkeypatch.undo()
+    older, newest = sorted((out / "batch_checkpoints").glob("step_*.pt"))
+    for path in (older, newest):
+        path.write_bytes(b"damaged")
+    with pytest.raises(RunError, match=r"is unusable .*delete it to resume from the older one"):
+        resume(out)
+    newest.unlink()
+    afresh = (rf"it was the run's only one: start it afresh with 'lanefree train … --out {re.escape(str(out))}' "
+              r"\(no --resume\)" if single else r"it was the batch's only one: start the batch afresh with the command "
+              rf"that made it \(its --out {re.escape(str(out))}, no --resume\)")
+    with pytest.raises(RunError, match=afresh):
+        resume(out)
+    again = start(out)
+    assert [done for _, done in again] == [2] * len(cfgs)
+    for (a, _), (b, _) in zip(again, whole):
+        assert _rows(a / "episodes.csv") == _rows(b / "episodes.csv")
+    assert not (out / "batch_checkpoints" / older.name).read_bytes().startswith(b"damaged")

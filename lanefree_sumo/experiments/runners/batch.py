@@ -213,6 +213,21 @@ class _Batch:
             print(f"{self.batch_dir}: finished (model.zip), but {reason}; extending it with --episodes N needs that "
                   "checkpoint", file=sys.stderr)
 
+    def _unusable_advice(self, path: Path) -> str:
+        """What to do when the newest batch checkpoint ``path`` cannot be loaded: resume from the older one, or —
+        the batch's only one — start afresh with the command that made it (a batch's runs finish together: none of
+        them has finished)."""
+        if len(list(path.parent.glob("step_*.pt"))) > 1:
+            return "delete it to resume from the older one"
+        if self.folders == [RunDir(self.batch_dir)]:
+            if self.folders[0].model.is_file():
+                return ("it was the run's only one: the run is complete (model.zip) but cannot be extended; train "
+                        "a new run")
+            return (f"it was the run's only one: start it afresh with 'lanefree train … --out {self.batch_dir}' "
+                    "(no --resume)")
+        return ("it was the batch's only one: start the batch afresh with the command that made it (its --out "
+                f"{self.batch_dir}, no --resume)")
+
     def newest(self) -> Path:
         found = sorted((self.batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt"))
         if not found and self.folders == [RunDir(self.batch_dir)]:
@@ -230,7 +245,6 @@ class _Batch:
         import torch
         from tqdm import tqdm
 
-        from lanefree_sumo.rl.batched_env import BatchedRingEnv
         from lanefree_sumo.rl.env import action_space, observation_space
         from lanefree_sumo.rl.models import build_batched
 
@@ -241,23 +255,9 @@ class _Batch:
                                 device=self.device or "cpu")
         state: dict[str, Any] = {}
         if resume:
-            path = self.newest()
-            try:
-                state = torch.load(path, weights_only=False)
-                learner.load_state_dict(state["learner"])
-                env, obs, books = pickle.loads(state["env"]), state["obs"], _load_books(state["books"])
-            except Exception as exc:
-                raise RunError(f"batch checkpoint {path} is unusable ({type(exc).__name__}: {exc}); delete it to "
-                               "resume from the older one") from None
-            for k, run in enumerate(self.folders):
-                check_episode_rows(run, books.done[k], cfgs[k].scenario.agents)  # a damaged file is said, not hidden
-                EpisodeLog.truncate(run.episodes, books.done[k], episode_columns(cfgs[k]))
-            if extend is not None:
-                obs = self._extend(extend, env, obs, books)
+            env, obs, books, state = self._resume(learner, extend)
         else:
-            env = BatchedRingEnv(cfgs, device=self.device)
-            obs = env.reset()
-            books = _Books([0] * self.runs, [c.train.episodes for c in cfgs], [False] * self.runs)
+            env, obs, books = self._start()
         loop = self._lockstep(env, learner, state.get("lockstep"))
         first = list(books.done)
         steps0 = books.steps
@@ -280,8 +280,12 @@ class _Batch:
                 obs = env.reset([k for k in range(self.runs) if self._ended[k] and books.active(k)])
                 if self._ended.any():
                     bar.set_postfix_str(_bar_text(books, names))
-                if checkpoint or (stop.requested and any(books.active(k) for k in range(self.runs))):
+                if checkpoint and not stop.requested:
                     self.save(env, learner, obs, books)
+            # a stop is saved here, whenever in the step it came (a check inside the loop could miss one arriving
+            # between that check and the loop's)
+            if loop is None and stop.requested and any(books.active(k) for k in range(self.runs)):
+                self.save(env, learner, obs, books)
             if self.runs == 1 and books.finished[0] and not books.stopped:
                 self._save_final(env, learner, obs if loop is None else loop.obs, books, loop)
         finally:
@@ -303,6 +307,35 @@ class _Batch:
                 "first_episode": first[k] + 1, "started": started, "ended": ended, "versions": session_versions,
                 "batch": {"folder": os.path.relpath(self.batch_dir, run.path), "run": k, "runs": self.runs}})
         return [(run.path, books.done[k]) for k, run in enumerate(self.folders)]
+
+    def _resume(self, learner: Any, extend: int | None) -> tuple[Any, Any, _Books, dict[str, Any]]:
+        """The newest batch checkpoint loaded into ``learner``: (environment, observation, books, the checkpoint);
+        each run's episodes.csv checked and cut back to it; ``extend``: :meth:`_extend` first."""
+        import torch
+
+        path = self.newest()
+        try:
+            state = torch.load(path, weights_only=False)
+            learner.load_state_dict(state["learner"])
+            env, obs, books = pickle.loads(state["env"]), state["obs"], _load_books(state["books"])
+        except Exception as exc:
+            raise RunError(f"batch checkpoint {path} is unusable ({type(exc).__name__}: {exc}); "
+                           + self._unusable_advice(path)) from None
+        for k, run in enumerate(self.folders):
+            cfg = self.cfgs[k]
+            check_episode_rows(run, books.done[k], cfg.scenario.agents)  # a damaged file is said, not hidden
+            EpisodeLog.truncate(run.episodes, books.done[k], episode_columns(cfg))
+        if extend is not None:
+            obs = self._extend(extend, env, obs, books)
+        return env, obs, books, state
+
+    def _start(self) -> tuple[Any, Any, _Books]:
+        """A new batch's environment (every run reset), its first observation and its books."""
+        from lanefree_sumo.rl.batched_env import BatchedRingEnv
+
+        env = BatchedRingEnv(self.cfgs, device=self.device)
+        obs = env.reset()
+        return env, obs, _Books([0] * self.runs, [c.train.episodes for c in self.cfgs], [False] * self.runs)
 
     def _extend(self, target: int, env: Any, obs: Any, books: _Books) -> Any:
         """Raise the single run's target to ``target`` episodes (its config says so from now on); a finished run
@@ -456,15 +489,18 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
         raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")
     with contextlib.ExitStack() as stack:
         stack.enter_context(claim(batch_dir, "train"))  # one batch writes a batch folder at a time
-        check_batch_folder(batch_dir, paths)
+        restart = check_batch_folder(batch_dir, paths)
         batch_dir.mkdir(parents=True, exist_ok=True)
-        runs = []
+        runs: list[RunDir] = []
         for cfg, path in zip(cfgs, paths):
-            run = RunDir(new_run_folder(cfg, path))
+            run = RunDir(new_run_folder(cfg, path, restart=restart))
             stack.enter_context(run.writer_lock())
-            if run.never_checkpointed():
+            if restart or run.never_checkpointed():
                 run.clear()
             runs.append(run)
+        if restart:  # none of them loads: the batch starts afresh
+            for old in (batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt"):
+                old.unlink()
         single = paths == [batch_dir]  # a single run, its own batch: nothing of it stays unless it learned
         try:
             for cfg, run in zip(cfgs, runs):
@@ -507,17 +543,42 @@ class _Board:
             self._writer.close()
 
 
-def check_batch_folder(batch_dir: Path, paths: list[Path]) -> None:
+def usable_checkpoint(batch_dir: Path) -> bool:
+    """Whether one of ``batch_dir``'s batch checkpoints loads (newest first)."""
+    import torch
+
+    for path in sorted((batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt"), reverse=True):
+        try:
+            state = torch.load(path, weights_only=False)
+            pickle.loads(state["env"])
+            _load_books(state["books"])
+            return True
+        except Exception:  # noqa: BLE001 - any failure to load makes it unusable, as resume finds it
+            continue
+    return False
+
+
+def dead_single_run(folder: Path) -> bool:
+    """A single run (its own batch, :func:`is_single_run`) that cannot go on: not finished, and none of its batch
+    checkpoints loads (its only one was damaged). The same command starts it afresh."""
+    return is_single_run(folder) and not RunDir(folder).model.is_file() and not usable_checkpoint(folder)
+
+
+def check_batch_folder(batch_dir: Path, paths: list[Path]) -> bool:
     """Refuse, before anything is written, a batch folder that holds anything but this batch killed before its
-    first checkpoint (the same run folders in its ``batch.json``, no batch checkpoint): a user's folder, a run's,
-    a sweep's, another batch's — RunError saying what it holds and what to do."""
+    first checkpoint (the same run folders in its ``batch.json``, no batch checkpoint) or this batch with no batch
+    checkpoint that loads: a user's folder, a run's, a sweep's, another batch's — RunError saying what it holds and
+    what to do. Returns True for the latter, where the batch starts afresh over its runs (which finish together:
+    none has)."""
     if not batch_dir.exists():
-        return
+        return False
     if not batch_dir.is_dir():
         raise RunError(f"{batch_dir} exists and is not a folder; choose another --out")
     entries = sorted(p.name for p in batch_dir.iterdir())
     if not entries or (paths == [batch_dir] and RunDir(batch_dir).never_checkpointed()):
-        return  # new, or a single run (its own batch) killed before its first checkpoint: it starts afresh
+        return False  # new, or a single run (its own batch) killed before its first checkpoint: it starts afresh
+    if paths == [batch_dir] and dead_single_run(batch_dir):
+        return True
     listed = None
     if is_batch(batch_dir):
         try:
@@ -528,10 +589,12 @@ def check_batch_folder(batch_dir: Path, paths: list[Path]) -> None:
     if listed is not None and listed and all(RunDir(batch_dir / p).model.is_file() for p in listed):
         raise RunError(f"{batch_dir} holds a finished batch (every run has its model.zip); choose another --out")
     if listed is not None and any((batch_dir / BATCH_CHECKPOINTS).glob("step_*.pt")):
+        if listed == mine and not usable_checkpoint(batch_dir):
+            return True  # this batch, whose only checkpoint was damaged: it starts afresh
         raise RunError(f"{batch_dir} holds a batch already; resume it with --resume {batch_dir} or choose another "
                        "--out")
     if listed is not None and listed == mine:
-        return  # this batch, killed before its first checkpoint: it starts afresh
+        return False  # this batch, killed before its first checkpoint: it starts afresh
     what = ("another batch" if listed is not None else "a run" if (batch_dir / "config.yaml").is_file()
             else f"{len(entries)} file(s) or folder(s), e.g. {entries[0]}")
     raise RunError(f"{batch_dir} exists and holds {what}; a batch writes into a new or empty folder: choose "

@@ -111,12 +111,14 @@ def run_name(cfg: LaneFreeConfig) -> str:
             f"_s{cfg.seed}{'_shield' if cfg.shield.enabled else ''}")
 
 
-def new_run_folder(cfg: LaneFreeConfig, run: Path | None) -> Path:
+def new_run_folder(cfg: LaneFreeConfig, run: Path | None, restart: bool = False) -> Path:
     """Create the run folder atomically: ``run`` (refused if it holds anything but a new run that never reached
-    its first checkpoint, :meth:`RunDir.never_checkpointed`, which the caller clears under the writer lock), else a
+    its first checkpoint, :meth:`RunDir.never_checkpointed`, which the caller clears under the writer lock; with
+    ``restart``, a run of a batch that cannot go on, which the caller clears too), else a
     fresh ``runs/<date-time>_...`` (``-2``, ``-3``, … when two runs start in the same second)."""
     if run is not None:
-        if run.exists() and (not run.is_dir() or any(run.iterdir())) and not RunDir(run).never_checkpointed():
+        if run.exists() and (not run.is_dir() or any(run.iterdir())) and not restart \
+                and not RunDir(run).never_checkpointed():
             raise RunError(f"run folder {run} exists; resume it with --resume {run} or choose another --out")
         run.mkdir(parents=True, exist_ok=True)
         return run

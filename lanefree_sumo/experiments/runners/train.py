@@ -168,6 +168,7 @@ def train(
     from lanefree_sumo.experiments.runners.batch import (
         batch_refusal,
         check_batchable,
+        dead_single_run,
         is_single_run,
         resume_batch,
         train_batch,
@@ -182,7 +183,7 @@ def train(
         if why is None:  # one trainer: a single run is a batch of one, in its own folder
             check_batchable(cfg)
             check_fits(cfg)  # before the folder is made
-            path = new_run_folder(cfg, run)
+            path = new_run_folder(cfg, run, restart=run is not None and dead_single_run(run))
             return train_batch([cfg], path, [path], progress, command)[0]
         if cfg.train.device != "cpu":
             raise ConfigError(f"train.device = {cfg.train.device} trains on the batched path, which does not "
