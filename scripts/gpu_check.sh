@@ -11,7 +11,7 @@
 #   full:  the whole bench, a profile of a DDPG iteration at K = 110, then the learning check's runs: three
 #          settings × 10 seeds × $EPISODES episodes trained on CUDA (the three batches at once, stopped with a
 #          checkpoint after $LEARN_LIMIT_S s), packed as learn.tar.gz; compare them with the CPU runs of
-#          results/paper by scripts/learning_check.py.
+#          results/paper by scripts/analysis/learning_check.py.
 # Packages the machine lacks (gymnasium, stable-baselines3) are installed from wheels in .whl/ when present.
 set -uo pipefail
 mode=${1:-quick}

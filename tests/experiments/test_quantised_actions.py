@@ -1,4 +1,4 @@
-"""scripts/quantised_actions.py: continuous accelerations turned into the DQN family's 9 discrete actions."""
+"""scripts/analysis/quantised_actions.py: continuous accelerations turned into the DQN family's 9 discrete actions."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from lanefree_sumo.rl.env import DISCRETE_ACTIONS, action_to_acceleration
 
 from conftest import ROOT
 
-spec = importlib.util.spec_from_file_location("quantised_actions", ROOT / "scripts" / "quantised_actions.py")
+spec = importlib.util.spec_from_file_location("quantised_actions",
+                                              ROOT / "scripts" / "analysis" / "quantised_actions.py")
 assert spec is not None and spec.loader is not None
 quantised_actions = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(quantised_actions)

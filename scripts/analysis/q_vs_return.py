@@ -7,7 +7,7 @@ critic) with the discounted return G the episode then realised (γ of the run). 
 are left out (γ^300 < 0.003 at γ = 0.98, so G is the full discounted return). A Q far above G would say
 the policy chases values that are not there.
 
-    python scripts/q_vs_return.py RUN... [--episodes 10]
+    python scripts/analysis/q_vs_return.py RUN... [--episodes 10]
 """
 
 from __future__ import annotations

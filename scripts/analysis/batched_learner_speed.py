@@ -5,7 +5,7 @@ buffers (100 000 random transitions per run). For each K: one batched update of 
 each of K single runs (``FastDDPG``/``FastDQN``), timed in turn five times; the best CPU time of this process
 counts (on a shared machine the least disturbed repeat).
 
-    python scripts/batched_learner_speed.py [--algo ddpg|dqn] [--runs 1 4 8 16] [--updates 160]
+    python scripts/analysis/batched_learner_speed.py [--algo ddpg|dqn] [--runs 1 4 8 16] [--updates 160]
 """
 
 from __future__ import annotations

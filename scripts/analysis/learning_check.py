@@ -2,7 +2,7 @@
 150 episodes of each run. Prints the mean over episodes 101–150 per run and per group, the difference of
 group means with a 95 % bootstrap CI over runs, and draws the smoothed curves of both groups in one PNG.
 
-    python scripts/learning_check.py --new RUN [RUN ...] --reference RUN [RUN ...] --out FILE.png
+    python scripts/analysis/learning_check.py --new RUN [RUN ...] --reference RUN [RUN ...] --out FILE.png
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ veh/km, with and without the shield, 10 episodes of 800 steps each from traffic 
 row per (policy, density, shield). Extra arguments go to every rollout (e.g. ``--set
 shield.fallback_steers_clear=true``).
 
-    python scripts/shield_table.py [--episodes 10] [-- ROLLOUT_ARGS...]
+    python scripts/analysis/shield_table.py [--episodes 10] [-- ROLLOUT_ARGS...]
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import json
 import subprocess
 from pathlib import Path
 
-BIN = Path(__file__).resolve().parent.parent / ".venv" / "bin" / "lanefree"
+BIN = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "lanefree"
 HEADER = ("| policy | density (veh/km) | shield | agent collisions ({n} episodes) | per episode "
           "| background collisions | interventions / episode | steps without a certified action / episode "
           "| speed deviation (m/s) | mean speed (m/s) |\n|---|---|---|---|---|---|---|---|---|---|")

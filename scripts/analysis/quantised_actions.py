@@ -14,7 +14,7 @@ specification §6) by
 If the discretised policy drives like the continuous one, the action set can express calm driving and the
 DQN family's racing comes from what it learned, not from what it can do.
 
-    python scripts/quantised_actions.py RUN... [--episodes 20]
+    python scripts/analysis/quantised_actions.py RUN... [--episodes 20]
 """
 
 from __future__ import annotations

@@ -6,7 +6,8 @@ probe leaves the training's random draws, and so the run, exactly as `lanefree t
 |pre-tanh| ≈ 10 the gradient reaching the actor is tanh' < 1e-8 of dQ/da, below Adam's epsilon: the policy can
 no longer move there.
 
-    python scripts/actor_saturation.py [--episodes 6] [--seeds 0 1 2] [--every 400] [--obs vector set:paper ...]
+    python scripts/analysis/actor_saturation.py [--episodes 6] [--seeds 0 1 2] [--every 400] \\
+        [--obs vector set:paper ...]
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     print("# DDPG's actor at the tanh bound: the vector and the set observations\n")
-    print(f"`python scripts/actor_saturation.py --episodes {args.episodes} --every {args.every} --seeds "
+    print(f"`python scripts/analysis/actor_saturation.py --episodes {args.episodes} --every {args.every} --seeds "
           f"{' '.join(map(str, args.seeds))} --obs {' '.join(args.obs)}`: DDPG, fields_zones_overtake_collision, "
           "70 veh/km. Cell: median |pre-tanh| of the actor over 256 fixed states of the random warm-up (share of "
           "action components at the bound, |a| > 0.999) after n gradient steps.", flush=True)
