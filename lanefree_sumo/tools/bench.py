@@ -257,6 +257,17 @@ def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[
     return {name: statistics.median(v) for name, v in samples.items()}
 
 
+def _interleaved(cases: dict[tuple[str, str], Callable[[], float]], repeats: int) -> dict[tuple[str, str], float]:
+    """Each case's median rate (env steps/s) over ``repeats`` rounds that measure every case in turn — A, B, C, …,
+    A, B, C, … — so machine noise hits every case alike; each measurement printed as it comes."""
+    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
+    for _ in range(repeats):
+        for case, measure in cases.items():
+            samples[case].append(measure())
+            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
+    return {case: statistics.median(v) for case, v in samples.items()}
+
+
 TRAINING_CASES: dict[str, tuple[str, dict[str, Any]]] = {
     "plain SB3 DDPG, libsumo": ("sb3", {"backend": "libsumo", "fast_learner": False, "lean_loop": False}),
     "fast update, SB3 loop, libsumo (before)": ("fast", {"backend": "libsumo", "lean_loop": False}),
@@ -288,12 +299,7 @@ def dqn_family_speed(seed: int, steps: int = 1600, repeats: int = REPEATS) -> st
             cls = DQN if algo == "dqn" and path == "autograd" else None
             cases[(algo, path)] = functools.partial(_train_rate, cfg, functools.partial(make_vec_env, cfg), seed,
                                                     steps, cls)
-    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
-    for _ in range(repeats):
-        for case, measure in cases.items():
-            samples[case].append(measure())
-            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
-    rate = {case: statistics.median(v) for case, v in samples.items()}
+    rate = _interleaved(cases, repeats)
     total = 625 * LaneFreeConfig().sim.episode_steps
     lines = [
         f"The DQN family (paper settings: 128-64, batch 64, one update per env step, target copy every 10 000 steps; "
@@ -349,12 +355,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
         cases[(f"highway{hz}", "env")] = functools.partial(_env_rate, highway, peer_steps, seed)
         cases[(f"highway{hz}", "sb3")] = functools.partial(_train_rate, sb3, highway, seed, peer_steps, DDPG)
         cases[(f"highway{hz}", "fast")] = functools.partial(_train_rate, cfg, highway, seed, peer_steps)
-    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
-    for _ in range(repeats):  # A, B, C, …, A, B, C, …: machine noise hits every case alike
-        for case, measure in cases.items():
-            samples[case].append(measure())
-            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
-    rate = {case: statistics.median(v) for case, v in samples.items()}
+    rate = _interleaved(cases, repeats)
     total = 625 * cfg.sim.episode_steps
 
     def minutes(r: float) -> str:
@@ -433,12 +434,7 @@ def single_run_speed(seed: int, steps: int = 800, repeats: int = REPEATS) -> str
     for algo in ("ddpg", "dqn"):
         cases[(algo, "sb3")] = functools.partial(training_rate, algo, seed, steps=steps)
         cases[(algo, "one")] = functools.partial(lambda a: batched_rate(a, 1, seed, steps)[0], algo)
-    samples: dict[tuple[str, str], list[float]] = {case: [] for case in cases}
-    for _ in range(repeats):
-        for case, measure in cases.items():
-            samples[case].append(measure())
-            print(f"  {case[0]} {case[1]}: {samples[case][-1]:.1f} steps/s", flush=True)
-    rate = {case: statistics.median(v) for case, v in samples.items()}
+    rate = _interleaved(cases, repeats)
     lines = [
         f"One run, the two paths (paper settings, {PEER_DENSITY:g} veh/km, one thread; {steps} steps timed after "
         f"learning starts; median of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on "
