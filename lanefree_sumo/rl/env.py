@@ -37,20 +37,26 @@ from lanefree_sumo.config import (
     merge_config,
     validate_config,
 )
-from lanefree_sumo.rl.rewards import OvertakeLedger, compute_reward, get_preset, pass_events
+from lanefree_sumo.rl.problem import (
+    EGO_FEATURES,
+    NEIGHBOUR_FEATURES,
+    AgentView,
+    Problem,
+    ProblemState,
+    Rewards,
+    episode_row,
+)
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.collisions import count_events
 from lanefree_sumo.sim.simulation import Simulation, StepResult
+from lanefree_sumo.sim.xp import NUMPY
 
-EGO_FEATURES = 4  # y, vx, vy, v_d
 ONRAMP_FEATURES = 4  # lowest and highest lateral position at the front (/W), on the ramp (0/1), ramp end ahead (/d)
-NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
 # Discrete actions (specification §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
 # four combinations.
 DISCRETE_ACTIONS = np.array(
     [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1)], dtype=float
 )
-METRIC_TERMS = ("c_x", "c_y", "c_f", "reward")
 
 
 def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> ResolvedConfig:
@@ -69,52 +75,70 @@ def resolve_config(config: LaneFreeConfig | Mapping[str, Any] | None) -> Resolve
 
 
 class LearningVehicle:
-    """One learning vehicle's view of the simulation: its observation, its reward terms, its shield and
-    its episode books (specification §5–§8). :class:`LaneFreeEnv` drives one, the multi-agent environment
-    (:mod:`lanefree_sumo.rl.multi_agent`) one per agent, with the same arithmetic."""
+    """One learning vehicle of a simulation: the learning problem (:mod:`.problem`) with K = 1 on this vehicle's
+    row, its shield and the on-ramp's extras (specification §5–§8). :class:`LaneFreeEnv` drives one, the
+    multi-agent environment (:mod:`lanefree_sumo.rl.multi_agent`) one per agent."""
 
-    def __init__(self, cfg: LaneFreeConfig, sim: Simulation, scales: tuple[np.ndarray, np.ndarray]) -> None:
+    def __init__(self, cfg: LaneFreeConfig, sim: Simulation) -> None:
         self.cfg = cfg
         self.sim = sim
-        self.weights = get_preset(cfg.reward.preset)
-        self.scales = scales
+        self.problem = Problem([cfg], NUMPY)
         self.index = -1
         """This vehicle's row in the simulation state (−1 before the first episode)."""
         self.vid = ""
         """Its vehicle id (on an open road rows come and go: the row is looked up by id every step)."""
         self.open_road = not sim.road.periodic
-        self.prev_dx = np.zeros(0)
+        self.state = ProblemState.empty(NUMPY, 1, 0)
         self._prev_ids: list[str] = []
-        self.books: dict[str, float] = {}
+        self.extra: dict[str, Any] = {}
+        """What the books of :mod:`.problem` do not hold: collisions with other agents, the on-ramp's merge step,
+        the episode's start (``time.perf_counter``)."""
         self.shield_params: ShieldParams | None = None
+
+    @property
+    def books(self) -> dict[str, Any]:
+        """The episode's books so far (host numbers; :data:`~lanefree_sumo.rl.problem.BOOKS` and :attr:`extra`)."""
+        return {**{name: value[0].item() for name, value in self.state.books.items()}, **self.extra}
 
     def start(self, index: int) -> Any:
         """Begin an episode as row ``index`` of the freshly reset simulation; returns the first observation."""
         self.index = index
-        self.vid = self.sim.current()[0].ids[index]
-        self.ledger = OvertakeLedger(self.cfg.reward.overtake_bonus)
-        self.books = {
-            "return": 0.0, "collisions": 0, "collision_steps": 0, "background_collisions": 0,
-            "agent_collisions": 0, "speed_dev_sum": 0.0, "speed_sum": 0.0, "speed_error_sum": 0.0, "overtakes": 0,
-            "boundary_contacts": 0, "return_bonus": 0.0, "return_collision": 0.0,
-            "shield_interventions": 0, "shield_fallbacks": 0, "merged_at_step": -1,
-            **{f"sum_{t}": 0.0 for t in METRIC_TERMS}, "t0": time.perf_counter(),
-        }
-        obs, _, _ = self.observe()
-        self.prev_dx = self.sim.current()[1][0][self.index].copy()
-        self._prev_ids = self.sim.current()[0].ids
-        return obs
+        state = self.sim.current()[0]
+        self.vid = state.ids[index]
+        self.extra = {"agent_collisions": 0, "merged_at_step": -1, "t0": time.perf_counter()}
+        self.state = ProblemState.empty(NUMPY, 1, state.n)
+        self._prev_ids = state.ids
+        obs = self.problem.begin(self.state, self.view(), 0, self._extra_ego())
+        return obs[0] if not isinstance(obs, dict) else {name: value[0] for name, value in obs.items()}
+
+    def view(self) -> AgentView:
+        """The scene around this vehicle (K = 1) in the simulation's current state."""
+        (state, (dx_all, dy_all)), a = self.sim.current(), self.index
+        lo, hi = self.lateral_bounds()
+        row = np.array([a])
+        present = np.ones((1, state.n), dtype=bool)
+        return AgentView.of(NUMPY, dx_all[row], dy_all[row], state.vx[None], state.vy[None], state.length[None],
+                            state.width[None], state.v_desired[None], state.y[None], present, row, np.array([lo]),
+                            np.array([hi - lo]), np.array([float(self.cfg.road.length_m)]))
+
+    def _extra_ego(self) -> np.ndarray | None:
+        """The on-ramp's ego features ``[1, 4]`` (None on the ring, or with ``observation.road_features`` off)."""
+        return self._road_features()[None] if self.open_road and self.cfg.observation.road_features else None
 
     def follow(self) -> None:
         """On an open road: find this vehicle's row again (rows before it leave the road) and line the previous
-        step's offsets up with the current rows (a vehicle that just entered has none: no overtake)."""
+        step's offsets and pass book up with the current rows (a vehicle that just entered has none: no
+        overtake)."""
         state = self.sim.current()[0]
         if state.ids is self._prev_ids:
             return
         self.index = state.ids.index(self.vid)
-        previous = dict(zip(self._prev_ids, self.prev_dx))
+        old = {vid: i for i, vid in enumerate(self._prev_ids)}
+        keep = {j: old[vid] for j, vid in enumerate(state.ids) if vid in old}
         now = self.sim.current()[1][0][self.index]
-        self.prev_dx = np.array([previous.get(vid, d) for vid, d in zip(state.ids, now)])
+        prev = self.state.prev_dx[0]
+        self.state.prev_dx = np.array([[prev[keep[j]] if j in keep else d for j, d in enumerate(now)]])
+        self.state.remap(keep, state.n)
         self._prev_ids = state.ids
 
     def shield(self, ax: float, ay: float) -> ShieldDecision | None:
@@ -137,68 +161,34 @@ class LearningVehicle:
         this vehicle alone (its row as of after the step)."""
         if self.open_road:
             self.follow()
+        a = self.index
         if agents is None:
-            agents = np.array([self.index])
-        (state, (dx_all, dy_all)), a, cfg = self.sim.current(), self.index, self.cfg
-        obs, idx, observed = self.observe()
-        dx_row = dx_all[a]
-        lo, hi = self.lateral_bounds()
-
+            agents = np.array([a])
         agent_events, with_agents, background_only = count_events(result.new_collisions, a, agents)
         collided = bool(result.overlap[a].any())
-        passed, passed_by = pass_events(self.prev_dx[idx], dx_row[idx], cfg.observation.range_m, cfg.road.length_m)
-        passes = int(np.count_nonzero(passed))
-        earned = self.ledger.record([state.ids[i] for i in idx[passed]], [state.ids[i] for i in idx[passed_by]])
-        self.prev_dx = dx_row.copy()
-
-        # the zones and the lateral cost live within this vehicle's boundaries: [lo, hi] as [0, hi − lo]
-        terms = compute_reward(
-            dx_row[idx], dy_all[a][idx], state.vx[idx], state.vy[idx], state.length[idx],
-            state.width[idx], float(state.y[a]) - lo, float(state.vx[a]), float(state.vy[a]),
-            float(state.length[a]), float(state.width[a]), float(state.v_desired[a]), hi - lo,
-            self.weights, observed=np.searchsorted(idx, observed), collided=collided, overtook=earned > 0,
-            config=cfg.reward,
-        )
-
-        b = self.books
-        vx_a = float(state.vx[a])
         contact = bool(result.boundary_contact[a])
         intervened = decision is not None and decision.intervened
-        reward = terms.reward - (cfg.shield.intervention_penalty if intervened else 0.0)
-        b["return"] += reward
-        b["collisions"] += agent_events
-        b["collision_steps"] += collided
-        b["background_collisions"] += background_only
-        b["agent_collisions"] += with_agents
-        b["speed_dev_sum"] += abs(vx_a - float(state.v_desired[a]))
-        b["speed_error_sum"] += vx_a - float(state.v_desired[a])
-        b["speed_sum"] += vx_a
-        if self.weights.use_collision and collided:
-            b["return_collision"] += cfg.reward.collision_reward
-        if self.weights.use_overtake and terms.overtook and not collided:
-            b["return_bonus"] += cfg.reward.overtake_reward
-        b["overtakes"] += passes
-        b["boundary_contacts"] += contact
-        b["sum_c_x"] += terms.c_x
-        b["sum_c_y"] += terms.c_y
-        b["sum_c_f"] += terms.c_f
-        b["sum_reward"] += reward
-        b["shield_interventions"] += intervened
-        b["shield_fallbacks"] += decision is not None and not decision.certified
-        if self.open_road and b["merged_at_step"] < 0 and not self.sim.on_ramp[a]:
-            b["merged_at_step"] = self.sim.steps
+        shield: dict[str, Any] = {} if decision is None else {
+            "intervened": np.array([intervened]), "fallback": np.array([not decision.certified])}
+        obs, reward, terms, overtakes = self.problem.step(
+            self.state, self.view(), np.array([collided]), np.array([agent_events]), np.array([background_only]),
+            np.array([contact]), extra_ego=self._extra_ego(), **shield)
+        self.extra["agent_collisions"] += with_agents
+        if self.open_road and self.extra["merged_at_step"] < 0 and not self.sim.on_ramp[a]:
+            self.extra["merged_at_step"] = self.sim.steps
         info: dict[str, Any] = {
-            **terms.as_dict(),
-            "overtakes": passes,
+            **{name: getattr(terms, name)[0].item() for name in Rewards.__dataclass_fields__},
+            "overtakes": int(overtakes[0]),
             "collision_events": agent_events,
             "boundary_contact": contact,
             "ax": ax,
             "ay": ay,
-            "reward": reward,
+            "reward": float(reward[0]),
             "shield_intervened": intervened,
             "shield_correction": decision.correction if decision is not None else 0.0,
         }
-        return obs, float(reward), collided, info
+        obs = obs[0] if not isinstance(obs, dict) else {name: value[0] for name, value in obs.items()}
+        return obs, float(reward[0]), collided, info
 
     def lateral_bounds(self) -> tuple[float, float]:
         """(lowest, highest) lateral position this vehicle's body may reach at its front now (m): 0 and W on
@@ -223,85 +213,20 @@ class LearningVehicle:
         ahead = min(max(room / self.cfg.observation.range_m, 0.0), 1.0) if on_ramp else 1.0
         return np.array([lo / road.width_m, hi / road.width_m, float(on_ramp), ahead])
 
-    def observe(self) -> tuple[Any, np.ndarray, np.ndarray]:
-        """(observation, indices of the vehicles in range, indices of the n nearest of them)."""
-        (state, (dx_all, dy_all)), a, o = self.sim.current(), self.index, self.cfg.observation
-        dx = dx_all[a]
-        dy = dy_all[a]
-        in_range = np.abs(dx) <= o.range_m
-        in_range[a] = False
-        idx = np.flatnonzero(in_range)
-        order = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")]
-        ego = np.array([state.y[a], state.vx[a], state.vy[a], state.v_desired[a]]) / self.scales[0]
-        if self.open_road and o.road_features:
-            ego = np.concatenate([ego, self._road_features()])
-        observed = order[: o.n_neighbours]
-        if o.kind == "vector":
-            rows = np.empty((o.n_neighbours, NEIGHBOUR_FEATURES))
-            rows[:] = (o.range_m, 0.0, state.vx[a], state.vy[a])  # placeholders: far ahead, same speed
-            k = len(observed)
-            rows[:k, 0] = dx[observed]
-            rows[:k, 1] = dy[observed]
-            rows[:k, 2] = state.vx[observed]
-            rows[:k, 3] = state.vy[observed]
-            obs: Any = np.concatenate([ego, (rows / self.scales[1]).ravel()]).astype(np.float32)
-        else:
-            shown = order[: o.max_rows]
-            k = len(shown)
-            table = np.zeros((o.max_rows, NEIGHBOUR_FEATURES + 1), dtype=np.float32)
-            table[:k, :NEIGHBOUR_FEATURES] = (
-                np.column_stack([dx[shown], dy[shown], state.vx[shown], state.vy[shown]]) / self.scales[1]
-            )
-            table[:k, NEIGHBOUR_FEATURES] = 1.0
-            obs = {"ego": ego.astype(np.float32), "others": table}
-        return obs, idx, observed
-
     def metrics(self, episode: int, seed: int) -> dict[str, Any]:
         """specification §8 metrics of the episode so far (one CSV row)."""
-        b, steps = self.books, max(self.sim.steps, 1)
-        return {
-            "episode": episode,
-            "steps": self.sim.steps,
-            "return": b["return"],
-            "return_bonus": b["return_bonus"],
-            "return_collision": b["return_collision"],
-            "return_reciprocal": b["return"] - b["return_bonus"] - b["return_collision"],
-            "collisions": b["collisions"],
-            "collision_steps": b["collision_steps"],
-            "background_collisions": b["background_collisions"],
-            "speed_dev_mps": b["speed_dev_sum"] / steps,
-            "speed_dev_episode_mps": abs(b["speed_error_sum"]) / steps,
-            "speed_error_mps": b["speed_error_sum"] / steps,
-            "mean_speed_mps": b["speed_sum"] / steps,
-            "overtakes": b["overtakes"],
-            "boundary_contacts": b["boundary_contacts"],
-            "shield_interventions": b["shield_interventions"],
-            "shield_fallbacks": b["shield_fallbacks"],
-            **{f"mean_{t}": b[f"sum_{t}"] / steps for t in METRIC_TERMS},
-            "density": self.cfg.scenario.density_veh_per_km,
-            "seed": seed,
-            "reward_preset": self.cfg.reward.preset,
-            "wall_s": time.perf_counter() - b["t0"],
-            **(self._onramp_metrics() if self.open_road else {}),
-        }
+        return {**episode_row(episode, self.sim.steps, self.books, self.cfg, seed,
+                              time.perf_counter() - self.extra["t0"]),
+                **(self._onramp_metrics() if self.open_road else {})}
 
     def _onramp_metrics(self) -> dict[str, Any]:
         """The on-ramp's episode metrics: merged (a ramp start whose body reached the main road), the time it
         took (s; NaN when it did not, or started on the main road) and whether it left the road at its end."""
-        merged_at = self.books["merged_at_step"]
+        merged_at = self.extra["merged_at_step"]
         from_ramp = self.cfg.road.onramp.agent_start == "ramp"
         return {"merged": bool(from_ramp and merged_at >= 0),
                 "time_to_merge_s": merged_at * self.cfg.sim.step_s if from_ramp and merged_at >= 0 else float("nan"),
                 "left_road": self.left_road()}
-
-
-def feature_scales(cfg: LaneFreeConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(ego, neighbour) divisors of the observation's features (module docstring); ones without scaling."""
-    o = cfg.observation
-    if not o.scale:
-        return np.ones(EGO_FEATURES), np.ones(NEIGHBOUR_FEATURES)
-    w, v, vy = cfg.road.width_m, o.speed_scale_mps, o.lateral_speed_scale_mps
-    return np.array([w, v, vy, v]), np.array([o.range_m, w, v, vy])
 
 
 def ego_features(cfg: LaneFreeConfig) -> int:
@@ -445,7 +370,7 @@ class LaneFreeEnv(gym.Env):
         self.episode = 0
         self.env_seconds = 0.0
         """Wall time of the env's own work in ``step`` (observation, reward, books) (s)."""
-        self.vehicle = LearningVehicle(self.cfg, self.sim, feature_scales(self.cfg))
+        self.vehicle = LearningVehicle(self.cfg, self.sim)
         self._episode_seed = 0
         self._overlap: np.ndarray | None = None
 

@@ -37,15 +37,12 @@ from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms.batched.learner import flat_observations
 from lanefree_sumo.sim.world import World
 
-REPLACED = ("_prev_dx", "_in_range", "_order", "_net", "_best", "_ever")
-"""The batched env's arrays (besides the world and the books) that a step may replace rather than update."""
-
 
 def lockstep_refusal(env: Any, learner: Any) -> str | None:
     """Why the lockstep loop cannot run ``env`` with ``learner`` (None: it can)."""
     if env.device is None:
         return "the lockstep loop runs the torch simulation (give the environment a device)"
-    if bool(np.any(env._terminate)):
+    if bool(np.any(env.terminate_on_collision)):
         return "episode.terminate_on_collision ends episodes at different steps"
     if getattr(learner, "algo", None) == "td3":
         return "TD3 draws its target noise on the host: it is trained in the exact loop"
@@ -131,8 +128,7 @@ class Lockstep:
     def _current(self) -> dict[str, th.Tensor]:
         env = self.env
         state = {f"world.{f.name}": getattr(env.world, f.name) for f in fields(World)}
-        state.update({name: getattr(env, name) for name in REPLACED})
-        state.update({f"books.{name}": value for name, value in env._books.items()})
+        state.update(env.state.tensors())
         state["obs"] = self.obs
         return state
 
@@ -154,9 +150,7 @@ class Lockstep:
         if self._world is None:
             self._world = replace(env.world, **{f.name: static[f"world.{f.name}"] for f in fields(World)})
         env.world = self._world
-        for name in REPLACED:
-            setattr(env, name, static[name])
-        env._books = {name: static[f"books.{name}"] for name in env._books}
+        env.state.point_at(static)
         self.obs = static["obs"]
 
     def start(self, obs: Any) -> None:

@@ -43,7 +43,6 @@ from lanefree_sumo.rl.env import (
     action_to_acceleration,
     as_seed,
     face_config,
-    feature_scales,
     numpy_info,
     observation_space,
     resolve_config,
@@ -67,8 +66,7 @@ class LaneFreeParallelEnv(ParallelEnv):
         self._overlap: np.ndarray | None = None
         self.possible_agents: list[str] = [agent_id(i) for i in range(self.cfg.scenario.agents)]
         self.agents: list[str] = []
-        scales = feature_scales(self.cfg)
-        self.vehicles = {name: LearningVehicle(self.cfg, self.sim, scales) for name in self.possible_agents}
+        self.vehicles = {name: LearningVehicle(self.cfg, self.sim) for name in self.possible_agents}
         self._observation_spaces = {name: observation_space(self.cfg) for name in self.possible_agents}
         self._action_spaces = {name: action_space(self.cfg) for name in self.possible_agents}
         self._rows = np.zeros(0, dtype=int)

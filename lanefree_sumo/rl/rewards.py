@@ -36,7 +36,6 @@ __all__ = [
     "lateral_cost",
     "detect_overtakes",
     "pass_events",
-    "OvertakeLedger",
     "agent_overlaps",
     "RewardWeights",
     "PRESETS",
@@ -134,7 +133,8 @@ def pass_events(
     any shape (several agents' rows); ``range_m`` and ``ring_length`` broadcast against them.
     """
     xp = namespace(prev_dx, dx)
-    p, c = _rows(prev_dx, dx) if xp.is_numpy else (cast(np.ndarray, prev_dx), cast(np.ndarray, dx))
+    aligned = isinstance(prev_dx, np.ndarray) and isinstance(dx, np.ndarray) and prev_dx.shape == dx.shape
+    p, c = _rows(prev_dx, dx) if xp.is_numpy and not aligned else (cast(np.ndarray, prev_dx), cast(np.ndarray, dx))
     quarter = 0.25 * xp.asarray(ring_length)
     with xp.errstate(invalid="ignore"):
         valid = (
@@ -157,40 +157,7 @@ def detect_overtakes(
 
 OVERTAKE_BONUS_MODES: tuple[str, ...] = get_args(OvertakeBonus)
 """``reward.overtake_bonus``'s values (the config's :data:`~lanefree_sumo.config.schema.OvertakeBonus`), as
-:class:`OvertakeLedger` and the batched environment book them."""
-
-
-class OvertakeLedger:
-    """Which passes earn the overtake bonus in one episode (``reward.overtake_bonus``), by vehicle id.
-
-    ``every_pass``: every pass; ``once_per_vehicle``: a vehicle's first pass in the episode only;
-    ``net_passes``: a pass that raises the vehicle's passes minus its passes of the agent above the
-    highest value it had in the episode (passing back a vehicle that just passed the agent earns nothing)."""
-
-    def __init__(self, mode: str) -> None:
-        if mode not in OVERTAKE_BONUS_MODES:
-            raise ValueError(f"unknown overtake bonus mode {mode!r}")
-        self.mode = mode
-        self.net: dict[str, int] = {}
-        self.best: dict[str, int] = {}
-
-    def record(self, passed: list[str], passed_by: list[str]) -> int:
-        """Book one step's passes (ids of the vehicles passed, and of those that passed the agent); returns
-        how many of the passes earn the bonus."""
-        for vid in passed_by:
-            self.net[vid] = self.net.get(vid, 0) - 1
-        earned = 0
-        for vid in passed:
-            self.net[vid] = self.net.get(vid, 0) + 1
-            if self.mode == "every_pass":
-                earned += 1
-            elif self.mode == "once_per_vehicle":
-                earned += vid not in self.best
-                self.best[vid] = 1
-            elif self.net[vid] > self.best.get(vid, 0):
-                earned += 1
-                self.best[vid] = self.net[vid]
-        return earned
+:meth:`~lanefree_sumo.rl.problem.Problem.earned` books them."""
 
 
 def agent_overlaps(

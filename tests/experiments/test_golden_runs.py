@@ -50,3 +50,28 @@ def test_batched_run_k_reproduces_the_golden_single_run(tmp_path, algo):
     runs = train_batch([config(algo, seed=7), config(algo, seed=3)], tmp_path / "batch", progress=False,
                        command="test")
     assert rows(runs[1][0] / "episodes.csv") == rows(GOLDEN / f"{algo}_episodes.csv")
+
+
+SCENES = {"shield": {"shield": {"enabled": True}},
+          "onramp": {"road": {"kind": "onramp"}, "scenario": {"density_veh_per_km": 40}}}
+"""Single runs the ring's batched world does not hold: frozen from SB3's loop, which trained them before the one
+trainer did."""
+
+
+@pytest.mark.parametrize(("algo", "scene"), [("ddpg", "shield"), ("ddpg", "onramp"), ("dqn", "shield"),
+                                             ("dqn", "onramp")])
+def test_a_single_run_off_the_ring_or_shielded_reproduces_its_golden_episodes(tmp_path, algo, scene):
+    run, done = train(merge_config(config(algo), SCENES[scene]), run=tmp_path / "run", progress=False)
+    assert done == 3
+    golden = GOLDEN / f"{algo}_{scene}_episodes.csv"
+    if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":
+        golden.write_text((run / "episodes.csv").read_text())
+    assert rows(run / "episodes.csv") == rows(golden)
+
+
+@pytest.mark.parametrize("scene", list(SCENES))
+def test_batched_run_k_with_the_shield_or_on_the_on_ramp_reproduces_the_golden_single_run(tmp_path, scene):
+    runs = train_batch([merge_config(config("ddpg", seed=7), SCENES[scene]),
+                        merge_config(config("ddpg", seed=3), SCENES[scene])], tmp_path / "batch", progress=False,
+                       command="test")
+    assert rows(runs[1][0] / "episodes.csv") == rows(GOLDEN / f"ddpg_{scene}_episodes.csv")

@@ -92,12 +92,12 @@ def test_dqn_and_ddqn_runs_share_batches_and_the_other_variants_do_not(tmp_path)
 def test_a_run_with_a_switch_the_batched_learners_lack_goes_one_per_task(tmp_path):
     grid = load_grid(write_grid(tmp_path / "g.yaml", {
         "algorithms": ["ddpg"], "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2,
-        "variants": {"default": {}, "shield": {"shield.enabled": True}}}))
+        "variants": {"default": {}, "envs": {"train.envs": 2}}}))
     cells = list(grid.cells())
     packing = pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 8)
     assert [sorted(b.runs) for b in packing.batches] == [sorted(c.name for c in cells if "_default_" in c.name)]
-    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_shield_" in c.name)
-    assert list(packing.reasons) == ["batched training does not support the safety shield (--shield)"]
+    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_envs_" in c.name)
+    assert list(packing.reasons) == ["batched training does not support several environments (--envs)"]
 
 
 @pytest.mark.parametrize(("grid_name", "runs"), [("ddpg", 6), ("td3", 3)])

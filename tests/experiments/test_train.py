@@ -225,10 +225,13 @@ def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_
         train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
 
 
-def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path, monkeypatch):
-    """One trainer: a single DDPG run is a batch of one in its own folder, so SIGTERM in the middle of episode 2
-    and --resume, and a finished 2-episode run extended with --episodes 3, give the uninterrupted 3-episode run's
-    episodes.csv (every column but wall time) and TensorBoard events in the run folder."""
+@pytest.mark.parametrize("scene", [{}, {"shield": {"enabled": True}, "road": {"kind": "onramp"},
+                                        "scenario": {"density_veh_per_km": 40}}], ids=["ring", "shield-onramp"])
+def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path, monkeypatch, scene):
+    """One trainer: a single DDPG run is a batch of one in its own folder (on the ring its batched world, with the
+    shield on the on-ramp LaneFree-v0 itself), so SIGTERM in the middle of episode 2 and --resume, and a finished
+    2-episode run extended with --episodes 3, give the uninterrupted 3-episode run's episodes.csv (every column but
+    wall time) and TensorBoard events in the run folder."""
     import os
 
     from lanefree_sumo.experiments.runners import batch
@@ -236,8 +239,9 @@ def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path,
     def table(run: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]
 
-    cfg = merge_config(tiny_config("ddpg"), {"train": {"episodes": 3}})
+    cfg = merge_config(tiny_config("ddpg"), {"train": {"episodes": 3}, **scene})
     whole, done = train(cfg, run=tmp_path / "whole", progress=False, command="test")
+    assert (whole / "batch.json").is_file()
     assert done == 3 and any((whole / "tb").rglob("events.out.tfevents*"))
     step = batch._Batch._step
 

@@ -163,3 +163,32 @@ def test_runs_that_cannot_share_a_batch_are_refused():
         BatchedRingEnv([base[0], {**base[1], "reward": {"preset": "collision", "overtake_reward": 0.5}}])
     with pytest.raises(ConfigError, match="acceleration bounds; these differ: agent_bounds"):
         BatchedRingEnv([base[0], {**base[1], "scenario": {"agent_bounds": {"ay_max": 1.0}}}])
+
+
+def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as_it_was():
+    """A batch checkpoint pickles its env; one of the earlier layout (the problem's arrays and books as private
+    attributes of the env) unpickles into the same env: the same steps follow, bit for bit."""
+    import pickle
+
+    cfgs = configs("continuous", bonuses=("every_pass", "once_per_vehicle", "net_passes"))
+    env = BatchedRingEnv(cfgs)
+    env.reset()
+    rng = np.random.default_rng(2)
+    for step in range(30):
+        env.step(actions(rng, "continuous", step, surge=True))
+    old = dict(env.__dict__)
+    state = old.pop("state")
+    old.pop("problem")
+    old["_books"] = {name: value for name, value in state.books.items() if not name.startswith("shield_")}
+    old.update({f"_{name}": getattr(state, name) for name in state.ARRAYS})
+    old["_terminate"] = old.pop("terminate_on_collision")
+    old.pop("_lo")
+    old.update(_w=env.problem.weights, _once=env.problem.once, _net_passes=env.problem.net_passes, _range=80.0)
+    earlier = BatchedRingEnv.__new__(BatchedRingEnv)
+    earlier.__setstate__(pickle.loads(pickle.dumps(old)))
+    now = pickle.loads(pickle.dumps(env))
+    for step in range(30, 70):
+        a = actions(rng, "continuous", step, surge=True)
+        (obs_a, r_a, *_), (obs_b, r_b, *_) = earlier.step(a), now.step(a)
+        assert obs_a.tobytes() == obs_b.tobytes() and r_a.tobytes() == r_b.tobytes()
+    assert all(earlier.state.books[name].tobytes() == now.state.books[name].tobytes() for name in now.state.books)

@@ -155,8 +155,8 @@ def test_the_state_is_copied_back_into_the_same_buffers() -> None:
         pinned.iterate()
         free.iterate()
     assert {**tensors_of(pinned.env, "env"), **tensors_of(pinned.learner, "learner"), "obs": id(pinned.obs)} == held
-    for name in pinned.env._books:
-        assert th.equal(pinned.env._books[name], free.env._books[name]), name
+    for name in pinned.env.state.books:
+        assert th.equal(pinned.env.state.books[name], free.env.state.books[name]), name
     assert th.equal(pinned.obs, free.obs)
     assert th.equal(pinned.learner.actor.flat, free.learner.actor.flat)
 
@@ -179,8 +179,8 @@ def test_the_compiled_ring_step_traces_as_one_graph_and_equals_the_eager_one(per
     assert th.equal(traced.obs, eager.obs)
     for name in ("x", "y", "vx", "vy", "overlap", "dx"):
         assert th.equal(getattr(traced.env.world, name), getattr(eager.env.world, name)), name
-    for name in eager.env._books:
-        assert th.equal(traced.env._books[name], eager.env._books[name]), name
+    for name in eager.env.state.books:
+        assert th.equal(traced.env.state.books[name], eager.env.state.books[name]), name
 
 
 def test_a_compiler_that_fails_leaves_the_loop_uncompiled_with_a_warning() -> None:
@@ -260,8 +260,8 @@ def test_the_device_step_equals_the_host_step(kind: str) -> None:
         assert th.equal(got_obs, obs) and th.equal(got_reward, reward)
         assert bad.tolist() == [False, False, kind == "continuous" and step == 10]
     assert host.stopped.tolist() == [False, False, kind == "continuous"]
-    for name in host._books:
-        assert th.equal(device._books[name], host._books[name]), name
+    for name in host.state.books:
+        assert th.equal(device.state.books[name], host.state.books[name]), name
 
 
 @pytest.mark.parametrize("algo", ["ddpg", "dqn"])

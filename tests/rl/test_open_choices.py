@@ -5,6 +5,7 @@ DDPG's warm-up actions, the ``kerasrl`` learner profile, and the episode metrics
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -14,9 +15,11 @@ import torch as th
 
 from lanefree_sumo.config import AccelerationBounds, ConfigError, LaneFreeConfig, merge_config
 from lanefree_sumo.config.schema import LEARNER_PROFILES
-from lanefree_sumo.rl.env import LaneFreeEnv
-from lanefree_sumo.rl.rewards import OvertakeLedger, pass_events
+from lanefree_sumo.rl.env import LaneFreeEnv, resolve_config
+from lanefree_sumo.rl.problem import Problem, ProblemState
+from lanefree_sumo.rl.rewards import pass_events
 from lanefree_sumo.sim.simulation import clip_acceleration
+from lanefree_sumo.sim.xp import NUMPY
 from tests.rl.test_fast_dqn import ALGOS, BATCH, _assert_same, _filled, _steps
 
 
@@ -33,21 +36,29 @@ def test_pass_events_tell_passes_from_being_passed() -> None:
 
 
 @pytest.mark.parametrize(("mode", "earned"), [
-    ("every_pass", [2, 1, 1, 1]),        # every pass pays, the re-pass and the next lap too
+    ("every_pass", [2, 0, 2, 1]),        # every pass pays, the re-pass and the next lap too
     ("once_per_vehicle", [2, 0, 0, 0]),  # a and b once each
     ("net_passes", [2, 0, 1, 0]),        # a's re-pass after being passed back: no; b lapped again: yes
 ])
-def test_the_ledger_pays_the_passes_each_mode_counts(mode: str, earned: list[int]) -> None:
-    ledger = OvertakeLedger(mode)
-    steps = [(["a", "b"], []),   # passes a and b in one step
-             (["a"], ["a"]),     # a passed the agent back ... and the agent passed it again (same step order:
-                                 # being passed is booked first)
-             (["b"], []),        # b again, a lap later, never having passed the agent
-             (["c"], ["c", "c"]) if mode == "every_pass" else (["a"], ["a"])]
-    got = [ledger.record(passed, by) for passed, by in steps]
+def test_the_pass_book_pays_the_passes_each_mode_counts(mode: str, earned: list[int]) -> None:
+    """Rows a, b, c of one run; each step: (the rows the agent passed, the rows that passed it)."""
+    cfg = resolve_config({"reward": {"overtake_bonus": mode}})
+    problem, state = Problem([cfg], NUMPY), ProblemState.empty(NUMPY, 1, 3)
+    a, b, c = 0, 1, 2
+    steps = [([a, b], []),   # passes a and b in one step
+             ([], [a]),      # a passes the agent back ...
+             ([a, b], []),   # ... the agent passes it again (no pay but every_pass), and b a lap later
+             ([c], []) if mode == "every_pass" else ([], [])]
+
+    def rows(which: list[int]) -> np.ndarray:
+        mask = np.zeros((1, 3), dtype=bool)
+        mask[0, which] = True
+        return mask
+
+    got = [int(problem.earned(state, rows(passed), rows(by))[0]) for passed, by in steps]
     assert got == earned
-    with pytest.raises(ValueError, match="unknown overtake bonus mode"):
-        OvertakeLedger("twice")
+    with pytest.raises(ValueError, match="unknown overtake bonus mode 'twice'"):
+        Problem([dataclasses.replace(cfg, reward=dataclasses.replace(cfg.reward, overtake_bonus="twice"))], NUMPY)
 
 
 def test_the_agent_lateral_speed_bound_clips_ay_both_ways() -> None:

@@ -757,3 +757,43 @@ def test_zone_of_exactly_the_agents_width_and_margins_fits_and_the_agents_own_zo
     assert zones(5.0, 4.0, 5.0, 2.0, 0.5625) == (5.0, 8.0, True)
     # the blocker takes [4, 4.5]: the agent at 3.875 is inside [0, 4] (distance 0), 0.625 m from [4.5, 10]
     assert zones(4.25, 0.5, 3.875, 1.0, 0.0) == (2.0, 20.0, False)
+
+
+# ------------------------------------------------------------------ the learning problem against compute_reward
+
+
+@pytest.mark.parametrize("config", [
+    {"scenario": {"density_veh_per_km": 120}},
+    {"reward": {"preset": "fields_overtake_collision"}},
+    {"road": {"kind": "onramp"}, "scenario": {"density_veh_per_km": 40}},
+], ids=["ring", "no-zones", "onramp"])
+def test_every_steps_reward_terms_are_compute_rewards_of_the_scene_bit_for_bit(config):
+    """compute_reward is the scalar reference of the learning problem (rl/problem.py): each step of LaneFree-v0, its
+    terms from the simulation's state — the vehicles in range, the n nearest, the lateral bounds — are info's."""
+    from lanefree_sumo.rl.env import LaneFreeEnv
+
+    env = LaneFreeEnv({"backend": "numpy", **config})
+    env.reset(seed=4)
+    rng = np.random.default_rng(0)
+    cfg, zoned = env.cfg, 0
+    for _ in range(300):
+        _, reward, terminated, truncated, info = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+        state, (dx_all, dy_all) = env.sim.current()
+        a = env.vehicle.index
+        dx, dy = dx_all[a], dy_all[a]
+        idx = np.flatnonzero((np.abs(dx) <= cfg.observation.range_m) & (np.arange(state.n) != a))
+        nearest = idx[np.argsort(np.hypot(dx[idx], dy[idx]), kind="stable")][:cfg.observation.n_neighbours]
+        lo, hi = env.vehicle.lateral_bounds()
+        terms = compute_reward(dx[idx], dy[idx], state.vx[idx], state.vy[idx], state.length[idx], state.width[idx],
+                               float(state.y[a]) - lo, float(state.vx[a]), float(state.vy[a]), float(state.length[a]),
+                               float(state.width[a]), float(state.v_desired[a]), hi - lo, cfg.reward.preset,
+                               observed=np.searchsorted(idx, nearest), collided=bool(info["collided"]),
+                               overtook=bool(info["overtook"]), config=cfg.reward)
+        for name, value in terms.as_dict().items():
+            assert np.asarray(info[name]).tobytes() == np.asarray(value).tobytes(), name
+        assert reward == terms.reward
+        zoned += terms.y_d != 0.5 * (hi - lo)  # a blocker ahead moved the lateral target
+        if terminated or truncated:
+            break
+    env.close()
+    assert zoned > 0 or "reward" in config, "the scenes exercise the zones"

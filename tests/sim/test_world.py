@@ -36,6 +36,17 @@ def test_row_sum_is_numpys_sum_of_each_rows_own_length():
         assert (row_sum(padded[:1, :n], np.array([n])) == values.sum()).all()
 
 
+def test_row_sum_of_short_padded_rows_is_numpys_sum_of_their_entries_bit_for_bit():
+    rng = np.random.default_rng(1)
+    for width in range(1, 8):
+        for count in range(width + 1):
+            for entries in (rng.normal(size=count) * 10.0 ** rng.integers(-6, 6, size=count), np.full(count, -0.0)):
+                padded = np.zeros((1, width))
+                padded[0, :count] = entries
+                got = row_sum(padded, np.array([count]))
+                assert got.tobytes() == np.array([entries.sum()]).tobytes(), (width, count, entries)
+
+
 def test_each_run_of_a_batch_is_the_single_simulation_bit_for_bit():
     cfgs = [ring(seed, density) for seed, density in RUNS]
     world = reset_world(cfgs, [seed for seed, _ in RUNS])

@@ -64,8 +64,9 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
 
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
-    for wrong, what in ((cfg.shield.enabled, "the safety shield (--shield)"),
-                        (cfg.road.kind != "ring", f"the {cfg.road.kind} road (--scenario)"),
+    for wrong, what in ((needs_env_batch(cfg) and cfg.train.device != "cpu",
+                         f"the safety shield or the {cfg.road.kind} road on {cfg.train.device} (they run on the "
+                         "CPU)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
@@ -75,6 +76,12 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
         if wrong:
             return what
     return None
+
+
+def needs_env_batch(cfg: LaneFreeConfig) -> bool:
+    """Whether a batch of ``cfg``'s runs steps LaneFree-v0 environments (:class:`~lanefree_sumo.rl.env_batch.
+    EnvBatch`: the shield, a road other than the ring) rather than the ring's batched world."""
+    return cfg.shield.enabled or cfg.road.kind != "ring"
 
 
 def check_batchable(cfg: LaneFreeConfig) -> None:
@@ -332,8 +339,10 @@ class _Batch:
     def _start(self) -> tuple[Any, Any, _Books]:
         """A new batch's environment (every run reset), its first observation and its books."""
         from lanefree_sumo.rl.batched_env import BatchedRingEnv
+        from lanefree_sumo.rl.env_batch import EnvBatch
 
-        env = BatchedRingEnv(self.cfgs, device=self.device)
+        env = (EnvBatch if any(needs_env_batch(c) for c in self.cfgs) else BatchedRingEnv)(self.cfgs,
+                                                                                         device=self.device)
         obs = env.reset()
         return env, obs, _Books([0] * self.runs, [c.train.episodes for c in self.cfgs], [False] * self.runs)
 
