@@ -12,6 +12,7 @@ from lanefree_sumo import argtypes
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import EXIT_INTERRUPTED, UsageError
 from lanefree_sumo.options import DENSITY, SEED, Option, add_options, command_line, verb_config
+from lanefree_sumo.sim.road import road_kind
 
 DEFAULTS = LaneFreeConfig()
 EPISODE_S = DEFAULTS.sim.episode_steps * DEFAULTS.sim.step_s
@@ -75,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
     _check_road_options(args, cfg)
     from lanefree_sumo.experiments.runners.simulate import simulate
 
-    road = "" if cfg.road.kind == "ring" else f"{cfg.road.kind}-"  # a ring and an on-ramp run do not collide
+    tag = road_kind(cfg).tag
+    road = f"{tag}-" if tag else ""  # a ring and an on-ramp run do not collide
     out = args.out or Path("runs") / f"sim-{road}d{cfg.scenario.density_veh_per_km:g}-s{cfg.seed}"
     summary = simulate(cfg, args.seconds, out, command_line(), overwrite=args.overwrite,
                        write_trajectory=not args.no_trajectory, progress=not args.json)

@@ -30,6 +30,7 @@ from lanefree_sumo.rl.env import DISCRETE_ACTIONS, resolve_config
 from lanefree_sumo.rl.models import episode_seed
 from lanefree_sumo.rl.problem import BOOKS, AgentView, Problem, ProblemState, Rewards, episode_row
 from lanefree_sumo.rl.rewards import OVERTAKE_BONUS_MODES
+from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
 from lanefree_sumo.sim.xp import NUMPY, torch_namespace
@@ -48,7 +49,7 @@ def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[Reso
         raise ConfigError("a batched environment needs at least one run")
     first = config_to_dict(cfgs[0])
     for k, cfg in enumerate(cfgs):
-        if cfg.road.kind != "ring" or cfg.scenario.agents != 1:
+        if not road_kind(cfg).batched_world or cfg.scenario.agents != 1:
             raise ConfigError(f"run {k}: the batched environment runs one agent on the ring "
                               f"(road.kind = ring, scenario.agents = 1); use LaneFree-v0 for the others")
         if cfg.shield.enabled:

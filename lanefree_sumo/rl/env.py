@@ -48,10 +48,10 @@ from lanefree_sumo.rl.problem import (
 )
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
 from lanefree_sumo.sim.collisions import count_events
+from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.simulation import Simulation, StepResult
 from lanefree_sumo.sim.xp import NUMPY
 
-ONRAMP_FEATURES = 4  # lowest and highest lateral position at the front (/W), on the ramp (0/1), ramp end ahead (/d)
 # Discrete actions (specification §6) as (sign of ax, sign of ay): none, +ax, −ax, left, right, and the
 # four combinations.
 DISCRETE_ACTIONS = np.array(
@@ -232,7 +232,7 @@ class LearningVehicle:
 def ego_features(cfg: LaneFreeConfig) -> int:
     """How many ego features an observation has: 4, and 4 more on the on-ramp (unless
     ``observation.road_features`` is off)."""
-    return EGO_FEATURES + (ONRAMP_FEATURES if cfg.road.kind != "ring" and cfg.observation.road_features else 0)
+    return EGO_FEATURES + (len(road_kind(cfg).ego_features) if cfg.observation.road_features else 0)
 
 
 def observation_space(cfg: LaneFreeConfig) -> spaces.Space:

@@ -46,6 +46,7 @@ from lanefree_sumo.rl.env import (
     observation_space,
     resolve_config,
 )
+from lanefree_sumo.sim.road import road_kind
 
 SEED_BOUND = 2**31 - 1
 """Episode seeds drawn by a sub-environment's generator lie in [0, SEED_BOUND) (as LaneFree-v0 draws them)."""
@@ -56,7 +57,7 @@ def _refusal(cfg: LaneFreeConfig) -> str | None:
     if cfg.gui or cfg.backend != "numpy":
         return (f"backend {'sumo-gui' if cfg.gui else cfg.backend!r}: the vector entry point runs its worlds as "
                 "numpy arrays (the same episodes as libsumo)")
-    if cfg.road.kind != "ring":
+    if not road_kind(cfg).batched_world:
         return f"road.kind = {cfg.road.kind!r}: the vector entry point runs the ring"
     if cfg.scenario.agents != 1:
         return f"scenario.agents = {cfg.scenario.agents}: the vector entry point runs one learning vehicle per world"

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, VehicleClassConfig
+from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.xp import namespace
 
 EDGES = 4
@@ -73,7 +74,7 @@ def nets_cache() -> Path:
 def default_net_path(cfg: LaneFreeConfig) -> Path:
     """The network of ``cfg``'s road: the committed one under ``sumo_nets/``, else its place in
     :func:`nets_cache` (built there on first use)."""
-    name = onramp_name(cfg) if cfg.road.kind == "onramp" else ring_name(cfg.road.length_m, cfg.road.width_m)
+    name = ring_name(cfg.road.length_m, cfg.road.width_m) if road_kind(cfg).periodic else onramp_name(cfg)
     committed = NETS_DIR / f"{name}.net.xml"
     return committed if committed.is_file() else nets_cache() / committed.name
 
@@ -151,7 +152,7 @@ def write_additional(cfg: LaneFreeConfig, path: Path) -> Path:
     slow = sc.background
     fast = dataclasses.replace(sc.background, color_rgb=sc.background_fast_color_rgb)
     route = " ".join(edge_id(k) for k in range(EDGES))
-    if cfg.road.kind == "onramp":
+    if not road_kind(cfg).periodic:  # the on-ramp's two routes
         routes = [f'    <route id="{ROUTE_MAIN}" edges="{" ".join(ONRAMP_EDGES)}"/>',
                   f'    <route id="{ROUTE_RAMP}" edges="{" ".join(ONRAMP_EDGES[1:])}"/>']
     else:

@@ -24,6 +24,43 @@ import numpy as np
 
 from lanefree_sumo.config import ConfigError, LaneFreeConfig
 
+
+@dataclass(frozen=True)
+class RoadKind:
+    """What the code around the physics tells one road kind (``road.kind``) by: declared once here, read
+    through :func:`road_kind` (never by comparing the kind's name)."""
+
+    name: str
+    periodic: bool
+    """x wraps: the vehicles stay on the road (no entries, no exits)."""
+    batched_world: bool
+    """The batched world of :mod:`~lanefree_sumo.sim.world` runs it (the numpy simulation, ``--seeds`` as one
+    array program, the vector entry point, the GPU)."""
+    tag: str
+    """In run and simulation folder names (empty for the paper's ring)."""
+    ego_features: tuple[str, ...]
+    """The learning vehicle's extra ego features (``observation.road_features``)."""
+    metrics: tuple[str, ...]
+    """Its extra episode metrics (``episodes.csv`` columns)."""
+
+
+ROAD_KIND_SPECS: dict[str, RoadKind] = {
+    "ring": RoadKind("ring", periodic=True, batched_world=True, tag="", ego_features=(), metrics=()),
+    "onramp": RoadKind("onramp", periodic=False, batched_world=False, tag="onramp",
+                       ego_features=("lowest lateral position at the front (/W)",
+                                     "highest lateral position at the front (/W)", "on the ramp (0/1)",
+                                     "ramp end ahead (/d)"),
+                       metrics=("merged", "time_to_merge_s", "left_road")),
+}
+"""Every road kind of :data:`~lanefree_sumo.config.ROAD_KINDS`, by name (``tests/sim/test_open_road.py`` checks
+that this and each table keyed by kind cover them all)."""
+
+
+def road_kind(cfg: LaneFreeConfig) -> RoadKind:
+    """The :class:`RoadKind` of ``cfg``'s road."""
+    return ROAD_KIND_SPECS[cfg.road.kind]
+
+
 OPEN_ROAD_WRAP_M = 1e12
 """The wrap length of an open road (m): differences of positions on any road up to ~1e11 m long wrap to
 themselves exactly (floor(d / 1e12 + 0.5) = 0)."""
@@ -48,7 +85,8 @@ class Road:
 
     @property
     def periodic(self) -> bool:
-        return self.kind == "ring"
+        """x wraps (the ring)."""
+        return ROAD_KIND_SPECS[self.kind].periodic
 
     @property
     def wrap_length(self) -> float:
@@ -71,8 +109,8 @@ class Road:
 
 def road_of(cfg: LaneFreeConfig) -> Road:
     """The :class:`Road` of a config; ConfigError when the on-ramp's parts do not fit together."""
-    if cfg.road.kind == "ring":
-        return Road("ring", cfg.road.length_m, cfg.road.width_m)
+    if road_kind(cfg).periodic:
+        return Road(cfg.road.kind, cfg.road.length_m, cfg.road.width_m)
     o = cfg.road.onramp
     if o.merge_m > o.ramp_m:
         raise ConfigError(f"config 'road.onramp.merge_m' = {o.merge_m:g} is longer than the ramp "

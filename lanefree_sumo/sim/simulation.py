@@ -27,7 +27,7 @@ from lanefree_sumo.sim.collisions import CollisionTracker, overlap_matrix
 from lanefree_sumo.sim.dynamics import ballistic_distance, clip_acceleration, plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.open_road import OpenRoadTraffic, append_rows, keep_rows
-from lanefree_sumo.sim.road import Road, road_of
+from lanefree_sumo.sim.road import Road, road_kind, road_of
 from lanefree_sumo.sim.spawn import spawn, without_agents
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets
 from lanefree_sumo.sim.world import World, WorldParams, step_world, world_of
@@ -45,10 +45,10 @@ def make_backend(cfg: LaneFreeConfig) -> Backend | None:
         if cfg.net_file:
             raise ConfigError(f"the numpy backend uses no SUMO network (net_file {cfg.net_file}); drop it, or use "
                               "--backend libsumo (or traci)")
-        return None if cfg.road.kind == "ring" else OpenRoadNumpyBackend(cfg)
-    from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
+        return None if road_kind(cfg).batched_world else OpenRoadNumpyBackend(cfg)
+    from lanefree_sumo.sim.backends.sumo import sumo_backend
 
-    return (OnRampSumoBackend if cfg.road.kind == "onramp" else SumoBackend)(cfg, kind=cfg.backend, gui=cfg.gui)
+    return sumo_backend(cfg)(cfg, kind=cfg.backend, gui=cfg.gui)
 
 
 @dataclass

@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from lanefree_sumo.config import ConfigError, LaneFreeConfig
+from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.state import VehicleState
 
 AGENT_ID = "agent"
@@ -72,7 +73,7 @@ def check_fits(cfg: LaneFreeConfig) -> None:
     n_bg = cfg.background_vehicles
     k = agent_count(cfg)
     rows, cols = grid_shape(cfg)
-    if n_bg < 1 and cfg.road.kind == "ring":
+    if n_bg < 1 and road_kind(cfg).periodic:
         raise ConfigError(
             f"density {sc.density_veh_per_km:g} veh/km puts no vehicle on a "
             f"{cfg.road.length_m:g} m ring; use at least {1000.0 / cfg.road.length_m:g} veh/km"

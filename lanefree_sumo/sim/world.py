@@ -30,6 +30,7 @@ from lanefree_sumo.sim.collisions import overlap_matrix, started_overlaps
 from lanefree_sumo.sim.dynamics import ballistic_distance, clip_accelerations, plan_step
 from lanefree_sumo.sim.forces import driver_accelerations
 from lanefree_sumo.sim.network import EDGES, edge_length, edge_to_ring, ring_to_edge
+from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, take_rows
 from lanefree_sumo.sim.xp import namespace, torch_namespace
@@ -88,7 +89,7 @@ class WorldParams:
 
     @classmethod
     def _of(cls, cfg: LaneFreeConfig) -> WorldParams:
-        if cfg.road.kind != "ring":
+        if not road_kind(cfg).batched_world:
             raise ConfigError(f"the batched simulation runs the ring, not road.kind = {cfg.road.kind}")
         return cls(cfg.scenario.driver, cfg.sim.step_s, cfg.sim.edge_clearance_m, cfg.sim.edge_contact_tolerance_m,
                    cfg.scenario.agent_bounds, cfg.scenario.agent_max_speed_mps, cfg.scenario.agent_lateral_speed_ratio,

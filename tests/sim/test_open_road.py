@@ -252,3 +252,15 @@ def test_the_numpy_backend_adds_and_removes_vehicles_in_order():
     assert x.tolist() == [1202.0, 0.5] and vx.tolist() == [4.0, 4.0]  # (0 + ½·4)·0.25 from rest
     assert y == pytest.approx([-1.0, 3.6], abs=1e-12)
     assert backend._edge.tolist() == [1, 0] and backend._lane.tolist() == [0, 0]
+
+
+def test_every_road_kind_is_declared_once_and_every_table_by_kind_covers_them():
+    """A road kind is named in the config (``RoadKind``) and declared in ``sim/road.py``; the tables keyed by kind
+    (SUMO's networks and backends) hold every one, so a new kind cannot silently take the ring's code."""
+    from lanefree_sumo.config import ROAD_KINDS
+    from lanefree_sumo.sim.backends.sumo import BACKENDS, NETWORKS
+    from lanefree_sumo.sim.road import ROAD_KIND_SPECS
+
+    for table in (ROAD_KIND_SPECS, NETWORKS, BACKENDS):
+        assert set(table) == set(ROAD_KINDS)
+    assert all(spec.name == name for name, spec in ROAD_KIND_SPECS.items())

@@ -52,6 +52,7 @@ from lanefree_sumo.experiments.storage.rundir import (
     record_session,
     write_config,
 )
+from lanefree_sumo.sim.road import road_kind
 
 KEEP_BATCH_CHECKPOINTS = 2
 
@@ -81,7 +82,7 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
 def needs_env_batch(cfg: LaneFreeConfig) -> bool:
     """Whether a batch of ``cfg``'s runs steps LaneFree-v0 environments (:class:`~lanefree_sumo.rl.env_batch.
     EnvBatch`: the shield, a road other than the ring) rather than the ring's batched world."""
-    return cfg.shield.enabled or cfg.road.kind != "ring"
+    return cfg.shield.enabled or not road_kind(cfg).batched_world
 
 
 def check_batchable(cfg: LaneFreeConfig) -> None:

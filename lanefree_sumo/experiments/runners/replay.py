@@ -38,7 +38,7 @@ from lanefree_sumo.experiments.storage.rundir import (
     vehicles_path,
 )
 from lanefree_sumo.sim.dynamics import StepCommand
-from lanefree_sumo.sim.road import road_of
+from lanefree_sumo.sim.road import road_kind, road_of
 from lanefree_sumo.sim.spawn import AGENT_ID, is_agent_id
 from lanefree_sumo.sim.state import VehicleState, wrap
 
@@ -118,7 +118,7 @@ def load_recording(run: Path, episode: int = 1) -> Recording:
         present = np.zeros((len(t), len(ids)), dtype=bool)
         present[rows, cols] = True
         entries = present[0].astype(int) + (np.diff(present.astype(int), axis=0) == 1).sum(axis=0)
-        if present.sum() != len(table) or (entries != 1).any() or (cfg.road.kind == "ring" and not present.all()):
+        if present.sum() != len(table) or (entries != 1).any() or (road_kind(cfg).periodic and not present.all()):
             raise ValueError("rows are not one per vehicle and step on the road")
 
         def grid(values: np.ndarray) -> np.ndarray:
@@ -229,7 +229,7 @@ def replay(
 def _replay(run: Path, episode: int, gui: bool, delay_s: float, screenshot: Path | None, screenshot_step: int | None,
             frames: Path | None, every: int, gif: Path | None, fcd: Path | None, size: tuple[int, int],
             zoom: float | None) -> ReplayResult:
-    from lanefree_sumo.sim.backends.sumo import OnRampSumoBackend, SumoBackend
+    from lanefree_sumo.sim.backends.sumo import sumo_backend
 
     rec = load_recording(run, episode)
     cfg = merge_config(rec.cfg, {"gui": gui, "backend": "traci" if gui else "libsumo"})
@@ -245,10 +245,9 @@ def _replay(run: Path, episode: int, gui: bool, delay_s: float, screenshot: Path
     if frame_dir is not None:
         frame_dir.mkdir(parents=True, exist_ok=True)
     extra = _sumo_args(Path(tmp.name), gui, size, delay_s, fcd)
-    onramp = cfg.road.kind == "onramp"
-    backend_class = OnRampSumoBackend if onramp else SumoBackend
+    backend_class = sumo_backend(cfg)
     if zoom is None:
-        zoom = REPLAY.onramp_zoom_percent if onramp else REPLAY.zoom_percent
+        zoom = REPLAY.zoom_percent if road_kind(cfg).periodic else REPLAY.onramp_zoom_percent
     backend = backend_class(cfg, kind=cfg.backend, gui=gui, extra_args=extra)
     written: list[Path] = []
     try:

@@ -33,6 +33,7 @@ from lanefree_sumo.errors import EXIT_INTERRUPTED
 from lanefree_sumo.experiments.analysis.markdown import count
 from lanefree_sumo.experiments.runners.signals import StopRequest, stop_requested
 from lanefree_sumo.options import DENSITY, Option, add_options, verb_config
+from lanefree_sumo.sim.road import road_kind
 
 POLICIES = ("random", "idle")
 EVALUATION = EvaluationConfig()
@@ -202,6 +203,6 @@ def _summary(rows: list[dict[str, Any]], cfg: LaneFreeConfig, policy: str, seed:
         "mean_speed_mps": mean("mean_speed_mps"),
         "boundary_contacts": total("boundary_contacts"),
         "mean_return": mean("return"),
-        **({"merged_share": mean("merged"), "left_road_share": mean("left_road")} if cfg.road.kind == "onramp" else {}),
+        **{f"{name}_share": mean(name) for name in ("merged", "left_road") if name in road_kind(cfg).metrics},
         "wall_s": wall,
     }

@@ -19,6 +19,7 @@ from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import RunError
 from lanefree_sumo.experiments.storage.episodes import EpisodeLog
 from lanefree_sumo.experiments.storage.rundir import RunDir
+from lanefree_sumo.sim.road import road_kind
 
 # -- provenance ----------------------------------------------------------------------------------
 
@@ -106,7 +107,8 @@ class Stop:
 def run_name(cfg: LaneFreeConfig) -> str:
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     agents = f"_k{cfg.scenario.agents}" if cfg.scenario.agents > 1 else ""
-    road = "_onramp" if cfg.road.kind == "onramp" else ""
+    tag = road_kind(cfg).tag
+    road = f"_{tag}" if tag else ""
     return (f"{stamp}_{cfg.train.algo}_{cfg.reward.preset}{road}_d{cfg.scenario.density_veh_per_km:g}{agents}"
             f"_s{cfg.seed}{'_shield' if cfg.shield.enabled else ''}")
 

@@ -9,8 +9,9 @@ from pathlib import Path
 from typing import Any
 
 from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.sim.road import road_kind
 
-__all__ = ["EPISODE_COLUMNS", "MULTI_AGENT_COLUMNS", "ONRAMP_COLUMNS", "EpisodeLog", "episode_columns"]
+__all__ = ["EPISODE_COLUMNS", "MULTI_AGENT_COLUMNS", "EpisodeLog", "episode_columns"]
 
 EPISODE_COLUMNS = (
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
@@ -20,14 +21,12 @@ EPISODE_COLUMNS = (
 )
 MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
 """Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
-ONRAMP_COLUMNS = ("merged", "time_to_merge_s", "left_road")
-"""Added to ``EPISODE_COLUMNS`` in runs on the on-ramp."""
 
 
 def episode_columns(cfg: LaneFreeConfig) -> tuple[str, ...]:
     """The columns of a run's ``episodes.csv``."""
     return (EPISODE_COLUMNS + (MULTI_AGENT_COLUMNS if cfg.scenario.agents > 1 else ())
-            + (ONRAMP_COLUMNS if cfg.road.kind == "onramp" else ()))
+            + road_kind(cfg).metrics)
 
 
 TENSORBOARD_SCALARS = ("return", "collisions", "speed_dev_mps", "overtakes", "mean_speed_mps", "shield_interventions")

@@ -112,7 +112,7 @@ def resolve_net(cfg: LaneFreeConfig) -> Path:
     if not path.is_file():  # built aside and moved in, the network last: a process beside never reads half a file
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix=".build-", dir=path.parent) as tmp:
-            built = (build_onramp_net if cfg.road.kind == "onramp" else build_ring_net)(cfg, Path(tmp))
+            built = NETWORKS[cfg.road.kind][0](cfg, Path(tmp))
             for file in sorted(Path(tmp).iterdir(), key=lambda f: f == built):
                 os.replace(file, path.parent / file.name)
     return path
@@ -161,6 +161,11 @@ def check_ring_net(path: Path, cfg: LaneFreeConfig) -> None:
             f"network file {path} is a {total:g} m × {width:g} m ring but the config asks for "
             f"{cfg.road.length_m:g} m × {cfg.road.width_m:g} m; pass matching --length/--width"
         )
+
+
+NETWORKS: dict[str, tuple[Callable[[LaneFreeConfig, Path], Path], Callable[[Path, LaneFreeConfig], None]]] = {
+    "ring": (build_ring_net, check_ring_net), "onramp": (build_onramp_net, check_onramp_net)}
+"""Each road kind's (builder, checker) of its SUMO network."""
 
 
 def sumo_options(cfg: LaneFreeConfig, net: Path, additional: Path) -> list[str]:
@@ -229,7 +234,7 @@ class SumoBackend:
         self.kind = kind
         self.gui = gui
         self.net = resolve_net(cfg)
-        (check_onramp_net if cfg.road.kind == "onramp" else check_ring_net)(self.net, cfg)
+        NETWORKS[cfg.road.kind][1](self.net, cfg)
         self._label = label or f"lanefree-{os.getpid()}-{id(self)}"
         self._extra_args = list(extra_args)
         self._ids: list[str] = []
@@ -578,3 +583,12 @@ def bare_step_rate(cfg: LaneFreeConfig, state: VehicleState, steps: int) -> floa
     finally:
         libsumo.close()
         tmp.cleanup()
+
+
+BACKENDS: dict[str, type[SumoBackend]] = {"ring": SumoBackend, "onramp": OnRampSumoBackend}
+"""Each road kind's SUMO backend."""
+
+
+def sumo_backend(cfg: LaneFreeConfig) -> type[SumoBackend]:
+    """The SUMO backend class of ``cfg``'s road kind."""
+    return BACKENDS[cfg.road.kind]
