@@ -28,8 +28,8 @@ from lanefree_sumo.config import LaneFreeConfig, ResolvedConfig, config_to_dict
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.env import DISCRETE_ACTIONS, resolve_config
 from lanefree_sumo.rl.models import episode_seed
-from lanefree_sumo.rl.problem import BOOKS, AgentView, Problem, ProblemState, Rewards, episode_row
-from lanefree_sumo.rl.rewards import OVERTAKE_BONUS_MODES
+from lanefree_sumo.rl.problem import BOOKS, AgentView, Problem, ProblemState, episode_row
+from lanefree_sumo.rl.rewards import OVERTAKE_BONUS_MODES, Rewards
 from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
@@ -294,7 +294,7 @@ class BatchedRingEnv:
         for k in ended:
             metrics[k] = self.episode_metrics(int(k), books)
         self._seen = (self.world, obs)
-        info = {**{name: getattr(terms, name) for name in Rewards.__dataclass_fields__},
+        info = {**terms.as_dict(),
                 "overtakes": overtakes, "collision_events": agent_events, "boundary_contact": contact,
                 "ax": accel[:, 0], "ay": accel[:, 1], "episode_metrics": metrics, "stopped": stopped_now}
         return obs, reward, terminated, truncated, info

@@ -43,7 +43,6 @@ from lanefree_sumo.rl.problem import (
     AgentView,
     Problem,
     ProblemState,
-    Rewards,
     episode_row,
 )
 from lanefree_sumo.rl.shield import ShieldDecision, ShieldParams, shield_action
@@ -177,7 +176,7 @@ class LearningVehicle:
         if self.open_road and self.extra["merged_at_step"] < 0 and not self.sim.on_ramp[a]:
             self.extra["merged_at_step"] = self.sim.steps
         info: dict[str, Any] = {
-            **{name: getattr(terms, name)[0].item() for name in Rewards.__dataclass_fields__},
+            **{name: value[0].item() for name, value in terms.as_dict().items()},
             "overtakes": int(overtakes[0]),
             "collision_events": agent_events,
             "boundary_contact": contact,

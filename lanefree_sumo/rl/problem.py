@@ -23,21 +23,22 @@ from typing import Any, ClassVar
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
-from lanefree_sumo.rl.fields_zones import field_terms, zone_targets
 from lanefree_sumo.rl.rewards import (
+    COST_NAMES,
+    COST_TERMS,
     OVERTAKE_BONUS_MODES,
+    Rewards,
+    RewardScene,
     get_preset,
-    lateral_cost,
-    longitudinal_cost,
     pass_events,
-    reciprocal_reward,
+    reward_terms,
+    term_weight,
 )
-from lanefree_sumo.sim.state import row_sum
 from lanefree_sumo.sim.xp import NUMPY, torch_namespace
 
 EGO_FEATURES = 4  # y, vx, vy, v_d
 NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
-METRIC_TERMS = ("c_x", "c_y", "c_f", "reward")
+METRIC_TERMS = (*COST_NAMES, "reward")
 """The reward terms whose per-step means are episode metrics (``mean_<term>``)."""
 
 BOOKS = ("return", "return_bonus", "return_collision", "collisions", "collision_steps", "background_collisions",
@@ -45,8 +46,6 @@ BOOKS = ("return", "return_bonus", "return_collision", "collisions", "collision_
          "shield_fallbacks", *(f"sum_{t}" for t in METRIC_TERMS))
 """A run's episode books: sums over the episode's steps, ``[K]`` each."""
 
-WEIGHTS = ("w_x", "w_y", "w_f", "use_collision", "use_overtake")
-"""A reward preset's fields (:class:`~lanefree_sumo.rl.rewards.RewardWeights`), one value per run."""
 
 
 def feature_scales(cfg: LaneFreeConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -98,21 +97,6 @@ class AgentView:
         xp.put_along_axis(others, agent[:, None], False, 1)
         return cls(dx, dy, vx, vy, length, width, others, y[runs, agent], vx[runs, agent], vy[runs, agent],
                    length[runs, agent], width[runs, agent], v_desired[runs, agent], lo, road_width, road_length)
-
-
-@dataclass
-class Rewards:
-    """One step's reward terms of every run (``[K]``; costs –, y_d m, v_d_eff m/s), as ``info`` reports them."""
-
-    c_x: Any
-    c_y: Any
-    c_f: Any
-    y_d: Any
-    v_d_eff: Any
-    blocked: Any
-    collided: Any
-    overtook: Any
-    reward: Any
 
 
 @dataclass
@@ -175,7 +159,12 @@ class Problem:
         self.xp = xp
         self.runs = len(cfgs)
         presets = [get_preset(c.reward.preset) for c in cfgs]
-        self.weights = {name: xp.asarray(np.array([getattr(p, name) for p in presets])) for name in WEIGHTS}
+        self.weights = {**{t.weight: xp.asarray(np.array([term_weight(t, p, c.reward) for p, c in zip(presets, cfgs)]))
+                           for t in COST_TERMS},
+                        **{name: xp.asarray(np.array([getattr(p, name) for p in presets]))
+                           for name in ("use_collision", "use_overtake")}}
+        """Each cost's weight (by :attr:`~lanefree_sumo.rl.rewards.CostTerm.weight`) and the r_c / r_o switches,
+        ``[K]`` each."""
         self.ego_scale, self.neighbour_scale = (xp.asarray(np.array(s)) for s in zip(*(feature_scales(c)
                                                                                         for c in cfgs)))
         modes = [c.reward.overtake_bonus for c in cfgs]
@@ -277,8 +266,8 @@ class Problem:
                   "return_collision": xp.where(w["use_collision"] & collided, r.collision_reward, 0.0),
                   "collisions": agent_events, "collision_steps": collided, "background_collisions": background,
                   "speed_dev_sum": xp.abs(error), "speed_error_sum": error, "speed_sum": view.vx_a,
-                  "overtakes": overtakes, "boundary_contacts": contact, "sum_c_x": terms.c_x, "sum_c_y": terms.c_y,
-                  "sum_c_f": terms.c_f, "sum_reward": reward}
+                  "overtakes": overtakes, "boundary_contacts": contact,
+                  **{f"sum_{name}": terms.costs[name] for name in COST_NAMES}, "sum_reward": reward}
         if intervened is not None:
             values.update(shield_interventions=intervened, shield_fallbacks=fallback)
         b = state.books
@@ -308,40 +297,12 @@ class Problem:
         :func:`~lanefree_sumo.rl.rewards.compute_reward`): the zones on every vehicle in range, the fields on the
         ``observation.n_neighbours`` nearest (``near``, ``seen``: :meth:`_observe`'s), the lateral terms within
         the vehicle's bounds."""
-        r, xp, w = self.cfg.reward, self.xp, self.weights
-        y_a, width = view.y - view.lo, view.road_width
-        if self._zones is False:
-            y_d, v_d_eff = 0.5 * width, view.v_desired
-            blocked, c_y = xp.zeros(self.runs, dtype=bool), xp.zeros(self.runs)
-        else:
-            y_d, v_d_eff, blocked = zone_targets(view.dx, view.dy, view.vx, view.length, view.width, y_a, view.vx_a,
-                                                 view.len_a, view.wid_a, view.v_desired, width,
-                                                 time_gap=r.zone_time_gap_s, margin=r.zone_margin_m,
-                                                 present=state.in_range)
-            c_y = lateral_cost(y_a, y_d, width)
-            if self._zones is None:
-                zones = w["w_y"] > 0.0
-                y_d = xp.where(zones, y_d, 0.5 * width)
-                v_d_eff = xp.where(zones, v_d_eff, view.v_desired)
-                blocked = zones & blocked
-                c_y = xp.where(zones, lateral_cost(y_a, y_d, width), 0.0)
-        c_x = longitudinal_cost(view.vx_a, v_d_eff, min_desired_speed=r.min_desired_speed_mps)
-
         n = self.cfg.observation.n_neighbours
-        seen = xp.minimum(seen, n)
-        near = near[:, :n]
-        e_c, e_b = field_terms(near[..., 0], near[..., 1], view.vx_a[:, None] - near[..., 2],
-                               view.vy_a[:, None] - near[..., 3], view.len_a[:, None], view.wid_a[:, None],
-                               near[..., 4], near[..., 5], magnitude=r.field_magnitude,
-                               critical_exponents=r.critical_exponents, broad_exponents=r.broad_exponents,
-                               k_r=r.k_r_s_per_m, e_v=r.e_v_s_per_m, stretch=r.broad_stretch)
-        valid = xp.arange(n) < seen[:, None]
-        c_f = xp.minimum(1.0, row_sum(xp.where(valid, e_c, 0.0), seen) + row_sum(xp.where(valid, e_b, 0.0), seen))
-        reward = reciprocal_reward(c_x, c_y, c_f, collided, overtook, w["w_x"], w["w_y"], w["w_f"],
-                                   epsilon_r=r.epsilon_r, collision_reward=r.collision_reward,
-                                   overtake_reward=r.overtake_reward, use_collision=w["use_collision"],
-                                   use_overtake=w["use_overtake"])
-        return Rewards(c_x, c_y, c_f, y_d, v_d_eff, blocked, collided, overtook, xp.asarray(reward))
+        scene = RewardScene(view.dx, view.dy, view.vx, view.length, view.width, state.in_range, view.y - view.lo,
+                            view.vx_a, view.vy_a, view.len_a, view.wid_a, view.v_desired, view.road_width,
+                            near[:, :n], self.xp.minimum(seen, n), self.cfg.reward,
+                            self.weights["w_y"] > 0.0 if self._zones is None else self._zones)
+        return reward_terms(scene, self.weights, collided, overtook)
 
 
 def episode_row(episode: int, steps: int, books: Mapping[str, Any], cfg: LaneFreeConfig, seed: int,

@@ -16,7 +16,8 @@ padded arrays can be passed directly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 from typing import Any, cast, get_args
 
 import numpy as np
@@ -24,7 +25,8 @@ from numpy.typing import ArrayLike
 
 from lanefree_sumo.config import RewardConfig, RewardPreset
 from lanefree_sumo.config.schema import OvertakeBonus
-from lanefree_sumo.rl.fields_zones import _rows, ellipsoid, field_cost, zone_target
+from lanefree_sumo.rl.fields_zones import _rows, ellipsoid, field_cost, field_terms, zone_target, zone_targets
+from lanefree_sumo.sim.state import row_sum
 from lanefree_sumo.sim.xp import namespace
 
 __all__ = [
@@ -40,7 +42,11 @@ __all__ = [
     "RewardWeights",
     "PRESETS",
     "get_preset",
-    "RewardTerms",
+    "Rewards",
+    "RewardScene",
+    "CostTerm",
+    "COST_TERMS",
+    "reward_terms",
     "compute_reward",
 ]
 
@@ -233,23 +239,144 @@ def get_preset(name: str) -> RewardWeights:
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
-class RewardTerms:
-    """Every term of one step's reward, for ``info`` (costs –, y_d m, v_d_eff m/s)."""
+@dataclass(frozen=True)
+class RewardScene:
+    """What the reward sees of one step, per run ``[K]`` (m, m/s; numpy arrays, or tensors of one device): the
+    learning vehicle's own values, its lateral position ``y`` within its bounds ``[0, road_width]``, every vehicle
+    row ``[K, N]`` (``present``: in range) for the zones, and the nearest ``[K, n, 6]`` (dx, dy, vx, vy, length,
+    width; the first ``seen`` real) for the fields. The zones' targets (``y_d``, ``v_d_eff``, ``blocked``) are
+    filled in by :func:`reward_terms` before the costs are taken."""
 
-    c_x: float
-    c_y: float
-    c_f: float
-    y_d: float
-    v_d_eff: float
-    blocked: bool
-    collided: bool
-    overtook: bool
-    reward: float
+    dx: Any
+    dy: Any
+    vx: Any
+    length: Any
+    width: Any
+    present: Any
+    y: Any
+    vx_a: Any
+    vy_a: Any
+    len_a: Any
+    wid_a: Any
+    v_desired: Any
+    road_width: Any
+    near: Any
+    seen: Any
+    config: RewardConfig
+    zones: Any
+    """Whether the zones are part of the reward: True (every run), False (none) or a ``[K]`` mask."""
+    y_d: Any = None
+    v_d_eff: Any = None
+    blocked: Any = None
+
+
+def _longitudinal(s: RewardScene) -> Any:
+    """c_x: the speed's distance from the effective desired speed (:func:`longitudinal_cost`)."""
+    return longitudinal_cost(s.vx_a, s.v_d_eff, min_desired_speed=s.config.min_desired_speed_mps)
+
+
+def _lateral(s: RewardScene) -> Any:
+    """c_y: the lateral distance from the zones' target (:func:`lateral_cost`); 0 without zones."""
+    xp = namespace(s.vx_a)
+    if s.zones is False:
+        return xp.zeros(s.vx_a.shape)
+    cost = lateral_cost(s.y, s.y_d, s.road_width)
+    return cost if s.zones is True else xp.where(s.zones, cost, 0.0)
+
+
+def _fields(s: RewardScene) -> Any:
+    """c_f: the potential fields of the nearest vehicles, capped at 1 (:func:`field_cost`)."""
+    xp, r, near = namespace(s.vx_a), s.config, s.near
+    e_c, e_b = field_terms(near[..., 0], near[..., 1], s.vx_a[:, None] - near[..., 2],
+                           s.vy_a[:, None] - near[..., 3], s.len_a[:, None], s.wid_a[:, None], near[..., 4],
+                           near[..., 5], magnitude=r.field_magnitude, critical_exponents=r.critical_exponents,
+                           broad_exponents=r.broad_exponents, k_r=r.k_r_s_per_m, e_v=r.e_v_s_per_m,
+                           stretch=r.broad_stretch)
+    valid = xp.arange(near.shape[1]) < s.seen[:, None]
+    return xp.minimum(1.0, row_sum(xp.where(valid, e_c, 0.0), s.seen) + row_sum(xp.where(valid, e_b, 0.0), s.seen))
+
+
+@dataclass(frozen=True)
+class CostTerm:
+    """One cost of the reciprocal reward (paper Eq. 16): ``cost(scene)`` ``[K]`` in [0, 1], weighted by
+    ``weight``: a field of the preset's :class:`RewardWeights` (the paper's terms), or of
+    :class:`~lanefree_sumo.config.RewardConfig` (a term beyond the paper's, its weight a config value)."""
+
+    name: str
+    weight: str
+    cost: Callable[[RewardScene], Any]
+
+
+COST_TERMS: tuple[CostTerm, ...] = (CostTerm("c_x", "w_x", _longitudinal), CostTerm("c_y", "w_y", _lateral),
+                                    CostTerm("c_f", "w_f", _fields))
+"""The reward's costs, in the order the reciprocal adds them: the one list a new term joins."""
+
+COST_NAMES: tuple[str, ...] = tuple(t.name for t in COST_TERMS)
+
+
+def term_weight(term: CostTerm, preset: RewardWeights, config: RewardConfig) -> float:
+    """The weight of ``term`` in a run with ``preset`` and ``config`` (:class:`CostTerm`)."""
+    return float(getattr(preset, term.weight) if hasattr(preset, term.weight) else getattr(config, term.weight))
+
+
+@dataclass
+class Rewards:
+    """Every term of one step's reward (``info``): each cost of :data:`COST_TERMS` (–, also as an attribute:
+    ``terms.c_x``), the zones' target ``y_d`` (m) and effective desired speed ``v_d_eff`` (m/s), ``blocked``,
+    ``collided``, ``overtook`` and the ``reward``; ``[K]`` arrays over runs, or numbers for one vehicle
+    (:func:`compute_reward`)."""
+
+    costs: dict[str, Any]
+    y_d: Any
+    v_d_eff: Any
+    blocked: Any
+    collided: Any
+    overtook: Any
+    reward: Any
+
+    def __getattr__(self, name: str) -> Any:
+        costs = self.__dict__.get("costs", {})
+        if name in costs:
+            return costs[name]
+        raise AttributeError(name)
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain dict of the terms."""
-        return dict(self.__dict__)
+        """The terms by name: the costs, then y_d, v_d_eff, blocked, collided, overtook, reward."""
+        return {**self.costs, "y_d": self.y_d, "v_d_eff": self.v_d_eff, "blocked": self.blocked,
+                "collided": self.collided, "overtook": self.overtook, "reward": self.reward}
+
+
+REWARD_TERMS: tuple[str, ...] = (*COST_NAMES, "y_d", "v_d_eff", "blocked", "collided", "overtook", "reward")
+"""The keys of :meth:`Rewards.as_dict`, every step's ``info`` has them."""
+
+
+def reward_terms(scene: RewardScene, weights: Mapping[str, Any], collided: Any, overtook: Any) -> Rewards:
+    """Every run's reward terms (paper Eq. 16, specification §7): the zones' targets, then each cost of
+    :data:`COST_TERMS` and the reciprocal of their weighted sum, plus r_c and r_o. ``weights``: each term's
+    weight by its :attr:`CostTerm.weight` name and ``use_collision``/``use_overtake``, ``[K]`` each."""
+    xp, r = namespace(scene.vx_a), scene.config
+    width = scene.road_width
+    if scene.zones is False:
+        y_d, v_d_eff, blocked = 0.5 * width, scene.v_desired, xp.zeros(scene.vx_a.shape, dtype=bool)
+    else:
+        y_d, v_d_eff, blocked = zone_targets(scene.dx, scene.dy, scene.vx, scene.length, scene.width, scene.y,
+                                             scene.vx_a, scene.len_a, scene.wid_a, scene.v_desired, width,
+                                             time_gap=r.zone_time_gap_s, margin=r.zone_margin_m,
+                                             present=scene.present)
+        if scene.zones is not True:
+            y_d = xp.where(scene.zones, y_d, 0.5 * width)
+            v_d_eff = xp.where(scene.zones, v_d_eff, scene.v_desired)
+            blocked = scene.zones & blocked
+    scene = replace(scene, y_d=y_d, v_d_eff=v_d_eff, blocked=blocked)
+    costs = {t.name: t.cost(scene) for t in COST_TERMS}
+    denom = r.epsilon_r
+    for t in COST_TERMS:
+        denom = denom + xp.multiply(weights[t.weight], costs[t.name])
+    reward = xp.divide(r.epsilon_r, denom)  # not ``epsilon_r / denom``: torch's number / tensor is a reciprocal times
+    col, ovt = xp.astype(xp.asarray(collided), bool), xp.astype(xp.asarray(overtook), bool)
+    reward = reward + xp.where(xp.logical_and(weights["use_collision"], col), r.collision_reward, 0.0)
+    reward = reward + xp.where(xp.logical_and(weights["use_overtake"], ovt & ~col), r.overtake_reward, 0.0)
+    return Rewards(costs, y_d, v_d_eff, blocked, collided, overtook, reward)
 
 
 def compute_reward(
@@ -272,14 +399,15 @@ def compute_reward(
     collided: bool | None = None,
     overtook: bool | int = False,
     config: RewardConfig | None = None,
-) -> RewardTerms:
-    """Combine all terms for one step (paper Eq. 16) and return them.
+) -> Rewards:
+    """All terms of one vehicle's step (paper Eq. 16): :func:`reward_terms` of a scene of one (the learning
+    problem, :mod:`lanefree_sumo.rl.problem`, evaluates the same for every run at once), as numbers.
 
     dx, dy, vx, vy, lens, wids: the vehicles in observation range (m, m, m/s, m/s, m, m) — the
     zones use all of them; the fields use the rows selected by ``observed`` (boolean mask or
-    index array of the n observed neighbours; ``None`` = all rows).  Agent state: agent_y (m),
-    agent_vx, agent_vy (m/s), dimensions (m), nominal ``v_desired`` (m/s); road_width W (m).
-    ``weights``: a :class:`RewardWeights` or a preset name.
+    index array of the n observed neighbours; ``None`` = all rows), a row with a non-finite value absent.
+    Agent state: agent_y (m), agent_vx, agent_vy (m/s), dimensions (m), nominal ``v_desired`` (m/s); road_width
+    W (m). ``weights``: a :class:`RewardWeights` or a preset name.
 
     ``collided``: ``None`` computes the overlap from the given rows (pass every vehicle within a
     few metres, or the env's own result).  ``overtook``: a bool or the count from
@@ -292,42 +420,26 @@ def compute_reward(
     cfg = _DEFAULTS if config is None else config
     w = get_preset(weights) if isinstance(weights, str) else weights
     dx_, dy_, vx_, vy_, lens_, wids_ = _rows(dx, dy, vx, vy, lens, wids)
-
-    if w.w_y > 0.0:
-        y_d, v_d_eff, blocked = zone_target(
-            dx_, dy_, vx_, lens_, wids_, agent_y, agent_vx, agent_len, agent_wid, v_desired,
-            road_width, time_gap=cfg.zone_time_gap_s, margin=cfg.zone_margin_m,
-        )
-        c_y = lateral_cost(agent_y, y_d, road_width)
-    else:
-        y_d, v_d_eff, blocked, c_y = 0.5 * road_width, float(v_desired), False, 0.0
-
-    c_x = longitudinal_cost(agent_vx, v_d_eff, min_desired_speed=cfg.min_desired_speed_mps)
-
     if observed is None:
         sel: Any = slice(None)
     else:
         sel = np.asarray(observed)
         if sel.dtype != bool:
             sel = sel.astype(int)  # an empty list would otherwise be a float index
-    c_f = field_cost(
-        dx_[sel], dy_[sel], agent_vx - vx_[sel], agent_vy - vy_[sel], agent_len, agent_wid,
-        lens_[sel], wids_[sel],
-        magnitude=cfg.field_magnitude, critical_exponents=cfg.critical_exponents,
-        broad_exponents=cfg.broad_exponents, k_r=cfg.k_r_s_per_m, e_v=cfg.e_v_s_per_m,
-        stretch=cfg.broad_stretch,
-    )
-
+    near = np.column_stack([dx_[sel], dy_[sel], vx_[sel], vy_[sel], lens_[sel], wids_[sel]])
+    near = near[np.isfinite(near[:, :4]).all(axis=1)][None]  # NaN/inf rows are absent
     if collided is None:
         collided = agent_overlaps(dx_, dy_, agent_len, agent_wid, lens_, wids_)
-    collided = bool(collided)
-    overtook = bool(overtook)
 
-    reward = reciprocal_reward(
-        c_x, c_y, c_f, collided, overtook, w.w_x, w.w_y, w.w_f,
-        epsilon_r=cfg.epsilon_r, collision_reward=cfg.collision_reward,
-        overtake_reward=cfg.overtake_reward,
-        use_collision=w.use_collision, use_overtake=w.use_overtake,
-    )
-    return RewardTerms(c_x, c_y, c_f, float(y_d), float(v_d_eff), bool(blocked), collided,
-                       overtook, float(reward))
+    def one(value: float) -> np.ndarray:
+        return np.array([value], dtype=float)
+
+    scene = RewardScene(dx_[None], dy_[None], vx_[None], lens_[None], wids_[None], None, one(agent_y),
+                        one(agent_vx), one(agent_vy), one(agent_len), one(agent_wid), one(v_desired),
+                        one(road_width), near, np.array([near.shape[1]]), cfg, w.w_y > 0.0)
+    weight = {**{t.weight: one(term_weight(t, w, cfg)) for t in COST_TERMS},
+              "use_collision": np.array([w.use_collision]), "use_overtake": np.array([w.use_overtake])}
+    terms = reward_terms(scene, weight, np.array([bool(collided)]), np.array([bool(overtook)]))
+    return Rewards({name: float(value[0]) for name, value in terms.costs.items()}, float(terms.y_d[0]),
+                   float(terms.v_d_eff[0]), bool(terms.blocked[0]), bool(collided), bool(overtook),
+                   float(terms.reward[0]))

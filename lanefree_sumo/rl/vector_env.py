@@ -46,6 +46,7 @@ from lanefree_sumo.rl.env import (
     observation_space,
     resolve_config,
 )
+from lanefree_sumo.rl.rewards import REWARD_TERMS
 from lanefree_sumo.sim.road import road_kind
 
 SEED_BOUND = 2**31 - 1
@@ -180,8 +181,7 @@ class LaneFreeVectorEnv(VectorEnv):
         obs, reward, terminated, truncated, step_info = self.batch.step(values)
         stepped = ~restart
         info: dict[str, Any] = {}
-        for key in ("c_x", "c_y", "c_f", "y_d", "v_d_eff", "blocked", "collided", "overtook", "reward",
-                    "overtakes", "collision_events", "boundary_contact", "ax", "ay"):
+        for key in (*REWARD_TERMS, "overtakes", "collision_events", "boundary_contact", "ax", "ay"):
             value = np.asarray(step_info[key])
             info[key] = value.astype(np.int64) if value.dtype.kind in "iu" else value
             info[f"_{key}"] = stepped

@@ -9,16 +9,20 @@ from pathlib import Path
 from typing import Any
 
 from lanefree_sumo.config import LaneFreeConfig
+from lanefree_sumo.rl.problem import METRIC_TERMS
 from lanefree_sumo.sim.road import road_kind
 
 __all__ = ["EPISODE_COLUMNS", "MULTI_AGENT_COLUMNS", "EpisodeLog", "episode_columns"]
 
-EPISODE_COLUMNS = (
+_COLUMNS = (
     "episode", "steps", "return", "collisions", "collision_steps", "background_collisions", "speed_dev_mps",
     "mean_speed_mps", "overtakes", "boundary_contacts", "mean_c_x", "mean_c_y", "mean_c_f", "mean_reward",
     "density", "seed", "algorithm", "reward_preset", "timesteps", "wall_s", "shield_interventions",
     "speed_dev_episode_mps", "speed_error_mps", "return_reciprocal", "return_bonus", "return_collision",
 )
+EPISODE_COLUMNS = _COLUMNS + tuple(f"mean_{t}" for t in METRIC_TERMS if f"mean_{t}" not in _COLUMNS)
+"""The columns of every run's ``episodes.csv``: a reward term beyond the paper's adds its per-step mean
+(``mean_<term>``) at the end."""
 MULTI_AGENT_COLUMNS = ("agent", "agent_collisions")
 """Added to ``EPISODE_COLUMNS`` in runs of several agents (one row per agent and episode)."""
 
