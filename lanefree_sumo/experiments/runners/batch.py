@@ -65,9 +65,9 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
 
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
+    off_world = "the safety shield (--shield)" if cfg.shield.enabled else f"the {cfg.road.kind} road (--scenario)"
     for wrong, what in ((needs_env_batch(cfg) and cfg.train.device != "cpu",
-                         f"the safety shield or the {cfg.road.kind} road on {cfg.train.device} (they run on the "
-                         "CPU)"),
+                         f"{off_world} on {cfg.train.device} (it trains on the CPU)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
@@ -92,6 +92,10 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
     if cfg.train.algo not in BATCHED:
         raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {cfg.train.algo}; "
                           "train it with --seed (one run)")
+    if needs_env_batch(cfg) and cfg.train.device != "cpu":
+        off_world = "the safety shield" if cfg.shield.enabled else f"the {cfg.road.kind} road"
+        raise ConfigError(f"runs with {off_world} train on the CPU, not on train.device = {cfg.train.device}; "
+                          "leave --device out")
     why = batch_refusal(cfg)
     if why is not None:
         raise ConfigError(f"batched training does not support {why}; train such runs with --seed (one run)")
