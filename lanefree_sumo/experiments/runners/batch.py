@@ -65,9 +65,8 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
 
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
-    off_world = "the safety shield (--shield)" if cfg.shield.enabled else f"the {cfg.road.kind} road (--scenario)"
-    for wrong, what in ((needs_env_batch(cfg) and cfg.train.device != "cpu",
-                         f"{off_world} on {cfg.train.device} (it trains on the CPU)"),
+    cpu = cpu_only(cfg)
+    for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on the CPU)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
@@ -85,6 +84,14 @@ def needs_env_batch(cfg: LaneFreeConfig) -> bool:
     return cfg.shield.enabled or not road_kind(cfg).batched_world
 
 
+def cpu_only(cfg: LaneFreeConfig) -> str | None:
+    """What of ``cfg`` trains on the CPU only while ``train.device`` names another device (``the safety shield
+    (--shield)``, ``the onramp road (--scenario)``), else None."""
+    if not needs_env_batch(cfg) or cfg.train.device == "cpu":
+        return None
+    return "the safety shield (--shield)" if cfg.shield.enabled else f"the {cfg.road.kind} road (--scenario)"
+
+
 def check_batchable(cfg: LaneFreeConfig) -> None:
     """ConfigError (one line) for a run the batched path cannot train."""
     from lanefree_sumo.rl.algorithms import BATCHED
@@ -92,9 +99,9 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
     if cfg.train.algo not in BATCHED:
         raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {cfg.train.algo}; "
                           "train it with --seed (one run)")
-    if needs_env_batch(cfg) and cfg.train.device != "cpu":
-        off_world = "the safety shield" if cfg.shield.enabled else f"the {cfg.road.kind} road"
-        raise ConfigError(f"runs with {off_world} train on the CPU, not on train.device = {cfg.train.device}; "
+    cpu = cpu_only(cfg)
+    if cpu is not None:
+        raise ConfigError(f"runs with {cpu} train on the CPU, not on train.device = {cfg.train.device}; "
                           "leave --device out")
     why = batch_refusal(cfg)
     if why is not None:
