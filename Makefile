@@ -11,13 +11,13 @@ DOCS_STAMP := $(VENV)/.installed-docs
 MUTATE_STAMP := $(VENV)/.installed-mutate
 
 # Options are passed only when set, so every default is the one in lanefree_sumo/config.py
-# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 SHIELD=1 OVERLAP=1 ...
+# (`lanefree COMMAND --help` shows them): make train DENSITY=90 ALGO=per SEED=3 SHIELD=1 ...
 RUN     ?=
 RUNS    ?= runs/*/
 opt = $(if $($(1)),$(2) $($(1)))
 TRAIN_OPTS = $(call opt,ALGO,--algo) $(call opt,REWARD,--reward) $(call opt,DENSITY,--density) \
 	$(call opt,EPISODES,--episodes) $(call opt,SEED,--seed) $(call opt,ENVS,--envs) $(call opt,OBS,--obs) \
-	$(call opt,ENCODER,--encoder) $(if $(SHIELD),--shield) $(if $(OVERLAP),--overlap)
+	$(call opt,ENCODER,--encoder) $(if $(SHIELD),--shield)
 SIM_OPTS = $(call opt,DENSITY,--density) $(call opt,SECONDS,--seconds) $(call opt,SEED,--seed)
 STAMP_NOW := $(shell date +%Y%m%d-%H%M%S)
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any, get_args, get_origin
 
 from lanefree_sumo import argtypes
-from lanefree_sumo.config import LaneFreeConfig, layered_config, nested_overrides
+from lanefree_sumo.config import RETIRED, LaneFreeConfig, layered_config, nested_overrides
 from lanefree_sumo.config.describe import field_docs
 
 _FROM_SCHEMA: Any = object()
@@ -138,6 +138,26 @@ def add_options(parser: argparse.ArgumentParser, options: Sequence[Option]) -> N
             target = groups[option.group]
         names, kwargs = argument(option)
         target.add_argument(*names, **kwargs)
+
+
+RETIRED_FLAGS: dict[str, str] = {"--overlap": "train.overlap", "--no-overlap": "train.overlap"}
+"""Flags that once set a :data:`~lanefree_sumo.config.RETIRED` key: given, they are refused in one line saying
+what replaced them."""
+
+
+class _Retired(argparse.Action):
+    """A retired flag: the parser's one-line error with what replaced it."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        key = RETIRED_FLAGS[str(option_string)]
+        parser.error(f"{option_string} was removed: {RETIRED[key]}; leave it out")
+
+
+def add_retired_flags(parser: argparse.ArgumentParser, key: str) -> None:
+    """Add the :data:`RETIRED_FLAGS` of config key ``key`` to ``parser`` (hidden from ``--help``)."""
+    flags = [flag for flag, retired in RETIRED_FLAGS.items() if retired == key]
+    parser.add_argument(*flags, nargs=0, action=_Retired, help=argparse.SUPPRESS)
 
 
 def dest(option: Option) -> str:

@@ -14,6 +14,7 @@ from lanefree_sumo.cli import VERBS, build_parser
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.config.describe import field_docs
 from lanefree_sumo.options import (
+    RETIRED_FLAGS,
     Option,
     _plain,
     add_options,
@@ -67,9 +68,9 @@ def test_numbers_name_their_unit_in_help_and_in_a_bad_value():
 def test_only_the_options_given_override_the_config():
     train = DECLARED["train"]
     assert config_overrides(_parse(train, []), train) == {}
-    args = _parse(train, ["--density", "90", "--no-overlap", "--shield", "--episodes", "3"])
+    args = _parse(train, ["--density", "90", "--shield", "--episodes", "3"])
     assert config_overrides(args, train) == {"scenario": {"density_veh_per_km": 90.0}, "train": {
-        "overlap": False, "episodes": 3}, "shield": {"enabled": True}}
+        "episodes": 3}, "shield": {"enabled": True}}
     cfg = verb_config(args, train)
     assert (cfg.scenario.density_veh_per_km, cfg.train.episodes, cfg.shield.enabled) == (90.0, 3, True)
     assert verb_config(_parse(train, []), train) == LaneFreeConfig()
@@ -115,14 +116,15 @@ def test_every_verb_is_in_the_parser_and_its_help_has_units():
 
 def test_every_verb_declares_each_of_its_options_once_as_an_option():
     """No verb adds an argument of its own: each is an :class:`Option` of its ``OPTIONS`` (``--config`` and
-    ``--set`` come from :func:`~lanefree_sumo.argtypes.add_config_options`)."""
+    ``--set`` come from :func:`~lanefree_sumo.argtypes.add_config_options`, the retired flags from
+    :func:`~lanefree_sumo.options.add_retired_flags`)."""
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     for name, verb in sub.choices.items():
         declared = [spelling for option in DECLARED[name] for spelling in option.names]
         assert len(declared) == len(set(declared)), name
         parsed = {spelling for action in verb._actions if not isinstance(action, argparse._HelpAction)
                   for spelling in (action.option_strings or [action.dest])}
-        assert parsed - {"--config", "--set"} <= set(declared) <= parsed, name
+        assert parsed - {"--config", "--set", *RETIRED_FLAGS} <= set(declared) <= parsed, name
 
 
 def test_the_architecture_pages_option_table_is_the_declarations():

@@ -66,7 +66,7 @@ def test_the_algorithms_import_no_circle():
                   for k, v in graph.items() if k.startswith("lanefree_sumo.rl.algorithms.")}
     assert _circle(algorithms) is None, f"import circle: {' -> '.join(_circle(algorithms) or [])}"
     # the bases know nothing of their subclasses
-    assert not graph["lanefree_sumo.rl.algorithms.fast_dqn"] & {
+    assert not graph["lanefree_sumo.rl.algorithms.dqn"] & {
         "lanefree_sumo.rl.algorithms.dueling", "lanefree_sumo.rl.algorithms.double_dqn",
         "lanefree_sumo.rl.algorithms.prioritized"}
 

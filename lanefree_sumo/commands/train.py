@@ -10,7 +10,7 @@ from typing import Any
 from lanefree_sumo import argtypes
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import EXIT_INTERRUPTED, UsageError
-from lanefree_sumo.options import DENSITY, SEED, Option, add_options, command_line, verb_config
+from lanefree_sumo.options import DENSITY, SEED, Option, add_options, add_retired_flags, command_line, verb_config
 from lanefree_sumo.rl.algorithms import help_text as algorithms_help
 
 DEFAULTS = LaneFreeConfig()
@@ -45,8 +45,6 @@ OPTIONS: tuple[Option, ...] = (
     Option("--backend", "train.backend"),
     Option("--device", "train.device"),
     Option("--shield", "shield.enabled", note="run folder ..._shield"),
-    Option("--overlap", "train.overlap", negatable=True,
-           note="the acting policy then lags the learner by one update (off: SB3's order, bit for bit)"),
 )
 
 
@@ -61,6 +59,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "SIGTERM saves a checkpoint; --resume RUN continues from the newest one.",
     )
     add_options(p, OPTIONS)
+    add_retired_flags(p, "train.overlap")
     argtypes.add_config_options(p)
     return p
 

@@ -39,10 +39,12 @@ from lanefree_sumo.config.schema import (
 )
 from lanefree_sumo.config.validation import (
     ADDED_LATER,
+    RETIRED,
     SAME_RESULTS,
     check_value,
     config_differences,
     config_to_dict,
+    drop_retired,
     layered_config,
     merge_config,
     missing_keys,
@@ -54,13 +56,14 @@ from lanefree_sumo.config.validation import (
 from lanefree_sumo.errors import ConfigError
 
 __all__ = [
-    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "DEVICES", "OBSERVATION_KINDS", "ROAD_KINDS", "SAME_RESULTS",
+    "ACTION_KINDS", "ADDED_LATER", "BACKENDS", "DEVICES", "OBSERVATION_KINDS", "RETIRED", "ROAD_KINDS", "SAME_RESULTS",
     "AccelerationBounds", "ActionConfig", "ActionKind", "ActorCriticConfig", "AlgorithmName", "Backend", "ConfigError",
     "DQNConfig", "DriverConfig", "EpisodeConfig", "EvaluationConfig", "LaneFreeConfig", "ObservationConfig",
     "ObservationKind", "OnRampConfig",
     "ReplayConfig", "ReportConfig", "ResolvedConfig", "RewardConfig", "RewardPreset", "RoadConfig", "ScenarioConfig",
     "ShieldConfig",
     "SimulationConfig", "SpawnConfig", "TrainConfig", "VehicleClassConfig", "check_value", "config_differences",
-    "config_to_dict", "layered_config", "merge_config", "missing_keys", "nested_overrides", "read_config_file",
+    "config_to_dict", "drop_retired", "layered_config", "merge_config", "missing_keys", "nested_overrides",
+    "read_config_file",
     "validate_config", "validate_density",
 ]

@@ -397,7 +397,7 @@ class ActorCriticConfig:
         "paper": "not in either paper (neither says how DDPG's actor was kept off its tanh bound)"})
     """λ of the term λ·mean(u²) added to DDPG's actor loss, u the actor's output before its tanh (–): keeps u
     where tanh' does not vanish, so the critic's gradient still reaches the actor; 0 (default): SB3's loss.
-    DDPG with the fast learner only (the update of :mod:`lanefree_sumo.rl.algorithms.fast_ddpg`)."""
+    DDPG only (the project's, on SB3's loop or batched: :mod:`lanefree_sumo.rl.algorithms.ddpg`)."""
     ou_sigma: float = field(default=0.2, metadata={"range": (0.0, 100.0)})
     """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
     ou_theta: float = field(default=0.15, metadata={"range": (0.0, 100.0)})
@@ -454,20 +454,6 @@ class TrainConfig:
     """Save a checkpoint every this many episodes."""
     torch_threads: int = field(default=1, metadata={"range": (1, 1024)})
     """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
-    fast_learner: bool = True
-    """DDPG and the DQN family: compute SB3's update through :mod:`lanefree_sumo.rl.algorithms.fast_ddpg` /
-    :mod:`~lanefree_sumo.rl.algorithms.fast_dqn` (hand-written backprop, multi-tensor Adam, DDPG's target
-    updates): the same parameters bit for bit, faster per update. False runs the autograd update (SB3's own
-    ``train``; for the DQN family SB3's ``train`` split into hooks). TD3, SAC and PPO ignore it."""
-    lean_loop: bool = True
-    """DDPG and the DQN family with the fast learner: collect experience with :class:`LeanCollector
-    <lanefree_sumo.rl.algorithms.lean.LeanCollector>`, SB3's loop bit for bit without its per-step overhead
-    (mode switches, ``predict``). False runs SB3's own loop. TD3, SAC and PPO ignore it."""
-    overlap: bool = False
-    """DDPG with the lean loop and one environment: step the environment in its own process (a second
-    core) while this one updates, so a step costs the longer of the two instead of their sum. The action
-    of step t is then chosen before update t − 1, by a policy one update behind the learner (deterministic,
-    not bit-identical to SB3's order). Off (the default): SB3's order, bit for bit."""
     backend: Backend = "numpy"
     """Simulation backend of training runs, copied to the run's ``backend``: ``numpy`` (default) gives the
     same episodes as ``libsumo`` bit for bit without SUMO (``tests/sim/test_backends.py``,

@@ -39,6 +39,8 @@ def merge_config(base: Any, overrides: Mapping[str, Any], path: str = "") -> Any
     changes: dict[str, Any] = {}
     for key, value in overrides.items():
         where = f"{path}.{key}" if path else key
+        if where in RETIRED:
+            raise ConfigError(f"config '{where}' was removed: {RETIRED[where]}; leave it out")
         if key not in valid:
             raise ConfigError(
                 f"unknown config key '{where}'; valid keys here: {', '.join(sorted(valid))}"
@@ -77,8 +79,33 @@ def _profile_overrides(name: Any) -> dict[str, Any]:
     return LEARNER_PROFILES[name]
 
 
-ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_learner", "reward.broad_stretch",
-                               "train.backend", "train.lean_loop", "train.overlap", "scenario.agents", "road.kind",
+RETIRED: dict[str, str] = {
+    "train.fast_learner": "every run computes its algorithm's one update (the batched learner, or SB3's own on "
+                          "SB3's loop), the numbers the fast learner gave",
+    "train.lean_loop": "every run collects with one loop (the batched trainer's, or SB3's), the numbers the lean "
+                       "loop gave",
+    "train.overlap": "a run steps its environment and its update in turn (the numbers of --no-overlap); for speed "
+                     "train several seeds at once with --seeds",
+}
+"""Config keys that once chose between implementations giving the same numbers (or, ``train.overlap``, a
+speed trade), and what replaced each: given as an override they are refused in one line; a saved config
+(:func:`drop_retired`) still loads without them."""
+
+
+def drop_retired(data: Mapping[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """A saved config's mapping without its :data:`RETIRED` keys, and the dotted keys dropped."""
+    kept, dropped = dict(data), []
+    for key in RETIRED:
+        section, _, leaf = key.rpartition(".")
+        inner = kept.get(section)
+        if isinstance(inner, Mapping) and leaf in inner:
+            kept[section] = {k: v for k, v in inner.items() if k != leaf}
+            dropped.append(key)
+    return kept, dropped
+
+
+ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "reward.broad_stretch",
+                               "train.backend", "scenario.agents", "road.kind",
                                "road.onramp", "observation.road_features",
                                "reward.overtake_bonus", "scenario.agent_lateral_speed_ratio", "train.profile",
                                "train.dqn.loss", "train.dqn.max_grad_norm", "train.actor_critic.warmup_actions",
@@ -87,11 +114,10 @@ ADDED_LATER: tuple[str, ...] = ("observation.encoder", "shield", "train.fast_lea
 default. Every other key must be present in a saved config (a missing one means a cut file)."""
 
 
-SAME_RESULTS: tuple[str, ...] = ("train.checkpoint_every_episodes", "train.torch_threads", "train.fast_learner",
-                                  "train.lean_loop", "gui", "backend", "train.backend")
-"""Config keys that do not change what a training run computes: the fast learner and the lean loop
-compute SB3's DDPG bit for bit, the backends give the same episodes (each proven by a test). Runs
-differing only here are runs of one setting (report groups, sweep adoption)."""
+SAME_RESULTS: tuple[str, ...] = ("train.checkpoint_every_episodes", "train.torch_threads", "gui", "backend",
+                                  "train.backend")
+"""Config keys that do not change what a training run computes: the backends give the same episodes (proven by
+a test). Runs differing only here are runs of one setting (report groups, sweep adoption)."""
 
 
 def missing_keys(base: Any, data: Mapping[str, Any], path: str = "") -> list[str]:

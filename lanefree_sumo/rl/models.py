@@ -35,13 +35,9 @@ def training_config(base: LaneFreeConfig) -> ResolvedConfig:
     if base.train.episodes < 1 or base.train.envs < 1 or base.train.checkpoint_every_episodes < 1:
         raise ConfigError("episodes, envs and checkpoint-every must be at least 1")
     t = base.train
-    if t.overlap and not (get_algorithm(t.algo).overlap and t.fast_learner and t.lean_loop and t.envs == 1
-                          and base.observation.kind == "vector"):
-        raise ConfigError("--overlap needs DDPG with the fast learner and the lean loop, one environment and the "
-                          "vector observation (it would silently run SB3's order otherwise)")
-    if base.scenario.agents > 1 and (t.envs > 1 or t.overlap):
+    if base.scenario.agents > 1 and t.envs > 1:
         raise ConfigError(f"--agents {base.scenario.agents} trains one shared policy in one simulation: "
-                          "use --envs 1 and no --overlap with it")
+                          "use --envs 1 with it")
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
     if base.train.envs > most:
         raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
@@ -103,15 +99,14 @@ def _env_factory(cfg: LaneFreeConfig, rank: int, seed: int, first_episode: int,
 
 
 def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
-    """``cfg.train.envs`` environments (in this process for 1 — in its own with ``train.overlap`` — else one
-    process each) whose episodes
-    continue a run of seed ``cfg.seed`` after ``episodes_done`` episodes: environment r's k-th episode has
-    the traffic seed :func:`episode_seed` (seed, r, k). With one environment episode k of the run is
-    episode k of the environment, so a resumed run sees exactly the traffic of an uninterrupted one; with
-    several, which environment finishes which episode depends on timing, and a resume restarts each
-    environment at episode ``episodes_done // envs + 1``. With ``scenario.agents`` > 1: the agents of one
-    multi-agent simulation as the environments (:class:`~lanefree_sumo.rl.multi_agent.SharedPolicyVecEnv`),
-    episode k with the traffic seed (seed, 0, k) as a one-agent run's."""
+    """``cfg.train.envs`` environments (in this process for 1, else one process each) whose episodes continue a
+    run of seed ``cfg.seed`` after ``episodes_done`` episodes: environment r's k-th episode has the traffic seed
+    :func:`episode_seed` (seed, r, k). With one environment episode k of the run is episode k of the environment,
+    so a resumed run sees exactly the traffic of an uninterrupted one; with several, which environment finishes
+    which episode depends on timing, and a resume restarts each environment at episode ``episodes_done // envs +
+    1``. With ``scenario.agents`` > 1: the agents of one multi-agent simulation as the environments
+    (:class:`~lanefree_sumo.rl.multi_agent.SharedPolicyVecEnv`), episode k with the traffic seed (seed, 0, k) as a
+    one-agent run's."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
     if cfg.scenario.agents > 1:
@@ -123,7 +118,7 @@ def make_vec_env(cfg: LaneFreeConfig, episodes_done: int = 0) -> Any:
 
     resolved = resolve_config(cfg)  # as it is when the run resolved it (training_config)
     n_envs = cfg.train.envs
-    own_process = n_envs > 1 or (cfg.train.overlap and get_algorithm(cfg.train.algo).overlap)
+    own_process = n_envs > 1
     first = episodes_done // n_envs + 1
     factories = [_env_factory(resolved, rank, cfg.seed, first, own_process) for rank in range(n_envs)]
     vec: VecEnv = SubprocVecEnv(factories, start_method="spawn") if own_process else DummyVecEnv(factories)
@@ -136,15 +131,14 @@ def exploration_fraction(cfg: LaneFreeConfig) -> float:
     return min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
 
 
-def check_actor_critic_choices(cfg: LaneFreeConfig, own_ddpg: bool, fast_update: bool = True) -> None:
+def check_actor_critic_choices(cfg: LaneFreeConfig, own_ddpg: bool) -> None:
     """ConfigError (one line) for an actor-critic choice only the project's DDPG trains: the pre-tanh penalty
-    (its fast update: ``fast_update``) and the warm-up from the policy. ``own_ddpg``: the learner is the
-    project's DDPG class (the single run's, or the batched one)."""
+    and the warm-up from the policy. ``own_ddpg``: the learner is the project's DDPG class (the single run's on
+    SB3's loop, or the batched one)."""
     ac, algo = cfg.train.actor_critic, cfg.train.algo
-    if ac.pre_tanh_penalty and (algo != "ddpg" or not (own_ddpg and fast_update)):
+    if ac.pre_tanh_penalty and not (algo == "ddpg" and own_ddpg):
         raise ConfigError(f"train.actor_critic.pre_tanh_penalty = {ac.pre_tanh_penalty:g} is built into the "
-                          f"fast DDPG update only; set it to 0 for {algo}"
-                          + ("" if algo != "ddpg" else " without train.fast_learner"))
+                          f"project's DDPG only; set it to 0 for {algo}")
     if ac.warmup_actions != "uniform" and algo not in ("ppo", *(("ddpg",) if own_ddpg else ())):
         by_profile = cfg.train.profile == "kerasrl" and ac.warmup_actions == "policy"
         raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions}"
@@ -156,10 +150,9 @@ def check_actor_critic_choices(cfg: LaneFreeConfig, own_ddpg: bool, fast_update:
 
 def check_trainable(cfg: LaneFreeConfig) -> None:
     """The learner choices a run of ``cfg`` must be able to train, checked alike for one run, a batch and every
-    run of a sweep's grid before anything starts (:func:`check_actor_critic_choices` with the config's own
-    ``train.fast_learner``)."""
+    run of a sweep's grid before anything starts (:func:`check_actor_critic_choices`)."""
     if get_algorithm(cfg.train.algo).config_section == "actor_critic":
-        check_actor_critic_choices(cfg, own_ddpg=cfg.train.algo == "ddpg", fast_update=cfg.train.fast_learner)
+        check_actor_critic_choices(cfg, own_ddpg=cfg.train.algo == "ddpg")
 
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
@@ -198,22 +191,16 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
             kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
-        check_actor_critic_choices(cfg, spec.fast_learner and own_class, cfg.train.fast_learner)
-        if spec.fast_learner and own_class:
-            kwargs.update(fast_learner=cfg.train.fast_learner, lean_loop=cfg.train.lean_loop,
-                          warmup_actions=ac.warmup_actions)
-            if algo == "ddpg":
-                kwargs["pre_tanh_penalty"] = ac.pre_tanh_penalty
-        if spec.overlap and own_class:
-            kwargs.update(overlap=cfg.train.overlap)
+        check_actor_critic_choices(cfg, spec.own_class and own_class)
+        if spec.own_class and own_class:
+            kwargs.update(warmup_actions=ac.warmup_actions, pre_tanh_penalty=ac.pre_tanh_penalty)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
         return cls(policy, env, **kwargs)
 
     dq = cfg.train.dqn
     policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
-    fast: dict[str, Any] = ({"fast_learner": cfg.train.fast_learner, "lean_loop": cfg.train.lean_loop,
-                             "loss": dq.loss} if spec.fast_learner and own_class else {})
-    if dq.loss != "huber" and not fast:
+    own: dict[str, Any] = {"loss": dq.loss} if spec.own_class and own_class else {}
+    if dq.loss != "huber" and not own:
         raise ConfigError(f"train.dqn.loss = {dq.loss} needs the project's DQN classes; "
                           f"{cls.__name__} takes SB3's Huber")
     return cls(
@@ -223,7 +210,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
         exploration_fraction=exploration_fraction(cfg), train_freq=1, gradient_steps=1,
         max_grad_norm=math.inf if dq.max_grad_norm is None else dq.max_grad_norm,
         policy_kwargs={"net_arch": list(dq.layers), "activation_fn": torch.nn.ReLU, **extractor},
-        **common, **fast,
+        **common, **own,
     )
 
 

@@ -8,9 +8,9 @@ For 70, 90 and 120 veh/km, 800 steps each:
 (d) the numpy-only physics (no SUMO).
 (a) and (b) are measured alternately ``REPEATS`` times and the median is reported, so that
 machine noise hits both alike.  Timings are not tests: the numbers are for reading.
-Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with SB3's update and the fast one,
-against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved, and
-:func:`dqn_family_speed`: the DQN family with the autograd and the written-out update
+Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with plain SB3, on SB3's loop and as a batch of
+one (``lanefree train``), against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved,
+and :func:`dqn_family_speed`: the DQN family on SB3's loop and as a batch of one
 (``--training-only`` runs just these sections, ``--dqn-only`` the last), :func:`single_run_speed`: one run in
 SB3's loop against one run as a batch of one (``--single-only``), and :func:`batch_speed`: runs per
 core-hour of sequential runs against batches of K runs in one process, then :func:`set_update_speed`: the set
@@ -130,7 +130,7 @@ def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600
     return steps / (clock.t_end - clock.t_start)
 
 
-# -- training speed: DDPG's SB3 update against the fast one, and the HighwayEnv peer --------------------
+# -- training speed: DDPG on SB3's loop and as a batch of one, and the HighwayEnv peer ---------------------
 
 PEER_DENSITY = 90.0
 """LaneFree-v0's density in the training-speed section: round(90 · 0.5 km) = 45 vehicles besides the agent,
@@ -205,34 +205,42 @@ def _train_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, ste
 
 
 def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[str, float]:
-    """ms per DDPG update — the learner alone, batch 64, actor and critic 256-128, LaneFree-v0's sizes
-    (24 → 2), a filled replay buffer — median of ``repeats`` interleaved: SB3's ``train``, FastDDPG's, and
-    the update's 28 matrix products alone (``torch.mm`` of the same shapes into preallocated outputs)."""
+    """ms per DDPG update — the learner alone, batch 64, actor and critic 256-128, LaneFree-v0's spaces, a filled
+    replay buffer — median of ``repeats`` interleaved: SB3's ``train`` (SB3's loop), the batched learner's update
+    at K = 1 (``lanefree train``), and the update's 28 matrix products alone (``torch.mm`` of the same shapes into
+    preallocated outputs)."""
     import gymnasium
     import torch
     from stable_baselines3.common.logger import configure
 
-    from lanefree_sumo.rl.models import build_model
+    from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.models import build_batched, build_model, training_config
 
-    obs_dim, act_dim = 24, 2
+    cfg = training_config(merge_config(LaneFreeConfig(), {"seed": seed, "train": {"algo": "ddpg"}}))
+    obs_space, act_space = observation_space(cfg), action_space(cfg)
+    obs_dim, act_dim = int(np.prod(obs_space.shape or ())), int(np.prod(act_space.shape or ()))
 
     class Shapes(gymnasium.Env):  # LaneFree-v0's spaces without SUMO
-        observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
-        action_space = gymnasium.spaces.Box(-1.0, 1.0, (act_dim,), np.float32)
+        observation_space = obs_space
+        action_space = act_space
 
-    cfg = merge_config(LaneFreeConfig(), {"train": {"algo": "ddpg"}})
     ac, batch = cfg.train.actor_critic, cfg.train.actor_critic.batch_size
     torch.set_num_threads(cfg.train.torch_threads)
     rng = np.random.default_rng(seed)
-    runs: dict[str, Callable[[], Any]] = {}
-    for name, fast in (("SB3 `DDPG.train`", False), ("`FastDDPG.train`", True)):
-        model = build_model(merge_config(cfg, {"train": {"fast_learner": fast}}), Shapes(), seed, None)
-        for _ in range(2000):
-            model.replay_buffer.add(rng.normal(size=(1, obs_dim)), rng.normal(size=(1, obs_dim)),
-                                    rng.uniform(-1, 1, (1, act_dim)), rng.normal(size=1), np.array([False]), [{}])
-        model.set_logger(configure(None, [""]))
-        model._current_progress_remaining = 1.0
-        runs[name] = functools.partial(model.train, 1, batch)
+    fill = [(rng.normal(size=(1, obs_dim)), rng.uniform(-1, 1, (1, act_dim)), rng.normal(size=1),
+             rng.normal(size=(1, obs_dim))) for _ in range(2000)]
+    model = build_model(cfg, Shapes(), seed, None)
+    for obs, act, reward, next_obs in fill:
+        model.replay_buffer.add(obs, next_obs, act, reward, np.array([False]), [{}])
+    model.set_logger(configure(None, [""]))
+    model._current_progress_remaining = 1.0
+    learner = build_batched([cfg], [seed], obs_space, act_space)
+    no = np.array([False])
+    for obs, act, reward, next_obs in fill:
+        learner.store(obs.astype(np.float32), act.astype(np.float32), reward.astype(np.float32),
+                      next_obs.astype(np.float32), no, no)
+    runs: dict[str, Callable[[], Any]] = {"SB3 `DDPG.train` (SB3's loop)": functools.partial(model.train, 1, batch),
+                                          "the batched update, K = 1 (`lanefree train`)": learner.update}
     actor = list(zip([obs_dim, *ac.actor_layers], [*ac.actor_layers, act_dim]))  # (in, out) per layer
     critic = list(zip([obs_dim + act_dim, *ac.critic_layers], [*ac.critic_layers, 1]))
     shapes = [(batch, i, o) for i, o in actor * 2 + critic * 3]  # forward: targets, critic, actor, critic
@@ -269,36 +277,33 @@ def _interleaved(cases: dict[tuple[str, str], Callable[[], float]], repeats: int
 
 
 TRAINING_CASES: dict[str, tuple[str, dict[str, Any]]] = {
-    "plain SB3 DDPG, libsumo": ("sb3", {"backend": "libsumo", "fast_learner": False, "lean_loop": False}),
-    "fast update, SB3 loop, libsumo (before)": ("fast", {"backend": "libsumo", "lean_loop": False}),
-    "fast update, lean loop, numpy (`lanefree train`)": ("fast", {}),
-    "… `--overlap` (env on the second core)": ("fast", {"overlap": True}),
+    "plain SB3 DDPG, libsumo": ("sb3", {"backend": "libsumo"}),
+    "SB3's loop, numpy (several agents or envs)": ("sb3", {}),
+    "a batch of one, numpy (`lanefree train`)": ("one", {}),
 }
-"""The DDPG training paths compared (label: (class — SB3's ``DDPG`` or the registry's, ``train`` overrides))."""
+"""The DDPG training paths compared (label: (``sb3``: SB3's loop with SB3's ``DDPG``, ``one``: the batched trainer
+with K = 1; ``train`` overrides))."""
 
 
 DQN_FAMILY = ("dqn", "ddqn", "dueling", "per")
-"""The discrete-action algorithms of Table 8, whose update :mod:`lanefree_sumo.rl.algorithms.fast_dqn` writes out."""
+"""The discrete-action algorithms of Table 8."""
 
 
 def dqn_family_speed(seed: int, steps: int = 1600, repeats: int = REPEATS) -> str:
     """Markdown: env steps/s of each DQN-family algorithm on LaneFree-v0 at 90 veh/km (numpy backend, the paper's
-    settings) with the autograd update and SB3's loop (for DQN SB3's own class: what a user would write) and
-    with the written-out update and the lean loop (``lanefree train``'s default), every case measured
-    ``repeats`` times interleaved (medians)."""
+    settings) on SB3's loop (for DQN SB3's own class: what a user would write) and as a batch of one (``lanefree
+    train``), every case measured ``repeats`` times interleaved (medians)."""
     from stable_baselines3 import DQN
 
     from lanefree_sumo.rl.models import make_vec_env, training_config
 
-    paths = {"autograd": {"fast_learner": False, "lean_loop": False}, "fast": {}}
     cases: dict[tuple[str, str], Callable[[], float]] = {}
     for algo in DQN_FAMILY:
-        for path, train in paths.items():
-            cfg = training_config(merge_config(LaneFreeConfig(), {
-                "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": algo, **train}}))
-            cls = DQN if algo == "dqn" and path == "autograd" else None
-            cases[(algo, path)] = functools.partial(_train_rate, cfg, functools.partial(make_vec_env, cfg), seed,
-                                                    steps, cls)
+        cfg = training_config(merge_config(LaneFreeConfig(), {
+            "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": algo}}))
+        cases[(algo, "sb3")] = functools.partial(_train_rate, cfg, functools.partial(make_vec_env, cfg), seed,
+                                                 steps, DQN if algo == "dqn" else None)
+        cases[(algo, "one")] = functools.partial(lambda a: batched_rate(a, 1, seed, steps)[0], algo)
     rate = _interleaved(cases, repeats)
     total = 625 * LaneFreeConfig().sim.episode_steps
     lines = [
@@ -307,12 +312,12 @@ def dqn_family_speed(seed: int, steps: int = 1600, repeats: int = REPEATS) -> st
         f"timed; median of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} "
         "cores at the end), env steps/s; both paths give the same parameters bit for bit:",
         "",
-        "| algorithm | autograd update, SB3 loop | written out, lean loop (`lanefree train`) | × | 625 episodes |",
+        "| algorithm | SB3's loop | a batch of one (`lanefree train`) | × | 625 episodes |",
         "|---|---|---|---|---|",
     ]
     for algo in DQN_FAMILY:
-        slow, fast = rate[(algo, "autograd")], rate[(algo, "fast")]
-        label = f"{algo} (autograd: SB3's `DQN`)" if algo == "dqn" else algo
+        slow, fast = rate[(algo, "sb3")], rate[(algo, "one")]
+        label = f"{algo} (SB3's `DQN`)" if algo == "dqn" else algo
         lines.append(f"| {label} | {slow:.1f} | {fast:.1f} | {fast / slow:.2f}× "
                      f"| {total / slow / 60:.0f} → {total / fast / 60:.0f} min |")
     return "\n".join(lines)
@@ -330,7 +335,6 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     cfg = training_config(merge_config(LaneFreeConfig(), {
         "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": "ddpg"}}))
     n = cfg.background_vehicles
-    sb3 = merge_config(cfg, {"train": {"fast_learner": False, "lean_loop": False}})
 
     def lanefree(backend: str) -> Any:
         return make_vec_env(merge_config(cfg, {"backend": backend}))
@@ -342,9 +346,9 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     for label, (kind, train) in TRAINING_CASES.items():
         case_cfg = merge_config(cfg, {"train": train})
         case_cfg = merge_config(case_cfg, {"backend": case_cfg.train.backend})
-        cls = DDPG if kind == "sb3" else None
-        cases[("lanefree", label)] = functools.partial(
-            _train_rate, case_cfg, functools.partial(make_vec_env, case_cfg), seed, steps, cls)
+        make = functools.partial(make_vec_env, case_cfg)
+        cases[("lanefree", label)] = (functools.partial(_train_rate, case_cfg, make, seed, steps, DDPG)
+                                      if kind == "sb3" else lambda: batched_rate("ddpg", 1, seed, steps)[0])
     try:
         import highway_env  # noqa: F401
         peers: tuple[int, ...] = (4, 16)
@@ -353,8 +357,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     for hz in peers:
         highway = functools.partial(_highway_env, n, hz, seed)
         cases[(f"highway{hz}", "env")] = functools.partial(_env_rate, highway, peer_steps, seed)
-        cases[(f"highway{hz}", "sb3")] = functools.partial(_train_rate, sb3, highway, seed, peer_steps, DDPG)
-        cases[(f"highway{hz}", "fast")] = functools.partial(_train_rate, cfg, highway, seed, peer_steps)
+        cases[(f"highway{hz}", "sb3")] = functools.partial(_train_rate, cfg, highway, seed, peer_steps, DDPG)
     rate = _interleaved(cases, repeats)
     total = 625 * cfg.sim.episode_steps
 
@@ -379,13 +382,12 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     if peers:
         names = {4: "highway-v0, 4 Hz physics (1 step)", 16: "highway-v0, 16 Hz physics (4 steps)"}
         lines += ["", "The peer, highway-v0 with as many vehicles (env steps/s; LaneFree-v0 / highway-v0 in brackets, "
-                  "against LaneFree-v0's libsumo env and its before/plain rows):", "",
-                  "| env | env alone | DDPG, plain SB3 | DDPG, fast update |\n|---|---|---|---|"]
-        before = rate[("lanefree", list(TRAINING_CASES)[1])]
+                  "against LaneFree-v0's libsumo env and its plain SB3 row):", "",
+                  "| env | env alone | DDPG, plain SB3 |\n|---|---|---|"]
         for hz in peers:
-            e, s, f = (rate[(f"highway{hz}", k)] for k in ("env", "sb3", "fast"))
+            e, s = (rate[(f"highway{hz}", k)] for k in ("env", "sb3"))
             lines.append(f"| {names[hz]} | {e:.1f} ({rate[('lanefree', 'env libsumo')] / e:.1f}×) "
-                         f"| {s:.1f} ({plain / s:.1f}×) | {f:.1f} ({before / f:.1f}×) |")
+                         f"| {s:.1f} ({plain / s:.1f}×) |")
     else:
         lines += ["", "(highway-env is not installed: `pip install -e '.[bench]'` adds the highway-v0 peer.)"]
     costs = update_costs(seed, repeats=repeats)
@@ -427,9 +429,9 @@ def batched_rate(algo: str, runs: int, seed: int, steps: int, density: float = P
 
 def single_run_speed(seed: int, steps: int = 800, repeats: int = REPEATS) -> str:
     """Markdown: env steps/s of one run of DDPG and of DQN (the paper's settings at 90 veh/km, one thread) along
-    the two single-run paths, measured ``repeats`` times interleaved (medians): SB3's loop with the written-out
-    update and the lean loop (the single run's path before the one trainer; today SAC's and PPO's loop, and the
-    shield's, the on-ramp's, …) and a batch of one (``lanefree train`` for every batchable run)."""
+    the two single-run paths, measured ``repeats`` times interleaved (medians): SB3's loop with SB3's update (SAC's
+    and PPO's loop, and DDPG's and DQN's with several agents or envs or a SUMO backend) and a batch of one
+    (``lanefree train`` for every batchable run)."""
     cases: dict[tuple[str, str], Callable[[], float]] = {}
     for algo in ("ddpg", "dqn"):
         cases[(algo, "sb3")] = functools.partial(training_rate, algo, seed, steps=steps)
@@ -440,7 +442,7 @@ def single_run_speed(seed: int, steps: int = 800, repeats: int = REPEATS) -> str
         f"learning starts; median of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on "
         f"{os.cpu_count()} cores at the end), env steps/s:",
         "",
-        "| algorithm | SB3's loop, written-out update, lean loop (before) | a batch of one (`lanefree train`) | × |",
+        "| algorithm | SB3's loop | a batch of one (`lanefree train`) | × |",
         "|---|---|---|---|",
     ]
     for algo in ("ddpg", "dqn"):
@@ -461,13 +463,13 @@ def batch_speed(seed: int, steps: int = 800) -> str:
         "|---|---|---|---|---|---|",
     ]
     for algo in ("ddpg", "dqn"):
-        sequential = training_rate(algo, seed, steps=steps)
-        base = sequential * 3600 / PAPER_RUN_STEPS
-        lines.append(f"| {algo} | one run in SB3's loop (fast update) | {sequential:.0f} | {base:.2f} | 1.00× | |")
+        base = 0.0
         for k in BATCH_SIZES:
             rate, replay = batched_rate(algo, k, seed, steps)
             per_hour = k * rate * 3600 / PAPER_RUN_STEPS
-            lines.append(f"| {algo} | batch of {k} | {rate:.0f} | {per_hour:.2f} | {per_hour / base:.2f}× "
+            base = base or per_hour  # the first size, 1: sequential `lanefree train` runs
+            label = "one run (`lanefree train`, a batch of one)" if k == 1 else f"batch of {k}"
+            lines.append(f"| {algo} | {label} | {rate:.0f} | {per_hour:.2f} | {per_hour / base:.2f}× "
                          f"| {replay / 2**20:.0f} MiB ({int(24 * 2**30 // replay)} runs in 24 GiB) |")
             print(f"  {algo} batch {k}: {rate:.0f} steps/s", flush=True)
     return "\n".join(lines)
@@ -479,8 +481,9 @@ SET_BATCH = 6
 
 def set_update_speed(seed: int, updates: int = 30, fill: int = 1000) -> str:
     """Markdown: the CPU time of one DDPG update on the set observation (the paper encoder, the paper's settings
-    at 70 veh/km): the sequential run's (SB3's autograd update) against the batched learner's per run, for a batch
-    of 1 and of :data:`SET_BATCH`; the replay filled with ``fill`` steps of uniformly random actions."""
+    at 70 veh/km): one run on SB3's loop (SB3's autograd update) against the batched learner's per run, for a batch
+    of 1 (``lanefree train --obs set``) and of :data:`SET_BATCH`; the replay filled with ``fill`` steps of uniformly
+    random actions."""
     import torch
 
     from lanefree_sumo.rl.algorithms.batched.learner import SpacesEnv
@@ -525,11 +528,12 @@ def set_update_speed(seed: int, updates: int = 30, fill: int = 1000) -> str:
     lines = [f"The set observation's DDPG update (paper encoder, 70 veh/km, batch {single.batch_size}, "
              f"{cfgs[0].observation.max_rows} rows, {statistics.mean(seen):.1f} vehicles seen on average; CPU time of "
              f"one thread, {updates} updates after {fill} random steps):", "",
-             "| learner | ms per update per run | × sequential |", "|---|---|---|",
-             f"| sequential `lanefree train --obs set` (SB3's autograd update) | {base:.1f} | 1.00× |"]
+             "| learner | ms per update per run | × SB3's |", "|---|---|---|",
+             f"| one run on SB3's loop (SB3's autograd update) | {base:.1f} | 1.00× |"]
     for k, learner in learners.items():
         per_run = cpu_ms(learner._update) / k
-        lines.append(f"| batched, {k} run(s) | {per_run:.1f} | {base / per_run:.2f}× |")
+        label = "a batch of one (`lanefree train --obs set`)" if k == 1 else f"batched, {k} runs"
+        lines.append(f"| {label} | {per_run:.1f} | {base / per_run:.2f}× |")
     return "\n".join(lines)
 
 
@@ -641,7 +645,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         "| algorithm | env steps/s incl. learning | projected 625-episode run |\n|---|---|---|",
     ]
     for algo in ("ddpg", "dqn"):
-        rate = training_rate(algo, seed)
+        rate = batched_rate(algo, 1, seed, 1600, density=90.0)[0]
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
     lines += ["", vector_speed(), "", training_speed(seed),
@@ -687,7 +691,7 @@ def main() -> None:
     parser.add_argument("--batch-only", action="store_true",
                         help="only the batched-training section (sequential against batches of 1, 4, 8, 16 runs)")
     parser.add_argument("--single-only", action="store_true",
-                        help="only one run's two paths: SB3's loop (fast update) against a batch of one")
+                        help="only one run's two paths: SB3's loop against a batch of one")
     gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
     gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
     gpu.add_argument("--device", default="cuda", help="torch device of --gpu (default cuda; cpu runs it on the CPU)")

@@ -1,9 +1,9 @@
-"""Run-updates per second of the batched learners against K single fast learners, one thread.
+"""Run-updates per second of the batched learners against K single runs on SB3's loop, one thread.
 
 The paper's shapes (DDPG actor 24-256-128-2, critic 26-256-128-1; DQN 24-128-64-9; batch 64) and full replay
 buffers (100 000 random transitions per run). For each K: one batched update of K runs against one update of
-each of K single runs (``FastDDPG``/``FastDQN``), timed in turn five times; the best CPU time of this process
-counts (on a shared machine the least disturbed repeat).
+each of K single runs (``LaneFreeDDPG``/``LaneFreeDQN``: SB3's update), timed in turn five times; the best CPU
+time of this process counts (on a shared machine the least disturbed repeat).
 
     python scripts/analysis/batched_learner_speed.py [--algo ddpg|dqn] [--runs 1 4 8 16] [--updates 160]
 """
@@ -23,8 +23,8 @@ from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner, SpacesEnv
-from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
-from lanefree_sumo.rl.algorithms.fast_dqn import FastDQN
+from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
+from lanefree_sumo.rl.algorithms.dqn import LaneFreeDQN
 
 OBS, ACT, ACTIONS, CAPACITY = 24, 2, 9, 100_000
 
@@ -56,18 +56,17 @@ def batched(algo: str, runs: int, rng: np.random.Generator) -> BatchedLearner:
 
 
 def single(algo: str, seed: int, rng: np.random.Generator) -> Any:
-    """One fast learner (``build_model``'s settings) with a full replay buffer."""
+    """One single run's learner (``build_model``'s settings) with a full replay buffer."""
     obs_space, act_space = _spaces(algo)
     env = SpacesEnv(obs_space, act_space)
     model: Any
     if algo == "ddpg":
-        model = FastDDPG("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, tau=0.001, seed=seed,
-                         device="cpu", action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT)),
-                         policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]},
-                                        "activation_fn": th.nn.ReLU})
+        model = LaneFreeDDPG("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, tau=0.001, seed=seed,
+                     device="cpu", action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT)),
+                     policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU})
     else:
-        model = FastDQN("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, seed=seed, device="cpu",
-                        policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
+        model = LaneFreeDQN("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, seed=seed, device="cpu",
+                    policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
     rb = model.replay_buffer
     rb.observations[:] = rng.normal(size=rb.observations.shape)
     rb.next_observations[:] = rng.normal(size=rb.next_observations.shape)

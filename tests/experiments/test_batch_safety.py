@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import torch
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import RunError
@@ -108,6 +109,30 @@ def test_resuming_a_batch_whose_episodes_csv_lost_rows_is_refused(tmp_path, monk
 def test_seed_ranges_beyond_a_batch_are_one_line_and_write_nothing(tmp_path, seeds, said):
     res = lanefree("train", "--seeds", seeds, "--out", str(tmp_path / "b"), timeout=120)
     assert res.returncode == 2 and said in res.stderr and res.stderr.count("\n") == 1
+    assert not (tmp_path / "b").exists()
+
+
+def test_a_batch_whose_replay_buffers_do_not_fit_is_one_line_naming_how_many_runs_fit(tmp_path):
+    """64 DDPG runs with 10⁸-transition buffers (≈ 20 GiB of replay each): more than a machine has; the line says
+    how much they need and how many such runs fit here (computed as the batch allocates them: replay_bytes equals
+    the batched replay's bytes), and nothing is written."""
+    from lanefree_sumo.experiments.runners.batch import available_memory, replay_bytes
+    from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.models import build_batched, training_config
+
+    small = training_config(merge_config(LaneFreeConfig(), {"train": {"actor_critic": {"buffer_size": 1000}}}))
+    learner = build_batched([small, small], [0, 1], observation_space(small), action_space(small))
+    held = sum(v.nbytes for v in learner.replay.state_dict().values() if isinstance(v, torch.Tensor))
+    assert 2 * replay_bytes(small) == held == 2 * 1000 * (2 * 4 * 24 + 2 * 4 + 3 * 4)
+    per_run = 100_000_000 * (2 * 4 * 24 + 2 * 4 + 3 * 4)
+    assert 64 * per_run > available_memory(None)
+    res = lanefree("train", "--seeds", "0-63", "--set", "train.actor_critic.buffer_size=100000000",
+                   "--out", str(tmp_path / "b"), timeout=120)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    need = f"64 runs need ≈ {64 * per_run / 2**30:.1f} GiB of replay memory ({per_run / 2**20:,.0f} MiB each)"
+    assert need in res.stderr
+    fit = re.search(r"at most (\d+) such runs fit here; train fewer seeds per batch", res.stderr)
+    assert fit is not None and int(fit.group(1)) < 64  # (the available memory moves between the two processes)
     assert not (tmp_path / "b").exists()
 
 
@@ -225,8 +250,10 @@ def test_every_run_of_a_batch_writes_its_tensorboard_log(tmp_path):
     (["--algo", "td3", "--set", "train.profile=kerasrl"],
      "(what train.profile = kerasrl sets) is built for ddpg only; td3 takes SB3's uniform warm-up; add --set "
      "train.actor_critic.warmup_actions=uniform beside the profile"),
-    (["--seeds", "0-1", "--set", "train.actor_critic.pre_tanh_penalty=0.01", "--set", "train.fast_learner=false"],
-     "pre_tanh_penalty = 0.01 is built into the fast DDPG update only"),
+    (["--seeds", "0-1", "--algo", "td3", "--set", "train.actor_critic.pre_tanh_penalty=0.01"],
+     "pre_tanh_penalty = 0.01 is built into the project's DDPG only; set it to 0 for td3"),
+    (["--set", "train.actor_critic.pre_tanh_penalty=0.01", "--algo", "td3"],
+     "pre_tanh_penalty = 0.01 is built into the project's DDPG only; set it to 0 for td3"),
 ])
 def test_one_validation_for_one_run_and_a_batch(tmp_path, args, said):
     res = lanefree("train", *args, "--episodes", "1", "--out", str(tmp_path / "x"), timeout=120)

@@ -99,8 +99,8 @@ def test_evaluate_record_replay_rollout_and_mixed_autonomy(tmp_path):
 
 @pytest.mark.parametrize(("args", "needle"), [
     (("--agents", "0"), "--agents"),
-    (("--agents", "3", "--envs", "2"), "use --envs 1 and no --overlap"),
-    (("--agents", "3", "--overlap"), "use --envs 1 and no --overlap"),
+    (("--agents", "3", "--envs", "2"), "use --envs 1 with it"),
+    (("--agents", "3", "--overlap"), "--overlap was removed"),
     (("--agents", "65"), "scenario.agents"),
     (("--agents", "60", "--density", "300"), "does not fit"),
 ])

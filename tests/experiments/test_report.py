@@ -97,7 +97,7 @@ def test_grouping_by_algorithm_preset_density(two_seed_runs: list[Path], tmp_pat
 
 def test_a_changed_setting_is_its_own_group_and_the_learner_path_is_not(tmp_path: Path) -> None:
     runs = [make_run(tmp_path, "plain_s0", seed=0, collisions=[1.0] * 80),
-            make_run(tmp_path, "sb3_s1", seed=1, collisions=[3.0] * 80, extra={"train": {"fast_learner": False}}),
+            make_run(tmp_path, "sb3_s1", seed=1, collisions=[3.0] * 80, extra={"train": {"backend": "libsumo"}}),
             make_run(tmp_path, "shield_s0", seed=0, collisions=[0.0] * 80, extra={"shield": {"enabled": True}}),
             make_run(tmp_path, "top40_s0", seed=0, collisions=[5.0] * 80,
                      extra={"scenario": {"agent_max_speed_mps": 40.0}, "shield": {"enabled": True}}),

@@ -132,11 +132,12 @@ def test_a_run_repeats_itself_on_one_machine_learning_included(tmp_path: Path) -
 
 
 @pytest.mark.parametrize("algo", ["dqn", "per"])
-def test_the_written_out_dqn_update_repeats_sb3s_autograd_run(algo: str, tmp_path: Path) -> None:
-    """The project's DQN (or PER) run and the same run on SB3's own autograd update and collection loop
-    (``train.fast_learner=false``, ``train.lean_loop=false``) give the same first three episodes, every column but
-    wall time: episodes 2 and 3 act on 1600 written-out updates."""
-    written_out = _stopped_run(tmp_path / "written_out", algo, 3)
-    autograd = _stopped_run(tmp_path / "autograd", algo, 3, "--set", "train.fast_learner=false",
-                            "--set", "train.lean_loop=false")
-    assert written_out == autograd
+def test_a_batch_of_one_repeats_the_dqn_run_of_sb3s_loop(algo: str, tmp_path: Path) -> None:
+    """The DQN (or PER) run of ``lanefree train`` (a batch of one: the batched learner, numpy) and the same run on
+    SB3's loop with SB3's update (the libsumo backend trains there) give the same first three episodes, every
+    column but wall time: episodes 2 and 3 act on 1600 updates."""
+    batched = _stopped_run(tmp_path / "batched", algo, 3)
+    sb3_loop = _stopped_run(tmp_path / "sb3_loop", algo, 3, "--backend", "libsumo")
+    assert json.loads((tmp_path / "batched" / "batch.json").read_text()) == {"runs": ["."]}
+    assert not (tmp_path / "sb3_loop" / "batch.json").exists()
+    assert batched == sb3_loop

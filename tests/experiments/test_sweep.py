@@ -288,7 +288,7 @@ def test_committed_runs_without_models_are_complete_and_any_backend_is_adopted(t
     (sweep.run(a) / "last_session.json").write_text('{"episodes_done": 3}')
     fake_run(sweep.run(b), grid, b, 2, model=False)                      # cut short: no checkpoint, not complete
     (sweep.run(b) / "last_session.json").write_text('{"episodes_done": 2}')
-    libsumo = merge_config(grid.config(c), {"backend": "libsumo", "train": {"backend": "libsumo", "lean_loop": False}})
+    libsumo = merge_config(grid.config(c), {"backend": "libsumo", "train": {"backend": "libsumo"}})
     fake_run(sweep.run(c), grid, c, 3)
     write_config(sweep.run(c), libsumo)
     states = plan(tmp_path, grid)
@@ -299,9 +299,9 @@ def test_committed_runs_without_models_are_complete_and_any_backend_is_adopted(t
                                                                 "actor_critic": {"ppo_n_steps": 64}}}))
     assert plan(tmp_path, grid)[c.name].state == COMPLETE
     # but a setting that changes what is learned is still another config
-    overlap = merge_config(grid.config(c), {"train": {"overlap": True}})
-    write_config(sweep.run(c), overlap)
-    with pytest.raises(RunError, match=r"train\.overlap = True in the folder vs False in the grid"):
+    capped = merge_config(grid.config(c), {"scenario": {"agent_max_speed_mps": 25.0}})
+    write_config(sweep.run(c), capped)
+    with pytest.raises(RunError, match=r"scenario\.agent_max_speed_mps = 25\.0 in the folder vs 30\.0 in the grid"):
         plan(tmp_path, grid)
 
 

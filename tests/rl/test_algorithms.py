@@ -19,8 +19,8 @@ from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms import ALGORITHMS
 from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
+from lanefree_sumo.rl.algorithms.dqn import LaneFreeDQN
 from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
-from lanefree_sumo.rl.algorithms.fast_dqn import FastDQN
 from lanefree_sumo.rl.algorithms.prioritized import (
     PrioritizedDictReplayBuffer,
     PrioritizedDoubleDQN,
@@ -463,12 +463,10 @@ def _filled_per_model(**kw):
     return model
 
 
-@pytest.mark.parametrize("fast_learner", [False, True], ids=["autograd-hooks", "written-out"])
-def test_per_train_passes_weights_and_updates_priorities_with_td_errors(fast_learner):
-    """Both update paths set the priorities from the step's TD errors; the autograd path's loss hook receives
-    the importance weights (the written-out path's use of them: tests/rl/test_fast_dqn.py, bit for bit)."""
+def test_per_train_passes_weights_and_updates_priorities_with_td_errors():
+    """The update sets the priorities from the step's TD errors; its loss hook receives the importance weights."""
     np.random.seed(5)
-    model = _filled_per_model(fast_learner=fast_learner)
+    model = _filled_per_model()
     buf = model.replay_buffer
     buf.update_priorities(np.arange(12), np.linspace(0.1, 3.0, 12))  # non-uniform -> non-trivial weights
     # TD errors of every stored transition under the pre-step networks (double-Q target)
@@ -487,16 +485,12 @@ def test_per_train_passes_weights_and_updates_priorities_with_td_errors(fast_lea
         seen["weights"] = weights
         return real(current, tgt, weights)
 
-    if not fast_learner:  # (a patched hook would send the fast learner down the autograd path too)
-        model._compute_loss = spy
+    model._compute_loss = spy
     model.train(gradient_steps=1, batch_size=8)
     idx = buf.last_indices
-    if not fast_learner:
-        assert seen["weights"] is not None
-        np.testing.assert_allclose(seen["weights"].numpy().ravel(), buf.last_weights)
-        assert seen["weights"].numpy().min() < 1.0
-    else:
-        assert model._fast_plan.written_out and buf.last_weights.min() < 1.0
+    assert seen["weights"] is not None
+    np.testing.assert_allclose(seen["weights"].numpy().ravel(), buf.last_weights)
+    assert seen["weights"].numpy().min() < 1.0
     np.testing.assert_allclose(buf.priorities(idx), (np.abs(td[idx]) + EPS) ** ALPHA, rtol=1e-5)
     untouched = np.setdiff1d(np.arange(n), idx)
     np.testing.assert_array_equal(buf.priorities(untouched), prio_before[untouched])
@@ -620,11 +614,12 @@ def test_per_ddqn_with_multiple_envs():
 
 def test_variant_registry():
     discrete = {name: spec.cls for name, spec in ALGORITHMS.items() if spec.actions == "discrete"}
-    assert discrete == {"dqn": FastDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN, "per": PrioritizedDoubleDQN}
+    assert discrete == {"dqn": LaneFreeDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN, "per": PrioritizedDoubleDQN}
     assert all(spec.config_section == "dqn" and spec.off_policy for spec in ALGORITHMS.values()
                if spec.actions == "discrete")
     assert [n for n, s in ALGORITHMS.items() if not s.off_policy] == ["ppo"]
-    assert issubclass(PrioritizedDoubleDQN, DoubleDQN) and issubclass(DoubleDQN, FastDQN) and issubclass(FastDQN, DQN)
+    assert issubclass(PrioritizedDoubleDQN, DoubleDQN) and issubclass(DoubleDQN, LaneFreeDQN)
+    assert issubclass(LaneFreeDQN, DQN)
     assert issubclass(PrioritizedReplayBuffer, ReplayBuffer)
 
 

@@ -1,4 +1,5 @@
-"""Batched learners: run k of a batch of K is the single fast learner with seed k, bit for bit on CPU.
+"""Batched learners: run k of a batch of K is the single run of SB3's loop with seed k (the project's DDPG and DQN
+classes, SB3's TD3), bit for bit on CPU.
 
 "The same" is ``torch.equal`` on every parameter, target parameter and Adam moment (compared through the
 SB3 model each run exports, against the single run's SB3 model), plus the numpy random stream each run drew
@@ -26,10 +27,10 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN, BatchedTD3
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner
+from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
 from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
+from lanefree_sumo.rl.algorithms.dqn import LaneFreeDQN
 from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
-from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
-from lanefree_sumo.rl.algorithms.fast_dqn import FastDQN
 from lanefree_sumo.rl.algorithms.prioritized import PrioritizedDoubleDQN
 from lanefree_sumo.rl.models import build_batched, build_model
 
@@ -40,7 +41,7 @@ HYPER = {"per-run": ((1e-3, 1e-3, 5e-4), (0.98, 0.98, 0.95), (0.001, 0.001, 0.00
          "shared": ((1e-3,) * 3, (0.98,) * 3, (0.001,) * 3)}
 """Learning rates, γ and τ of the three runs: run 2 differs (the per-run forms), or all alike (the scalar forms)."""
 LR, GAMMA, TAU = HYPER["per-run"]
-DQN_ALGOS: dict[str, type[FastDQN]] = {"dqn": FastDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN,
+DQN_ALGOS: dict[str, type[LaneFreeDQN]] = {"dqn": LaneFreeDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN,
                                        "per": PrioritizedDoubleDQN}
 MIXED = ("dqn", "ddqn", "dqn")
 """The variants of the three runs of a mixed batch ("dqn+ddqn"): one network, each run its own target."""
@@ -77,9 +78,9 @@ class ToyEnv(gym.Env):  # type: ignore[type-arg]
 
 # -- building the two sides ---------------------------------------------------------------------------------
 
-def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run", warmup: str = "uniform") -> FastDDPG:
+def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run", warmup: str = "uniform") -> LaneFreeDDPG:
     lr, gamma, tau = (values[k] for values in HYPER[hyper])
-    return FastDDPG("MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
+    return LaneFreeDDPG("MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
                     gamma=gamma, tau=tau, learning_starts=learning_starts, train_freq=1, gradient_steps=1,
                     warmup_actions=warmup,
                     seed=SEEDS[k], device="cpu",
@@ -97,7 +98,7 @@ def _batched_ddpg(learning_starts: int = 100, total: int = 1, hyper: str = "per-
 
 
 def _dqn(algo: str, k: int, total: int, learning_starts: int = 100, hyper: str = "per-run",
-         loss: str = "huber") -> FastDQN:
+         loss: str = "huber") -> LaneFreeDQN:
     lr, gamma, _ = (values[k] for values in HYPER[hyper])
     cls = DQN_ALGOS[MIXED[k] if algo == "dqn+ddqn" else algo]
     return cls("MlpPolicy", ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
@@ -180,7 +181,7 @@ def test_ddpg_initial_weights_are_the_single_runs() -> None:
 
 
 @pytest.mark.parametrize("hyper", list(HYPER))
-def test_ddpg_updates_equal_the_single_fast_learner_bit_for_bit(hyper: str) -> None:
+def test_ddpg_updates_equal_the_single_run_bit_for_bit(hyper: str) -> None:
     transitions = _transitions(False)
     batched = _batched_ddpg(hyper=hyper)
     for obs, action, reward, next_obs, done, truncated in transitions:
@@ -227,7 +228,7 @@ def _drive(batched: BatchedLearner, discrete: bool, steps: int) -> None:
 @pytest.mark.parametrize("warmup", ["uniform", "policy"])
 def test_ddpg_act_store_update_equals_single_learn(warmup: str) -> None:
     """The whole cycle (random warm-up actions or the actor's from the first step, OU noise and its resets,
-    terminal observations, timeouts, updates) equals ``FastDDPG.learn`` run by run."""
+    terminal observations, timeouts, updates) equals ``LaneFreeDDPG.learn`` run by run."""
     steps = 260
     batched = _batched_ddpg(learning_starts=100, total=steps, warmup=warmup)
     _drive(batched, False, steps)
@@ -339,7 +340,7 @@ def _per_trees(single: Any, batched: BatchedDQN, k: int) -> None:
 
 @pytest.mark.parametrize(("hyper", "loss"), [("per-run", "huber"), ("shared", "huber"), ("per-run", "squared")])
 @pytest.mark.parametrize("algo", VARIANTS)
-def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str, hyper: str, loss: str) -> None:
+def test_dqn_family_updates_equal_the_single_run_bit_for_bit(algo: str, hyper: str, loss: str) -> None:
     """Huber loss with the gradient clip (SB3's), or ½·δ² without a clip (Keras-RL's profile)."""
     transitions = _transitions(True)
     batched = _batched_dqn(algo, total=2000, hyper=hyper, loss=loss)
@@ -357,7 +358,6 @@ def test_dqn_family_updates_equal_the_single_fast_learner_bit_for_bit(algo: str,
         np.random.seed(SEEDS[k])
         for _ in range(UPDATES):
             single.train(gradient_steps=1, batch_size=BATCH)
-        assert single._fast_plan is not None and single._fast_plan.written_out  # the fast path ran
         _assert_same(single, batched, k)
         assert np.array_equal(np.random.get_state()[1], batched.streams.numpy[k].get_state()[1])
         assert float(batched.losses["loss"][k]) == single.logger.name_to_value["train/loss"]
@@ -455,7 +455,7 @@ def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:
 
 
 def test_ddpg_pre_tanh_penalty_equals_the_single_autograd_update_bit_for_bit() -> None:
-    """λ per run (0 for run 0: no term), against FastDDPG's autograd update with the penalty."""
+    """λ per run (0 for run 0: no term), against the single run's update with the penalty."""
     penalties = (0.0, 0.01, 0.05)
     transitions = _transitions(False)
     env = ToyEnv(False)

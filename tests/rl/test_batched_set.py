@@ -1,7 +1,7 @@
 """Batched DDPG and TD3 on the set observation (the written-out set encoder, :mod:`...batched.set_encoder`).
 
 The chain: run k of a batch equals the batch of that one run bit for bit (CPU); a batch of one run equals
-SB3's autograd update (``FastDDPG`` with ``SetFeaturesExtractor``, the sequential ``lanefree train --obs set``)
+SB3's autograd update (``LaneFreeDDPG`` with ``SetFeaturesExtractor``, the sequential ``lanefree train --obs set``)
 to float tolerance — the dense encoder sums the rows in another order than the gathered one — after 20
 updates; the exported model loads in SB3 and acts as the batch does (to the same tolerance). Both encoders
 (``paper``, ``small``), with and without the pre-tanh penalty, runs with different seeds and penalties in one
@@ -23,7 +23,7 @@ from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedTD3
 from lanefree_sumo.rl.algorithms.batched.learner import SpacesEnv
-from lanefree_sumo.rl.algorithms.fast_ddpg import FastDDPG
+from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
 from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
 EGO, ROWS, WIDTH, ACT, BATCH, UPDATES = 4, 6, 5, 2, 16, 20
@@ -88,7 +88,7 @@ def _trained(encoder: str, runs: list[int], transitions: list[tuple[Any, ...]], 
 
 def _single(encoder: str, k: int, algo: str = "ddpg") -> TD3:
     extra: dict[str, Any] = {"pre_tanh_penalty": PENALTIES[k]} if algo == "ddpg" else {}
-    return (FastDDPG if algo == "ddpg" else TD3)(
+    return (LaneFreeDDPG if algo == "ddpg" else TD3)(
         "MultiInputPolicy", SpacesEnv(SPACE, ACTIONS), learning_rate=1e-3, buffer_size=1000, batch_size=BATCH,
         gamma=0.98, tau=0.001, learning_starts=50, train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
         action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),

@@ -45,15 +45,29 @@ def test_a_resumed_schedule_continues_the_uninterrupted_one():
     assert whole.seen == first.seen + resumed.seen == [episode_seed(3, 0, k) for k in range(1, 7)]
 
 
-def test_overlap_is_refused_where_it_would_silently_run_sb3s_order():
+def test_the_retired_keys_are_refused_as_overrides_and_dropped_from_saved_configs(tmp_path, capsys):
+    """``train.fast_learner``, ``train.lean_loop``, ``train.overlap``: one line each saying what replaced it when
+    given; a saved config that names them loads (one note per key and process) and equals the one without."""
     import pytest
+    import yaml
 
-    from lanefree_sumo.config import ConfigError, LaneFreeConfig, merge_config
-    from lanefree_sumo.rl.models import training_config
+    from lanefree_sumo.config import RETIRED, ConfigError, LaneFreeConfig, config_to_dict, merge_config
+    from lanefree_sumo.experiments.storage import rundir
+    from lanefree_sumo.experiments.storage.rundir import read_config
 
-    for extra in ({"train": {"algo": "td3"}}, {"train": {"lean_loop": False}}, {"train": {"envs": 2}},
-                  {"observation": {"kind": "set"}}):
-        cfg = merge_config(merge_config(LaneFreeConfig(), {"train": {"overlap": True}}), extra)
-        with pytest.raises(ConfigError, match="--overlap needs"):
-            training_config(cfg)
-    assert training_config(merge_config(LaneFreeConfig(), {"train": {"overlap": True}})).train.overlap
+    assert set(RETIRED) == {"train.fast_learner", "train.lean_loop", "train.overlap"}
+    for key in RETIRED:
+        section, leaf = key.split(".")
+        with pytest.raises(ConfigError, match=rf"config '{key}' was removed: .*; leave it out"):
+            merge_config(LaneFreeConfig(), {section: {leaf: True}})
+    saved = config_to_dict(LaneFreeConfig())
+    saved["train"].update(fast_learner=True, lean_loop=False, overlap=True)
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(saved))
+    assert read_config(tmp_path / "a") == LaneFreeConfig() and not capsys.readouterr().err  # reading: silent
+    rundir._NOTED_RETIRED.clear()  # as in a fresh process
+    assert read_config(tmp_path / "a", note_retired=True) == read_config(tmp_path / "b", True) == LaneFreeConfig()
+    notes = capsys.readouterr().err.splitlines()
+    assert [n.split("'")[1] for n in notes] == list(RETIRED)  # each key once, though both folders name them
+    assert all(n.startswith("lanefree: note: ") and "is ignored now (" in n for n in notes)

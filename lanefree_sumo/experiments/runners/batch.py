@@ -32,6 +32,7 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -71,8 +72,7 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
                         (cfg.train.envs != 1, "several environments (--envs)"),
-                        (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)"),
-                        (cfg.train.overlap, "--overlap")):
+                        (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)")):
         if wrong:
             return what
     return None
@@ -123,6 +123,52 @@ def check_device(device: str) -> None:
         if not torch.cuda.is_available():
             raise ConfigError("train.device = cuda, but torch finds no CUDA GPU on this machine; "
                               "train on the CPU with --device cpu")
+
+
+def replay_bytes(cfg: LaneFreeConfig) -> int:
+    """Bytes of one run's replay buffer in a batch (:class:`~lanefree_sumo.rl.algorithms.batched.replay.
+    BatchedReplay`: observations and next observations, actions, rewards, dones, timeouts; float32, DQN's actions
+    int64), from the config's buffer size and the run's spaces."""
+    from lanefree_sumo.rl.algorithms import get_algorithm
+    from lanefree_sumo.rl.env import action_space, observation_space
+
+    section = get_algorithm(cfg.train.algo).config_section
+    capacity = cfg.train.actor_critic.buffer_size if section == "actor_critic" else cfg.train.dqn.buffer_size
+    obs, act = observation_space(cfg), action_space(cfg)
+    obs_values = sum(int(np.prod(s.shape or ())) for s in getattr(obs, "spaces", {"": obs}).values())
+    action_bytes = 8 if act.shape == () else 4 * int(np.prod(act.shape or ()))
+    return capacity * (2 * 4 * obs_values + action_bytes + 3 * 4)
+
+
+def available_memory(device: str | None) -> int:
+    """Bytes the replay buffers of a batch can take: the CPU's available memory (``MemAvailable``), or the free
+    memory of the CUDA device."""
+    if device is not None and device != "cpu":
+        import torch
+
+        return int(torch.cuda.mem_get_info(torch.device(device))[0])
+    try:
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
+
+
+def check_memory(cfgs: Sequence[LaneFreeConfig], device: str | None) -> None:
+    """ConfigError (one line) when the batch's replay buffers would not fit into this machine's available memory
+    (or the device's): how much they need, how much there is, how many such runs fit."""
+    each = [replay_bytes(cfg) for cfg in cfgs]
+    need, have = sum(each), available_memory(device)
+    if need <= have:
+        return
+    per_run = max(each)
+    where = "this machine" if device is None or device == "cpu" else f"the {device} device"
+    raise ConfigError(f"{len(cfgs)} runs need ≈ {need / 2**30:.1f} GiB of replay memory ({per_run / 2**20:,.0f} MiB "
+                      f"each) and {where} has {have / 2**30:.1f} GiB available: at most {have // per_run} such runs "
+                      "fit here; train fewer seeds per batch (or a smaller buffer_size)")
 
 
 def torch_device(cfg: LaneFreeConfig) -> str | None:
@@ -505,6 +551,7 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
     for cfg in cfgs:
         check_batchable(cfg)
         check_fits(cfg)  # the density fits, before anything is written
+    check_memory(cfgs, torch_device(cfgs[0]) if device == "config" else device)
     paths = folders or [batch_dir / batch_name(c) for c in cfgs]
     if len(set(paths)) != len(paths):
         raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")
@@ -673,7 +720,7 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
         raise RunError(f"{batch_dir} is finished (every run has its model.zip); nothing to resume")
     with contextlib.ExitStack() as stack:
         stack.enter_context(claim(batch_dir, "train"))
-        cfgs = [run.load_config() for run in runs]
+        cfgs = [run.load_config(note_retired=True) for run in runs]
         check_device(cfgs[0].train.device)
         for run in runs:
             stack.enter_context(run.writer_lock())

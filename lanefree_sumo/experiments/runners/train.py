@@ -194,7 +194,8 @@ def train(
             if run is None:
                 raise RunError("resuming needs the run folder")
             folder = RunDir(run)
-            cfg = resolve_config(folder.load_config())  # a run folder at all, before anything is written
+            # a run folder at all, before anything is written
+            cfg = resolve_config(folder.load_config(note_retired=True))
             stack.enter_context(folder.writer_lock())  # one writer: a second resume is refused here
             ckpt, target = _resume_point(folder, cfg, episodes)
             timesteps = ckpt.timesteps

@@ -32,6 +32,7 @@ import json
 import os
 import re
 import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -40,7 +41,7 @@ from typing import Any
 
 import yaml
 
-from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, missing_keys
+from lanefree_sumo.config import RETIRED, LaneFreeConfig, config_to_dict, drop_retired, merge_config, missing_keys
 from lanefree_sumo.errors import ConfigError, RunError
 
 CONFIG = "config.yaml"
@@ -366,9 +367,11 @@ def append_command(folder: Path, command: str) -> None:
         fh.write(command + "\n")
 
 
-def read_config(folder: Path) -> LaneFreeConfig:
+def read_config(folder: Path, note_retired: bool = False) -> LaneFreeConfig:
     """The configuration saved in ``folder/config.yaml`` (a run or an evaluation), validated whole:
-    unreadable text, a missing or unknown key, a wrong type or value is a RunError naming it."""
+    unreadable text, a missing or unknown key, a wrong type or value is a RunError naming it. A retired key
+    (:data:`~lanefree_sumo.config.RETIRED`) is dropped; with ``note_retired`` (a run about to train on) one line
+    on stderr says so."""
     path = folder / CONFIG
     if not path.is_file() and (folder / BATCH_FILE).is_file():
         runs = sorted(p.name for p in folder.iterdir() if (p / CONFIG).is_file())
@@ -385,10 +388,26 @@ def read_config(folder: Path) -> LaneFreeConfig:
         if missing:
             more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
             raise ConfigError(f"key '{missing[0]}'{more} missing (file cut short?)")
+        data, dropped = drop_retired(data)
+        if note_retired:
+            _note_retired(path, dropped)
         return merge_config(LaneFreeConfig(), data)
     except (OSError, UnicodeDecodeError, yaml.YAMLError, ConfigError, TypeError) as exc:
         reason = " ".join(str(exc).split())[:300]
         raise RunError(f"{path} is unusable ({reason}); restore it or start a new run") from None
+
+
+_NOTED_RETIRED: set[str] = set()
+"""The retired keys :func:`_note_retired` has named in this process (each is named once)."""
+
+
+def _note_retired(path: Path, dropped: list[str]) -> None:
+    """One line on stderr for each retired key (:data:`~lanefree_sumo.config.RETIRED`) a saved config names,
+    the first time this process meets it: the key is ignored, and why."""
+    for key in dropped:
+        if key not in _NOTED_RETIRED:
+            _NOTED_RETIRED.add(key)
+            print(f"lanefree: note: {path} names '{key}', which is ignored now ({RETIRED[key]})", file=sys.stderr)
 
 
 @dataclass(frozen=True)
@@ -471,8 +490,9 @@ class RunDir:
         """Folder of the checkpoint taken after ``episodes`` episodes."""
         return self.checkpoints / f"ep_{episodes:05d}"
 
-    def load_config(self) -> LaneFreeConfig:
-        return read_config(self.path)
+    def load_config(self, note_retired: bool = False) -> LaneFreeConfig:
+        """The run's config (:func:`read_config`)."""
+        return read_config(self.path, note_retired)
 
     def eval_dir(self, density: float | None = None, shield: bool | None = None, scenario: str | None = None) -> Path:
         """``eval/`` at the training density (``density`` None), else ``eval_d<density>/``; on another road

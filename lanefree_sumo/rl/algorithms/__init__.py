@@ -5,10 +5,10 @@ Training, evaluation, the benchmark, the CLI's help and the tests all read :data
 Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
 import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
 :mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`); the dueling Q-network head and its
-policies in :mod:`.q_networks`, which imports no algorithm. ``ddpg`` is :mod:`.fast_ddpg`'s
-subclass of SB3's DDPG and ``dqn`` :mod:`.fast_dqn`'s of SB3's DQN (the base of the other three): SB3's
-update bit for bit, faster (``train.fast_learner``, ``train.lean_loop``; shared pieces in :mod:`.lean`);
-they load models saved by SB3's classes, and SB3's classes load theirs.
+policies in :mod:`.q_networks`, which imports no algorithm. ``ddpg`` is :mod:`.ddpg`'s subclass of SB3's
+DDPG and ``dqn`` :mod:`.dqn`'s of SB3's DQN (the base of the other three): SB3's update, with the project's
+choices; they load models saved by SB3's classes, and SB3's classes load theirs. They train what the batched
+learners (:mod:`.batched`) do not: runs on SB3's loop (several agents or environments, the SUMO backends).
 """
 
 from __future__ import annotations
@@ -36,10 +36,9 @@ class AlgorithmSpec:
     """Section of ``TrainConfig`` with its hyperparameters."""
     summary: str
     """One line for ``--help``."""
-    fast_learner: bool = False
-    """The class takes ``fast_learner=`` and ``lean_loop=`` (from ``train``); False runs SB3's own update."""
-    overlap: bool = False
-    """The class takes ``overlap=`` (``train.overlap``: the env steps on a second core, one update behind)."""
+    own_class: bool = False
+    """The class is the project's subclass of SB3's (it takes the ``train.actor_critic`` / ``train.dqn`` choices
+    SB3's lacks: ``warmup_actions``, ``pre_tanh_penalty``, ``loss``)."""
     batched: bool = False
     """Trained as a batch of K runs in one array program (``lanefree train --seeds``, ``sweep --batch``, the GPU:
     :mod:`.batched`)."""
@@ -59,23 +58,23 @@ _OU = ("ou_sigma", "ou_theta")
 _SPECS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
-        AlgorithmSpec("ddpg", f"{_ALGOS}.fast_ddpg:FastDDPG", "continuous", True, "actor_critic",
-                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", fast_learner=True,
-                      overlap=True, batched=True, unread_keys=("ppo_n_steps",)),
+        AlgorithmSpec("ddpg", f"{_ALGOS}.ddpg:LaneFreeDDPG", "continuous", True, "actor_critic",
+                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", own_class=True,
+                      batched=True, unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3", batched=True,
                       unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC",
                       unread_keys=("ppo_n_steps", *_OU)),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
                       unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
-        AlgorithmSpec("dqn", f"{_ALGOS}.fast_dqn:FastDQN", "discrete", True, "dqn", "DQN", fast_learner=True,
+        AlgorithmSpec("dqn", f"{_ALGOS}.dqn:LaneFreeDQN", "discrete", True, "dqn", "DQN", own_class=True,
                       batched=True),
         AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN",
-                      fast_learner=True, batched=True),
+                      own_class=True, batched=True),
         AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
-                      "dueling double DQN", fast_learner=True, batched=True),
+                      "dueling double DQN", own_class=True, batched=True),
         AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
-                      "double DQN with prioritised replay", fast_learner=True, batched=True),
+                      "double DQN with prioritised replay", own_class=True, batched=True),
     )
 }
 ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)

@@ -280,10 +280,6 @@ class PrioritizedDoubleDQN(DoubleDQN):
         self.replay_buffer.update_priorities(self._per_indices, td_errors.abs())
         self._per_indices = None
 
-    def _written_out_buffer(self, buffer: ReplayBuffer) -> bool:
-        """The written-out update draws from the prioritised buffer through :meth:`_sample_batch`."""
-        return type(buffer) is PrioritizedReplayBuffer
-
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         self._update_beta()
         super().train(gradient_steps, batch_size)

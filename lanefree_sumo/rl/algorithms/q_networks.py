@@ -1,7 +1,7 @@
 """The DQN family's Q-network heads that SB3 lacks: the dueling head (Wang et al. 2016) and its policies.
 
 ``Q(s, a) = V(s) + A(s, a) − mean_a' A(s, a')``. A module of its own, below the algorithms: the
-written-out update of :mod:`.fast_dqn` recognises these heads, and :mod:`.dueling` puts them into
+batched learner (:mod:`.batched.dqn`) writes these heads out, and :mod:`.dueling` puts them into
 :class:`~.dueling.DuelingDoubleDQN`'s policy aliases; neither imports the other for them.
 """
 

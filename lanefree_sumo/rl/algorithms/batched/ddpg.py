@@ -1,11 +1,11 @@
-"""DDPG for K runs at once: :class:`~..fast_ddpg.FastDDPG`'s update with a leading run axis.
+"""DDPG for K runs at once: SB3's DDPG update (:class:`~..ddpg.LaneFreeDDPG`), written out with a leading run axis.
 
 Run k starts from the weights SB3's DDPG gets with seed k (its policy built under ``torch.manual_seed(k)``,
 as ``DDPG._setup_model`` builds it), draws its replay indices and Ornstein-Uhlenbeck noise from its own
 stream (:class:`~.replay.RunStreams`) in the single run's order, and has its own learning rate, γ, τ, σ and θ;
 the network shapes, batch size, buffer size and ``learning_starts`` are the batch's. On CPU run k's
-parameters, targets and Adam moments equal the single :class:`~..fast_ddpg.FastDDPG` run's bit for bit
-(``tests/rl/test_batched_learners.py``), with the pre-tanh penalty too (FastDDPG's autograd update). SB3 also
+parameters, targets and Adam moments equal the single :class:`~..ddpg.LaneFreeDDPG` run's bit for bit
+(``tests/rl/test_batched_learners.py``), with the pre-tanh penalty too. SB3 also
 draws DDPG's target-policy noise, which DDPG clips to zero; it changes no number (only a −0.0 action to +0.0),
 so it is not drawn here. On the set observation each network starts with the set encoder (:mod:`.set_encoder`),
 and run k agrees with the single run to float tolerance (``tests/rl/test_batched_set.py``). TD3 is this class
@@ -38,7 +38,7 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     per_run_column,
     soft_update,
 )
-from lanefree_sumo.rl.algorithms.fast_ddpg import WARMUP_ACTIONS
+from lanefree_sumo.rl.algorithms.ddpg import WARMUP_ACTIONS
 from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
 
@@ -69,9 +69,9 @@ class BatchedDDPG(BatchedLearner):
     """DDPG (SB3's, as ``lanefree train`` configures it) for K runs; module docstring.
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``tau``, ``ou_sigma``,
-    ``ou_theta``, ``pre_tanh_penalty`` (λ of :class:`~..fast_ddpg.FastDDPG`'s λ·mean(u²) on the actor's pre-tanh
+    ``ou_theta``, ``pre_tanh_penalty`` (λ of :class:`~..ddpg.LaneFreeDDPG`'s λ·mean(u²) on the actor's pre-tanh
     output u). The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``,
-    ``warmup_actions`` (:class:`~..fast_ddpg.FastDDPG`'s: ``uniform`` random actions before
+    ``warmup_actions`` (:class:`~..ddpg.LaneFreeDDPG`'s: ``uniform`` random actions before
     ``learning_starts``, or ``policy``: the actor and its noise from the first step), ``encoder``: the set
     encoder's name for the set observation (a Dict observation space; :mod:`.set_encoder`), None for the
     vector observation."""
@@ -148,7 +148,7 @@ class BatchedDDPG(BatchedLearner):
 
     @property
     def random_steps(self) -> int:
-        """Steps that act uniformly at random (:meth:`~..fast_ddpg.FastDDPG._random_steps`)."""
+        """Steps that act uniformly at random (:meth:`~..ddpg.LaneFreeDDPG._random_steps`)."""
         return self.learning_starts if self.warmup_actions == "uniform" else 0
 
     def optimisers(self) -> list[StackedAdam]:

@@ -1,4 +1,4 @@
-"""The DQN family for K runs at once: :class:`~..fast_dqn.FastDQN`'s written-out update with a leading run axis.
+"""The DQN family for K runs at once: :class:`~..dqn.LaneFreeDQN`'s update, written out with a leading run axis.
 
 ``algo`` is a registry name: ``dqn`` (the target network's argmax), ``ddqn`` (the online network's),
 ``dueling`` (double DQN with the dueling head), ``per`` (double DQN with proportional prioritised replay,
@@ -7,7 +7,7 @@ one :class:`~.replay.RunPriorities` per run); or one name per run, of one :func:
 SB3 gives its variant's class with seed k, draws its ε-greedy decisions, random actions and replay indices from
 its own streams in the single run's order, and has its own learning rate, γ and ε schedule; the network shape,
 batch size, buffer size, ``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU
-run k equals the single fast learner bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay
+run k equals the single run of SB3's loop bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay
 keeps its trees on the host: its TD errors come back from the device once per update. With device streams (the
 lockstep loop) its priorities live on the device instead (:meth:`BatchedDQN.sample_on_device`).
 """
@@ -38,7 +38,7 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     mlp_forward,
     per_run_column,
 )
-from lanefree_sumo.rl.algorithms.fast_dqn import HUBER_BETA, LOSSES, NO_REDUCTION
+from lanefree_sumo.rl.algorithms.dqn import HUBER_BETA, LOSSES, NO_REDUCTION
 
 FAMILY = ("dqn", "ddqn", "dueling", "per")
 
@@ -51,7 +51,7 @@ def batch_group(algo: str) -> str:
 
 class _QNet:
     """K Q-networks on a :class:`ParamStack`: a plain MLP, or the dueling head (ReLU trunk, then
-    ``V + A − mean_a A``), written out as :mod:`..fast_dqn` writes them."""
+    ``V + A − mean_a A``), forward and backward written out with the kernels autograd calls for them."""
 
     def __init__(self, stack: ParamStack, dueling: bool) -> None:
         self.stack, self.dueling = stack, dueling
@@ -95,7 +95,7 @@ class BatchedDQN(BatchedLearner):
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``exploration_fraction``,
     ``exploration_initial_eps``, ``exploration_final_eps``. The batch's: the rest, as SB3's DQN names them
-    (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..fast_dqn.FastDQN`'s, ``huber`` or
+    (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..dqn.LaneFreeDQN`'s, ``huber`` or
     ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s)."""
 
     def __init__(self, algo: str | Sequence[str], observation_space: spaces.Space, action_space: spaces.Space,
@@ -334,8 +334,8 @@ class BatchedDQN(BatchedLearner):
               weights: th.Tensor | None) -> tuple[th.Tensor, th.Tensor]:
         """(loss per run ``[K]``, its gradient with respect to ``current_q``) as the single run computes them:
         the mean over the batch as each element's 1/n (the mean reduction's backward, per run), the weighted
-        mean's expand / n and product g · w; the squared loss's ½ on the gradient (as :mod:`..fast_dqn`'s
-        ``_squared_loss``)."""
+        mean's expand / n and product g · w; the squared loss's ½ on the gradient (autograd's for
+        ``0.5 · mse_loss``)."""
         if self.loss == "squared":
             per_sample = 0.5 * F.mse_loss(current_q, target_q, reduction="none")
             if weights is None:  # 2/n · δ · ½ of the mean reduction equals 2 · δ · (½ / n): both scale by powers of 2

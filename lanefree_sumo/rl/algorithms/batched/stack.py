@@ -1,15 +1,16 @@
 """K networks of one architecture as stacked tensors: parameters ``[K, P]``, products over all K at once.
 
 * :class:`ParamStack`: the parameters of K networks (one per run) in one buffer ``[K, P]``, each run's row
-  laid out as the single run's flat buffer (:func:`~..lean.flatten_parameters`: module order), with views
+  laid out as the single run's parameters in module order, with views
   ``[K, *shape]`` per tensor;
 * :class:`Products`: the three products of a linear layer (forward, weight gradient, input gradient) as one
   batched kernel (``baddbmm``/``bmm``) for all K runs; with ``exact`` (the CPU default) each product shape is
   probed once, and where the batched kernel gives other bits than the single run's ``addmm``/``mm`` (measured
   with MKL: an output width of 1, where ``addmm`` takes a matrix-vector kernel, and products under 400
   multiply-adds, which ``bmm`` computes with its own loop) it runs K single products instead;
-* :func:`mlp_forward`/:func:`mlp_backward`: :mod:`..lean`'s written-out MLP with a leading run axis;
-* :class:`StackedAdam`: torch's Adam arithmetic (as :class:`~..lean.LeanAdam`'s flat path) on ``[K, P]``,
+* :func:`mlp_forward`/:func:`mlp_backward`: the MLP's forward and backward written out with the kernels
+  autograd calls for them (``addmm``, ``mm``, ``threshold_backward``, ``tanh_backward``), with a leading run axis;
+* :class:`StackedAdam`: torch's Adam arithmetic on ``[K, P]``,
   each run with its own learning rate; :func:`soft_update`: ``θ' ← (1 − τ) θ' + τ θ`` in one operation, τ per run.
 
 On CPU every elementwise operation here gives the same bits on a run's row as on the single run's buffer
@@ -151,7 +152,7 @@ def mlp_backward(mm: Products, layers: Sequence[Linear], outs: Sequence[th.Tenso
                  weights: bool = True, to_input: bool = False,
                  relu_out: bool = False) -> tuple[list[th.Tensor], th.Tensor | None]:
     """(gradients [W1, b1, W2, b2, …] ``[K, …]`` — empty unless ``weights``, the input's gradient — None unless
-    ``to_input``) from the output's gradient ``grad``: :func:`~..lean.backward`'s kernels with a run axis
+    ``to_input``) from the output's gradient ``grad``: autograd's kernels with a run axis
     (the bias gradient sums over the batch axis 1); ``squash``, ``relu_out``: as :func:`mlp_forward`'s."""
     if squash:
         grad = aten.tanh_backward(grad, outs[-1])
@@ -177,7 +178,7 @@ def per_run_column(values: Sequence[float], device: th.device) -> th.Tensor:
 class StackedAdam:
     """``torch.optim.Adam`` (no weight decay, AMSGrad or maximize; ``betas`` and ``eps`` the batch's) over a
     :class:`ParamStack`'s buffer, run k with learning rate ``lrs[k]``: the arithmetic of torch's multi-tensor
-    Adam as :class:`~..lean.LeanAdam` runs it, with moments ``[K, P]``. All runs step together (one step count)."""
+    Adam, with moments ``[K, P]``. All runs step together (one step count)."""
 
     def __init__(self, params: ParamStack, lrs: Sequence[float], betas: tuple[float, float], eps: float) -> None:
         self.params = params
