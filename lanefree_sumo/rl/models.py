@@ -225,7 +225,6 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
                   device: str = "cpu") -> Any:
     """The batched learner of runs ``cfgs`` (run k seeded ``seeds[k]``): for each run the hyperparameters
     :func:`build_model` gives it; ConfigError when the runs cannot share a batch."""
-    from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN, BatchedTD3
     from lanefree_sumo.rl.algorithms.batched.dqn import batch_group
 
     algo = cfgs[0].train.algo
@@ -233,34 +232,31 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
     if any(batch_group(c.train.algo) != batch_group(algo) for c in cfgs):
         raise ConfigError("the runs of one batch must share train.algo (dqn and ddqn may mix); "
                           f"got {', '.join(sorted({c.train.algo for c in cfgs}))}")
-    from lanefree_sumo.rl.algorithms import BATCHED
-
-    actor_critic = tuple(name for name in BATCHED if get_algorithm(name).config_section == "actor_critic")
-    if algo not in BATCHED:
-        raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {algo}; train it run by run")
+    cls = spec.batched_cls  # (ConfigError for an algorithm without a batched learner)
+    actor_critic = spec.config_section == "actor_critic"
     if len(seeds) != len(cfgs):
         raise ConfigError(f"{len(cfgs)} configs but {len(seeds)} seeds: give one seed per run")
-    if algo not in actor_critic and any(c.observation.kind != "vector" for c in cfgs):
+    if not actor_critic and any(c.observation.kind != "vector" for c in cfgs):
         raise ConfigError(f"batched {algo} takes the vector observation; train the set observation run by run")
     sections = [getattr(c.train, spec.config_section) for c in cfgs]
-    shared = _BATCH_SHARED[spec.config_section] + (("timesteps",) if algo not in actor_critic else ())
+    shared = _BATCH_SHARED[spec.config_section] + (("timesteps",) if not actor_critic else ())
     for key in shared:
         values = {total_timesteps(c) if key == "timesteps" else getattr(s, key) for c, s in zip(cfgs, sections)}
         if len(values) > 1:
             raise ConfigError(f"the runs of one batch must share train.{spec.config_section}.{key} "
                               f"(got {sorted(values, key=str)}); put runs that differ there in separate batches")
     first = sections[0]
-    if algo in actor_critic:
-        penalty: dict[str, Any] = {"pre_tanh_penalty": [s.pre_tanh_penalty for s in sections]} if algo == "ddpg" else {}
-        return (BatchedDDPG if algo == "ddpg" else BatchedTD3)(
+    if actor_critic:
+        return cls(
             observation_space, action_space, seeds, learning_rate=[s.learning_rate for s in sections],
             gamma=[s.gamma for s in sections], tau=[s.tau for s in sections], ou_sigma=[s.ou_sigma for s in sections],
             ou_theta=[s.ou_theta for s in sections], actor_layers=first.actor_layers,
             critic_layers=first.critic_layers, batch_size=first.batch_size, buffer_size=first.buffer_size,
-            learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions, **penalty,
+            learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
+            pre_tanh_penalty=[s.pre_tanh_penalty for s in sections],
             encoder=cfgs[0].observation.encoder if cfgs[0].observation.kind == "set" else None,
             total_timesteps=total_timesteps(cfgs[0]), device=device)
-    return BatchedDQN(
+    return cls(
         [c.train.algo for c in cfgs], observation_space, action_space, seeds,
         learning_rate=[s.learning_rate for s in sections], gamma=[s.gamma for s in sections], layers=first.layers,
         batch_size=first.batch_size, buffer_size=first.buffer_size, learning_starts=first.learning_starts_steps,

@@ -623,6 +623,20 @@ def test_variant_registry():
     assert issubclass(PrioritizedReplayBuffer, ReplayBuffer)
 
 
+def test_the_registry_names_each_batched_learner():
+    from lanefree_sumo.errors import ConfigError
+    from lanefree_sumo.rl.algorithms import BATCHED, get_algorithm
+    from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN, BatchedTD3
+
+    assert BATCHED == ("ddpg", "td3", "dqn", "ddqn", "dueling", "per")
+    assert {name: get_algorithm(name).batched_cls for name in BATCHED} == {
+        "ddpg": BatchedDDPG, "td3": BatchedTD3, "dqn": BatchedDQN, "ddqn": BatchedDQN, "dueling": BatchedDQN,
+        "per": BatchedDQN}
+    for name in ("sac", "ppo"):
+        with pytest.raises(ConfigError, match=f"batched training covers ddpg, td3, .*, not {name}; train it run by"):
+            _ = get_algorithm(name).batched_cls
+
+
 _OTHER_FAMILY_JUNK = {
     "actor_critic": {"actor_layers": [8], "critic_layers": [8], "learning_rate": 0.5, "batch_size": 7, "gamma": 0.5,
                      "buffer_size": 123, "tau": 0.5, "learning_starts_steps": 5, "ou_sigma": 0.9, "ou_theta": 0.9,

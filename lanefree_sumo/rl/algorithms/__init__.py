@@ -39,9 +39,9 @@ class AlgorithmSpec:
     own_class: bool = False
     """The class is the project's subclass of SB3's (it takes the ``train.actor_critic`` / ``train.dqn`` choices
     SB3's lacks: ``warmup_actions``, ``pre_tanh_penalty``, ``loss``)."""
-    batched: bool = False
-    """Trained as a batch of K runs in one array program (``lanefree train --seeds``, ``sweep --batch``, the GPU:
-    :mod:`.batched`)."""
+    batched_target: str = ""
+    """``module:attribute`` of its batched learner (:mod:`.batched`), which trains it as a batch of K runs in one
+    array program (``lanefree train``, ``--seeds``, ``sweep --batch``, the GPU); empty: SB3's loop only."""
     unread_keys: tuple[str, ...] = ()
     """Keys of its own ``config_section`` the model never reads (PPO keeps no replay buffer, SAC adds no
     Ornstein-Uhlenbeck noise, the off-policy algorithms have no rollout length)."""
@@ -49,32 +49,52 @@ class AlgorithmSpec:
     @property
     def cls(self) -> Any:
         """The SB3(-compatible) class (imported on first use)."""
-        module, attribute = self.target.split(":")
-        return getattr(importlib.import_module(module), attribute)
+        return _load(self.target)
+
+    @property
+    def batched(self) -> bool:
+        """It has a batched learner (:attr:`batched_target`)."""
+        return bool(self.batched_target)
+
+    @property
+    def batched_cls(self) -> Any:
+        """The batched learner's class (imported on first use); ConfigError for an algorithm without one."""
+        if not self.batched:
+            raise ConfigError(f"batched training covers {', '.join(BATCHED)}, not {self.name}; train it run by run")
+        return _load(self.batched_target)
+
+
+def _load(target: str) -> Any:
+    """The attribute ``module:attribute`` names."""
+    module, attribute = target.split(":")
+    return getattr(importlib.import_module(module), attribute)
 
 
 _ALGOS = "lanefree_sumo.rl.algorithms"
+_BATCHED = f"{_ALGOS}.batched"
 _OU = ("ou_sigma", "ou_theta")
 _SPECS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
         AlgorithmSpec("ddpg", f"{_ALGOS}.ddpg:LaneFreeDDPG", "continuous", True, "actor_critic",
                       "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", own_class=True,
-                      batched=True, unread_keys=("ppo_n_steps",)),
-        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3", batched=True,
-                      unread_keys=("ppo_n_steps",)),
+                      batched_target=f"{_BATCHED}.ddpg:BatchedDDPG", unread_keys=("ppo_n_steps",)),
+        AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3",
+                      batched_target=f"{_BATCHED}.td3:BatchedTD3", unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("sac", "stable_baselines3:SAC", "continuous", True, "actor_critic", "SAC",
                       unread_keys=("ppo_n_steps", *_OU)),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
                       unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
         AlgorithmSpec("dqn", f"{_ALGOS}.dqn:LaneFreeDQN", "discrete", True, "dqn", "DQN", own_class=True,
-                      batched=True),
+                      batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN",
-                      own_class=True, batched=True),
+                      own_class=True, batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
-                      "dueling double DQN", own_class=True, batched=True),
+                      "dueling double DQN", own_class=True,
+                      batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
-                      "double DQN with prioritised replay", own_class=True, batched=True),
+                      "double DQN with prioritised replay", own_class=True,
+                      batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
     )
 }
 ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)
