@@ -131,19 +131,28 @@ def exploration_fraction(cfg: LaneFreeConfig) -> float:
     return min(1.0, dq.epsilon_decay_episodes * cfg.sim.episode_steps * cfg.scenario.agents / total_timesteps(cfg))
 
 
-def check_actor_critic_choices(cfg: LaneFreeConfig, own_ddpg: bool) -> None:
-    """ConfigError (one line) for an actor-critic choice only the project's DDPG trains: the pre-tanh penalty
-    and the warm-up from the policy. ``own_ddpg``: the learner is the project's DDPG class (the single run's on
-    SB3's loop, or the batched one)."""
+def _taking(key: str) -> str:
+    """The algorithms whose classes take the choice ``key`` (:attr:`~.algorithms.AlgorithmSpec.choices`)."""
+    from lanefree_sumo.rl.algorithms import ALGORITHMS
+
+    return ", ".join(name for name, spec in ALGORITHMS.items() if key in spec.choices)
+
+
+def check_actor_critic_choices(cfg: LaneFreeConfig, own_class: bool) -> None:
+    """ConfigError (one line) for an actor-critic choice the learner does not take (its
+    :attr:`~.algorithms.AlgorithmSpec.choices`; ``own_class`` False: SB3's own class, which takes none): the
+    pre-tanh penalty and the warm-up from the policy (an on-policy learner has no warm-up)."""
     ac, algo = cfg.train.actor_critic, cfg.train.algo
-    if ac.pre_tanh_penalty and not (algo == "ddpg" and own_ddpg):
+    spec = get_algorithm(algo)
+    takes = spec.choices if own_class else ()
+    if ac.pre_tanh_penalty and "pre_tanh_penalty" not in takes:
         raise ConfigError(f"train.actor_critic.pre_tanh_penalty = {ac.pre_tanh_penalty:g} is built into the "
-                          f"project's DDPG only; set it to 0 for {algo}")
-    if ac.warmup_actions != "uniform" and algo not in ("ppo", *(("ddpg",) if own_ddpg else ())):
+                          f"project's {_taking('pre_tanh_penalty')} only; set it to 0 for {algo}")
+    if ac.warmup_actions != "uniform" and spec.off_policy and "warmup_actions" not in takes:
         by_profile = cfg.train.profile == "kerasrl" and ac.warmup_actions == "policy"
         raise ConfigError(f"train.actor_critic.warmup_actions = {ac.warmup_actions}"
                           + (" (what train.profile = kerasrl sets)" if by_profile else "")
-                          + f" is built for ddpg only; {algo} takes SB3's uniform warm-up"
+                          + f" is built for {_taking('warmup_actions')} only; {algo} takes SB3's uniform warm-up"
                           + ("; add --set train.actor_critic.warmup_actions=uniform beside the profile"
                              if by_profile else ""))
 
@@ -152,7 +161,7 @@ def check_trainable(cfg: LaneFreeConfig) -> None:
     """The learner choices a run of ``cfg`` must be able to train, checked alike for one run, a batch and every
     run of a sweep's grid before anything starts (:func:`check_actor_critic_choices`)."""
     if get_algorithm(cfg.train.algo).config_section == "actor_critic":
-        check_actor_critic_choices(cfg, own_ddpg=cfg.train.algo == "ddpg")
+        check_actor_critic_choices(cfg, own_class=True)
 
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
@@ -163,7 +172,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
 
     algo = cfg.train.algo
     spec = get_algorithm(algo)
-    own_class = cls is None
+    takes = spec.choices if cls is None else ()  # SB3's own class takes none of the project's choices
     cls = spec.cls if cls is None else cls
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
@@ -178,7 +187,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
         policy = "MultiInputPolicy" if set_obs else "MlpPolicy"
         nets = {"pi": list(ac.actor_layers), "qf": list(ac.critic_layers)}
         kwargs: dict[str, Any] = {"learning_rate": ac.learning_rate, "gamma": ac.gamma, **common}
-        if algo == "ppo":
+        if not spec.off_policy:  # PPO
             nets = {"pi": list(ac.actor_layers), "vf": list(ac.critic_layers)}
             kwargs.update(n_steps=ac.ppo_n_steps, batch_size=ac.batch_size)
         else:
@@ -186,21 +195,20 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
                 buffer_size=ac.buffer_size, batch_size=ac.batch_size, tau=ac.tau,
                 learning_starts=ac.learning_starts_steps, train_freq=1, gradient_steps=1,
             )
-        if algo in ("ddpg", "td3"):
+        if "ou_sigma" not in spec.unread_keys:  # DDPG, TD3: Ornstein-Uhlenbeck exploration
             n_actions = env.action_space.shape[0]
             kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
-        check_actor_critic_choices(cfg, spec.own_class and own_class)
-        if spec.own_class and own_class:
-            kwargs.update(warmup_actions=ac.warmup_actions, pre_tanh_penalty=ac.pre_tanh_penalty)
+        check_actor_critic_choices(cfg, own_class=bool(takes))
+        kwargs.update({key: getattr(ac, key) for key in takes})
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
         return cls(policy, env, **kwargs)
 
     dq = cfg.train.dqn
     policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
-    own: dict[str, Any] = {"loss": dq.loss} if spec.own_class and own_class else {}
-    if dq.loss != "huber" and not own:
+    own = {key: getattr(dq, key) for key in takes}
+    if dq.loss != "huber" and "loss" not in takes:
         raise ConfigError(f"train.dqn.loss = {dq.loss} needs the project's DQN classes; "
                           f"{cls.__name__} takes SB3's Huber")
     return cls(

@@ -251,9 +251,9 @@ def test_every_run_of_a_batch_writes_its_tensorboard_log(tmp_path):
      "(what train.profile = kerasrl sets) is built for ddpg only; td3 takes SB3's uniform warm-up; add --set "
      "train.actor_critic.warmup_actions=uniform beside the profile"),
     (["--seeds", "0-1", "--algo", "td3", "--set", "train.actor_critic.pre_tanh_penalty=0.01"],
-     "pre_tanh_penalty = 0.01 is built into the project's DDPG only; set it to 0 for td3"),
+     "pre_tanh_penalty = 0.01 is built into the project's ddpg only; set it to 0 for td3"),
     (["--set", "train.actor_critic.pre_tanh_penalty=0.01", "--algo", "td3"],
-     "pre_tanh_penalty = 0.01 is built into the project's DDPG only; set it to 0 for td3"),
+     "pre_tanh_penalty = 0.01 is built into the project's ddpg only; set it to 0 for td3"),
 ])
 def test_one_validation_for_one_run_and_a_batch(tmp_path, args, said):
     res = lanefree("train", *args, "--episodes", "1", "--out", str(tmp_path / "x"), timeout=120)

@@ -198,7 +198,7 @@ def test_save_load_round_trip_both_ways_and_resume(tmp_path: Any) -> None:
 
 def test_registry_and_build_model_pick_the_projects_class() -> None:
     spec = get_algorithm("ddpg")
-    assert spec.cls is LaneFreeDDPG and spec.own_class and spec.batched
+    assert spec.cls is LaneFreeDDPG and spec.choices == ("warmup_actions", "pre_tanh_penalty") and spec.batched
     cfg = merge_config(LaneFreeConfig(), {"train": {"algo": "ddpg", "actor_critic": {
         "warmup_actions": "policy", "pre_tanh_penalty": 0.5}}})
     model = build_model(cfg, DummyVecEnv([ToyEnv]), 0, None)

@@ -280,7 +280,7 @@ def test_save_load_round_trip_both_ways_and_resume(tmp_path: Any) -> None:
 @pytest.mark.parametrize("algo", list(ALGOS))
 def test_registry_and_build_model_pick_the_projects_class(algo: str) -> None:
     spec = get_algorithm(algo)
-    assert spec.cls is ALGOS[algo] and spec.own_class and spec.batched
+    assert spec.cls is ALGOS[algo] and spec.choices == ("loss",) and spec.batched
     cfg = merge_config(LaneFreeConfig(), {"train": {"algo": algo, "dqn": {"loss": "squared"}}})
     model = build_model(cfg, DummyVecEnv([ToyEnv]), 0, None)
     assert type(model) is ALGOS[algo] and model.loss == "squared"

@@ -36,9 +36,10 @@ class AlgorithmSpec:
     """Section of ``TrainConfig`` with its hyperparameters."""
     summary: str
     """One line for ``--help``."""
-    own_class: bool = False
-    """The class is the project's subclass of SB3's (it takes the ``train.actor_critic`` / ``train.dqn`` choices
-    SB3's lacks: ``warmup_actions``, ``pre_tanh_penalty``, ``loss``)."""
+    choices: tuple[str, ...] = ()
+    """Keys of its ``config_section`` that SB3's class lacks and its class (the project's subclass of SB3's) and
+    its batched learner take as constructor arguments (``warmup_actions``, ``pre_tanh_penalty``, ``loss``); a
+    value other than SB3's for a key an algorithm does not take is refused."""
     batched_target: str = ""
     """``module:attribute`` of its batched learner (:mod:`.batched`), which trains it as a batch of K runs in one
     array program (``lanefree train``, ``--seeds``, ``sweep --batch``, the GPU); empty: SB3's loop only."""
@@ -77,7 +78,8 @@ _SPECS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
         AlgorithmSpec("ddpg", f"{_ALGOS}.ddpg:LaneFreeDDPG", "continuous", True, "actor_critic",
-                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)", own_class=True,
+                      "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)",
+                      choices=("warmup_actions", "pre_tanh_penalty"),
                       batched_target=f"{_BATCHED}.ddpg:BatchedDDPG", unread_keys=("ppo_n_steps",)),
         AlgorithmSpec("td3", "stable_baselines3:TD3", "continuous", True, "actor_critic", "TD3",
                       batched_target=f"{_BATCHED}.td3:BatchedTD3", unread_keys=("ppo_n_steps",)),
@@ -85,15 +87,15 @@ _SPECS: dict[str, AlgorithmSpec] = {
                       unread_keys=("ppo_n_steps", *_OU)),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
                       unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
-        AlgorithmSpec("dqn", f"{_ALGOS}.dqn:LaneFreeDQN", "discrete", True, "dqn", "DQN", own_class=True,
+        AlgorithmSpec("dqn", f"{_ALGOS}.dqn:LaneFreeDQN", "discrete", True, "dqn", "DQN", choices=("loss",),
                       batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN",
-                      own_class=True, batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
+                      choices=("loss",), batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
-                      "dueling double DQN", own_class=True,
+                      "dueling double DQN", choices=("loss",),
                       batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
-                      "double DQN with prioritised replay", own_class=True,
+                      "double DQN with prioritised replay", choices=("loss",),
                       batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
     )
 }
