@@ -12,10 +12,11 @@ A process that has not imported the package finds it by the module-qualified id
 Citations "specification §N" in the docstrings refer to the project's specification, docs/specification.md.
 """
 
-from lanefree_sumo.numerics import keep_mkl_reproducible, keep_numpy_portable
+from lanefree_sumo.numerics import keep_heap_for_temporaries, keep_mkl_reproducible, keep_numpy_portable
 
 keep_numpy_portable()  # before anything imports numpy: the same episodes on every machine (numerics.py)
 keep_mkl_reproducible()  # before torch loads MKL: a batch's runs get the bits of the runs alone (numerics.py)
+keep_heap_for_temporaries()  # a step's array temporaries reuse the heap's pages, no page faults (numerics.py)
 
 from gymnasium.envs.registration import register  # noqa: E402  (numpy's kernels are chosen above)
 
