@@ -44,8 +44,9 @@ def lockstep_refusal(env: Any, learner: Any) -> str | None:
         return "the lockstep loop runs the torch simulation (give the environment a device)"
     if bool(np.any(env.terminate_on_collision)):
         return "episode.terminate_on_collision ends episodes at different steps"
-    if getattr(learner, "algo", None) == "td3":
-        return "TD3 draws its target noise on the host: it is trained in the exact loop"
+    host = None if learner is None else learner.host_draws
+    if host is not None:
+        return f"{host} is drawn on the host: it is trained in the exact loop"
     return None
 
 

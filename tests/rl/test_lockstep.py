@@ -320,7 +320,7 @@ def test_the_lockstep_loop_refuses_what_it_cannot_run() -> None:
         Lockstep(BatchedRingEnv(configs("ddpg")), None, 0)
     td3 = [training_config(merge_config(c, {"train": {"algo": "td3"}})) for c in configs("ddpg")]
     learner = build_batched(td3, [0, 1], observation_space(td3[0]), action_space(td3[0]), device="cpu")
-    with pytest.raises(ConfigError, match="TD3 draws its target noise on the host"):
+    with pytest.raises(ConfigError, match="TD3.s target noise is drawn on the host"):
         Lockstep(BatchedRingEnv(td3, device="cpu"), learner, 0)
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import random
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -90,6 +90,10 @@ class BatchedLearner:
     :param total_timesteps: the runs' SB3 ``learn`` length in steps (the progress the ε and β schedules read).
     :param device: where the networks and the replay live (CPU: batched run k equals the single run bit for bit).
     :param exact: use the batched products only where they give the single run's bits (default: on CPU)."""
+
+    host_draws: ClassVar[str | None] = None
+    """What of the update draws its random numbers on the host, so that the lockstep loop
+    (:mod:`~lanefree_sumo.rl.lockstep`) cannot run it (one phrase); None: every draw is the device's."""
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  batch_size: int, buffer_size: int, learning_starts: int, total_timesteps: int,

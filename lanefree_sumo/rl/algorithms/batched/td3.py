@@ -38,6 +38,7 @@ class BatchedTD3(BatchedDDPG):
 
     n_critics = 2
     algo = "td3"
+    host_draws = "TD3's target noise"
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  policy_delay: int = 2, target_policy_noise: float = 0.2, target_noise_clip: float = 0.5,
