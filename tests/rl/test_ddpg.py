@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -26,39 +25,19 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.rl.algorithms import get_algorithm
 from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
 from lanefree_sumo.rl.models import build_model
+from tests.rl import sb3_toys
+from tests.rl.sb3_toys import BATCH
 
-OBS, ACT, STEPS, BATCH = 24, 2, 50, 64
-"""LaneFree-v0's vector observation and action sizes; the paper's batch."""
+ACT, STEPS = 2, 50
+"""LaneFree-v0's action size; gradient steps per comparison."""
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-class ToyEnv(gym.Env):
-    """Gaussian observations (a flat Box, or the same vector in a Dict), reward = first action, episodes
-    of 40 steps ending in truncation or, every third episode, termination."""
-
-    def __init__(self, as_dict: bool = False) -> None:
-        box = spaces.Box(-np.inf, np.inf, (OBS,), np.float32)
-        self.observation_space = spaces.Dict({"x": box}) if as_dict else box
-        self.action_space = spaces.Box(-1.0, 1.0, (ACT,), np.float32)
-        self.as_dict = as_dict
-        self.t = self.episode = 0
-
-    def _obs(self) -> Any:
-        x = self.np_random.normal(size=OBS).astype(np.float32)
-        return {"x": x} if self.as_dict else x
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
-        super().reset(seed=seed)
-        self.t = 0
-        self.episode += 1
-        return self._obs(), {}
-
-    def step(self, action: np.ndarray) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        self.t += 1
-        end = self.t >= 40
-        return self._obs(), float(action[0]), end and self.episode % 3 == 0, end and self.episode % 3 != 0, {}
+def ToyEnv(as_dict: bool = False) -> sb3_toys.ToyEnv:  # noqa: N802  (used as the env's class)
+    """The toy env with LaneFree-v0's continuous action; reward = the first action."""
+    return sb3_toys.ToyEnv(spaces.Box(-1.0, 1.0, (ACT,), np.float32), lambda action, rng: float(action[0]), as_dict)
 
 
 def _model(cls: type[DDPG], as_dict: bool = False, seed: int = 0, policy_kwargs_extra: dict[str, Any] | None = None,
@@ -76,50 +55,31 @@ def _model(cls: type[DDPG], as_dict: bool = False, seed: int = 0, policy_kwargs_
 def _filled(cls: type[DDPG], as_dict: bool = False) -> DDPG:
     """A model whose replay buffer holds 1000 random transitions (some terminal, some truncated)."""
     model = _model(cls, as_dict)
-    rng = np.random.default_rng(7)
-    for k in range(1000):
-        obs, next_obs = (rng.normal(size=(1, OBS)).astype(np.float32) for _ in range(2))
-        if as_dict:
-            obs, next_obs = {"x": obs}, {"x": next_obs}
-        done = k % 40 == 39
-        model.replay_buffer.add(obs, next_obs, rng.uniform(-1, 1, (1, ACT)).astype(np.float32),  # type: ignore[arg-type]
-                                rng.normal(size=1).astype(np.float32), np.array([done]),
-                                [{"TimeLimit.truncated": done and k % 80 == 79}])
-    model.set_logger(configure(None, [""]))
-    model._current_progress_remaining = 1.0
+    sb3_toys.fill(model, lambda rng: rng.uniform(-1, 1, (1, ACT)).astype(np.float32), 1.0, as_dict)
     return model
 
 
-def _tensors(model: DDPG) -> list[th.Tensor]:
-    out = [p.detach() for net in (model.actor, model.critic, model.actor_target, model.critic_target)
-           for p in net.state_dict().values()]
-    for optimizer in (model.actor.optimizer, model.critic.optimizer):
-        for state in optimizer.state_dict()["state"].values():
-            out += [state["step"], state["exp_avg"], state["exp_avg_sq"]]
-    return out
+def _params(model: DDPG) -> list[th.Tensor]:
+    return [p.detach() for net in (model.actor, model.critic, model.actor_target, model.critic_target)
+            for p in net.state_dict().values()]
 
 
 def _assert_params(a: DDPG, b: DDPG) -> None:
     """Actor, critic and both targets equal (any optimiser's state aside)."""
-    pa, pb = ([p.detach() for net in (m.actor, m.critic, m.actor_target, m.critic_target)
-               for p in net.state_dict().values()] for m in (a, b))
-    assert len(pa) == len(pb) > 8 and all(th.equal(x, y) for x, y in zip(pa, pb))
+    sb3_toys.assert_tensors_equal(_params(a), _params(b), 8)
+
+
+def _tensors(model: DDPG) -> list[th.Tensor]:
+    """The networks and both Adam states."""
+    return [*_params(model), *sb3_toys.adam_states(model.actor.optimizer, model.critic.optimizer)]
 
 
 def _assert_same(a: DDPG, b: DDPG) -> None:
-    ta, tb = _tensors(a), _tensors(b)
-    assert len(ta) == len(tb) > 12
-    diff = max((x - y).abs().max().item() for x, y in zip(ta, tb))
-    assert all(th.equal(x, y) for x, y in zip(ta, tb)), f"max |difference| {diff:g}"
+    sb3_toys.assert_tensors_equal(_tensors(a), _tensors(b), 12)
 
 
 def _steps(model: DDPG, n: int = STEPS) -> tuple[th.Tensor, np.ndarray, dict[str, float]]:
-    """n gradient steps from seeded random streams; (torch RNG state, numpy RNG key, logged values)."""
-    np.random.seed(123)
-    th.manual_seed(123)
-    for _ in range(n):
-        model.train(gradient_steps=1, batch_size=BATCH)
-    return th.get_rng_state(), np.random.get_state()[1].copy(), dict(model.logger.name_to_value)  # type: ignore[index]
+    return sb3_toys.gradient_steps(model, n)
 
 
 @pytest.mark.parametrize("as_dict", [False, True], ids=["vector", "dict-obs"])

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
@@ -28,9 +27,11 @@ from lanefree_sumo.rl.algorithms.dqn import LaneFreeDQN
 from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
 from lanefree_sumo.rl.algorithms.prioritized import PrioritizedDoubleDQN
 from lanefree_sumo.rl.models import build_model
+from tests.rl import sb3_toys
+from tests.rl.sb3_toys import BATCH
 
-OBS, ACTIONS, STEPS, BATCH = 24, 9, 60, 64
-"""LaneFree-v0's vector observation and discrete action counts; the paper's batch."""
+ACTIONS, STEPS = 9, 60
+"""LaneFree-v0's discrete action count; gradient steps per comparison."""
 
 ALGOS: dict[str, type[LaneFreeDQN]] = {"dqn": LaneFreeDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN,
                                   "per": PrioritizedDoubleDQN}
@@ -38,33 +39,11 @@ ALGOS: dict[str, type[LaneFreeDQN]] = {"dqn": LaneFreeDQN, "ddqn": DoubleDQN, "d
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-class ToyEnv(gym.Env):
-    """Gaussian observations (a flat Box, or the same vector in a Dict), reward = 3 × (action − 4) plus noise
-    (large enough for the gradient clip to act), episodes of 40 steps ending in truncation or, every third
-    episode, termination."""
-
-    def __init__(self, as_dict: bool = False) -> None:
-        box = spaces.Box(-np.inf, np.inf, (OBS,), np.float32)
-        self.observation_space = spaces.Dict({"x": box}) if as_dict else box
-        self.action_space = spaces.Discrete(ACTIONS)
-        self.as_dict = as_dict
-        self.t = self.episode = 0
-
-    def _obs(self) -> Any:
-        x = self.np_random.normal(size=OBS).astype(np.float32)
-        return {"x": x} if self.as_dict else x
-
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
-        super().reset(seed=seed)
-        self.t = 0
-        self.episode += 1
-        return self._obs(), {}
-
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        self.t += 1
-        end = self.t >= 40
-        reward = 3.0 * (int(action) - 4) + float(self.np_random.normal())
-        return self._obs(), reward, end and self.episode % 3 == 0, end and self.episode % 3 != 0, {}
+def ToyEnv(as_dict: bool = False) -> sb3_toys.ToyEnv:  # noqa: N802  (used as the env's class)
+    """The toy env with LaneFree-v0's discrete actions; reward = 3 × (action − 4) plus noise (large enough for the
+    gradient clip to act)."""
+    return sb3_toys.ToyEnv(spaces.Discrete(ACTIONS), lambda action, rng: 3.0 * (int(action) - 4) + float(rng.normal()),
+                           as_dict)
 
 
 def _model(cls: type[DQN], as_dict: bool = False, seed: int = 0, envs: int = 1, optimizer: Any = None,
@@ -85,37 +64,25 @@ def _model(cls: type[DQN], as_dict: bool = False, seed: int = 0, envs: int = 1, 
 def _filled(cls: type[DQN], as_dict: bool = False, **kwargs: Any) -> DQN:
     """A model whose replay buffer holds 1000 random transitions (some terminal, some truncated)."""
     model = _model(cls, as_dict, **kwargs)
-    rng = np.random.default_rng(7)
-    for k in range(1000):
-        obs, next_obs = (rng.normal(size=(1, OBS)).astype(np.float32) for _ in range(2))
-        if as_dict:
-            obs, next_obs = {"x": obs}, {"x": next_obs}
-        done = k % 40 == 39
-        model.replay_buffer.add(obs, next_obs, rng.integers(0, ACTIONS, (1, 1)),  # type: ignore[arg-type, union-attr]
-                                (5 * rng.normal(size=1)).astype(np.float32), np.array([done]),
-                                [{"TimeLimit.truncated": done and k % 80 == 79}])
-    model.set_logger(configure(None, [""]))
-    model._current_progress_remaining = 1.0
+    sb3_toys.fill(model, lambda rng: rng.integers(0, ACTIONS, (1, 1)), 5.0, as_dict)
     return model
 
 
-def _tensors(model: DQN) -> list[th.Tensor]:
-    out = [p.detach() for net in (model.q_net, model.q_net_target) for p in net.state_dict().values()]
-    for state in model.policy.optimizer.state_dict()["state"].values():
-        out += [state["step"], state["exp_avg"], state["exp_avg_sq"]]
-    return out
+def _params(model: DQN) -> list[th.Tensor]:
+    return [p.detach() for net in (model.q_net, model.q_net_target) for p in net.state_dict().values()]
 
 
 def _assert_params_same(a: DQN, b: DQN) -> None:
-    pa, pb = ([p.detach() for net in (m.q_net, m.q_net_target) for p in net.state_dict().values()] for m in (a, b))
-    assert all(th.equal(x, y) for x, y in zip(pa, pb))
+    sb3_toys.assert_tensors_equal(_params(a), _params(b), 0)
+
+
+def _tensors(model: DQN) -> list[th.Tensor]:
+    """Both networks and the Adam state."""
+    return [*_params(model), *sb3_toys.adam_states(model.policy.optimizer)]
 
 
 def _assert_same(a: DQN, b: DQN) -> None:
-    ta, tb = _tensors(a), _tensors(b)
-    assert len(ta) == len(tb) > 8
-    diff = max((x - y).abs().max().item() for x, y in zip(ta, tb))
-    assert all(th.equal(x, y) for x, y in zip(ta, tb)), f"max |difference| {diff:g}"
+    sb3_toys.assert_tensors_equal(_tensors(a), _tensors(b), 8)
     if isinstance(a, PrioritizedDoubleDQN):  # PER's priorities come from the TD errors of each step
         assert isinstance(b, PrioritizedDoubleDQN)
         every = np.arange(a.replay_buffer.n_stored())
@@ -123,12 +90,7 @@ def _assert_same(a: DQN, b: DQN) -> None:
 
 
 def _steps(model: DQN, n: int = STEPS) -> tuple[th.Tensor, np.ndarray, dict[str, float]]:
-    """n gradient steps from seeded random streams; (torch RNG state, numpy RNG key, logged values)."""
-    np.random.seed(123)
-    th.manual_seed(123)
-    for _ in range(n):
-        model.train(gradient_steps=1, batch_size=BATCH)
-    return th.get_rng_state(), np.random.get_state()[1].copy(), dict(model.logger.name_to_value)  # type: ignore[index]
+    return sb3_toys.gradient_steps(model, n)
 
 
 @pytest.mark.parametrize("max_grad_norm", [10.0, 0.1], ids=["sb3-clip", "clip-always-acts"])
