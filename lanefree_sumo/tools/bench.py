@@ -211,7 +211,7 @@ def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[
     preallocated outputs)."""
     import gymnasium
     import torch
-    from stable_baselines3.common.logger import configure
+    from stable_baselines3.common.logger import Logger
 
     from lanefree_sumo.rl.env import action_space, observation_space
     from lanefree_sumo.rl.models import build_batched, build_model, training_config
@@ -232,7 +232,7 @@ def update_costs(seed: int, updates: int = 300, repeats: int = REPEATS) -> dict[
     model = build_model(cfg, Shapes(), seed, None)
     for obs, act, reward, next_obs in fill:
         model.replay_buffer.add(obs, next_obs, act, reward, np.array([False]), [{}])
-    model.set_logger(configure(None, [""]))
+    model.set_logger(Logger(None, []))
     model._current_progress_remaining = 1.0
     learner = build_batched([cfg], [seed], obs_space, act_space)
     no = np.array([False])
@@ -521,9 +521,9 @@ def set_update_speed(seed: int, updates: int = 30, fill: int = 1000) -> str:
             step()
         return (time.thread_time() - began) / updates * 1000
 
-    from stable_baselines3.common.logger import configure
+    from stable_baselines3.common.logger import Logger
 
-    single.set_logger(configure(None, [""]))
+    single.set_logger(Logger(None, []))
     base = cpu_ms(lambda: single.train(gradient_steps=1, batch_size=single.batch_size))
     lines = [f"The set observation's DDPG update (paper encoder, 70 veh/km, batch {single.batch_size}, "
              f"{cfgs[0].observation.max_rows} rows, {statistics.mean(seen):.1f} vehicles seen on average; CPU time of "

@@ -11,7 +11,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 OBS, BATCH = 24, 64
@@ -61,7 +61,7 @@ def fill(model: OffPolicyAlgorithm, action: Callable[[np.random.Generator], np.n
         model.replay_buffer.add(obs, next_obs, action(rng),  # type: ignore[arg-type, union-attr]
                                 (reward_scale * rng.normal(size=1)).astype(np.float32), np.array([done]),
                                 [{"TimeLimit.truncated": done and k % 80 == 79}])
-    model.set_logger(configure(None, [""]))
+    model.set_logger(Logger(None, []))
     model._current_progress_remaining = 1.0
     return model
 

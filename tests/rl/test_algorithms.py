@@ -13,7 +13,7 @@ from stable_baselines3 import DQN
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from torch.nn import functional as F
 
@@ -166,7 +166,7 @@ def test_double_q_target_respects_done_and_nstep_discounts():
 def test_train_step_uses_the_right_target(monkeypatch, cls, expected):
     """Spy on the Huber loss inside ``train``: DoubleDQN regresses on the double-Q target, SB3's DQN does not."""
     model = _hand_set_model(cls)
-    model._logger = configure(None, [""])
+    model._logger = Logger(None, [])
     seen = []
     real = F.smooth_l1_loss
 
@@ -459,7 +459,7 @@ def _filled_per_model(**kw):
     for _ in range(12):
         _add(model.replay_buffer, rng.uniform(-1, 1, 3), rng.uniform(-1, 1, 3), [rng.integers(3)],
              [rng.uniform(-1, 1)], [float(rng.random() < 0.2)])
-    model._logger = configure(None, [""])
+    model._logger = Logger(None, [])
     return model
 
 

@@ -19,7 +19,7 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG, DQN, TD3
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -141,7 +141,7 @@ def _fill(single: Any, k: int, transitions: list[tuple[np.ndarray, ...]]) -> Non
         stored = single.policy.scale_action(action[k:k + 1]) if isinstance(single, TD3) else action[k:k + 1]
         single.replay_buffer.add(obs[k:k + 1], next_obs[k:k + 1], stored.reshape(1, -1), reward[k:k + 1],
                                  done[k:k + 1], [{"TimeLimit.truncated": bool(truncated[k])}])
-    single.set_logger(configure(None, [""]))
+    single.set_logger(Logger(None, []))
 
 
 def _tensors(model: Any) -> list[th.Tensor]:

@@ -18,7 +18,7 @@ import pytest
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG, TD3
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedTD3
@@ -135,7 +135,7 @@ def test_updates_equal_sb3s_autograd_update_to_float_tolerance(encoder: str, alg
         for obs, action, reward, next_obs, done, truncated in transitions:
             single.replay_buffer.add(_run(obs, k), _run(next_obs, k), single.policy.scale_action(action[k:k + 1]),
                                      reward[k:k + 1], done[k:k + 1], [{"TimeLimit.truncated": bool(truncated[k])}])
-        single.set_logger(configure(None, [""]))
+        single.set_logger(Logger(None, []))
         np.random.seed(SEEDS[k])  # the single run's global stream, as SB3 seeded it
         for _ in range(UPDATES):
             single.train(gradient_steps=1, batch_size=BATCH)

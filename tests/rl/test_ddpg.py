@@ -17,7 +17,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3 import DDPG
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -150,7 +150,7 @@ def test_save_load_round_trip_both_ways_and_resume(tmp_path: Any) -> None:
     for model in (again, as_sb3):  # resume: load the buffer, train on
         model.load_replay_buffer(tmp_path / "buffer.pkl")
         assert model.replay_buffer is not None and model.replay_buffer.pos == own.replay_buffer.pos  # type: ignore[union-attr]
-        model.set_logger(configure(None, [""]))
+        model.set_logger(Logger(None, []))
         model._current_progress_remaining = 1.0
         _steps(model)
     _assert_same(again, as_sb3)
