@@ -556,13 +556,33 @@ def _vector_rate(make: Callable[[], Any], k: int, steps: int, render: bool = Fal
         env.close()
 
 
+def _sb3_rate(make: Callable[[], Any], k: int, steps: int) -> float:
+    """Env steps/s (summed over the K environments) of the SB3 VecEnv ``make()`` gives, as :func:`_vector_rate`."""
+    env = make()
+    try:
+        env.seed(0)
+        env.reset()
+        actions = np.zeros((k, *env.action_space.shape), dtype=np.float32)
+        for _ in range(10):
+            env.step(actions)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            env.step(actions)
+        return steps * k / (time.perf_counter() - t0)
+    finally:
+        env.close()
+
+
 def vector_speed(sizes: tuple[int, ...] = (8, 64), steps: int = 200, repeats: int = REPEATS) -> str:
     """LaneFree-v0's vector entry point (K worlds as one batched array program) against gymnasium's
     SyncVectorEnv over K LaneFree-v0 (numpy backend), the defaults' 70 veh/km, interleaved ``repeats`` times
-    (median); then what an ``rgb_array`` frame costs beside a step, for one LaneFree-v0."""
+    (median); the same for SB3: :class:`~lanefree_sumo.rl.sb3_vec_env.BatchedVecEnv` against SB3's DummyVecEnv
+    over K LaneFree-v0; then what an ``rgb_array`` frame costs beside a step, for one LaneFree-v0."""
     import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
 
     import lanefree_sumo  # noqa: F401 - registers LaneFree-v0
+    from lanefree_sumo.rl.sb3_vec_env import BatchedVecEnv
 
     lines = ["Vector environments (LaneFree-v0, 70 veh/km, numpy worlds, zero actions; env steps/s summed over K, "
              f"median of {repeats} interleaved repeats of {steps} steps):", "",
@@ -577,6 +597,16 @@ def vector_speed(sizes: tuple[int, ...] = (8, 64), steps: int = 200, repeats: in
                                                        vectorization_mode="sync"), k, n))
         v, y = statistics.median(vector), statistics.median(sync)
         lines.append(f"| {k} | {v:.0f} | {y:.0f} | {v / y:.2f}× |")
+    lines += ["", "| K | BatchedVecEnv (SB3) | DummyVecEnv over LaneFree-v0 | × |", "|---|---|---|---|"]
+    for k in sizes:
+        batched, dummy = [], []
+        n = max(10, steps * 8 // k)
+        for _ in range(repeats):
+            batched.append(_sb3_rate(functools.partial(BatchedVecEnv, k), k, n))
+            dummy.append(_sb3_rate(functools.partial(DummyVecEnv, [functools.partial(gym.make, "LaneFree-v0")] * k),
+                                   k, n))
+        b, d = statistics.median(batched), statistics.median(dummy)
+        lines.append(f"| {k} | {b:.0f} | {d:.0f} | {b / d:.2f}× |")
     plain, drawn = [], []
     for _ in range(repeats):
         plain.append(_vector_rate(lambda: gym.make_vec("LaneFree-v0", num_envs=1, vectorization_mode="sync"), 1,
