@@ -313,19 +313,25 @@ def face_config(config: LaneFreeConfig | Mapping[str, Any] | None,
     return config
 
 
+_SCALAR_TYPES: dict[type, type] = {bool: np.bool_, np.bool_: np.bool_, int: np.int64, np.int64: np.int64,
+                                   float: np.float64, np.float64: np.float64}
+"""The scalar types a step's ``info`` holds and their numpy types (looked up before the slower abstract checks)."""
+
+
 def numpy_info(info: dict[str, Any]) -> dict[str, Any]:
     """A step's ``info`` with numpy-typed scalars (``np.float64``, ``np.int64``, ``np.bool_``), as array libraries
     read them; other values (``episode_metrics``: the episode's CSV row) as they are."""
     out: dict[str, Any] = {}
     for key, value in info.items():
-        if isinstance(value, bool | np.bool_):
-            out[key] = np.bool_(value)
-        elif isinstance(value, numbers.Integral):
-            out[key] = np.int64(value)
-        elif isinstance(value, numbers.Real):
-            out[key] = np.float64(value)
-        else:
-            out[key] = value
+        to = _SCALAR_TYPES.get(type(value))
+        if to is None:
+            if isinstance(value, bool | np.bool_):
+                to = np.bool_
+            elif isinstance(value, numbers.Integral):
+                to = np.int64
+            elif isinstance(value, numbers.Real):
+                to = np.float64
+        out[key] = value if to is None else to(value)
     return out
 
 
