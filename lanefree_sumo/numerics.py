@@ -31,11 +31,15 @@ This module imports nothing of the package (the package's ``__init__`` calls :fu
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import importlib.util
+import json
 import os
 import platform
 import subprocess
 import sys
+from pathlib import Path
 
 PORTABLE_NUMPY_DISPATCH = "X86_V4 AVX512_ICL AVX512_SPR"
 """numpy's (≥ 2.4) AVX-512 kernel tiers on x86-64: switched off, numpy runs its x86-64-v3 (AVX2) kernels."""
@@ -44,18 +48,62 @@ VARIABLE = "NPY_DISABLE_CPU_FEATURES"
 """numpy's environment variable, read once when numpy is imported (and inherited by child processes)."""
 
 
+PROBE_CACHE = "numpy_tiers.json"
+"""The file (in :func:`cache_folder`) that keeps each numpy installation's probe outcome: {key: bool}."""
+
+
+def cache_folder() -> Path:
+    """``$XDG_CACHE_HOME/lanefree_sumo`` (default ``~/.cache/lanefree_sumo``)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lanefree_sumo"
+
+
+def _numpy_identity(tiers: str) -> str | None:
+    """What the probe's outcome depends on, found without importing numpy: this interpreter, the tiers, and
+    numpy's compiled core (path, size, modification time: a reinstalled numpy is probed again); None: no numpy."""
+    spec = importlib.util.find_spec("numpy")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    cores = sorted(Path(next(iter(spec.submodule_search_locations)), "_core").glob("_multiarray_umath*"))
+    if not cores:
+        return None
+    stat = cores[0].stat()
+    return f"{sys.executable}|{tiers}|{cores[0]}|{stat.st_size}|{stat.st_mtime_ns}"
+
+
+def _probe(tiers: str) -> bool:
+    """Whether numpy imports with ``tiers`` switched off, asked of a child interpreter once per numpy installation
+    (the answer is kept in :data:`PROBE_CACHE`; an unreadable or unwritable cache only means asking again)."""
+    key = _numpy_identity(tiers)
+    path: Path | None = None
+    known: dict[str, bool] = {}
+    with contextlib.suppress(OSError, ValueError, TypeError, RuntimeError):  # RuntimeError: no home folder
+        path = cache_folder() / PROBE_CACHE
+        known = dict(json.loads(path.read_text()))
+    if key is not None and isinstance(known.get(key), bool):
+        return known[key]
+    probe = subprocess.run([sys.executable, "-c", "import numpy"], env={**os.environ, VARIABLE: tiers},
+                           capture_output=True, check=False)
+    works = probe.returncode == 0  # else "You cannot disable CPU feature …, since it is part of the baseline"
+    if key is not None and path is not None:
+        with contextlib.suppress(OSError):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            temporary = path.with_name(f"{path.name}.{os.getpid()}")
+            temporary.write_text(json.dumps({**known, key: works}))
+            os.replace(temporary, path)
+    return works
+
+
 def keep_numpy_portable(tiers: str = PORTABLE_NUMPY_DISPATCH) -> bool:
     """Switch numpy's ``tiers`` off before numpy is imported, on x86-64, unless the user set :data:`VARIABLE`
     (empty: every kernel of the CPU) or numpy is already imported. A numpy built with one of them in its
     baseline refuses to import with them switched off, and a failed import cannot be retried in the same
-    process, so a child interpreter tries first; if it fails, numpy keeps its kernels (the variable is set
-    empty). Either way child processes inherit the decision. True when the setting applies."""
+    process, so a child interpreter tries first, once per numpy installation (:func:`_probe`); if it fails, numpy
+    keeps its kernels (the variable is set empty). Either way child processes inherit the decision. True when the
+    setting applies."""
     if ("numpy" in sys.modules or VARIABLE in os.environ or not sys.executable
             or platform.machine().lower() not in ("x86_64", "amd64")):
         return False
-    probe = subprocess.run([sys.executable, "-c", "import numpy"], env={**os.environ, VARIABLE: tiers},
-                           capture_output=True, check=False)
-    if probe.returncode != 0:  # "You cannot disable CPU feature …, since it is part of the baseline"
+    if not _probe(tiers):
         os.environ[VARIABLE] = ""  # numpy's own kernels, decided once: child processes do not probe again
         return False
     os.environ[VARIABLE] = tiers
