@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from lanefree_sumo.numerics import MKL_REPRODUCIBLE, MKL_VARIABLE, PORTABLE_NUMPY_DISPATCH, VARIABLE
+from lanefree_sumo.numerics import MKL_REPRODUCIBLE, MKL_VARIABLE, PORTABLE_NUMPY_DISPATCH, PROBE_CACHE, VARIABLE
 
 from conftest import ROOT, lanefree_popen, wait_for
 
@@ -93,6 +93,22 @@ def test_a_numpy_that_cannot_switch_a_tier_off_keeps_its_kernels() -> None:
     assert lines == ["False ", "3"]  # set empty: numpy's own kernels, and child processes do not ask again
 
 
+@x86_64_only
+def test_the_probe_is_asked_once_per_numpy_installation_and_a_damaged_cache_asks_again(tmp_path: Path) -> None:
+    """The child interpreter's answer is kept per numpy installation: the next start reads it (a kept "no" gives
+    numpy's own kernels without asking), and an unreadable cache is asked again and rewritten."""
+    setting = f"import os, lanefree_sumo\nprint(repr(os.environ['{VARIABLE}']))"
+    cache = tmp_path / "lanefree_sumo" / PROBE_CACHE
+    assert _python(setting, XDG_CACHE_HOME=str(tmp_path)) == [repr(PORTABLE_NUMPY_DISPATCH)]
+    kept = json.loads(cache.read_text())
+    assert list(kept.values()) == [True] and f"|{PORTABLE_NUMPY_DISPATCH}|" in next(iter(kept))
+    cache.write_text(json.dumps(dict.fromkeys(kept, False)))  # as a numpy whose baseline has the tiers
+    assert _python(setting, XDG_CACHE_HOME=str(tmp_path)) == ["''"]
+    cache.write_text("{not json")
+    assert _python(setting, XDG_CACHE_HOME=str(tmp_path)) == [repr(PORTABLE_NUMPY_DISPATCH)]
+    assert json.loads(cache.read_text()) == kept
+
+
 def _stopped_run(out: Path, algo: str, episodes: int, *options: str) -> list[dict[str, str]]:
     """Seed 0 of the paper's 625-episode ``algo`` fields_zones_overtake_collision run at 70 veh/km (plus
     ``options``), stopped with Ctrl-C once ``episodes`` episodes are logged: those rows, every column but wall
@@ -134,10 +150,10 @@ def test_a_run_repeats_itself_on_one_machine_learning_included(tmp_path: Path) -
 @pytest.mark.parametrize("algo", ["dqn", "per"])
 def test_a_batch_of_one_repeats_the_dqn_run_of_sb3s_loop(algo: str, tmp_path: Path) -> None:
     """The DQN (or PER) run of ``lanefree train`` (a batch of one: the batched learner, numpy) and the same run on
-    SB3's loop with SB3's update (the libsumo backend trains there) give the same first three episodes, every
-    column but wall time: episodes 2 and 3 act on 1600 updates."""
-    batched = _stopped_run(tmp_path / "batched", algo, 3)
-    sb3_loop = _stopped_run(tmp_path / "sb3_loop", algo, 3, "--backend", "libsumo")
+    SB3's loop with SB3's update (the libsumo backend trains there) give the same first two episodes, every
+    column but wall time: episode 2 acts on 800 updates (the first episode fills the buffer)."""
+    batched = _stopped_run(tmp_path / "batched", algo, 2)
+    sb3_loop = _stopped_run(tmp_path / "sb3_loop", algo, 2, "--backend", "libsumo")
     assert json.loads((tmp_path / "batched" / "batch.json").read_text()) == {"runs": ["."]}
     assert not (tmp_path / "sb3_loop" / "batch.json").exists()
     assert batched == sb3_loop
