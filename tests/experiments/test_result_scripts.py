@@ -64,7 +64,7 @@ def test_update_results_evaluates_a_finished_run_once_and_writes_every_table(tmp
     grid.write_text("reward_presets: [fields_zones_overtake_collision]\nn_seeds: 1\nepisodes: 2\n"
                     "overrides: {sim: {episode_steps: 40}, train: {checkpoint_every_episodes: 1}}\n")
     paper = root / "results" / "paper"
-    done = lanefree("sweep", str(grid), "--out", str(paper), "--workers", "1", "--no-progress", timeout=600)
+    done = lanefree("sweep", str(grid), "--out", str(paper), "--no-ray", "--no-progress", timeout=600)
     assert done.returncode == 0, done.stderr
     run = paper / "runs" / CELL
     # a set sweep stand-in (a copy of this sweep: its summary written before any evaluation existed)

@@ -698,7 +698,7 @@ def test_a_killed_worker_is_retried_and_ctrl_c_then_resume_finish_every_run_exac
     log = sweep.log(name).read_text()
     assert log.count(f"run {name} on host") == 2 and "resumable from episode" in log
 
-    resumed = lanefree("sweep", "--resume", str(out), "--no-progress", timeout=600)
+    resumed = lanefree("sweep", "--resume", str(out), "--no-ray", "--no-progress", timeout=600)  # in the driver
     assert resumed.returncode == 0, resumed.stderr
     assert_complete(out, episodes, 1)
     assert len((sweep.run(name) / "command.txt").read_text().splitlines()) == 3
@@ -856,7 +856,7 @@ def test_a_sweep_on_the_on_ramp(tmp_path):
         "overrides": {"road": {"kind": "onramp"}, "sim": {"episode_steps": 60},
                       "train": {"actor_critic": {"learning_starts_steps": 30}}}})
     out = tmp_path / "sweep"
-    res = lanefree("sweep", str(grid), "--out", str(out), "--workers", "1", "--no-progress")
+    res = lanefree("sweep", str(grid), "--out", str(out), "--no-ray", "--no-progress")
     assert res.returncode == 0, res.stderr
     run = out / "runs" / "ddpg_fields_zones_overtake_collision_d20_s0"
     assert (run / "model.zip").is_file() and "merged" in (run / "episodes.csv").read_text().splitlines()[0]
