@@ -20,10 +20,10 @@ A step of the driver model makes some forty temporaries of ``[K, N, N]`` pairs a
 malloc hands memory freed at the top of its heap back to the kernel once more than its trim threshold is free
 (128 KiB at first, at most 64 MiB as it adapts), and serves blocks above its mmap threshold (128 KiB at first) by
 ``mmap``: either way the next step's temporaries are fresh pages, and each page's first touch is a page fault.
-Measured on the 2-core development machine (CPU seconds of 1 500 steps of the vector env at K = 8, and of 300 at
-K = 64, start-up subtracted): 3.3 s → 2.0 s and 2.8 s → 1.7 s with the thresholds that glibc's own adaptation
-reaches at most, set from the start (:func:`keep_heap_for_temporaries`); the numbers a step computes do not depend
-on where its arrays lie.
+With the thresholds that glibc's own adaptation reaches at most, set from the start
+(:func:`keep_heap_for_temporaries`), 100 steps of the vector env fault 5 pages instead of 25 000 at K = 8 and
+cost 1.37× less CPU time (1.53× at K = 64; whole processes, docs/performance.md); the numbers a step computes do not
+depend on where its arrays lie.
 
 This module imports nothing of the package (the package's ``__init__`` calls :func:`keep_numpy_portable`,
 :func:`keep_mkl_reproducible` and :func:`keep_heap_for_temporaries` before anything imports numpy or torch).
