@@ -538,12 +538,19 @@ def set_update_speed(seed: int, updates: int = 30, fill: int = 1000) -> str:
 
 
 def _vector_rate(make: Callable[[], Any], k: int, steps: int, render: bool = False) -> float:
-    """Env steps/s (summed over the K environments) of the vector env ``make()`` gives, zero actions, after 10
-    warm-up steps; ``render``: a frame of every environment each step too."""
+    """Env steps/s (summed over the K environments) of the vector env ``make()`` gives — a gymnasium ``VectorEnv``
+    or an SB3 ``VecEnv`` —, zero actions, after 10 warm-up steps; ``render``: a frame of every environment each step
+    too."""
     env = make()
     try:
-        env.reset(seed=0)
-        actions = np.zeros((k, *env.single_action_space.shape), dtype=np.float32)
+        if hasattr(env, "step_async"):  # SB3's VecEnv: seeds before its reset, the action space per environment
+            env.seed(0)
+            env.reset()
+            shape = env.action_space.shape
+        else:
+            env.reset(seed=0)
+            shape = env.single_action_space.shape
+        actions = np.zeros((k, *shape), dtype=np.float32)
         for _ in range(10):
             env.step(actions)
         t0 = time.perf_counter()
@@ -551,23 +558,6 @@ def _vector_rate(make: Callable[[], Any], k: int, steps: int, render: bool = Fal
             env.step(actions)
             if render:
                 env.render()
-        return steps * k / (time.perf_counter() - t0)
-    finally:
-        env.close()
-
-
-def _sb3_rate(make: Callable[[], Any], k: int, steps: int) -> float:
-    """Env steps/s (summed over the K environments) of the SB3 VecEnv ``make()`` gives, as :func:`_vector_rate`."""
-    env = make()
-    try:
-        env.seed(0)
-        env.reset()
-        actions = np.zeros((k, *env.action_space.shape), dtype=np.float32)
-        for _ in range(10):
-            env.step(actions)
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            env.step(actions)
         return steps * k / (time.perf_counter() - t0)
     finally:
         env.close()
@@ -602,8 +592,8 @@ def vector_speed(sizes: tuple[int, ...] = (8, 64), steps: int = 200, repeats: in
         batched, dummy = [], []
         n = max(10, steps * 8 // k)
         for _ in range(repeats):
-            batched.append(_sb3_rate(functools.partial(BatchedVecEnv, k), k, n))
-            dummy.append(_sb3_rate(functools.partial(DummyVecEnv, [functools.partial(gym.make, "LaneFree-v0")] * k),
+            batched.append(_vector_rate(functools.partial(BatchedVecEnv, k), k, n))
+            dummy.append(_vector_rate(functools.partial(DummyVecEnv, [functools.partial(gym.make, "LaneFree-v0")] * k),
                                    k, n))
         b, d = statistics.median(batched), statistics.median(dummy)
         lines.append(f"| {k} | {b:.0f} | {d:.0f} | {b / d:.2f}× |")
