@@ -1,24 +1,57 @@
 """Golden files: the single-run ``episodes.csv`` of every batchable algorithm on a small config, frozen, so that
 a rewrite of the trainers (one trainer for K ≥ 1) must reproduce them, and batched run k equals them too.
 
-``LANEFREE_WRITE_GOLDEN=1 pytest tests/experiments/test_golden_runs.py`` rewrites them (only on purpose: say why
-in the commit)."""
+The learners' float32 products are torch's CPU kernels, whose last bits depend on the CPU (measured: the same
+code on an Intel Xeon and on an AMD EPYC, both AVX-512, agrees to 4e-6 relative after three DDPG episodes, and
+PER's sampling there takes another path): each CPU has its own set, ``tests/golden/<cpu>-<torch's capability>/``
+(:func:`kernels`), frozen from one program, reproduced bit for bit on that CPU.
+
+``LANEFREE_WRITE_GOLDEN=1 pytest tests/experiments/test_golden_runs.py`` writes this CPU's set (only on purpose:
+a new CPU's set from a commit that reproduces another CPU's set there; say why in the commit)."""
 
 from __future__ import annotations
 
 import csv
 import os
+import re
 from pathlib import Path
 
 import pytest
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.runners.batch import train_batch
+from lanefree_sumo.experiments.runners.session import versions
 from lanefree_sumo.experiments.runners.train import train
 
 pytestmark = [pytest.mark.slow]
 
-GOLDEN = Path(__file__).resolve().parents[1] / "golden"
+
+
+def kernels() -> str:
+    """This machine's CPU and torch's kernel level (the run's ``versions.json``) as a folder name, e.g.
+    ``amd-epyc-avx512``."""
+    found = versions()
+    return re.sub(r"[^a-z0-9]+", "-", f"{found['cpu']} {found['torch_cpu']}".lower()).strip("-")
+
+
+GOLDEN = Path(__file__).resolve().parents[1] / "golden" / kernels()
+WRITE = os.environ.get("LANEFREE_WRITE_GOLDEN") == "1"
+
+
+def golden_file(name: str) -> Path:
+    """This CPU's golden file ``name``; a missing set fails, saying how to freeze it."""
+    path = GOLDEN / name
+    if not WRITE and not path.is_file():
+        pytest.fail(f"no golden file {path.name} for this CPU ({GOLDEN.name}) under tests/golden/: freeze this CPU's "
+                    "set with LANEFREE_WRITE_GOLDEN=1 from a commit that reproduces another CPU's set on its CPU")
+    return path
+
+
+def freeze(run_csv: Path, golden: Path) -> None:
+    """With ``LANEFREE_WRITE_GOLDEN=1``: write ``run_csv`` as this CPU's golden file."""
+    if WRITE:
+        golden.parent.mkdir(parents=True, exist_ok=True)
+        golden.write_text(run_csv.read_text())
 SMALL = {"sim": {"episode_steps": 50}, "scenario": {"density_veh_per_km": 90},
          "train": {"episodes": 3, "checkpoint_every_episodes": 1,
                    "actor_critic": {"learning_starts_steps": 40, "buffer_size": 500},
@@ -46,9 +79,8 @@ def rows(path: Path, columns: Path | None = None) -> list[dict[str, str]]:
 def test_a_single_run_reproduces_its_golden_episodes(tmp_path, algo):
     run, done = train(config(algo), run=tmp_path / "run", progress=False)
     assert done == 3
-    golden = GOLDEN / f"{algo}_episodes.csv"
-    if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":
-        golden.write_text((run / "episodes.csv").read_text())
+    golden = golden_file(f"{algo}_episodes.csv")
+    freeze(run / "episodes.csv", golden)
     assert rows(run / "episodes.csv", golden) == rows(golden)
 
 
@@ -56,7 +88,8 @@ def test_a_single_run_reproduces_its_golden_episodes(tmp_path, algo):
 def test_batched_run_k_reproduces_the_golden_single_run(tmp_path, algo):
     runs = train_batch([config(algo, seed=7), config(algo, seed=3)], tmp_path / "batch", progress=False,
                        command="test")
-    assert rows(runs[1][0] / "episodes.csv", GOLDEN / f"{algo}_episodes.csv") == rows(GOLDEN / f"{algo}_episodes.csv")
+    golden = golden_file(f"{algo}_episodes.csv")
+    assert rows(runs[1][0] / "episodes.csv", golden) == rows(golden)
 
 
 SCENES = {"shield": {"shield": {"enabled": True}},
@@ -70,9 +103,8 @@ trainer did."""
 def test_a_single_run_off_the_ring_or_shielded_reproduces_its_golden_episodes(tmp_path, algo, scene):
     run, done = train(merge_config(config(algo), SCENES[scene]), run=tmp_path / "run", progress=False)
     assert done == 3
-    golden = GOLDEN / f"{algo}_{scene}_episodes.csv"
-    if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":
-        golden.write_text((run / "episodes.csv").read_text())
+    golden = golden_file(f"{algo}_{scene}_episodes.csv")
+    freeze(run / "episodes.csv", golden)
     assert rows(run / "episodes.csv", golden) == rows(golden)
 
 
@@ -81,5 +113,5 @@ def test_batched_run_k_with_the_shield_or_on_the_on_ramp_reproduces_the_golden_s
     runs = train_batch([merge_config(config("ddpg", seed=7), SCENES[scene]),
                         merge_config(config("ddpg", seed=3), SCENES[scene])], tmp_path / "batch", progress=False,
                        command="test")
-    golden = GOLDEN / f"ddpg_{scene}_episodes.csv"
+    golden = golden_file(f"ddpg_{scene}_episodes.csv")
     assert rows(runs[1][0] / "episodes.csv", golden) == rows(golden)
