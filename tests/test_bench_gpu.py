@@ -15,7 +15,7 @@ pytestmark = [pytest.mark.slow]
 
 
 def test_the_gpu_bench_runs_on_the_cpu_and_prints_rows_that_parse():
-    res = subprocess.run([sys.executable, "-m", "lanefree_sumo.tools.bench", "--gpu", "--device", "cpu",
+    res = subprocess.run([sys.executable, "-m", "lanefree_sumo.tools.bench", "--gpu", "--device", "torch-cpu",
                           "--env-sizes", "1,3", "--train-sizes", "1,2", "--dqn-sizes", "1,2", "--per-sizes", "2",
                           "--env-steps", "3", "--train-steps", "2"],
                          cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -62,6 +62,6 @@ def test_the_drift_of_a_traced_step_is_zero_and_measured_along_the_ring():
                 - torch.tensor([499.9, 0.0, 12.5], dtype=torch.float64), 500.0).abs()
     assert torch.allclose(gaps, torch.tensor([0.2, 250.0, 2.5], dtype=torch.float64))
 
-    line = compiled_drift("cpu", runs=2, steps=5, compile="aot_eager")
+    line = compiled_drift("torch-cpu", runs=2, steps=5, compile="aot_eager")
     assert line == ("aot_eager, K = 2: after 1 step(s) |Δx| ≤ 0.0e+00 m (along the ring), |Δvx| ≤ 0.0e+00 m/s; "
                     "after 5 step(s) |Δx| ≤ 0.0e+00 m (along the ring), |Δvx| ≤ 0.0e+00 m/s")

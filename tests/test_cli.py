@@ -241,8 +241,9 @@ def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
         (["--seeds", "0-1", "--seed", "4"], "--seed and --seeds exclude each other"),
         (["--seeds", "0-1", "--backend", "libsumo"], "does not support the libsumo backend"),
         (["--seeds", "0-1", "--envs", "2"], "does not support several environments"),
-        (["--seeds", "0-1", "--shield", "--device", "cuda"], "the safety shield (--shield) train on the CPU, not on "
-                                                             "train.device = cuda; leave --device out"),
+        (["--seeds", "0-1", "--shield", "--device", "cuda"],
+         "the safety shield (--shield) train on the CPU (train.device = cpu), not on train.device = cuda; "
+         "leave --device out"),
         (["--seeds", "0-1", "--agents", "2"], "does not support several agents"),
         (["--seeds", "0-1", "--algo", "dqn", "--obs", "set"], "the set observation (--obs set) with dqn"),
         (["--seeds", "0-1", "--algo", "td3", "--set", "train.profile=kerasrl"], "td3 takes SB3's uniform warm-up"),

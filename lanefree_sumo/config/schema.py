@@ -210,7 +210,7 @@ class SpawnConfig:
 
 
 Backend = Literal["libsumo", "traci", "numpy"]
-Device = Literal["cpu", "cuda"]
+Device = Literal["cpu", "torch-cpu", "cuda"]
 ROAD_KINDS: tuple[str, ...] = get_args(RoadKind)
 ObservationKind = Literal["vector", "set"]
 ActionKind = Literal["continuous", "discrete"]
@@ -456,15 +456,18 @@ class TrainConfig:
     """CPU threads for torch; the networks are small, and more threads only contend with SUMO."""
     backend: Backend = "numpy"
     """Simulation backend of training runs, copied to the run's ``backend``: ``numpy`` (default) gives the
-    same episodes as ``libsumo`` bit for bit without SUMO (``tests/sim/test_backends.py``,
-    ``tests/experiments/test_train_backends.py``), ~2.6× faster; ``libsumo``/``traci`` train inside SUMO.
+    same episodes as ``libsumo`` bit for bit without SUMO (``tests/sim/test_sumo.py``,
+    ``tests/experiments/test_golden_runs.py``), ~2.6× faster; ``libsumo``/``traci`` train inside SUMO.
     Evaluation, rollout and replay of the run can use any backend."""
     device: Device = "cpu"
     """Where batched training (``train --seeds``, a sweep's batches, and a single run the batched path trains:
-    DDPG, TD3, the DQN family on the ring) keeps the simulation and the learners: ``cpu`` (the numpy simulation) or
+    DDPG, TD3, the DQN family on the ring) keeps the simulation and the learners: ``cpu`` (the numpy simulation),
     ``cuda`` (the same functions as torch on the GPU, float64, the networks float32; each iteration one CUDA graph,
-    the random numbers drawn on the GPU, so equal to the CPU's runs in distribution, not bit for bit). Runs of SB3's
-    loop (SAC, PPO, the shield, the on-ramp, several agents) train on the CPU."""
+    the random numbers drawn on the GPU, so equal to the CPU's runs in distribution, not bit for bit) or
+    ``torch-cpu`` (the torch simulation and learners on the CPU, in the host's loop: slower than ``cpu``, for
+    checking the torch path without a GPU). The
+    shield, the on-ramp, a run inside SUMO and runs of SB3's loop (SAC, PPO, several agents or environments) train
+    on the CPU (``cpu``)."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
 

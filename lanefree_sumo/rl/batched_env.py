@@ -33,7 +33,7 @@ from lanefree_sumo.rl.rewards import OVERTAKE_BONUS_MODES, Rewards
 from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
-from lanefree_sumo.sim.xp import NUMPY, torch_namespace
+from lanefree_sumo.sim.xp import NUMPY, array_namespace, device_name
 
 SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
 """Config sections every run of a batch must have alike (the reward may differ in its preset and overtake bonus)."""
@@ -80,17 +80,20 @@ class BatchedRingEnv:
     episode ended has its episode-metrics row in ``info["episode_metrics"][k]`` (None for the others).
     ``first_episodes``: each run's next episode number (1 for a new run; a resumed run continues its schedule).
 
-    ``device`` (None: numpy): a torch device the simulation, observations, rewards and episode books live on
-    (float64, the same functions through :mod:`~lanefree_sumo.sim.xp`); ``step`` then returns the observations
+    ``device`` (``train.device``: ``cpu``, numpy, the default; ``torch-cpu`` or ``cuda``, torch there): where the
+    simulation, observations, rewards and episode books live (float64, the same functions through
+    :func:`~lanefree_sumo.sim.xp.array_namespace`); on torch, ``step`` returns the observations
     and rewards as tensors there, and ``terminated``/``truncated`` as host arrays (the episode ends are known on
     the host from the step count; only ``episode.terminate_on_collision`` reads the device each step). The
     actions are taken on the host (the learners draw them there) and the books leave the device at episode ends."""
 
     def __init__(self, configs: Sequence[LaneFreeConfig | Mapping[str, Any]],
-                 first_episodes: Sequence[int] | None = None, device: Any = None) -> None:
+                 first_episodes: Sequence[int] | None = None, device: str = "cpu") -> None:
         self.cfgs = _resolve(configs)
         cfg = self.cfgs[0]
-        self.device = None if device is None else str(device)
+        self.xp = array_namespace(device)
+        """The array namespace of the simulation (:mod:`~lanefree_sumo.sim.xp`)."""
+        self.device = self.xp.name
         xp = self.xp
         self.runs = len(self.cfgs)
         self.params = WorldParams.of(self.cfgs).on(xp)
@@ -119,13 +122,22 @@ class BatchedRingEnv:
         self._seen: tuple[World, Any] | None = None
         """The world :meth:`step` left and its observation (what ``reset([])`` returns while it is the world)."""
 
+    def close(self) -> None:
+        """Nothing to release: the world is arrays (the interface of :class:`~lanefree_sumo.rl.env_batch.EnvBatch`,
+        whose runs inside SUMO end their simulations)."""
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (a batch checkpoint holds its env) without the namespace, which its device name stands for."""
+        return {name: value for name, value in self.__dict__.items() if name != "xp"}
+
     def __setstate__(self, saved: dict[str, Any]) -> None:
         """Unpickle (a batch checkpoint); one of the layout before :mod:`~lanefree_sumo.rl.problem` (its arrays
         and books as private attributes) is taken over as it was."""
+        saved["device"] = device_name(saved["device"])
+        saved["xp"] = array_namespace(saved["device"])
         if "state" not in saved:
             books = saved.pop("_books")
-            device = saved["device"]
-            zeros = (NUMPY if device is None else torch_namespace(device)).zeros(saved["runs"])
+            zeros = saved["xp"].zeros(saved["runs"])
             arrays = {name: saved.pop(f"_{name}") for name in ProblemState.ARRAYS}
             saved["state"] = ProblemState(**arrays, books={name: books.get(name, zeros) for name in BOOKS})
             saved["terminate_on_collision"] = saved.pop("_terminate")
@@ -136,11 +148,6 @@ class BatchedRingEnv:
             self.problem = Problem(self.cfgs, self.xp)
         if "_lo" not in saved:
             self._lo = self.xp.zeros(self.runs)
-
-    @property
-    def xp(self) -> Any:
-        """The array namespace of the simulation (:mod:`~lanefree_sumo.sim.xp`)."""
-        return NUMPY if self.device is None else torch_namespace(self.device)
 
     @property
     def steps(self) -> np.ndarray:
@@ -184,7 +191,7 @@ class BatchedRingEnv:
                 raise RuntimeError("the first reset starts every run")
             world = world_of(states, [c.road.length_m for c in self.cfgs], [c.road.width_m for c in self.cfgs],
                              rows=max(self._vehicles))
-            self.world = world if self.device is None else world_to(world, self.device)
+            self.world = world if self.xp.is_numpy else world_to(world, self.device)
         else:
             self.world = replace_runs(self.world, chosen, states)
         return self.problem.begin(self.state, self.view(), index)

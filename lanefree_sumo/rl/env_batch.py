@@ -1,12 +1,18 @@
 """K runs of LaneFree-v0 with one learning agent each, stepped one after another, behind the interface of
 :class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`: how the one trainer trains the runs the ring's batched world
-does not hold — the safety shield, the on-ramp.
+does not hold — the safety shield, the on-ramp, a run inside SUMO.
 
-Run k is a :class:`~lanefree_sumo.rl.env.LaneFreeEnv` of its config (on the numpy backend) whose e-th episode takes
+Run k is a :class:`~lanefree_sumo.rl.env.LaneFreeEnv` of its config (its backend) whose e-th episode takes
 the traffic seed :func:`~lanefree_sumo.rl.models.episode_seed` (seed, 0, e), as a training run's single environment
 does; each step is its own ``step`` (the learning problem of :mod:`.problem` with K = 1), so the batch loop of
 :mod:`lanefree_sumo.experiments.runners.batch` trains it as SB3's loop did. A run whose action is not finite is
 stopped (``info["stopped"]``) while the others go on; a stopped run is never stepped again.
+
+A run inside SUMO (``train.backend`` libsumo or traci; one run: libsumo holds one simulation per process) is
+checkpointed between episodes only (:attr:`EnvBatch.saves_mid_episode`): a checkpoint holds its episode counts and
+seeds, not SUMO's state, and its simulation is started again — on the first use after unpickling — from the
+seed of the episode it had just begun, which gives that episode's start again (SUMO's episodes are a function of
+their seed, as the numpy backend's are: ``tests/experiments/test_golden_runs.py``).
 """
 
 from __future__ import annotations
@@ -17,31 +23,46 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig
-from lanefree_sumo.errors import ConfigError
+from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.rl.env import LaneFreeEnv, resolve_config
 from lanefree_sumo.rl.models import episode_seed
+from lanefree_sumo.sim.xp import NUMPY
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two observations (arrays, or dicts of arrays) hold the same bits."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[name], b[name]) for name in a)
+    return bool(np.array_equal(a, b)) and np.asarray(a).dtype == np.asarray(b).dtype
 
 
 class EnvBatch:
     """K LaneFree-v0 runs (module docstring): ``reset(runs)``, ``step(actions)`` and the episode books as
     :class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv` has them; ``first_episodes``: each run's next episode
-    number (1 for a new run); ``device`` must be None (these runs are simulated on the CPU)."""
+    number (1 for a new run); ``device`` must be ``cpu`` (these runs are simulated on the CPU, their arrays numpy)."""
 
-    device = None
+    device = "cpu"
+    xp = NUMPY
 
     def __init__(self, configs: Sequence[LaneFreeConfig | Mapping[str, Any]],
-                 first_episodes: Sequence[int] | None = None, device: Any = None) -> None:
-        if device is not None:
-            raise ConfigError("runs with the shield or off the ring are simulated on the CPU; leave --device out")
+                 first_episodes: Sequence[int] | None = None, device: str = "cpu") -> None:
+        if device != "cpu":
+            raise ConfigError("runs with the shield, off the ring or inside SUMO are simulated on the CPU "
+                              "(train.device = cpu); leave --device out")
         self.cfgs = [resolve_config(c) for c in configs]
         if not self.cfgs:
             raise ConfigError("a batch needs at least one run")
         for k, cfg in enumerate(self.cfgs):
-            if cfg.scenario.agents != 1 or cfg.train.backend != "numpy":
-                raise ConfigError(f"run {k}: a batch runs one agent on the numpy backend (scenario.agents = 1, "
-                                  "train.backend = numpy)")
+            if cfg.scenario.agents != 1:
+                raise ConfigError(f"run {k}: a batch runs one agent (scenario.agents = 1)")
         self.runs = len(self.cfgs)
-        self.envs = [LaneFreeEnv(c) for c in self.cfgs]
+        self.in_sumo = any(c.backend != "numpy" for c in self.cfgs)
+        """Whether the runs move SUMO's vehicles (libsumo, traci) rather than numpy's."""
+        if self.in_sumo and self.runs != 1:
+            raise ConfigError("a run inside SUMO (train.backend libsumo or traci) trains alone, not in a batch: "
+                              "train each seed with --seed, or batch them on train.backend = numpy (the same "
+                              "episodes)")
+        self.envs: list[LaneFreeEnv] | None = [LaneFreeEnv(c) for c in self.cfgs]
         self.episode = np.array([e - 1 for e in (first_episodes or [1] * self.runs)], dtype=int)
         self.episode_seeds = np.zeros(self.runs, dtype=np.int64)
         self.stopped = np.zeros(self.runs, dtype=bool)
@@ -49,6 +70,37 @@ class EnvBatch:
         self.terminate_on_collision = np.array([c.episode.terminate_on_collision for c in self.cfgs])
         self._steps = np.zeros(self.runs, dtype=int)
         self._obs: list[Any] = [None] * self.runs
+
+    @property
+    def saves_mid_episode(self) -> bool:
+        """Whether a checkpoint may be taken inside an episode (not inside SUMO: module docstring)."""
+        return not self.in_sumo
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (a batch checkpoint holds its env); inside SUMO without the environments (module docstring)."""
+        if not self.in_sumo:
+            return dict(self.__dict__)
+        return {**self.__dict__, "envs": None}
+
+    def __setstate__(self, saved: dict[str, Any]) -> None:
+        self.__dict__.update({"in_sumo": False, **saved})
+
+    def _live(self) -> list[LaneFreeEnv]:
+        """The runs' environments; after unpickling a run inside SUMO, started again: each run that had just
+        begun an episode is reset with that episode's seed (a run checkpointed at an episode's end is reset when
+        its next episode begins)."""
+        if self.envs is None:
+            self.envs = [LaneFreeEnv(c) for c in self.cfgs]
+            for k, env in enumerate(self.envs):
+                env.episode = int(self.episode[k])
+                if self._steps[k] == 0 and not self.stopped[k] and self.episode[k] > 0:
+                    env.episode -= 1  # reset counts it again
+                    saved, (self._obs[k], _) = self._obs[k], env.reset(seed=int(self.episode_seeds[k]))
+                    if not _same(saved, self._obs[k]):
+                        raise RunError(f"run {k}: SUMO did not start episode {int(self.episode[k])} as it did "
+                                       "before the checkpoint (its seed gave another first observation); "
+                                       "resuming would not continue the same run")
+        return self.envs
 
     @property
     def cfg(self) -> LaneFreeConfig:
@@ -81,7 +133,7 @@ class EnvBatch:
             self.episode[k] += 1
             self.episode_seeds[k] = given[k] if k in given else episode_seed(self.cfgs[k].seed, 0,
                                                                              int(self.episode[k]))
-            self._obs[k], _ = self.envs[k].reset(seed=int(self.episode_seeds[k]))
+            self._obs[k], _ = self._live()[k].reset(seed=int(self.episode_seeds[k]))
             self._steps[k] = 0
         if any(o is None for o in self._obs):
             raise RuntimeError("the first reset starts every run")
@@ -99,7 +151,7 @@ class EnvBatch:
         truncated = np.zeros(self.runs, dtype=bool)
         metrics: list[dict[str, Any] | None] = [None] * self.runs
         stopped: dict[int, str] = {}
-        for k, env in enumerate(self.envs):
+        for k, env in enumerate(self._live()):
             if self.stopped[k]:
                 continue
             if not np.isfinite(np.asarray(values[k], dtype=float)).all():
@@ -114,9 +166,9 @@ class EnvBatch:
 
     def episode_metrics(self, k: int, books: Any = None) -> dict[str, Any]:
         """Run k's episode metrics so far (LaneFree-v0's row)."""
-        return {**self.envs[k].episode_metrics(), "episode": int(self.episode[k])}
+        return {**self._live()[k].episode_metrics(), "episode": int(self.episode[k])}
 
     def close(self) -> None:
-        """Close every run's environment."""
-        for env in self.envs:
+        """Close every run's environment (inside SUMO: end its simulation)."""
+        for env in self.envs or []:
             env.close()

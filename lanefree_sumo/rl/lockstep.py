@@ -36,12 +36,13 @@ import torch as th
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms.batched.learner import flat_observations
 from lanefree_sumo.sim.world import World
+from lanefree_sumo.sim.xp import torch_device
 
 
 def lockstep_refusal(env: Any, learner: Any) -> str | None:
     """Why the lockstep loop cannot run ``env`` with ``learner`` (None: it can)."""
-    if env.device is None:
-        return "the lockstep loop runs the torch simulation (give the environment a device)"
+    if env.xp.is_numpy:
+        return "the lockstep loop runs the torch simulation (train.device = torch-cpu or cuda)"
     if bool(np.any(env.terminate_on_collision)):
         return "episode.terminate_on_collision ends episodes at different steps"
     host = None if learner is None else learner.host_draws
@@ -68,7 +69,7 @@ class Lockstep:
         if why is not None:
             raise ConfigError(f"the lockstep loop cannot run this batch: {why}")
         self.env, self.learner = env, learner
-        device = th.device(env.device) if learner is None else learner.device
+        device = torch_device(env.device) if learner is None else learner.device
         self.cuda = device.type == "cuda"
         self.graphs = self.cuda if graphs is None else graphs
         if self.graphs and not self.cuda:

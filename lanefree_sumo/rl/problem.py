@@ -34,7 +34,7 @@ from lanefree_sumo.rl.rewards import (
     reward_terms,
     term_weight,
 )
-from lanefree_sumo.sim.xp import NUMPY, torch_namespace
+from lanefree_sumo.sim.xp import array_namespace, device_name
 
 EGO_FEATURES = 4  # y, vx, vy, v_d
 NEIGHBOUR_FEATURES = 4  # dx, dy, vx, vy
@@ -182,12 +182,11 @@ class Problem:
         """How many of the nearest vehicles an observation and the fields read."""
 
     def __getstate__(self) -> dict[str, Any]:
-        """Pickled (a batch checkpoint holds its env) with the namespace's device in place of the namespace."""
-        return {**self.__dict__, "xp": self.xp.device}
+        """Pickled (a batch checkpoint holds its env) with the namespace's device name in place of the namespace."""
+        return {**self.__dict__, "xp": self.xp.name}
 
     def __setstate__(self, saved: dict[str, Any]) -> None:
-        device = saved["xp"]
-        self.__dict__.update(saved, xp=NUMPY if device is None else torch_namespace(device))
+        self.__dict__.update(saved, xp=array_namespace(device_name(saved["xp"])))
 
     # -- episodes ---------------------------------------------------------------------------------------------
     def begin(self, state: ProblemState, view: AgentView, index: Any, extra_ego: Any = None) -> Any:

@@ -33,7 +33,7 @@ from lanefree_sumo.sim.network import EDGES, edge_length, edge_to_ring, ring_to_
 from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.state import VehicleState, pairwise_offsets, take_rows
-from lanefree_sumo.sim.xp import namespace, torch_namespace
+from lanefree_sumo.sim.xp import array_namespace, namespace
 
 PER_RUN_LIMITS = ("agent_max_speed_mps", "agent_lateral_ratio", "agent_lateral_bounded")
 """The :class:`WorldParams` the runs of one batch may differ in (then arrays ``[K, 1]``, one row per run)."""
@@ -215,7 +215,7 @@ def replace_runs(world: World, runs: Sequence[int], states: Sequence[VehicleStat
         raise ConfigError("the runs of one batch must have the same number of agents")
     xp = namespace(world.x)
     if not xp.is_numpy:
-        fresh = world_to(fresh, xp.device)
+        fresh = world_to(fresh, xp.name)
     index = xp.asarray(list(runs), dtype=int)
     out = replace(world, **{f.name: xp.copy(getattr(world, f.name)) for f in fields(World)})
     for f in fields(World):
@@ -224,13 +224,13 @@ def replace_runs(world: World, runs: Sequence[int], states: Sequence[VehicleStat
     return out
 
 
-def world_to(world: World, device: Any) -> World:
-    """The world's arrays as torch tensors on ``device`` (float64 positions and speeds, int64 indices), or as
-    numpy arrays for ``device`` None; the same numbers."""
-    if device is None:
+def world_to(world: World, device: str) -> World:
+    """The world's arrays on ``device`` (``train.device``, :func:`~lanefree_sumo.sim.xp.array_namespace`): numpy
+    arrays for ``cpu``, else torch tensors there (float64 positions and speeds, int64 indices); the same numbers."""
+    xp = array_namespace(device)
+    if xp.is_numpy:
         return replace(world, **{f.name: namespace(getattr(world, f.name)).to_numpy(getattr(world, f.name))
                                  for f in fields(World)})
-    xp = torch_namespace(device)
     return replace(world, **{f.name: xp.asarray(getattr(world, f.name)) for f in fields(World)})
 
 

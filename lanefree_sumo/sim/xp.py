@@ -93,7 +93,7 @@ def _numpy_namespace() -> SimpleNamespace:
     ns.float64 = np.float64
     ns.int64 = np.int64
     ns.to_numpy = np.asarray
-    ns.device = None
+    ns.name = "cpu"
     return ns
 
 
@@ -116,11 +116,46 @@ def namespace(*arrays: Any) -> Any:
 
 
 def torch_namespace(device: Any = "cpu") -> Any:
-    """The (cached) :class:`~lanefree_sumo.sim.xp_torch.TorchNamespace` of ``device``."""
+    """The (cached) :class:`~lanefree_sumo.sim.xp_torch.TorchNamespace` of the torch device ``device``."""
     from lanefree_sumo.sim.xp_torch import TorchNamespace, torch
 
     key = torch.device(device)
     if key not in _TORCH:
         _TORCH[key] = TorchNamespace(key)
     return _TORCH[key]
+
+
+TORCH_CPU = "torch-cpu"
+"""The device name of the torch simulation on the CPU (``train.device = torch-cpu``): the GPU's program, run where
+it can be checked against numpy's."""
+
+
+def array_namespace(device: str) -> Any:
+    """The namespace a simulation on ``device`` computes in — the one representation of ``train.device`` from the
+    option to the tensors: ``cpu`` numpy (:data:`NUMPY`), ``torch-cpu`` torch on the CPU, ``cuda`` (or
+    ``cuda:N``) torch on that GPU. Its ``name`` is ``device`` again."""
+    return NUMPY if device == "cpu" else torch_namespace(torch_device(device))
+
+
+def on_cpu(device: str) -> bool:
+    """Whether ``device`` (``train.device``) computes on the CPU: ``cpu`` (numpy) and ``torch-cpu``."""
+    return device in ("cpu", TORCH_CPU)
+
+
+def torch_device(device: str) -> Any:
+    """The ``torch.device`` the networks of a run on ``device`` (``train.device``) live on: the CPU for ``cpu``
+    and ``torch-cpu``, else ``device`` itself."""
+    import torch
+
+    return torch.device("cpu" if on_cpu(device) else device)
+
+
+def device_name(saved: Any) -> str:
+    """A device as saved in a checkpoint, as a ``train.device`` name: None (numpy, before the name was kept) is
+    ``cpu``, a ``torch.device`` of the CPU ``torch-cpu``, any other its own name."""
+    if saved is None:
+        return "cpu"
+    if not isinstance(saved, str):
+        return TORCH_CPU if saved.type == "cpu" else str(saved)
+    return saved
 

@@ -42,6 +42,8 @@ class TorchNamespace:
 
     def __init__(self, device: Any = "cpu") -> None:
         self.device = torch.device(device)
+        self.name = "torch-cpu" if self.device.type == "cpu" else str(self.device)
+        """This namespace's ``train.device`` name (:func:`~lanefree_sumo.sim.xp.array_namespace`)."""
         self.float64, self.int64, self.bool_ = torch.float64, torch.int64, torch.bool
         self.numpy_order_sums = self.device.type == "cpu"
         """Sum rows over vehicles in numpy's order (:func:`~lanefree_sumo.sim.state.row_sum`; on the CPU, where the

@@ -714,7 +714,8 @@ def main() -> None:
                         help="only one run's two paths: SB3's loop against a batch of one")
     gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
     gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
-    gpu.add_argument("--device", default="cuda", help="torch device of --gpu (default cuda; cpu runs it on the CPU)")
+    gpu.add_argument("--device", default="cuda", choices=("cuda", "torch-cpu"),
+                     help="train.device of --gpu (default cuda; torch-cpu runs the same torch program on the CPU)")
     gpu.add_argument("--env-sizes", type=_sizes, default=(16384, 1024, 1),
                      help="K of the env rows, measured after the training rows (16384,1024,1)")
     gpu.add_argument("--train-sizes", type=_sizes, default=(110, 1, 150, 1024),

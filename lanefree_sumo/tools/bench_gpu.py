@@ -12,7 +12,7 @@ actions drawn on the device) in agent-steps/s at K = 16 384, 1024, 1; the projec
 and of the paper's grid. On a fresh GPU machine each new K costs a compilation (about 40 s to 200 s for the
 first); inductor's cache on the machine makes a second run's cheap. Each measurement is capped in steps and the
 whole run in time (``--budget-s``, default 420 s, so that it ends within 8 minutes on one card): a row whose turn
-comes after the budget is printed as skipped. ``--device cpu`` with small sizes runs the same code on the CPU,
+comes after the budget is printed as skipped. ``--device torch-cpu`` with small sizes runs the same code on the CPU,
 without graphs or compiling (a test does).
 """
 
@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from lanefree_sumo.config import LaneFreeConfig, merge_config
+from lanefree_sumo.sim.xp import on_cpu, torch_device
 
 GRID_DDPG_RUNS = 110
 """The paper grid's DDPG runs: 11 settings × 10 seeds (one batch: they may differ in preset and density)."""
@@ -41,12 +42,11 @@ LEARNING_STARTS = 64
 what is measured, and the warm-up before it costs the budget nothing it need not."""
 
 
-def _sync(device: Any) -> None:
-    if device is None:
-        return
-    import torch
+def _sync(device: str) -> None:
+    """Wait for ``device`` (``train.device``) to finish what it was given (nothing to wait for on the CPU)."""
+    if not on_cpu(device):
+        import torch
 
-    if torch.device(device).type == "cuda":
         torch.cuda.synchronize()
 
 
@@ -116,7 +116,7 @@ def host_reads(device: str, seed: int = 0) -> str:
     device: 'none', or the first operation torch's sync debug mode stopped at (CUDA only)."""
     import torch
 
-    if torch.device(device).type != "cuda":
+    if on_cpu(device):
         return "not checked (torch's sync debug mode watches CUDA only)"
     for algo in ("ddpg", "dqn", "per"):
         loop = _loop(2, device, seed, algo, graphs=False, compile=None)
@@ -163,10 +163,10 @@ def compiled_drift(device: str, runs: int = 64, steps: int = 100, seed: int = 0,
     return f"{loops[0].compiled}, K = {runs}: " + "; ".join(out)
 
 
-def lockstep_rate(env: Any, learner: Any, warm: int, steps: int, device: Any = None) -> float:
+def lockstep_rate(env: Any, learner: Any, warm: int, steps: int, device: str = "cpu") -> float:
     """Lockstep iterations/s of a batched ``learner`` on its ``env`` (act, env step, store, update, reset the runs
     whose episode ended, as :mod:`lanefree_sumo.experiments.runners.batch` trains), timed over ``steps`` iterations
-    after ``warm`` untimed ones; ``device``: the torch device to wait for around the timing (None: the CPU, numpy)."""
+    after ``warm`` untimed ones; ``device``: the ``train.device`` to wait for around the timing (none on the CPU)."""
     obs = env.reset()
     t0 = 0.0
     for step in range(warm + steps):
@@ -189,7 +189,7 @@ def describe(device: str) -> str:
 
     import torch
 
-    dev = torch.device(device)
+    dev = torch_device(device)
     card = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU ({platform.processor() or 'unknown'})"
     return f"device: {dev} — {card}; torch {torch.__version__}; CUDA {torch.version.cuda or 'none'}"
 
@@ -202,7 +202,7 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
 
     from lanefree_sumo.experiments.runners.batch import check_device
 
-    check_device(torch.device(device).type)
+    check_device(device)
     import torch._dynamo
 
     # every row is a new K, so a new compilation of the same functions (K is a size the code specialises on)
@@ -221,7 +221,7 @@ def run(device: str, env_sizes: Sequence[int], train_sizes: Sequence[int], dqn_s
     row(f"host reads inside an iteration: {host_reads(device, seed)}")
     drift_runs = train_sizes[0] if train_sizes else 64  # the first DDPG row then reuses the compiled step
     row(f"compiled ring step against the step as written: {compiled_drift(device, drift_runs, seed=seed)}")
-    graphs = torch.device(device).type == "cuda"
+    graphs = not on_cpu(device)
     row("")
     row(f"Training, one iteration {'a CUDA graph, the ring step and the update compiled' if graphs else 'eager'} "
         f"(the paper's networks and batch 64; updates from step {LEARNING_STARTS}; the first two sizes of each "

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from lanefree_sumo.cli import main
+from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.experiments.runners.batch import train_batch
 from lanefree_sumo.sim.xp_torch import numpy_transcendentals
 from tests.experiments.test_batch import rows, small
@@ -16,14 +17,19 @@ from tests.experiments.test_batch import rows, small
 pytestmark = [pytest.mark.slow]
 
 
+def on_torch(cfgs: list[LaneFreeConfig]) -> list[LaneFreeConfig]:
+    """The same runs on ``train.device = torch-cpu`` (the GPU's torch program, here on the CPU)."""
+    return [merge_config(c, {"train": {"device": "torch-cpu"}}) for c in cfgs]
+
+
 @pytest.mark.parametrize("algo", ["ddpg", "dqn"])
 def test_a_batch_on_a_torch_device_equals_the_numpy_batch(tmp_path: Path, algo: str) -> None:
     """Simulation, observations, rewards and books as torch tensors on the device, the learners there too: with
     numpy's transcendental functions (tests/sim/test_world_torch.py) every episode row equals the numpy batch's."""
     cfgs = [small(algo, 0), small(algo, 1, density=120.0)]
-    reference = train_batch(cfgs, tmp_path / "numpy", progress=False, command="test", device=None)
+    reference = train_batch(cfgs, tmp_path / "numpy", progress=False, command="test")
     with numpy_transcendentals():
-        on_device = train_batch(cfgs, tmp_path / "torch", progress=False, command="test", device="cpu")
+        on_device = train_batch(on_torch(cfgs), tmp_path / "torch", progress=False, command="test")
     assert [done for _, done in on_device] == [3, 3]
     for (mine, _), (theirs, _) in zip(on_device, reference):
         got, want = rows(mine / "episodes.csv"), rows(theirs / "episodes.csv")
@@ -36,8 +42,8 @@ def test_a_batch_on_a_torch_device_with_torchs_own_functions_trains(tmp_path: Pa
     figures agree with the numpy batch's to 1e-6 relative (the learning starts at step 41 of 60, so the
     traffic has not yet parted); every run finishes."""
     cfgs = [small("ddpg", 0), small("ddpg", 1, density=120.0)]
-    reference = train_batch(cfgs, tmp_path / "numpy", progress=False, command="test", device=None)
-    on_device = train_batch(cfgs, tmp_path / "torch", progress=False, command="test", device="cpu")
+    reference = train_batch(cfgs, tmp_path / "numpy", progress=False, command="test")
+    on_device = train_batch(on_torch(cfgs), tmp_path / "torch", progress=False, command="test")
     assert [done for _, done in on_device] == [3, 3]
     for (mine, _), (theirs, _) in zip(on_device, reference):
         got, want = rows(mine / "episodes.csv")[0], rows(theirs / "episodes.csv")[0]

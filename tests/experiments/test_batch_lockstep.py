@@ -22,7 +22,7 @@ from tests.experiments.test_batch import rows
 pytestmark = [pytest.mark.slow]
 
 LOCKSTEP = {"sim": {"episode_steps": 20},
-            "train": {"episodes": 3, "checkpoint_every_episodes": 1,
+            "train": {"episodes": 3, "checkpoint_every_episodes": 1, "device": "torch-cpu",
                       "actor_critic": {"learning_starts_steps": 15, "buffer_size": 200},
                       "dqn": {"learning_starts_steps": 15, "buffer_size": 200, "target_update_steps": 10}}}
 """3 episodes of 20 steps; updates from step 16 on."""
@@ -36,7 +36,7 @@ def tiny(algo: str, seed: int, density: float = 70.0) -> LaneFreeConfig:
 @pytest.mark.parametrize("algo", ["ddpg", "dqn", "per"])
 def test_a_lockstep_batch_writes_ordinary_run_folders(tmp_path: Path, algo: str) -> None:
     cfgs = [tiny(algo, 0), tiny(algo, 1, density=90.0)]
-    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test", device="cpu", lockstep=True)
+    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test", lockstep=True)
     assert [done for _, done in results] == [3, 3]
     for folder, _ in results:
         got = rows(folder / "episodes.csv")
@@ -53,7 +53,7 @@ def test_a_lockstep_batch_trains_the_set_observation(tmp_path: Path) -> None:
     """DDPG on the set observation in the lockstep loop (the encoder over every row, as on a GPU): run folders
     whose models load with the paper encoder."""
     cfgs = [merge_config(tiny("ddpg", seed), {"observation": {"kind": "set", "encoder": "paper"}}) for seed in (0, 1)]
-    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test", device="cpu", lockstep=True)
+    results = train_batch(cfgs, tmp_path / "batch", progress=False, command="test", lockstep=True)
     assert [done for _, done in results] == [3, 3]
     for folder, _ in results:
         model = get_algorithm("ddpg").cls.load(folder / "model.zip", device="cpu")
@@ -68,7 +68,7 @@ def test_a_stopped_lockstep_batch_resumes_with_the_uninterrupted_episodes(tmp_pa
     device streams' state (DDPG's noise; prioritised replay's priorities), and every run's episodes equal an
     uninterrupted batch's."""
     cfgs = [tiny(algo, 0), tiny(algo, 1)]
-    whole = train_batch(cfgs, tmp_path / "whole", progress=False, command="test", device="cpu", lockstep=True)
+    whole = train_batch(cfgs, tmp_path / "whole", progress=False, command="test", lockstep=True)
     iterate = Lockstep.iterate
 
     def interrupted(self: Lockstep, update: bool = True) -> None:
@@ -78,7 +78,7 @@ def test_a_stopped_lockstep_batch_resumes_with_the_uninterrupted_episodes(tmp_pa
 
     monkeypatch.setattr(Lockstep, "iterate", interrupted)
     out = tmp_path / "interrupted"
-    stopped = train_batch(cfgs, out, progress=False, command="test", device="cpu", lockstep=True)
+    stopped = train_batch(cfgs, out, progress=False, command="test", lockstep=True)
     monkeypatch.undo()
     assert [done for _, done in stopped] == [1, 1]
     assert [p.name for p in (out / BATCH_CHECKPOINTS).glob("step_*.pt")][-1] == "step_0000000027.pt"
@@ -105,7 +105,7 @@ def test_a_lockstep_run_with_a_non_finite_action_stops_alone(tmp_path: Path,
 
     monkeypatch.setattr(BatchedDDPG, "act_on_device", diverging)
     (run0, done0), (run1, done1) = train_batch([tiny("ddpg", 0), tiny("ddpg", 1)], tmp_path / "batch",
-                                               progress=False, command="test", device="cpu", lockstep=True)
+                                               progress=False, command="test", lockstep=True)
     assert (done0, done1) == (3, 1)
     assert (run0 / "model.zip").is_file() and not (run1 / "model.zip").exists()
     assert [int(r["episode"]) for r in rows(run1 / "episodes.csv")] == [1]

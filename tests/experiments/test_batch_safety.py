@@ -125,7 +125,7 @@ def test_a_batch_whose_replay_buffers_do_not_fit_is_one_line_naming_how_many_run
     held = sum(v.nbytes for v in learner.replay.state_dict().values() if isinstance(v, torch.Tensor))
     assert 2 * replay_bytes(small) == held == 2 * 1000 * (2 * 4 * 24 + 2 * 4 + 3 * 4)
     per_run = 100_000_000 * (2 * 4 * 24 + 2 * 4 + 3 * 4)
-    assert 64 * per_run > available_memory(None)
+    assert 64 * per_run > available_memory("cpu")
     res = lanefree("train", "--seeds", "0-63", "--set", "train.actor_critic.buffer_size=100000000",
                    "--out", str(tmp_path / "b"), timeout=120)
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr

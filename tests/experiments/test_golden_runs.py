@@ -84,6 +84,18 @@ def test_a_single_run_reproduces_its_golden_episodes(tmp_path, algo):
     assert rows(run / "episodes.csv", golden) == rows(golden)
 
 
+@pytest.mark.sumo
+@pytest.mark.parametrize(("algo", "backend"), [("ddpg", "libsumo"), ("per", "libsumo"), ("td3", "traci")])
+def test_a_run_inside_sumo_reproduces_the_golden_episodes(tmp_path, algo, backend):
+    """A single run inside SUMO trains in the one trainer too (a batch of one, its environment LaneFree-v0 on that
+    backend) and gives the numpy run's golden episodes, bit for bit."""
+    cfg = merge_config(config(algo), {"train": {"backend": backend}})
+    run, done = train(cfg, run=tmp_path / "run", progress=False)
+    assert done == 3 and (run / "batch.json").is_file()
+    golden = golden_file(f"{algo}_episodes.csv")
+    assert rows(run / "episodes.csv", golden) == rows(golden)
+
+
 @pytest.mark.parametrize("algo", ["ddpg", "dqn", "per"])
 def test_batched_run_k_reproduces_the_golden_single_run(tmp_path, algo):
     runs = train_batch([config(algo, seed=7), config(algo, seed=3)], tmp_path / "batch", progress=False,

@@ -148,12 +148,37 @@ def test_a_run_repeats_itself_on_one_machine_learning_included(tmp_path: Path) -
 
 
 @pytest.mark.parametrize("algo", ["dqn", "per"])
-def test_a_batch_of_one_repeats_the_dqn_run_of_sb3s_loop(algo: str, tmp_path: Path) -> None:
-    """The DQN (or PER) run of ``lanefree train`` (a batch of one: the batched learner, numpy) and the same run on
-    SB3's loop with SB3's update (the libsumo backend trains there) give the same first two episodes, every
-    column but wall time: episode 2 acts on 800 updates (the first episode fills the buffer)."""
+def test_a_batch_of_one_repeats_the_dqn_run_of_sb3s_loop(algo: str, tmp_path: Path, monkeypatch) -> None:
+    """The DQN (or PER) run of ``lanefree train`` (a batch of one: the batched learner) and the same run on
+    SB3's loop with SB3's update (what trains several agents or environments; here one of each, in this process)
+    give the same first two episodes, every column but wall time: episode 2 acts on 800 updates (the first episode
+    fills the buffer)."""
+    from lanefree_sumo.config import LaneFreeConfig, merge_config
+    from lanefree_sumo.experiments.runners import train as runner
+    from lanefree_sumo.experiments.storage.rundir import RunDir
+    from lanefree_sumo.rl.models import training_config
+
     batched = _stopped_run(tmp_path / "batched", algo, 2)
-    sb3_loop = _stopped_run(tmp_path / "sb3_loop", algo, 2, "--backend", "libsumo")
     assert json.loads((tmp_path / "batched" / "batch.json").read_text()) == {"runs": ["."]}
-    assert not (tmp_path / "sb3_loop" / "batch.json").exists()
-    assert batched == sb3_loop
+    make_callback = runner._make_callback
+
+    def stopping_after_two(run, cfg, log, done, stop, progress):  # Ctrl-C once two episodes are logged
+        callback = make_callback(run, cfg, log, done, stop, progress)
+        on_step = callback._on_step
+
+        def _on_step() -> bool:
+            stop.requested = stop.requested or callback.episodes >= 2
+            return on_step()
+
+        callback._on_step = _on_step
+        return callback
+
+    monkeypatch.setattr(runner, "_make_callback", stopping_after_two)
+    cfg = training_config(merge_config(LaneFreeConfig(), {
+        "seed": 0, "scenario": {"density_veh_per_km": 70}, "reward": {"preset": "fields_zones_overtake_collision"},
+        "train": {"algo": algo, "episodes": 625}}))
+    folder = tmp_path / "sb3_loop"
+    folder.mkdir()
+    assert runner._train_session(cfg, RunDir(folder), None, 0, 625, False, "test") == (folder, 2)
+    assert not (folder / "batch.json").exists()
+    assert batched == _rows(folder / "episodes.csv", 2)

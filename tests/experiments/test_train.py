@@ -68,12 +68,14 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
 
 def test_training_on_numpy_and_libsumo_gives_the_same_episodes(tmp_path):
     """The default training backend (numpy) changes no number: whole DDPG training episodes, learning
-    included, give the same episodes.csv rows (all but the wall time) as in SUMO."""
+    included, give the same episodes.csv rows (all but the wall time) as in SUMO; both train in the one trainer (a
+    batch of one)."""
     tables = {}
     for backend in ("numpy", "libsumo"):
         cfg = merge_config(tiny_config("ddpg", scenario={"density_veh_per_km": 120}), {"train": {"backend": backend}})
         run, _ = train(cfg, run=tmp_path / backend, progress=False)
         assert yaml.safe_load((run / "config.yaml").read_text())["backend"] == backend
+        assert json.loads((run / "batch.json").read_text()) == {"runs": ["."]}
         tables[backend] = [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]
     assert len(tables["numpy"]) == 2
     assert tables["numpy"] == tables["libsumo"]
@@ -226,12 +228,14 @@ def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_
 
 
 @pytest.mark.parametrize("scene", [{}, {"shield": {"enabled": True}, "road": {"kind": "onramp"},
-                                        "scenario": {"density_veh_per_km": 40}}], ids=["ring", "shield-onramp"])
+                                        "scenario": {"density_veh_per_km": 40}}, {"train": {"backend": "libsumo"}}],
+                         ids=["ring", "shield-onramp", "libsumo"])
 def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path, monkeypatch, scene):
     """One trainer: a single DDPG run is a batch of one in its own folder (on the ring its batched world, with the
-    shield on the on-ramp LaneFree-v0 itself), so SIGTERM in the middle of episode 2 and --resume, and a finished
-    2-episode run extended with --episodes 3, give the uninterrupted 3-episode run's episodes.csv (every column but
-    wall time) and TensorBoard events in the run folder."""
+    shield on the on-ramp LaneFree-v0 itself, in SUMO LaneFree-v0 on libsumo), so SIGTERM in the middle of episode
+    2 and --resume, and a finished 2-episode run extended with --episodes 3, give the uninterrupted 3-episode run's
+    episodes.csv (every column but wall time) and TensorBoard events in the run folder. (Inside SUMO the stop keeps
+    the checkpoint of episode 1, taken between episodes, and the resume trains episode 2 again.)"""
     import os
 
     from lanefree_sumo.experiments.runners import batch
@@ -239,7 +243,7 @@ def test_a_single_run_resumed_or_extended_equals_the_uninterrupted_run(tmp_path,
     def table(run: Path) -> list[dict[str, str]]:
         return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]
 
-    cfg = merge_config(tiny_config("ddpg"), {"train": {"episodes": 3}, **scene})
+    cfg = merge_config(merge_config(tiny_config("ddpg"), {"train": {"episodes": 3}}), scene)
     whole, done = train(cfg, run=tmp_path / "whole", progress=False, command="test")
     assert (whole / "batch.json").is_file()
     assert done == 3 and any((whole / "tb").rglob("events.out.tfevents*"))

@@ -183,6 +183,8 @@ def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as
     old.update({f"_{name}": getattr(state, name) for name in state.ARRAYS})
     old["_terminate"] = old.pop("terminate_on_collision")
     old.pop("_lo")
+    old.pop("xp")
+    old["device"] = None  # the numpy simulation, as that layout named it
     old.update(_w=env.problem.weights, _once=env.problem.once, _net_passes=env.problem.net_passes, _range=80.0)
     earlier = BatchedRingEnv.__new__(BatchedRingEnv)
     earlier.__setstate__(pickle.loads(pickle.dumps(old)))

@@ -24,7 +24,7 @@ def test_the_torch_batched_env_is_the_numpy_one_bit_for_bit(kind, bonuses):
     """``bonuses``: each run's reward.overtake_bonus (None: every pass), the ledger on the device too; with the
     bonuses, each run its own top speed and lateral bound too (the per-run limits on the device)."""
     cfgs = configs(kind) if bonuses is None else configs(kind, bonuses=bonuses, steps=120, limits=PER_RUN_LIMITS)
-    reference, twin = BatchedRingEnv(cfgs), BatchedRingEnv(cfgs, device="cpu")
+    reference, twin = BatchedRingEnv(cfgs), BatchedRingEnv(cfgs, device="torch-cpu")
     rng = np.random.default_rng(1)
     seen = {"ended": 0, "overtakes": 0, "collision_events": 0, "unpaid": 0}
     with numpy_transcendentals():

@@ -43,7 +43,7 @@ def loop_of(algo: str | None, seed: int = 0, runs: int = 2, compile: str | None 
     cfgs = configs(algo or "ddpg", runs, **extra)
     if per_run_limits:
         cfgs[1] = merge_config(cfgs[1], {"scenario": {"agent_max_speed_mps": 25.0, "agent_lateral_speed_ratio": 0.5}})
-    env = BatchedRingEnv(cfgs, device="cpu")
+    env = BatchedRingEnv(cfgs, device="torch-cpu")
     learner = None if algo is None else build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]),
                                                       action_space(cfgs[0]), device="cpu")
     loop = Lockstep(env, learner, seed, compile=compile)
@@ -232,7 +232,10 @@ def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_ea
         assert ((eager.learner._leaves > 0) & (eager.learner._leaves != 1.0)).any()  # the updates moved some
     for mine, theirs in zip(traced.learner.optimisers(), eager.learner.optimisers(), strict=True):
         assert th.equal(mine.count, theirs.count) and float(mine.count) == 4.0
-        assert th.allclose(mine.exp_avg, theirs.exp_avg, rtol=1e-5, atol=1e-9)
+        # to float32 rounding on the moment's own scale: the set encoder's pooled sums, reordered by the trace,
+        # leave the small entries ~1e-6 of the largest apart (measured on an Intel Xeon; 1e-9 held on AMD EPYC)
+        scale = float(theirs.exp_avg.abs().max())
+        assert th.allclose(mine.exp_avg, theirs.exp_avg, rtol=1e-5, atol=1e-5 * scale)
     for adam, old in zip(eager.learner.optimisers(), before, strict=True):  # the updates moved the weights
         assert (adam.params.flat - old).abs().max() > 1e-4
 
@@ -242,7 +245,7 @@ def test_the_device_step_equals_the_host_step(kind: str) -> None:
     """step_on_device with the actions on the device gives step's observations, rewards and books bit for bit
     (a non-finite continuous action: acceleration 0, the run flagged and not scored)."""
     cfgs = configs("ddpg" if kind == "continuous" else "dqn", runs=3)
-    host, device = BatchedRingEnv(cfgs, device="cpu"), BatchedRingEnv(cfgs, device="cpu")
+    host, device = BatchedRingEnv(cfgs, device="torch-cpu"), BatchedRingEnv(cfgs, device="torch-cpu")
     host.reset()
     device.reset()
     rng = np.random.default_rng(0)
@@ -313,7 +316,7 @@ def test_the_device_epsilon_follows_the_schedule() -> None:
 
 def test_the_lockstep_loop_refuses_what_it_cannot_run() -> None:
     cfgs = configs("ddpg", episode={"terminate_on_collision": True})
-    env = BatchedRingEnv(cfgs, device="cpu")
+    env = BatchedRingEnv(cfgs, device="torch-cpu")
     with pytest.raises(ConfigError, match="terminate_on_collision"):
         Lockstep(env, None, 0)
     with pytest.raises(ConfigError, match="torch simulation"):
@@ -321,7 +324,7 @@ def test_the_lockstep_loop_refuses_what_it_cannot_run() -> None:
     td3 = [training_config(merge_config(c, {"train": {"algo": "td3"}})) for c in configs("ddpg")]
     learner = build_batched(td3, [0, 1], observation_space(td3[0]), action_space(td3[0]), device="cpu")
     with pytest.raises(ConfigError, match="TD3.s target noise is drawn on the host"):
-        Lockstep(BatchedRingEnv(td3, device="cpu"), learner, 0)
+        Lockstep(BatchedRingEnv(td3, device="torch-cpu"), learner, 0)
 
 
 class Draws:
@@ -379,7 +382,7 @@ def test_sums_in_torchs_order_agree_with_numpys_to_rounding(monkeypatch: pytest.
     from lanefree_sumo.sim.xp import torch_namespace
 
     cfgs = configs("ddpg", runs=3)
-    exact, fast = BatchedRingEnv(cfgs, device="cpu"), BatchedRingEnv(cfgs, device="cpu")
+    exact, fast = BatchedRingEnv(cfgs, device="torch-cpu"), BatchedRingEnv(cfgs, device="torch-cpu")
     exact.reset()
     fast.reset()
     rng = np.random.default_rng(2)
@@ -401,7 +404,7 @@ def test_dqns_target_is_copied_before_the_update_of_its_step() -> None:
     n · target_update_steps the target holds the weights from before that step's update."""
     cfgs = [training_config(merge_config(LaneFreeConfig(), {"seed": k, "train": {"algo": "dqn", "dqn": {
         "learning_starts_steps": 4, "buffer_size": 50, "target_update_steps": 10}}})) for k in range(2)]
-    env = BatchedRingEnv(cfgs, device="cpu")
+    env = BatchedRingEnv(cfgs, device="torch-cpu")
     learner = build_batched(cfgs, [0, 1], observation_space(cfgs[0]), action_space(cfgs[0]), device="cpu")
     loop = Lockstep(env, learner, 0)
     loop.start(env.reset())

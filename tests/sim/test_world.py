@@ -252,12 +252,12 @@ def test_a_world_moved_to_torch_and_back_holds_the_same_numbers():
 
     _, states, _ = _hand_built_batch()
     world = world_of(states, *ROADS)
-    twin = world_to(world, "cpu")
+    twin = world_to(world, "torch-cpu")
     assert isinstance(twin.x, torch.Tensor) and twin.x.dtype == torch.float64 and twin.edge.dtype == torch.int64
     fresh = [replace(states[1], x=states[1].x + 1.0)]
     for numpy_world, torch_world in ((world, twin), (replace_runs(world, [1], fresh), replace_runs(twin, [1], fresh))):
         assert isinstance(torch_world.x, torch.Tensor)
-        back = world_to(torch_world, None)
+        back = world_to(torch_world, "cpu")
         for f in fields(World):
             assert isinstance(getattr(back, f.name), np.ndarray), f.name
             np.testing.assert_array_equal(getattr(back, f.name), getattr(numpy_world, f.name), err_msg=f.name)
@@ -273,7 +273,7 @@ def test_a_step_on_torch_is_the_numpy_step_and_a_lateral_move_of_one_metre_is_dr
     world = world_of(states, *ROADS)
     new, out = step_world(world, params, accel)
     with numpy_transcendentals():
-        twin, twin_out = step_world(world_to(world, "cpu"), params, torch.from_numpy(accel))
+        twin, twin_out = step_world(world_to(world, "torch-cpu"), params, torch.from_numpy(accel))
     assert isinstance(twin.x, torch.Tensor) and isinstance(twin_out.ax, torch.Tensor)
     for name in ("x", "y", "vx", "vy", "edge", "pos", "lat", "overlap", "steps"):
         np.testing.assert_array_equal(getattr(twin, name).numpy(), getattr(new, name), err_msg=name)

@@ -31,7 +31,7 @@ def test_torch_world_is_the_numpy_world_bit_for_bit_with_numpys_transcendental_f
     cfgs = [ring(seed, density) for seed, density in RUNS]
     params = WorldParams.of(cfgs)
     world = reset_world(cfgs, [seed for seed, _ in RUNS])
-    twin = world_to(world, "cpu")
+    twin = world_to(world, "torch-cpu")
     assert isinstance(twin.x, torch.Tensor) and twin.x.dtype == torch.float64 and namespace(twin.x).is_numpy is False
     rng = np.random.default_rng(5)
     collisions = wraps = 0
@@ -57,7 +57,7 @@ def test_torch_step_with_its_own_functions_is_the_numpy_step_to_a_few_ulp():
     worst = 0.0
     for _ in range(60):  # each step from the numpy state: the one-step difference, not its amplification
         accel = np.column_stack([rng.uniform(-4.5, 2.0, 3), rng.uniform(-1.8, 1.8, 3)])
-        twin, _ = step_world(world_to(world, "cpu"), params, torch.from_numpy(accel))
+        twin, _ = step_world(world_to(world, "torch-cpu"), params, torch.from_numpy(accel))
         world, _ = step_world(world, params, accel)
         for name in ("x", "y", "vx", "vy"):
             got, want = getattr(twin, name).numpy(), getattr(world, name)
@@ -70,7 +70,7 @@ def test_a_run_reset_alone_in_a_torch_world_is_the_numpy_reset():
     cfgs = [ring(seed, density) for seed, density in RUNS]
     params = WorldParams.of(cfgs)
     world = reset_world(cfgs, [seed for seed, _ in RUNS])
-    twin = world_to(world, "cpu")
+    twin = world_to(world, "torch-cpu")
     with numpy_transcendentals():
         for _ in range(5):
             world, _ = step_world(world, params, np.zeros((3, 2)))
@@ -81,4 +81,21 @@ def test_a_run_reset_alone_in_a_torch_world_is_the_numpy_reset():
         world, _ = step_world(world, params, np.zeros((3, 2)))
         twin, _ = step_world(twin, params, torch.zeros(3, 2, dtype=torch.float64))
     _assert_same(world, twin, "after the reset")
-    assert world_to(twin, None).x.tolist() == world.x.tolist()
+    assert world_to(twin, "cpu").x.tolist() == world.x.tolist()
+
+
+def test_train_device_is_one_name_from_the_option_to_the_tensors():
+    """``train.device``'s names map to one namespace and one torch device each, and a namespace names itself
+    back; what older checkpoints saved in their place (None, a ``torch.device``) reads as the same names."""
+    from lanefree_sumo.config.schema import DEVICES
+    from lanefree_sumo.sim.xp import NUMPY, array_namespace, device_name, on_cpu, torch_device
+
+    assert DEVICES == ("cpu", "torch-cpu", "cuda")
+    assert array_namespace("cpu") is NUMPY and NUMPY.name == "cpu"
+    xp = array_namespace("torch-cpu")
+    assert not xp.is_numpy and xp.device == torch.device("cpu") and xp.name == "torch-cpu"
+    assert array_namespace("torch-cpu") is xp  # cached: one namespace per device
+    assert [torch_device(d) for d in DEVICES] == [torch.device("cpu"), torch.device("cpu"), torch.device("cuda")]
+    assert [on_cpu(d) for d in DEVICES] == [True, True, False]
+    assert [device_name(s) for s in (None, torch.device("cpu"), torch.device("cuda", 1), "torch-cpu", "cpu")] \
+        == ["cpu", "torch-cpu", "cuda:1", "torch-cpu", "cpu"]

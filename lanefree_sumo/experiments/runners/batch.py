@@ -36,7 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -54,25 +54,28 @@ from lanefree_sumo.experiments.storage.rundir import (
     write_config,
 )
 from lanefree_sumo.sim.road import road_kind
+from lanefree_sumo.sim.xp import on_cpu
 
 KEEP_BATCH_CHECKPOINTS = 2
 
 
-def batch_refusal(cfg: LaneFreeConfig) -> str | None:
-    """What of ``cfg`` the batched path cannot train (one phrase, e.g. ``the safety shield (--shield)``), or None
-    when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer."""
+def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
+    """What of ``cfg`` the batched path cannot train (one phrase, e.g. ``several agents (--agents)``), or None
+    when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer.
+    ``alone``: the run is a batch of one (``lanefree train --seed``), which may run inside SUMO."""
     from lanefree_sumo.rl.algorithms import BATCHED
     from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
 
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
     cpu = cpu_only(cfg)
-    for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on the CPU)"),
+    for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on train.device = cpu)"),
                         (cfg.scenario.agents != 1, "several agents (--agents)"),
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
                         (cfg.train.envs != 1, "several environments (--envs)"),
-                        (cfg.train.backend != "numpy", f"the {cfg.train.backend} backend (--backend)")):
+                        (cfg.train.backend != "numpy" and not alone,
+                         f"the {cfg.train.backend} backend (--backend)")):
         if wrong:
             return what
     return None
@@ -80,20 +83,26 @@ def batch_refusal(cfg: LaneFreeConfig) -> str | None:
 
 def needs_env_batch(cfg: LaneFreeConfig) -> bool:
     """Whether a batch of ``cfg``'s runs steps LaneFree-v0 environments (:class:`~lanefree_sumo.rl.env_batch.
-    EnvBatch`: the shield, a road other than the ring) rather than the ring's batched world."""
-    return cfg.shield.enabled or not road_kind(cfg).batched_world
+    EnvBatch`: the shield, a road other than the ring, a run inside SUMO) rather than the ring's batched world."""
+    return cfg.shield.enabled or not road_kind(cfg).batched_world or cfg.train.backend != "numpy"
 
 
 def cpu_only(cfg: LaneFreeConfig) -> str | None:
-    """What of ``cfg`` trains on the CPU only while ``train.device`` names another device (``the safety shield
-    (--shield)``, ``the onramp road (--scenario)``), else None."""
+    """What of ``cfg`` trains on ``train.device = cpu`` only while ``train.device`` names another device
+    (``the safety shield (--shield)``, ``the onramp road (--scenario)``, ``the libsumo backend (--backend)``), else
+    None."""
     if not needs_env_batch(cfg) or cfg.train.device == "cpu":
         return None
-    return "the safety shield (--shield)" if cfg.shield.enabled else f"the {cfg.road.kind} road (--scenario)"
+    if cfg.shield.enabled:
+        return "the safety shield (--shield)"
+    if cfg.train.backend != "numpy":
+        return f"the {cfg.train.backend} backend (--backend)"
+    return f"the {cfg.road.kind} road (--scenario)"
 
 
-def check_batchable(cfg: LaneFreeConfig) -> None:
-    """ConfigError (one line) for a run the batched path cannot train."""
+def check_batchable(cfg: LaneFreeConfig, alone: bool = False) -> None:
+    """ConfigError (one line) for a run the batched path cannot train (``alone``: as a batch of one,
+    :func:`batch_refusal`)."""
     from lanefree_sumo.rl.algorithms import BATCHED
 
     if cfg.train.algo not in BATCHED:
@@ -101,9 +110,9 @@ def check_batchable(cfg: LaneFreeConfig) -> None:
                           "train it with --seed (one run)")
     cpu = cpu_only(cfg)
     if cpu is not None:
-        raise ConfigError(f"runs with {cpu} train on the CPU, not on train.device = {cfg.train.device}; "
-                          "leave --device out")
-    why = batch_refusal(cfg)
+        raise ConfigError(f"runs with {cpu} train on the CPU (train.device = cpu), not on train.device = "
+                          f"{cfg.train.device}; leave --device out")
+    why = batch_refusal(cfg, alone)
     if why is not None:
         raise ConfigError(f"batched training does not support {why}; train such runs with --seed (one run)")
     from lanefree_sumo.rl.models import check_trainable
@@ -140,10 +149,10 @@ def replay_bytes(cfg: LaneFreeConfig) -> int:
     return capacity * (2 * 4 * obs_values + action_bytes + 3 * 4)
 
 
-def available_memory(device: str | None) -> int:
+def available_memory(device: str) -> int:
     """Bytes the replay buffers of a batch can take: the CPU's available memory (``MemAvailable``), or the free
     memory of the CUDA device."""
-    if device is not None and device != "cpu":
+    if not on_cpu(device):
         import torch
 
         return int(torch.cuda.mem_get_info(torch.device(device))[0])
@@ -157,7 +166,7 @@ def available_memory(device: str | None) -> int:
     return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
 
 
-def check_memory(cfgs: Sequence[LaneFreeConfig], device: str | None) -> None:
+def check_memory(cfgs: Sequence[LaneFreeConfig], device: str) -> None:
     """ConfigError (one line) when the batch's replay buffers would not fit into this machine's available memory
     (or the device's): how much they need, how much there is, how many such runs fit."""
     each = [replay_bytes(cfg) for cfg in cfgs]
@@ -165,15 +174,10 @@ def check_memory(cfgs: Sequence[LaneFreeConfig], device: str | None) -> None:
     if need <= have:
         return
     per_run = max(each)
-    where = "this machine" if device is None or device == "cpu" else f"the {device} device"
+    where = "this machine" if on_cpu(device) else f"the {device} device"
     raise ConfigError(f"{len(cfgs)} runs need ≈ {need / 2**30:.1f} GiB of replay memory ({per_run / 2**20:,.0f} MiB "
                       f"each) and {where} has {have / 2**30:.1f} GiB available: at most {have // per_run} such runs "
                       "fit here; train fewer seeds per batch (or a smaller buffer_size)")
-
-
-def torch_device(cfg: LaneFreeConfig) -> str | None:
-    """The torch device a batch of ``cfg`` simulates on: None (numpy, on the CPU) or ``cuda``."""
-    return None if cfg.train.device == "cpu" else cfg.train.device
 
 
 @dataclass
@@ -218,10 +222,10 @@ class _Batch:
     """One session of a batch: its folders, environment, learner and books."""
 
     def __init__(self, batch_dir: Path, cfgs: list[LaneFreeConfig], folders: list[RunDir],
-                 device: str | None = None, lockstep: bool | None = None) -> None:
+                 lockstep: bool | None = None) -> None:
         self.batch_dir, self.cfgs, self.folders = batch_dir, cfgs, folders
-        self.device = device
-        """The torch device of the simulation and the learners (None: the numpy simulation, learners on the CPU)."""
+        self.device = cfgs[0].train.device
+        """Where the simulation and the learners live (``train.device``: ``cpu`` the numpy simulation)."""
         self.lockstep = lockstep
         """Run the lockstep loop (:mod:`~lanefree_sumo.rl.lockstep`: device streams, CUDA graphs on a GPU);
         None: on CUDA where the batch allows it."""
@@ -317,7 +321,7 @@ class _Batch:
         torch.set_num_threads(cfgs[0].train.torch_threads)
         started, session_versions = datetime.now(timezone.utc).isoformat(timespec="seconds"), versions()
         learner = build_batched(cfgs, [c.seed for c in cfgs], observation_space(cfgs[0]), action_space(cfgs[0]),
-                                device=self.device or "cpu")
+                                device=self.device)
         state: dict[str, Any] = {}
         if resume:
             env, obs, books, state = self._resume(learner, extend)
@@ -348,9 +352,16 @@ class _Batch:
                 if checkpoint and not stop.requested:
                     self.save(env, learner, obs, books)
             # a stop is saved here, whenever in the step it came (a check inside the loop could miss one arriving
-            # between that check and the loop's)
+            # between that check and the loop's); a run inside SUMO resumes from its newest checkpoint, taken
+            # between episodes (EnvBatch.saves_mid_episode)
             if loop is None and stop.requested and any(books.active(k) for k in range(self.runs)):
-                self.save(env, learner, obs, books)
+                if getattr(env, "saves_mid_episode", True):
+                    self.save(env, learner, obs, books)
+                else:
+                    kept = books.done[0] - books.done[0] % self.cfgs[0].train.checkpoint_every_episodes
+                    print(f"stopped inside an episode: a run inside SUMO resumes from its newest checkpoint "
+                          f"({kept} episodes) and trains the episodes after it again, the same ones",
+                          file=sys.stderr)
             if self.runs == 1 and books.finished[0] and not books.stopped:
                 self._save_final(env, learner, obs if loop is None else loop.obs, books, loop)
         finally:
@@ -361,6 +372,7 @@ class _Batch:
             for board in self._boards:
                 board.close()
             bar.close()
+            env.close()
         wall = time.perf_counter() - t0
         self.interrupted = stop.requested
         ended = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -537,21 +549,21 @@ def batch_name(cfg: LaneFreeConfig) -> str:
 
 def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path] | None = None,
                 progress: bool = True, command: str | None = None,
-                device: str | None | Literal["config"] = "config",
                 lockstep: bool | None = None) -> list[tuple[Path, int]]:
     """Train the runs ``cfgs`` as one batch into ``folders`` (default ``batch_dir/<batch_name>``); return each
-    run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early. ``device``: the torch
-    device to simulate and learn on (None: numpy on the CPU; ``"config"``: ``train.device``, :func:`torch_device`);
-    a torch device named here — ``"cpu"`` included — runs the torch simulation there. ``lockstep``: run the lockstep
-    loop (:mod:`~lanefree_sumo.rl.lockstep`; None: on CUDA where the batch allows it)."""
+    run's (folder, episodes done). Ctrl-C/SIGTERM checkpoint the batch and return early. The batch simulates and
+    learns on its runs' ``train.device``. ``lockstep``: run the lockstep loop (:mod:`~lanefree_sumo.rl.lockstep`;
+    None: on CUDA where the batch allows it)."""
     from lanefree_sumo.rl.models import training_config
     from lanefree_sumo.sim.spawn import check_fits
 
     cfgs = [training_config(c) for c in cfgs]
     for cfg in cfgs:
-        check_batchable(cfg)
+        check_batchable(cfg, alone=len(cfgs) == 1)
         check_fits(cfg)  # the density fits, before anything is written
-    check_memory(cfgs, torch_device(cfgs[0]) if device == "config" else device)
+    if len({c.train.device for c in cfgs}) > 1:
+        raise ConfigError("the runs of one batch train on one device; give them the same train.device")
+    check_memory(cfgs, cfgs[0].train.device)
     paths = folders or [batch_dir / batch_name(c) for c in cfgs]
     if len(set(paths)) != len(paths):
         raise ConfigError("two runs of the batch would share a run folder; give each run its own seed or folder")
@@ -576,7 +588,7 @@ def train_batch(cfgs: list[LaneFreeConfig], batch_dir: Path, folders: list[Path]
                 run.versions.write_text(json.dumps(versions(), indent=2) + "\n")
             (batch_dir / BATCH_FILE).write_text(json.dumps(
                 {"runs": [os.path.relpath(r.path, batch_dir) for r in runs]}, indent=2) + "\n")
-            batch = _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]) if device == "config" else device, lockstep)
+            batch = _Batch(batch_dir, cfgs, runs, lockstep)
             result = batch.run(False, progress, command or shlex.join(["lanefree", *sys.argv[1:]]))
         except BaseException:
             if single and not runs[0].has_checkpoint():
@@ -724,6 +736,6 @@ def resume_batch(batch_dir: Path, progress: bool = True, command: str | None = N
         check_device(cfgs[0].train.device)
         for run in runs:
             stack.enter_context(run.writer_lock())
-        return _Batch(batch_dir, cfgs, runs, torch_device(cfgs[0]), lockstep).run(
+        return _Batch(batch_dir, cfgs, runs, lockstep).run(
             True, progress, command or shlex.join(["lanefree", *sys.argv[1:]]), extend=episodes)
     raise AssertionError("unreachable")

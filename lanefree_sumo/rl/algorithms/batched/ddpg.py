@@ -88,7 +88,7 @@ class BatchedDDPG(BatchedLearner):
                  critic_layers: Sequence[int] = (256, 128), batch_size: int = 64, buffer_size: int = 100_000,
                  learning_starts: int = 800, warmup_actions: str = "uniform", total_timesteps: int = 1,
                  pre_tanh_penalty: float | Sequence[float] = 0.0, encoder: str | None = None,
-                 device: str | th.device = "cpu", exact: bool | None = None) -> None:
+                 device: str = "cpu", exact: bool | None = None) -> None:
         if not isinstance(action_space, spaces.Box) or len(action_space.shape) != 1:
             raise ValueError("batched DDPG takes a flat Box action space")
         if warmup_actions not in WARMUP_ACTIONS:

@@ -107,7 +107,7 @@ class BatchedDQN(BatchedLearner):
                  exploration_final_eps: float | Sequence[float] = 0.05, max_grad_norm: float = 10.0,
                  loss: str = "huber", total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4,
                  per_eps: float = 1e-6,
-                 device: str | th.device = "cpu", exact: bool | None = None) -> None:
+                 device: str = "cpu", exact: bool | None = None) -> None:
         algos = [algo] * len(seeds) if isinstance(algo, str) else list(algo)
         for name in algos:
             if name not in FAMILY:

@@ -19,6 +19,7 @@ from gymnasium import spaces
 
 from lanefree_sumo.rl.algorithms.batched.replay import BatchedReplay, RunStreams
 from lanefree_sumo.rl.algorithms.batched.stack import Products, StackedAdam
+from lanefree_sumo.sim.xp import torch_device
 
 
 def per_run(value: float | Sequence[float], runs: int, name: str) -> list[float]:
@@ -97,7 +98,7 @@ class BatchedLearner:
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  batch_size: int, buffer_size: int, learning_starts: int, total_timesteps: int,
-                 action_dim: int, action_dtype: th.dtype, device: str | th.device = "cpu",
+                 action_dim: int, action_dtype: th.dtype, device: str = "cpu",
                  exact: bool | None = None) -> None:
         self.obs_dim = observation_size(observation_space)
         if not seeds:
@@ -105,7 +106,8 @@ class BatchedLearner:
         self.observation_space, self.action_space = observation_space, action_space
         self.seeds = [int(s) for s in seeds]
         self.runs = len(self.seeds)
-        self.device = th.device(device)
+        self.device = torch_device(device)
+        """The torch device of the networks and the replay (``device`` is ``train.device``)."""
         self.mm = Products(self.device.type == "cpu" if exact is None else exact)
         self.batch_size, self.buffer_size = int(batch_size), int(buffer_size)
         self.learning_starts, self.total_timesteps = int(learning_starts), int(total_timesteps)
