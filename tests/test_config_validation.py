@@ -223,3 +223,11 @@ def test_a_config_file_that_cannot_be_used_is_one_line_naming_it(tmp_path: Path)
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
     assert read_config_file(empty) == {}
+
+
+def test_a_section_takes_a_mapping_or_its_own_class_and_a_value_takes_neither() -> None:
+    names = ", ".join(f.name for f in dataclasses.fields(BASE.train))
+    assert _refused({"train": 5}) == f"config 'train' is a section: give a mapping of its keys ({names}), not 5"
+    assert _refused({"train": BASE.reward}) == "config 'train' is a TrainConfig section, not a RewardConfig"
+    assert _refused({"seed": BASE.train}).startswith("config 'seed' must be a whole number, got TrainConfig(")
+    assert _refused({"seed": [1, 2]}) == "config 'seed' must be a whole number, got [1, 2]"  # a list stays a list
