@@ -122,6 +122,10 @@ class BatchedRingEnv:
         self._seen: tuple[World, Any] | None = None
         """The world :meth:`step` left and its observation (what ``reset([])`` returns while it is the world)."""
 
+    saves_mid_episode = True
+    """A checkpoint may be taken inside an episode (the whole world is arrays; :class:`~lanefree_sumo.rl.env_batch.
+    EnvBatch` inside SUMO may not)."""
+
     def close(self) -> None:
         """Nothing to release: the world is arrays (the interface of :class:`~lanefree_sumo.rl.env_batch.EnvBatch`,
         whose runs inside SUMO end their simulations)."""

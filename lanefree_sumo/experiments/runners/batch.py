@@ -355,7 +355,7 @@ class _Batch:
             # between that check and the loop's); a run inside SUMO resumes from its newest checkpoint, taken
             # between episodes (EnvBatch.saves_mid_episode)
             if loop is None and stop.requested and any(books.active(k) for k in range(self.runs)):
-                if getattr(env, "saves_mid_episode", True):
+                if env.saves_mid_episode:
                     self.save(env, learner, obs, books)
                 else:
                     kept = books.done[0] - books.done[0] % self.cfgs[0].train.checkpoint_every_episodes
