@@ -150,16 +150,12 @@ def torch_device(device: str) -> Any:
     return torch.device("cpu" if on_cpu(device) else device)
 
 
-def torch_name(device: Any) -> str:
-    """The ``train.device`` name of the torch simulation on ``torch.device`` ``device``: ``torch-cpu`` on the CPU,
-    else torch's own name (``cuda``, ``cuda:1``)."""
-    return TORCH_CPU if device.type == "cpu" else str(device)
-
-
 def device_name(saved: Any) -> str:
     """A device as saved in a checkpoint, as a ``train.device`` name: None (numpy, before the name was kept) is
-    ``cpu``, a ``torch.device`` its :func:`torch_name`, a name itself."""
+    ``cpu``, a ``torch.device`` of the CPU ``torch-cpu``, any other its own name."""
     if saved is None:
         return "cpu"
-    return saved if isinstance(saved, str) else torch_name(saved)
+    if not isinstance(saved, str):
+        return TORCH_CPU if saved.type == "cpu" else str(saved)
+    return saved
 

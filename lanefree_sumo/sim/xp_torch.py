@@ -10,8 +10,6 @@ import numpy as np
 import torch
 from scipy.special import erfc as _scipy_erfc
 
-from lanefree_sumo.sim.xp import torch_name
-
 _HOST_TRANSCENDENTALS = False
 """Whether the torch namespaces compute the functions that differ with numpy's (:func:`numpy_transcendentals`)."""
 
@@ -44,7 +42,7 @@ class TorchNamespace:
 
     def __init__(self, device: Any = "cpu") -> None:
         self.device = torch.device(device)
-        self.name = torch_name(self.device)
+        self.name = "torch-cpu" if self.device.type == "cpu" else str(self.device)
         """This namespace's ``train.device`` name (:func:`~lanefree_sumo.sim.xp.array_namespace`)."""
         self.float64, self.int64, self.bool_ = torch.float64, torch.int64, torch.bool
         self.numpy_order_sums = self.device.type == "cpu"
