@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -65,6 +65,7 @@ GRID_OWNED: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.
                                "train.episodes")
 """Config keys the grid itself sets per run; ``overrides`` may not set them."""
 MAX_SEEDS = 10_000
+"""The most seeds per setting a grid holds (``n_seeds``, ``seeds``, ``--seeds``)."""
 
 
 DEFAULT_VARIANT = "default"
@@ -128,7 +129,7 @@ class Grid:
 
     def variant_overrides(self, setting: Setting) -> dict[str, Any]:
         """The overrides of ``setting``'s variant (none for "")."""
-        return self.variants.get(setting.variant, {}) if setting.variant else {}
+        return self.variants.get(setting.variant, {})
 
     def cells(self) -> tuple[Cell, ...]:
         """Every run, seed-major: the first seed of every setting first, so that each setting has
@@ -206,6 +207,8 @@ class Grid:
                     episode_steps: int | None = None, settings: Mapping[str, Any] | None = None) -> Grid:
         """The grid with ``--seeds N`` (seeds 0 … N−1), ``--episodes N``, ``--episode-steps N`` and the
         ``--set`` ``settings`` (nested overrides) merged into its overrides."""
+        if seeds is not None and not 1 <= seeds <= MAX_SEEDS:
+            raise ConfigError(f"--seeds {seeds}: a sweep trains 1 to {MAX_SEEDS} seeds per setting")
         overrides = _merged(self.overrides, settings or {})
         if episode_steps is not None:
             overrides.setdefault("sim", {})["episode_steps"] = episode_steps
@@ -219,14 +222,15 @@ class Grid:
         if count < len(self.seeds):
             raise UsageError(f"{where} has {len(self.seeds)} seeds per setting; --seeds with --resume only adds "
                              f"seeds (give N ≥ {len(self.seeds)})")
+        if count > MAX_SEEDS:
+            raise UsageError(f"--seeds {count}: a sweep trains 1 to {MAX_SEEDS} seeds per setting")
         seeds = list(self.seeds)
         candidate = 0
         while len(seeds) < count:
             if candidate not in seeds:
                 seeds.append(candidate)
             candidate += 1
-        return validate_grid(Grid(self.name, self.settings, tuple(seeds), self.episodes, self.overrides,
-                                  self.variants, self.compare), where)
+        return replace(self, seeds=tuple(seeds))
 
 
 def _merged(base: Mapping[str, Any], extra: Mapping[str, Any]) -> dict[str, Any]:
@@ -254,7 +258,7 @@ def builtin_descriptions() -> dict[str, str]:
     out = {}
     for name in BUILTIN_GRIDS:
         first = (GRIDS_DIR / f"{name}.yaml").read_text(encoding="utf-8").splitlines()[0]
-        out[name] = first.lstrip("#").strip()
+        out[name] = first.removeprefix("#").strip()
     return out
 
 
@@ -292,11 +296,12 @@ def _names(where: str, values: Any, allowed: tuple[str, ...], what: str) -> list
     items = _as_list(values)
     if not items:
         raise ConfigError(f"{where} is empty; give at least one {what}")
+    article = "an" if what[0] in "aeiou" else "a"
     for item in items:
         if not isinstance(item, str) or item not in allowed:
-            raise ConfigError(f"{where}: {item!r} is not a {what}; choose from {', '.join(allowed)}")
+            raise ConfigError(f"{where}: {item!r} is not {article} {what}; choose from {', '.join(allowed)}")
     if len(set(items)) < len(items):
-        raise ConfigError(f"{where} lists a {what} twice")
+        raise ConfigError(f"{where} lists {article} {what} twice")
     return items
 
 
@@ -349,7 +354,7 @@ def _cells(where: str, data: Mapping[str, Any]) -> list[tuple[str, str, float]]:
         if not tables or any(not _whole(t) or t not in TABLES for t in tables) or len(set(tables)) < len(tables):
             raise ConfigError(f"{where}: tables must list distinct tables of the paper "
                               f"({', '.join(map(str, TABLES))}), got {data['tables']!r}")
-        return list(dict.fromkeys((a, p, round(float(d), 6)) for t, a, p, d, _, _ in PAPER_ROWS if t in tables))
+        return list(dict.fromkeys((a, p, float(d)) for t, a, p, d, _, _ in PAPER_ROWS if t in tables))
     if "reward_presets" not in data:
         raise ConfigError(f"{where}: key 'reward_presets' is missing; list the reward presets to train "
                           "(or the paper's 'tables')")
@@ -412,6 +417,16 @@ def _owned(overrides: Mapping[str, Any], path: str = "") -> list[str]:
     return found
 
 
+def _check_budget(grid: Grid, where: str) -> None:
+    """The grid has runs, at most :data:`MAX_SEEDS` seeds per setting, and episodes to train."""
+    if not grid.settings or not grid.seeds:
+        raise ConfigError(f"{where}: the grid has no runs")
+    if len(grid.seeds) > MAX_SEEDS:
+        raise ConfigError(f"{where}: {len(grid.seeds)} seeds per setting; a sweep trains at most {MAX_SEEDS}")
+    if grid.episodes < 1:
+        raise ConfigError(f"{where}: episodes must be ≥ 1, got {grid.episodes}")
+
+
 def validate_grid(grid: Grid, source: str) -> Grid:
     """Check the overrides and that every setting's traffic fits on the road (before any run starts)."""
     from lanefree_sumo.rl.models import check_trainable
@@ -420,8 +435,8 @@ def validate_grid(grid: Grid, source: str) -> Grid:
     where = f"grid {source}"
     if not isinstance(grid.overrides, Mapping):
         raise ConfigError(f"{where}: overrides must be a mapping of config keys, got {grid.overrides!r}")
-    agents = grid.overrides.get("scenario", {}).get("agents", 1) if isinstance(grid.overrides.get("scenario"),
-                                                                                   Mapping) else 1
+    scenario = grid.overrides.get("scenario")
+    agents = scenario.get("agents", 1) if isinstance(scenario, Mapping) else 1
     if agents != 1:
         raise ConfigError(f"{where}: overrides.scenario.agents = {agents!r}: sweeps train one learning vehicle per run "
                           "in this version (use lanefree train --agents K)")
@@ -436,10 +451,7 @@ def validate_grid(grid: Grid, source: str) -> Grid:
             merge_config(merge_config(LaneFreeConfig(), grid.overrides), keys)
         except ConfigError as exc:
             raise ConfigError(f"{where}: variants.{name}: {exc}") from None
-    if not grid.settings or not grid.seeds:
-        raise ConfigError(f"{where}: the grid has no runs")
-    if grid.episodes < 1:
-        raise ConfigError(f"{where}: episodes must be ≥ 1, got {grid.episodes}")
+    _check_budget(grid, where)
     try:
         base = merge_config(LaneFreeConfig(), grid.overrides)
     except ConfigError as exc:
