@@ -126,7 +126,7 @@ def test_with_budget_merges_the_set_overrides_without_touching_the_grids_own():
         with pytest.raises(ConfigError) as err:
             grid.with_budget(seeds=seeds)
         assert str(err.value) == f"--seeds {seeds}: a sweep trains 1 to {MAX_SEEDS} seeds per setting"
-    assert grid.with_budget(seeds=MAX_SEEDS).seeds[-1] == MAX_SEEDS - 1
+    assert grid.with_budget(seeds=MAX_SEEDS).seeds[-1] == MAX_SEEDS - 1 and grid.with_budget(seeds=1).seeds == (0,)
     with pytest.raises(ConfigError) as err:
         grid.with_budget(episodes=0)
     assert str(err.value) == "grid command line: episodes must be ≥ 1, got 0"
