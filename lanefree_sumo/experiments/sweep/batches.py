@@ -149,9 +149,10 @@ def trained_in_batch(run: Path) -> bool:
     from lanefree_sumo.experiments.runners.batch import is_single_run
 
     try:
-        return "batch" in json.loads((run / "last_session.json").read_text()) and not is_single_run(run)
-    except (OSError, ValueError, TypeError):
+        session = json.loads((run / "last_session.json").read_text())
+    except (OSError, ValueError):
         return False
+    return isinstance(session, dict) and "batch" in session and not is_single_run(run)
 
 
 def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInfo]) -> list[Batch]:
