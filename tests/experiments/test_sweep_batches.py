@@ -109,3 +109,96 @@ def test_each_runs_result_after_its_batchs_session(tmp_path):
     (sweep.run("odd") / "last_session.json").write_text("[1]")  # not a mapping
     assert _outcome(sweep, "odd", 3, None)["status"] == "interrupted"
     assert _outcome(sweep, "missing", 3, None) == _result("missing", "interrupted", 0, "stopped at 0/3 episodes")
+
+
+def _grid(seeds: int, **extra):
+    from lanefree_sumo.experiments.sweep.grid import parse_grid
+
+    return parse_grid({"reward_presets": ["collision"], "seeds": list(range(seeds)), "episodes": 2, **extra},
+                      "g", "g.yaml")
+
+
+def _pending(grid) -> dict:
+    from lanefree_sumo.experiments.sweep.state import PENDING, RunInfo
+
+    return {c.name: RunInfo(PENDING, 0) for c in grid.cells()}
+
+
+def test_split_counts_splits_the_group_with_the_largest_batches_first():
+    from lanefree_sumo.experiments.sweep.batches import split_counts
+
+    # 6 runs in 1 batch (6 each) against 7 in 2 (3.5 each): the 6 are split first, though the 7 are more runs
+    assert split_counts([6, 7], 6, 3) == [1, 2] and split_counts([6, 7], 6, 4) == [2, 2]
+    assert split_counts([5], 8, 3) == [2]  # a third batch would hold fewer than 2 runs
+    assert split_counts([6], 8, 3) == [3] and split_counts([7], 8, 4) == [3]
+
+
+def test_pack_says_its_size_and_why_runs_go_alone(tmp_path):
+    from lanefree_sumo.experiments.sweep.batches import pack
+    from lanefree_sumo.experiments.sweep.state import PARTIAL, RunInfo
+
+    grid = _grid(3, algorithms=["ddpg", "dqn", "dueling"])
+    cells = list(grid.cells())
+    sweep = SweepDir(tmp_path / "sweep")
+    # one run of each algorithm: each alone in its batch, counted
+    first = [c for c in cells if c.seed == 0]
+    packing = pack(sweep, grid, first, _pending(grid), 8, workers=2)
+    assert packing.size == 8 and not packing.batches and packing.sequential == first
+    assert packing.reasons == {"alone in its batch": 3}
+    assert pack(sweep, grid, first, _pending(grid), 5).size == 5
+    # a run resumed from its own checkpoint trains alone, under that reason
+    ddpg = [c for c in cells if c.setting.algorithm == "ddpg"]
+    states = {**_pending(grid), ddpg[0].name: RunInfo(PARTIAL, 1, "resumable from episode 1")}
+    packing = pack(sweep, grid, ddpg, states, 8)
+    assert packing.reasons == {"resumed from its own checkpoint": 1} and packing.sequential == ddpg[:1]
+    assert [b.runs for b in packing.batches] == [tuple(c.name for c in ddpg[1:])]
+    # --batch 1 beside workers: every run alone, for the given reason
+    single = pack(sweep, grid, ddpg, _pending(grid), 1, why_single="--batch 1", workers=4)
+    assert single.reasons == {"--batch 1": 3} and not single.batches
+
+
+def test_a_stale_run_with_a_batch_session_is_packed_afresh(tmp_path):
+    """Only a PARTIAL run trained in a batch is refused: a stale one (its batch killed before its first
+    checkpoint) starts again in a new batch."""
+    from lanefree_sumo.experiments.sweep.batches import pack
+    from lanefree_sumo.experiments.sweep.state import STALE, RunInfo
+
+    grid = _grid(2)
+    sweep = SweepDir(tmp_path / "sweep")
+    cells = list(grid.cells())
+    _run(sweep, cells[0].name, 1, session={"batch": {"run": 0}})
+    packing = pack(sweep, grid, cells, {**_pending(grid), cells[0].name: RunInfo(STALE, 1)}, 2)
+    assert [b.runs for b in packing.batches] == [tuple(c.name for c in cells)] and not packing.sequential
+
+
+def test_an_interrupted_batch_holding_runs_of_another_grid_is_refused_by_name(tmp_path):
+    import pytest
+
+    from lanefree_sumo.errors import RunError
+    from lanefree_sumo.experiments.sweep.batches import interrupted_batches
+
+    grid = _grid(2)
+    sweep = SweepDir(tmp_path / "sweep")
+    names = [c.name for c in grid.cells()]
+    folder = sweep.batch("old")
+    (folder / BATCH_CHECKPOINTS).mkdir(parents=True)
+    (folder / BATCH_CHECKPOINTS / "step_0000000100.pt").write_bytes(b"")
+    (folder / BATCH_FILE).write_text(json.dumps({"runs": [f"../../runs/{n}" for n in (names[0], "zz", "aa")]}))
+    with pytest.raises(RunError) as err:
+        interrupted_batches(sweep, grid, list(grid.cells()), _pending(grid))
+    assert str(err.value) == (f"batch {folder} holds aa, not a run of this sweep's grid; move the batch folder away "
+                              "to train its other runs afresh")
+    # a batch whose runs are all done or elsewhere is not this session's to continue, strangers or not
+    assert interrupted_batches(sweep, grid, [c for c in grid.cells() if c.name == names[1]], _pending(grid)) == []
+
+
+def test_a_dead_batch_folder_goes_even_when_its_runs_have_no_state(tmp_path):
+    """A batch folder without a checkpoint naming runs the states do not list (no longer in the plan) is deleted."""
+    from lanefree_sumo.experiments.sweep.batches import interrupted_batches
+
+    grid = _grid(2)
+    sweep = SweepDir(tmp_path / "sweep")
+    folder = sweep.batch("dead")
+    folder.mkdir(parents=True)
+    (folder / BATCH_FILE).write_text(json.dumps({"runs": ["../../runs/gone_a", "../../runs/gone_b"]}))
+    assert interrupted_batches(sweep, grid, list(grid.cells()), {}) == [] and not folder.exists()

@@ -165,11 +165,11 @@ def interrupted_batches(sweep: SweepDir, grid: Grid, todo: list[Cell], states: d
     if not sweep.batches.is_dir():
         return found
     wanted, known = {c.name for c in todo}, {c.name for c in grid.cells()}
+    busy = {name for name, info in states.items() if info.state == BUSY}
     for folder in sorted(p for p in sweep.batches.iterdir() if p.is_dir()):
         runs = members(folder)
         if not has_checkpoint(folder):
-            idle = all(states.get(name, RunInfo(PENDING, 0)).state != BUSY and not held_elsewhere(sweep, name)
-                       for name in runs)
+            idle = all(name not in busy and not held_elsewhere(sweep, name) for name in runs)
             if runs and idle:
                 shutil.rmtree(folder)
         elif wanted.intersection(runs):
@@ -205,7 +205,7 @@ def split_counts(groups: Sequence[int], size: int, workers: int | None) -> list[
     batches, as long as each keeps 2 runs (``workers`` None: unknown, no such split)."""
     counts = [math.ceil(n / size) for n in groups]
     while workers and sum(counts) < workers:
-        fits = [i for i, n in enumerate(groups) if n // (counts[i] + 1) >= 2]
+        fits = [i for i, n in enumerate(groups) if n >= 2 * (counts[i] + 1)]
         if not fits:
             break
         widest = max(fits, key=lambda i: groups[i] / counts[i])
@@ -231,7 +231,7 @@ def pack(sweep: SweepDir, grid: Grid, todo: list[Cell], states: dict[str, RunInf
         else:
             packing.sequential.append(cell)
             packing.reasons[reason] = packing.reasons.get(reason, 0) + 1
-    counts = split_counts([len(cells) for cells in groups.values()], size, workers if size > 1 else None)
+    counts = split_counts([len(cells) for cells in groups.values()], size, workers)  # size 1: no groups
     for cells, count in zip(groups.values(), counts):
         start = 0
         for i in range(count):  # near equal sizes: 10 runs at K = 8 are 5 + 5, not 8 + 2
