@@ -299,19 +299,26 @@ def load_yaml(text: str, source: str) -> Any:
     return yaml.load(text, Loader=UniqueKeys)  # noqa: S506 (a SafeLoader)
 
 
-def read_config_file(path: Path) -> dict[str, Any]:
-    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``); a key given twice
-    is refused."""
+def read_yaml_file(path: Path, what: str) -> Any:
+    """The YAML file ``path`` parsed (:func:`load_yaml`); a file that cannot be read, is not UTF-8 text or is not
+    YAML is a one-line ConfigError calling it ``what`` (``config file``, ``grid file``)."""
     import yaml
 
     try:
-        data = load_yaml(path.read_text(), str(path))
+        return load_yaml(path.read_text(encoding="utf-8"), str(path))
     except OSError as exc:
-        raise ConfigError(f"cannot read the config file {path}: {exc.strerror or exc}") from None
+        reason = " ".join(str(exc.strerror or exc).split())[:200]
+        raise ConfigError(f"cannot read the {what} {path}: {reason}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path} is not a text (UTF-8) YAML file") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path} is not valid YAML ({' '.join(str(exc).split())[:200]})") from None
+
+
+def read_config_file(path: Path) -> dict[str, Any]:
+    """The overrides in a YAML file (any part of the config, nested as in ``config.yaml``); a key given twice
+    is refused."""
+    data = read_yaml_file(path, "config file")
     if data is None:
         return {}
     if not isinstance(data, Mapping):

@@ -247,13 +247,13 @@ def test_a_grid_file_is_named_after_it_and_a_bad_one_is_one_line(tmp_path):
     binary.write_bytes(b"\xff\xfe\x00")
     with pytest.raises(ConfigError) as err:
         load_grid(binary)
-    assert str(err.value).startswith(f"grid {binary}: unreadable (") and "\n" not in str(err.value)
+    assert str(err.value) == f"{binary} is not a text (UTF-8) YAML file"  # the config files' own reader
     bad = tmp_path / "bad.yaml"
     bad.write_text("reward_presets: [fields\n" + "x" * 300 + "\n", encoding="utf-8")
     with pytest.raises(ConfigError) as err:
         load_grid(bad)
     text = str(err.value)
-    assert text.startswith(f"grid {bad}: ") and "\n" not in text
+    assert text.startswith(f"{bad} is not valid YAML (") and text.endswith(")") and "\n" not in text
     bad.write_text("reward_presets: [nonsense]\n", encoding="utf-8")
     with pytest.raises(ConfigError) as err:
         load_grid(bad)
@@ -271,7 +271,7 @@ def test_an_unreadable_grid_files_reason_is_on_one_line_and_at_most_200_characte
     with pytest.raises(ConfigError) as err:
         load_grid(path)
     reason = ("first line second " + "y" * 400)[:200]
-    assert str(err.value) == f"grid {path}: unreadable ({reason})"
+    assert str(err.value) == f"cannot read the grid file {path}: {reason}"
 
 
 # -- parsing --------------------------------------------------------------------------------------

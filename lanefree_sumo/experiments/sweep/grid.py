@@ -37,10 +37,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import yaml
-
 from lanefree_sumo.config import LaneFreeConfig, config_to_dict, merge_config, validate_density
-from lanefree_sumo.config.validation import load_yaml
+from lanefree_sumo.config.validation import read_yaml_file
 from lanefree_sumo.errors import ConfigError, UsageError
 from lanefree_sumo.experiments.analysis.paper import PAPER_ROWS
 
@@ -66,6 +64,11 @@ GRID_OWNED: tuple[str, ...] = ("seed", "train.algo", "reward.preset", "scenario.
 """Config keys the grid itself sets per run; ``overrides`` may not set them."""
 MAX_SEEDS = 10_000
 """The most seeds per setting a grid holds (``n_seeds``, ``seeds``, ``--seeds``)."""
+
+
+def _seeds_bound(count: int) -> str:
+    """The one line for ``--seeds count`` outside 1 … :data:`MAX_SEEDS`."""
+    return f"--seeds {count}: a sweep trains 1 to {MAX_SEEDS} seeds per setting"
 
 
 DEFAULT_VARIANT = "default"
@@ -208,7 +211,7 @@ class Grid:
         """The grid with ``--seeds N`` (seeds 0 … N−1), ``--episodes N``, ``--episode-steps N`` and the
         ``--set`` ``settings`` (nested overrides) merged into its overrides."""
         if seeds is not None and not 1 <= seeds <= MAX_SEEDS:
-            raise ConfigError(f"--seeds {seeds}: a sweep trains 1 to {MAX_SEEDS} seeds per setting")
+            raise ConfigError(_seeds_bound(seeds))
         overrides = _merged(self.overrides, settings or {})
         if episode_steps is not None:
             overrides.setdefault("sim", {})["episode_steps"] = episode_steps
@@ -223,7 +226,7 @@ class Grid:
             raise UsageError(f"{where} has {len(self.seeds)} seeds per setting; --seeds with --resume only adds "
                              f"seeds (give N ≥ {len(self.seeds)})")
         if count > MAX_SEEDS:
-            raise UsageError(f"--seeds {count}: a sweep trains 1 to {MAX_SEEDS} seeds per setting")
+            raise UsageError(_seeds_bound(count))
         seeds = list(self.seeds)
         candidate = 0
         while len(seeds) < count:
@@ -276,12 +279,7 @@ def load_grid(spec: str | Path) -> Grid:
 
 def _grid_file(path: Path) -> Grid:
     """The grid of the YAML file ``path``, named after the file."""
-    try:
-        data = load_yaml(path.read_text(encoding="utf-8"), f"grid {path}")
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        reason = " ".join(str(exc).split())[:200]
-        raise ConfigError(f"grid {path}: unreadable ({reason})") from None
-    return parse_grid(data, path.stem, str(path))
+    return parse_grid(read_yaml_file(path, "grid file"), path.stem, str(path))
 
 
 def _as_list(value: Any) -> list[Any]:
