@@ -1,14 +1,19 @@
 """The helpers of batched sweeps (experiments/sweep/batches.py) at values worked out by hand: the plan's line, a
-batch's name, what a batch folder says of its runs, and each run's result after its batch's session. The packing
-itself and the Ray task are tested in test_sweep_batch.py."""
+batch's name, what a batch folder says of its runs, each run's result after its batch's session, and the batch task
+itself (run_batch, train_batch_task) in this process on a tiny numpy batch. Packing grids and the task under the
+embedded Ray are tested in test_sweep_batch.py."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import socket
+from collections.abc import Iterator
 from pathlib import Path
+
+import pytest
 
 from lanefree_sumo.experiments.runners.batch import BATCH_CHECKPOINTS, BATCH_FILE
 from lanefree_sumo.experiments.sweep.batches import (
@@ -202,3 +207,152 @@ def test_a_dead_batch_folder_goes_even_when_its_runs_have_no_state(tmp_path):
     folder.mkdir(parents=True)
     (folder / BATCH_FILE).write_text(json.dumps({"runs": ["../../runs/gone_a", "../../runs/gone_b"]}))
     assert interrupted_batches(sweep, grid, list(grid.cells()), {}) == [] and not folder.exists()
+
+
+# -- the batch task (run_batch, train_batch_task) in this process, on a tiny numpy batch ------------------------
+
+TINY_BATCH = {"reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2, "overrides": {
+    "sim": {"episode_steps": 30}, "train": {"checkpoint_every_episodes": 1, "actor_critic": {
+        "learning_starts_steps": 20, "batch_size": 8, "buffer_size": 200}}}}
+"""Two DDPG runs of 2 episodes of 30 steps: a real batch that trains in a few seconds."""
+
+
+@contextlib.contextmanager
+def worker_output() -> Iterator[None]:
+    """Inside: ``sys.stdout``/``sys.stderr`` write to file descriptors 1 and 2, as in a Ray worker (the task sends
+    those to its log); after: the descriptors and pytest's streams as they were."""
+    import sys
+
+    streams = sys.stdout, sys.stderr
+    streams[0].flush()
+    streams[1].flush()
+    saved = os.dup(1), os.dup(2)
+    sys.stdout, sys.stderr = open(1, "w", closefd=False), open(2, "w", closefd=False)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        sys.stdout, sys.stderr = streams
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        os.close(saved[0])
+        os.close(saved[1])
+
+
+def _task(tmp_path: Path, **overrides):
+    """The sweep folder, grid, run names and configs of one batch of :data:`TINY_BATCH`'s two runs."""
+    from lanefree_sumo.config import config_to_dict
+    from lanefree_sumo.experiments.sweep.grid import parse_grid
+
+    grid = parse_grid({**TINY_BATCH, **overrides}, "tiny", "tiny.yaml")
+    cells = list(grid.cells())
+    return (SweepDir(tmp_path / "sweep"), [c.name for c in cells],
+            [config_to_dict(grid.config(c)) for c in cells])
+
+
+def test_a_batch_task_trains_its_runs_clears_their_failures_and_keeps_no_checkpoint(tmp_path):
+    from lanefree_sumo.experiments.sweep.batches import run_batch
+    from lanefree_sumo.experiments.sweep.state import failure_reason, record_failure
+
+    sweep, names, configs = _task(tmp_path)
+    record_failure(sweep, names[0], "an earlier session's failure")
+    with worker_output():
+        results = run_batch(str(sweep.path), "batch_t", names, configs, 2, "lanefree sweep tiny.yaml")
+    host, pid = socket.gethostname(), os.getpid()
+    assert [{k: v for k, v in r.items() if k != "wall_s"} for r in results] == [
+        {"name": n, "status": "complete", "episodes": 2, "detail": "", "host": host, "pid": pid} for n in names]
+    assert all(isinstance(r["wall_s"], float) and r["wall_s"] >= 0 for r in results)
+    assert failure_reason(sweep, names[0]) is None  # cleared when its batch started
+    for name in names:
+        assert len((sweep.run(name) / "episodes.csv").read_text().splitlines()) == 3
+        command = (sweep.run(name) / "command.txt").read_text()
+        assert f"lanefree sweep tiny.yaml  # sweep batch batch_t on {host} pid {pid}" in command
+    assert not (sweep.batch("batch_t") / BATCH_CHECKPOINTS).exists()  # complete: nothing left to resume
+    log = sweep.log("batch_t").read_text()
+    assert f"batch batch_t (2 runs: {names[0]}, {names[1]}) on host {host} pid {pid} node -\n" in log
+    assert f"=== batch batch_t: {names[0]} complete, {names[1]} complete (" in log
+
+
+def test_a_batch_task_whose_run_is_held_elsewhere_trains_nothing(tmp_path):
+    from lanefree_sumo.experiments.sweep.batches import run_batch
+    from lanefree_sumo.experiments.sweep.state import run_lock
+
+    sweep, names, configs = _task(tmp_path)
+    with run_lock(sweep, names[1]) as held, worker_output():
+        assert held
+        results = run_batch(str(sweep.path), "batch_t", names, configs, 2, "c")
+    assert [(r["name"], r["status"], r["detail"]) for r in results] == [
+        (n, "busy", f"{sweep.run(n)} (batch batch_t) is being trained by another sweep worker") for n in names]
+    assert not any(sweep.run(n).exists() and any(sweep.run(n).iterdir()) for n in names)
+    assert "a run of batch batch_t is being trained by another sweep worker" in sweep.log("batch_t").read_text()
+
+
+def test_a_batch_tasks_errors_fail_its_runs_in_one_line_and_an_interrupt_before_training_leaves_them(
+        tmp_path, monkeypatch):
+    import lanefree_sumo.experiments.sweep.batches as batches_module
+    from lanefree_sumo.errors import ConfigError
+    from lanefree_sumo.experiments.sweep.batches import run_batch
+    from lanefree_sumo.experiments.sweep.state import failure_reason
+
+    sweep, names, configs = _task(tmp_path)
+    raised: list[BaseException] = []
+
+    def stand_in(*args, **kwargs):
+        raise raised[-1]
+
+    monkeypatch.setattr(batches_module, "train_batch_task", stand_in)
+    log = sweep.log("batch_t")
+    for error, status, detail in (
+            (ConfigError("a bad\n  value"), "failed", "a bad value"),
+            (ValueError("broken\nenv " + "x" * 400), "failed",
+             f"ValueError: {('broken env ' + 'x' * 400)[:300]} (see {log})"),
+            (KeyboardInterrupt(), "interrupted", "stopped before training began")):
+        raised.append(error)
+        with worker_output():
+            results = run_batch(str(sweep.path), "batch_t", names, configs, 2, "c")
+        assert [(r["name"], r["status"], r["episodes"], r["detail"]) for r in results] == [
+            (n, status, 0, detail) for n in names], error
+        assert [failure_reason(sweep, n) for n in names] == [detail if status == "failed" else None] * 2
+    text = log.read_text()
+    assert "Traceback" in text and text.count("Traceback") == 1  # a bug's traceback goes to the log, once
+
+
+def test_a_batch_task_continues_a_checkpointed_batch_and_restarts_stale_runs_but_refuses_finished_ones(
+        tmp_path, monkeypatch, capsys):
+    import lanefree_sumo.experiments.runners.batch as runner
+    from lanefree_sumo.errors import RunError
+    from lanefree_sumo.experiments.sweep.batches import train_batch_task
+
+    sweep, names, configs = _task(tmp_path)
+    calls: list[tuple] = []
+    monkeypatch.setattr(runner, "resume_batch", lambda *a, **k: calls.append(("resume", a, k)))
+    monkeypatch.setattr(runner, "train_batch", lambda *a, **k: calls.append(("train", a, k)))
+    (sweep.batch("b") / BATCH_CHECKPOINTS).mkdir(parents=True)
+    (sweep.batch("b") / BATCH_CHECKPOINTS / "step_0000000030.pt").write_bytes(b"")
+    train_batch_task(sweep, "b", names, configs, 2, "cmd")
+    assert calls == [("resume", (sweep.batch("b"),), {"progress": False, "command": "cmd"})]
+    assert capsys.readouterr().out == "continuing batch b from its newest batch checkpoint\n"
+    # no checkpoint: a stale run (rows, no checkpoint) is cleared and the batch starts with the grid's configs
+    calls.clear()
+    _run(sweep, names[0], 1)
+    train_batch_task(sweep, "c", names, configs, 2, "cmd")
+    assert not sweep.run(names[0]).exists()
+    assert capsys.readouterr().out == f"{names[0]}: no checkpoint (1 episode rows); starting from scratch\n"
+    [(kind, args, kwargs)] = calls
+    assert kind == "train" and args[1:] == (sweep.batch("c"), [sweep.run(n) for n in names])
+    assert kwargs == {"progress": False, "command": "cmd"}
+    assert [(c.seed, c.train.algo, c.sim.episode_steps, c.train.episodes) for c in args[0]] == [
+        (0, "ddpg", 30, 2), (1, "ddpg", 30, 2)]
+    # a run that is further than pending is not started again by a new batch
+    calls.clear()
+    _run(sweep, names[1], 2, model=True)
+    with pytest.raises(RunError) as err:
+        train_batch_task(sweep, "d", names, configs, 2, "cmd")
+    assert str(err.value) == f"{sweep.run(names[1])} is complete; a new batch starts only new runs"
+    _run(sweep, names[0], 1, model=True)  # one episode of two, its model saved: a run to extend, not to restart
+    with pytest.raises(RunError) as err:
+        train_batch_task(sweep, "d", names, configs, 2, "cmd")
+    assert str(err.value) == (f"{sweep.run(names[0])} is partial (finished at 1 episodes; will be extended to 2); "
+                              "a new batch starts only new runs")
+    assert calls == []

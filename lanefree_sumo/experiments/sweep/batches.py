@@ -272,7 +272,8 @@ def train_batch_task(sweep: SweepDir, batch: str, runs: list[str], configs: list
             print(f"{name}: no checkpoint ({info.episodes} episode rows); starting from scratch", flush=True)
             shutil.rmtree(sweep.run(name))
         elif info.state != PENDING:
-            raise RunError(f"{sweep.run(name)} is {info.state} ({info.detail}); a new batch starts only new runs")
+            detail = f" ({info.detail})" if info.detail else ""
+            raise RunError(f"{sweep.run(name)} is {info.state}{detail}; a new batch starts only new runs")
     train_batch([merge_config(LaneFreeConfig(), c) for c in configs], folder, [sweep.run(n) for n in runs],
                 progress=False, command=command)
 
