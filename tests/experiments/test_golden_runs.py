@@ -120,6 +120,21 @@ def test_a_single_run_off_the_ring_or_shielded_reproduces_its_golden_episodes(tm
     assert rows(run / "episodes.csv", golden) == rows(golden)
 
 
+SHARED = {"agents2": {"scenario": {"agents": 2}}, "envs2": {"train": {"envs": 2}}}
+"""Single runs of several learning vehicles (one shared policy) or several environments (one process each): SB3's
+loop trains them; frozen as the guard before the one trainer takes them over."""
+
+
+@pytest.mark.parametrize("algo", ["ddpg", "dqn"])
+@pytest.mark.parametrize("scene", list(SHARED))
+def test_a_single_run_of_several_agents_or_environments_reproduces_its_golden_episodes(tmp_path, algo, scene):
+    run, done = train(merge_config(config(algo), SHARED[scene]), run=tmp_path / "run", progress=False)
+    assert done >= 3
+    golden = golden_file(f"{algo}_{scene}_episodes.csv")
+    freeze(run / "episodes.csv", golden)
+    assert rows(run / "episodes.csv", golden) == rows(golden)
+
+
 @pytest.mark.parametrize("scene", list(SCENES))
 def test_batched_run_k_with_the_shield_or_on_the_on_ramp_reproduces_the_golden_single_run(tmp_path, scene):
     runs = train_batch([merge_config(config("ddpg", seed=7), SCENES[scene]),
