@@ -125,8 +125,9 @@ SHARED = {"agents2": {"scenario": {"agents": 2}}, "envs2": {"train": {"envs": 2}
 loop trains them; frozen as the guard before the one trainer takes them over."""
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "dqn"])
-@pytest.mark.parametrize("scene", list(SHARED))
+@pytest.mark.parametrize(("algo", "scene"), [("ddpg", "agents2"), ("dqn", "agents2"), ("td3", "agents2"),
+                                             ("ddqn", "agents2"), ("dueling", "agents2"), ("per", "agents2"),
+                                             ("ddpg", "envs2"), ("dqn", "envs2")])
 def test_a_single_run_of_several_agents_or_environments_reproduces_its_golden_episodes(tmp_path, algo, scene):
     run, done = train(merge_config(config(algo), SHARED[scene]), run=tmp_path / "run", progress=False)
     assert done >= 3
