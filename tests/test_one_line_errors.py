@@ -40,7 +40,7 @@ def test_a_key_given_twice_in_a_yaml_file_is_refused(tmp_path):
         res.stderr)
     grid = tmp_path / "g.yaml"
     grid.write_text("reward_presets: [collision]\nepisodes: 2\nepisodes: 3\n")
-    with pytest.raises(ConfigError, match=rf"grid {grid}: key 'episodes' is given twice"):
+    with pytest.raises(ConfigError, match=rf"^{grid}: key 'episodes' is given twice"):
         load_grid(Path(grid))
 
 

@@ -28,7 +28,7 @@ OPTIONS: tuple[Option, ...] = (
            "under --out (ddpg, td3 and the DQN family, one agent on the ring; ddpg and td3 also with --obs set)"),
     Option("--obs", "observation.kind"),
     Option("--encoder", "observation.encoder"),
-    Option("--envs", "train.envs", unit="processes"),
+    Option("--envs", "train.envs", unit="environments"),
     Option("--scenario", "road.kind",
            note="on the on-ramp the learning vehicle starts on the ramp (road.onramp.agent_start) with 4 more ego "
            "features (its boundaries, on the ramp, room to the ramp's end)"),

@@ -449,7 +449,9 @@ class TrainConfig:
     episodes: int = field(default=625, metadata={"range": (1, 10_000_000)})
     """Training episodes of ``sim.episode_steps`` steps each."""
     envs: int = field(default=1, metadata={"range": (1, 4096)})
-    """Parallel environments, one process each (libsumo runs one simulation per process)."""
+    """Environments one policy learns from at once (SB3's ``n_envs``): stepped in this process by the one trainer
+    (the batchable algorithms), one process each in SB3's loop (SAC, PPO; libsumo runs one simulation per
+    process)."""
     checkpoint_every_episodes: int = field(default=25, metadata={"range": (1, 10_000_000)})
     """Save a checkpoint every this many episodes."""
     torch_threads: int = field(default=1, metadata={"range": (1, 1024)})

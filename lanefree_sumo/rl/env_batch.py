@@ -1,6 +1,7 @@
 """K runs of LaneFree-v0 with one learning agent each, stepped one after another, behind the interface of
 :class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv`: how the one trainer trains the runs the ring's batched world
-does not hold — the safety shield, the on-ramp, a run inside SUMO.
+does not hold — the safety shield, the on-ramp, a run inside SUMO; and :class:`SlotBatch`, K runs of several
+agents or environments each (SB3's ``n_envs``), one row per slot.
 
 Run k is a :class:`~lanefree_sumo.rl.env.LaneFreeEnv` of its config (its backend) whose e-th episode takes
 the traffic seed :func:`~lanefree_sumo.rl.models.episode_seed` (seed, 0, e), as a training run's single environment
@@ -25,7 +26,7 @@ import numpy as np
 from lanefree_sumo.config import LaneFreeConfig
 from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.rl.env import LaneFreeEnv, resolve_config
-from lanefree_sumo.rl.models import episode_seed
+from lanefree_sumo.rl.models import episode_seed, slots
 from lanefree_sumo.sim.xp import NUMPY
 
 
@@ -172,3 +173,147 @@ class EnvBatch:
         """Close every run's environment (inside SUMO: end its simulation)."""
         for env in self.envs or []:
             env.close()
+
+
+class SlotBatch:
+    """K runs of several slots each — ``train.envs`` LaneFree-v0 environments, or the ``scenario.agents``
+    learning vehicles of one :class:`~lanefree_sumo.rl.multi_agent.LaneFreeParallelEnv` — behind the interface
+    of :class:`EnvBatch`, one row per slot (run k's slots in rows k · slots …), as SB3's loop steps them for one
+    shared policy (its ``DummyVecEnv`` or :class:`~lanefree_sumo.rl.multi_agent.SharedPolicyVecEnv`):
+
+    - environment r of run k takes, for its e-th episode, the traffic seed :func:`~lanefree_sumo.rl.models.
+      episode_seed` (seed, r, e) and starts its next episode on its own when one ends (:meth:`reset`);
+    - the agents of a run share its simulation, whose e-th episode has the traffic seed (seed, 0, e); the first
+      agent whose episode ends (it left the on-ramp) ends the others' too, as truncations.
+
+    Simulated with numpy (``train.backend = numpy``) on the CPU; a checkpoint may be taken inside an episode."""
+
+    device = "cpu"
+    xp = NUMPY
+    saves_mid_episode = True
+
+    def __init__(self, configs: Sequence[LaneFreeConfig | Mapping[str, Any]], device: str = "cpu") -> None:
+        from lanefree_sumo.rl.multi_agent import LaneFreeParallelEnv
+
+        if device != "cpu":
+            raise ConfigError("runs of several agents or environments are simulated on the CPU (train.device = "
+                              "cpu); leave --device out")
+        self.cfgs = [resolve_config(c) for c in configs]
+        if not self.cfgs:
+            raise ConfigError("a batch needs at least one run")
+        self.slots = slots(self.cfgs[0])
+        if any(slots(c) != self.slots for c in self.cfgs) or any(c.backend != "numpy" for c in self.cfgs):
+            raise ConfigError("the runs of a batch of several agents or environments share scenario.agents and "
+                              "train.envs and are simulated with train.backend = numpy")
+        self.runs = len(self.cfgs)
+        self.rows = self.runs * self.slots
+        self.grouped = self.cfgs[0].scenario.agents > 1
+        """The slots are the agents of one simulation (their rows of one episode are that episode's)."""
+        self.multi = [LaneFreeParallelEnv(c) for c in self.cfgs] if self.grouped else []
+        self.envs = [] if self.grouped else [[LaneFreeEnv(c) for _ in range(self.slots)] for c in self.cfgs]
+        self.episode = np.zeros(self.rows, dtype=int)
+        """Each slot's episodes begun."""
+        self.stopped = np.zeros(self.runs, dtype=bool)
+        """Runs stopped (a non-finite action, or finished); they are never reset nor stepped again."""
+        self.terminate_on_collision = np.array([c.episode.terminate_on_collision for c in self.cfgs])
+        self._due = np.ones(self.rows, dtype=bool)
+        """Slots whose next episode :meth:`reset` starts (each, at first)."""
+        self._obs: list[Any] = [None] * self.rows
+
+    @property
+    def cfg(self) -> LaneFreeConfig:
+        """Run 0's config (the action and observation settings are every run's)."""
+        return self.cfgs[0]
+
+    def _stacked(self) -> Any:
+        if isinstance(self._obs[0], dict):
+            return {name: np.stack([o[name] for o in self._obs]) for name in self._obs[0]}
+        return np.stack(self._obs)
+
+    def reset(self, runs: Sequence[int] | None = None) -> Any:
+        """Start the next episode of every slot of ``runs`` (None: every run not stopped) whose episode ended (at
+        first: all); returns every slot's observation ``[K · slots, …]``."""
+        listed = list(range(self.runs) if runs is None else runs)
+        if any(isinstance(k, bool) or not isinstance(k, int | np.integer) or not 0 <= k < self.runs
+               for k in listed) or len(set(listed)) != len(listed):
+            raise ValueError(f"reset: runs are distinct indices 0 … {self.runs - 1} of this batch, got {runs!r}")
+        m = self.slots
+        for k in (int(k) for k in listed if not self.stopped[k]):
+            rows = range(k * m, (k + 1) * m)
+            if self.grouped and self._due[k * m]:
+                self.episode[rows] += 1
+                env = self.multi[k]
+                observations, _ = env.reset(seed=int(episode_seed(self.cfgs[k].seed, 0, int(self.episode[k * m]))))
+                for row, name in zip(rows, env.possible_agents):
+                    self._obs[row] = observations[name]
+                self._due[rows] = False
+            elif not self.grouped:
+                for r, row in enumerate(rows):
+                    if self._due[row]:
+                        self.episode[row] += 1
+                        seed = episode_seed(self.cfgs[k].seed, r, int(self.episode[row]))
+                        self._obs[row], _ = self.envs[k][r].reset(seed=int(seed))
+                        self._due[row] = False
+        if any(o is None for o in self._obs):
+            raise RuntimeError("the first reset starts every run")
+        return self._stacked()
+
+    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One step of every slot of every run not stopped (a stopped run's slots report reward 0 and no episode
+        end); ``actions`` ``[K · slots, 2]`` continuous or ``[K · slots]`` discrete. The observation of a slot
+        whose episode ended is its last (SB3's terminal observation) until :meth:`reset`."""
+        values = np.asarray(actions)
+        if len(values) != self.rows:
+            raise ValueError(f"step: one action per slot of the batch's {self.runs} run(s) × {self.slots} expected, "
+                             f"got shape {values.shape}")
+        m = self.slots
+        reward = np.zeros(self.rows)
+        terminated = np.zeros(self.rows, dtype=bool)
+        truncated = np.zeros(self.rows, dtype=bool)
+        metrics: list[dict[str, Any] | None] = [None] * self.rows
+        stopped: dict[int, str] = {}
+        for k in range(self.runs):
+            if self.stopped[k]:
+                continue
+            rows = slice(k * m, (k + 1) * m)
+            if not np.isfinite(np.asarray(values[rows], dtype=float)).all():
+                stopped[k] = (f"run {k}: an action at a step of episode {int(self.episode[k * m])} is not finite; "
+                              "a diverged policy must not drive the car")
+                self.stopped[k] = True
+                continue
+            if self.grouped:
+                self._step_agents(k, values[rows], reward, terminated, truncated, metrics)
+                continue
+            for r, env in enumerate(self.envs[k]):
+                row = k * m + r
+                self._obs[row], reward[row], terminated[row], truncated[row], info = env.step(values[row])
+                metrics[row] = info.get("episode_metrics")
+                self._due[row] = metrics[row] is not None
+        return self._stacked(), reward, terminated, truncated, {"episode_metrics": metrics, "stopped": stopped}
+
+    def _step_agents(self, k: int, actions: np.ndarray, reward: np.ndarray, terminated: np.ndarray,
+                     truncated: np.ndarray, metrics: list[dict[str, Any] | None]) -> None:
+        """Run k's agents' step (:class:`~lanefree_sumo.rl.multi_agent.SharedPolicyVecEnv`'s: one agent's end ends
+        the episode of all, the others truncated)."""
+        env = self.multi[k]
+        names = env.possible_agents
+        observations, rewards, terminations, truncations, infos = env.step(
+            {name: actions[i] for i, name in enumerate(names)})
+        done = [terminations[name] or truncations[name] for name in names]
+        for i, name in enumerate(names):
+            row = k * self.slots + i
+            self._obs[row], reward[row] = observations[name], rewards[name]
+            terminated[row] = terminations[name]
+            truncated[row] = truncations[name] or (any(done) and not done[i])
+            if any(done):
+                metrics[row] = infos[name].get("episode_metrics") or env.episode_metrics(name)
+        if any(done):
+            self._due[k * self.slots:(k + 1) * self.slots] = True
+
+    def close(self) -> None:
+        """Close every run's environments."""
+        for multi in self.multi:
+            multi.close()
+        for envs in self.envs:
+            for env in envs:
+                env.close()

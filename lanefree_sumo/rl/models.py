@@ -39,14 +39,20 @@ def training_config(base: LaneFreeConfig) -> ResolvedConfig:
         raise ConfigError(f"--agents {base.scenario.agents} trains one shared policy in one simulation: "
                           "use --envs 1 with it")
     most = MAX_ENVS_PER_CORE * (os.cpu_count() or 1)
-    if base.train.envs > most:
-        raise ConfigError(f"--envs {base.train.envs} starts one process per environment; this machine has "
-                          f"{os.cpu_count()} cores: use at most {most}")
+    if base.train.envs > most and not get_algorithm(t.algo).batched:  # the one trainer runs them in this process
+        raise ConfigError(f"--envs {base.train.envs} starts one process per environment with {t.algo}; this machine "
+                          f"has {os.cpu_count()} cores: use at most {most}")
     if isinstance(base, ResolvedConfig) and base.action.kind == kind and base.backend == t.backend:
         return base
     from lanefree_sumo.rl.env import resolve_config
 
     return resolve_config(merge_config(base, {"action": {"kind": kind}, "backend": t.backend}))
+
+
+def slots(cfg: LaneFreeConfig) -> int:
+    """The environments or learning vehicles one policy of run ``cfg`` acts for at each step (SB3's ``n_envs``):
+    ``train.envs`` environments, or ``scenario.agents`` vehicles of one simulation (never both)."""
+    return cfg.train.envs * cfg.scenario.agents
 
 
 def total_timesteps(cfg: LaneFreeConfig) -> int:
@@ -253,6 +259,10 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
         if len(values) > 1:
             raise ConfigError(f"the runs of one batch must share train.{spec.config_section}.{key} "
                               f"(got {sorted(values, key=str)}); put runs that differ there in separate batches")
+    per_run_slots = {slots(c) for c in cfgs}
+    if len(per_run_slots) > 1:
+        raise ConfigError("the runs of one batch must share scenario.agents and train.envs; put runs that differ "
+                          "there in separate batches")
     first = sections[0]
     if actor_critic:
         return cls(
@@ -263,7 +273,7 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
             learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
             pre_tanh_penalty=[s.pre_tanh_penalty for s in sections],
             encoder=cfgs[0].observation.encoder if cfgs[0].observation.kind == "set" else None,
-            total_timesteps=total_timesteps(cfgs[0]), device=device)
+            total_timesteps=total_timesteps(cfgs[0]), device=device, slots=slots(cfgs[0]))
     return cls(
         [c.train.algo for c in cfgs], observation_space, action_space, seeds,
         learning_rate=[s.learning_rate for s in sections], gamma=[s.gamma for s in sections], layers=first.layers,
@@ -273,4 +283,4 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
         exploration_initial_eps=[s.epsilon_start for s in sections],
         exploration_final_eps=[s.epsilon_end for s in sections], loss=first.loss,
         max_grad_norm=math.inf if first.max_grad_norm is None else first.max_grad_norm,
-        total_timesteps=total_timesteps(cfgs[0]), device=device)
+        total_timesteps=total_timesteps(cfgs[0]), device=device, slots=slots(cfgs[0]))

@@ -12,7 +12,8 @@ Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with plain SB3, 
 one (``lanefree train``), against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved,
 and :func:`dqn_family_speed`: the DQN family on SB3's loop and as a batch of one
 (``--training-only`` runs just these sections, ``--dqn-only`` the last), :func:`single_run_speed`: one run in
-SB3's loop against one run as a batch of one (``--single-only``), and :func:`batch_speed`: runs per
+SB3's loop against one run as a batch of one (``--single-only``), :func:`slot_speed`: the same for a run of
+several agents or environments (``--slots-only``), and :func:`batch_speed`: runs per
 core-hour of sequential runs against batches of K runs in one process, then :func:`set_update_speed`: the set
 observation's update, sequential against batched (``--batch-only``), and :func:`vector_speed`: the vector entry
 point against gymnasium's SyncVectorEnv and the cost of a frame (``--vector-only``). ``--gpu``: the
@@ -90,17 +91,18 @@ def env_overhead(steps: int, seed: int, density: float = 120.0) -> list[tuple[st
 
 
 def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600,
-                  encoder: str | None = None) -> float:
-    """Env steps per second of a training run of ``algo`` including its learning updates,
-    measured over ``steps`` steps after learning has started (specification §9 settings); with
-    ``encoder`` (``small`` or ``paper``), on the set observation through that set encoder."""
+                  encoder: str | None = None, extra: dict[str, Any] | None = None) -> float:
+    """Env steps per second of a training run of ``algo`` on SB3's loop including its learning updates,
+    measured over ``steps`` transitions after learning has started (specification §9 settings); with
+    ``encoder`` (``small`` or ``paper``), on the set observation through that set encoder; ``extra``: more
+    overrides (several agents or environments: a step is one of each)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
+    from lanefree_sumo.rl.models import build_model, make_vec_env, slots, training_config
 
-    cfg = training_config(merge_config(LaneFreeConfig(), {
+    cfg = training_config(merge_config(merge_config(LaneFreeConfig(), {
         "scenario": {"density_veh_per_km": density}, "train": {"algo": algo},
-        **({"observation": {"kind": "set", "encoder": encoder}} if encoder else {})}))
+        **({"observation": {"kind": "set", "encoder": encoder}} if encoder else {})}), extra or {}))
     starts = cfg.train.dqn.learning_starts_steps if algo in ("dqn", "ddqn", "dueling", "per") \
         else cfg.train.actor_critic.learning_starts_steps
     import torch
@@ -127,7 +129,7 @@ def training_rate(algo: str, seed: int, density: float = 90.0, steps: int = 1600
         model.learn(total_timesteps=starts + steps + 1, callback=clock)
     finally:
         env.close()
-    return steps / (clock.t_end - clock.t_start)
+    return steps / slots(cfg) / (clock.t_end - clock.t_start)
 
 
 # -- training speed: DDPG on SB3's loop and as a batch of one, and the HighwayEnv peer ---------------------
@@ -451,6 +453,72 @@ def single_run_speed(seed: int, steps: int = 800, repeats: int = REPEATS) -> str
     return "\n".join(lines)
 
 
+def slot_rate(algo: str, seed: int, extra: dict[str, Any], steps: int, density: float = PEER_DENSITY) -> float:
+    """Env steps/s of one run of several agents or environments (``extra``) in the one trainer (its slots rows
+    of :class:`~lanefree_sumo.rl.env_batch.SlotBatch`: act, env step, store, update, reset), timed over ``steps``
+    steps once learning has started; one thread."""
+    import torch
+
+    from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.env_batch import SlotBatch
+    from lanefree_sumo.rl.models import build_batched, training_config
+
+    cfg = training_config(merge_config(merge_config(LaneFreeConfig(), {
+        "seed": seed, "scenario": {"density_veh_per_km": density}, "train": {"algo": algo}}), extra))
+    torch.set_num_threads(cfg.train.torch_threads)
+    env = SlotBatch([cfg])
+    learner = build_batched([cfg], [seed], observation_space(cfg), action_space(cfg))
+    obs = env.reset()
+    warm = learner.learning_starts // learner.slots
+    t0 = 0.0
+    for step in range(warm + steps):
+        if step == warm:
+            t0 = time.perf_counter()
+        actions = learner.act(obs, explore=True)
+        new_obs, reward, terminated, truncated, _ = env.step(actions)
+        learner.store(obs, actions, reward, new_obs, terminated | truncated, truncated & ~terminated)
+        learner.update()
+        obs = env.reset([0]) if (terminated | truncated).any() else new_obs
+    rate = steps / (time.perf_counter() - t0)
+    env.close()
+    return rate
+
+
+SLOT_CASES: dict[str, dict[str, Any]] = {"4 agents": {"scenario": {"agents": 4}},
+                                         "2 environments": {"train": {"envs": 2}}}
+"""The runs of several slots :func:`slot_speed` times."""
+
+
+def slot_speed(seed: int, steps: int = 400, repeats: int = REPEATS) -> str:
+    """Markdown: env steps/s of one DDPG run of several agents, and of several environments, on SB3's loop (its
+    ``SharedPolicyVecEnv``; one process per environment) and in the one trainer (``lanefree train``), measured
+    ``repeats`` times interleaved (medians)."""
+    cases: dict[tuple[str, str], Callable[[], float]] = {}
+    for label, extra in SLOT_CASES.items():
+        cases[(label, "sb3")] = functools.partial(training_rate, "ddpg", seed, PEER_DENSITY,
+                                                  steps * slots_of(extra), extra=extra)
+        cases[(label, "one")] = functools.partial(slot_rate, "ddpg", seed, extra, steps)
+    rate = _interleaved(cases, repeats)
+    lines = [
+        f"One DDPG run of several agents or environments, the two paths (paper settings, {PEER_DENSITY:g} veh/km, one "
+        f"thread; {steps} steps timed after learning starts; median of {repeats} interleaved repeats; load average "
+        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end), env steps/s (a step moves every agent or "
+        "environment):",
+        "",
+        "| run | SB3's loop | the one trainer (`lanefree train`) | × |",
+        "|---|---|---|---|",
+    ]
+    for label in SLOT_CASES:
+        before, now = rate[(label, "sb3")], rate[(label, "one")]
+        lines.append(f"| DDPG, {label} | {before:.1f} | {now:.1f} | {now / before:.2f}× |")
+    return "\n".join(lines)
+
+
+def slots_of(extra: dict[str, Any]) -> int:
+    """The slots of a run with the overrides ``extra``."""
+    return int(extra.get("scenario", {}).get("agents", 1)) * int(extra.get("train", {}).get("envs", 1))
+
+
 def batch_speed(seed: int, steps: int = 800) -> str:
     """Markdown: runs per core-hour of sequential ``lanefree train`` against batches of K runs (one process, one
     thread each, measured one after another in this run), DDPG and DQN, and the replay memory per run."""
@@ -669,7 +737,7 @@ def run(steps: int, seed: int, out_dir: Path) -> str:
         hours = 625 * 800 / rate / 3600.0
         lines.append(f"| {algo} | {rate:.0f} | {hours:.2f} h ({625 * 800 / rate / 625:.1f} s/episode) |")
     lines += ["", vector_speed(), "", training_speed(seed),
-              "", single_run_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
+              "", single_run_speed(seed), "", slot_speed(seed), "", batch_speed(seed), "", set_update_speed(seed)]
     table = "\n".join(lines)
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -712,6 +780,8 @@ def main() -> None:
                         help="only the batched-training section (sequential against batches of 1, 4, 8, 16 runs)")
     parser.add_argument("--single-only", action="store_true",
                         help="only one run's two paths: SB3's loop against a batch of one")
+    parser.add_argument("--slots-only", action="store_true",
+                        help="only a run of several agents or environments: SB3's loop against the one trainer")
     gpu = parser.add_argument_group("--gpu: the batched path on a torch device (lanefree_sumo.tools.bench_gpu)")
     gpu.add_argument("--gpu", action="store_true", help="run the device benchmark (make bench-gpu)")
     gpu.add_argument("--device", default="cuda", choices=("cuda", "torch-cpu"),
@@ -742,6 +812,8 @@ def main() -> None:
         print(vector_speed(steps=args.steps))
     elif args.single_only:
         print(single_run_speed(args.seed, steps=args.steps))
+    elif args.slots_only:
+        print(slot_speed(args.seed, steps=args.steps))
     elif args.batch_only:
         print(single_run_speed(args.seed, steps=args.steps))
         print()

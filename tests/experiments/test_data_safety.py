@@ -247,7 +247,7 @@ def test_operating_system_limits_and_impossible_requests_are_one_line(tmp_path):
     res = lanefree("simulate", "--seconds", "1", "--backend", "numpy", "--out", str(long_name))
     assert res.returncode == 1 and res.stderr.count("\n") == 1, res.stderr
     assert "File name too long" in res.stderr and "shorter name" in res.stderr and "internal error" not in res.stderr
-    res = lanefree("train", "--envs", "1000", "--episodes", "1", "--out", str(tmp_path / "many"))
+    res = lanefree("train", "--algo", "ppo", "--envs", "1000", "--episodes", "1", "--out", str(tmp_path / "many"))
     assert res.returncode == 2 and "use at most" in res.stderr and res.stderr.count("\n") == 1
     assert not (tmp_path / "many").exists()
 

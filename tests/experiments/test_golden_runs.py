@@ -136,6 +136,18 @@ def test_a_single_run_of_several_agents_or_environments_reproduces_its_golden_ep
     assert rows(run / "episodes.csv", golden) == rows(golden)
 
 
+@pytest.mark.parametrize(("algo", "scene"), [("ddpg", "agents2"), ("dqn", "envs2")])
+def test_batched_run_k_of_several_agents_or_environments_reproduces_the_golden_single_run(tmp_path, algo, scene):
+    """Two runs of two slots each (two agents of one simulation, or two environments) as one batch: run k's
+    episodes are its single run's, frozen from SB3's loop."""
+    runs = train_batch([merge_config(config(algo, seed=7), SHARED[scene]),
+                        merge_config(config(algo, seed=3), SHARED[scene])], tmp_path / "batch", progress=False,
+                       command="test")
+    golden = golden_file(f"{algo}_{scene}_episodes.csv")
+    assert rows(runs[1][0] / "episodes.csv", golden) == rows(golden)
+    assert rows(runs[0][0] / "episodes.csv", golden) != rows(golden)  # run 0 is another seed's
+
+
 @pytest.mark.parametrize("scene", list(SCENES))
 def test_batched_run_k_with_the_shield_or_on_the_on_ramp_reproduces_the_golden_single_run(tmp_path, scene):
     runs = train_batch([merge_config(config("ddpg", seed=7), SCENES[scene]),

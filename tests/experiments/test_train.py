@@ -227,6 +227,39 @@ def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_
         train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
 
 
+@pytest.mark.parametrize(("algo", "slots"), [("ddpg", {"scenario": {"agents": 2}}), ("dqn", {"train": {"envs": 2}})],
+                         ids=["ddpg-agents2", "dqn-envs2"])
+def test_a_run_of_several_agents_or_environments_resumed_equals_the_uninterrupted_run(tmp_path, monkeypatch, algo,
+                                                                                     slots):
+    """A run of two learning vehicles (one shared policy) or of two environments trains in the one trainer too (a
+    batch of one whose run has two slots): SIGTERM at step 150, in the middle of an episode and after a checkpoint,
+    and --resume give the uninterrupted run's episodes.csv (every column but wall time)."""
+    import os
+
+    from lanefree_sumo.experiments.runners import batch
+
+    def table(run: Path) -> list[dict[str, str]]:
+        return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows(run / "episodes.csv")]
+
+    cfg = merge_config(merge_config(tiny_config(algo), {"train": {"episodes": 4}}), slots)
+    whole, done = train(cfg, run=tmp_path / "whole", progress=False, command="test")
+    assert done == 4 and (whole / "batch.json").is_file()
+    step = batch._Batch._step
+
+    def interrupted(self, env, learner, *args):
+        checkpoint = step(self, env, learner, *args)
+        if learner.num_timesteps == 300:  # step 150 of two slots
+            os.kill(os.getpid(), signal.SIGTERM)
+        return checkpoint
+
+    monkeypatch.setattr(batch._Batch, "_step", interrupted)
+    cut, done = train(cfg, run=tmp_path / "cut", progress=False, command="test")
+    monkeypatch.undo()
+    assert done == (1 if "scenario" in slots else 2) and not (cut / "model.zip").exists()
+    assert train(LaneFreeConfig(), run=cut, resume=True, progress=False, command="test") == (cut, 4)
+    assert table(cut) == table(whole) and len(table(whole)) == (8 if "scenario" in slots else 4)
+
+
 @pytest.mark.parametrize("scene", [{}, {"shield": {"enabled": True}, "road": {"kind": "onramp"},
                                         "scenario": {"density_veh_per_km": 40}}, {"train": {"backend": "libsumo"}}],
                          ids=["ring", "shield-onramp", "libsumo"])

@@ -60,7 +60,7 @@ KEEP_BATCH_CHECKPOINTS = 2
 
 
 def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
-    """What of ``cfg`` the batched path cannot train (one phrase, e.g. ``several agents (--agents)``), or None
+    """What of ``cfg`` the batched path cannot train (one phrase, e.g. ``the ppo algorithm (--algo)``), or None
     when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer.
     ``alone``: the run is a batch of one (``lanefree train --seed``), which may run inside SUMO."""
     from lanefree_sumo.rl.algorithms import BATCHED
@@ -69,11 +69,12 @@ def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
     cpu = cpu_only(cfg)
+    several = _several(cfg)
     for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on train.device = cpu)"),
-                        (cfg.scenario.agents != 1, "several agents (--agents)"),
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
-                        (cfg.train.envs != 1, "several environments (--envs)"),
+                        (several is not None and cfg.train.backend != "numpy",
+                         f"{several} inside SUMO (--backend {cfg.train.backend})"),
                         (cfg.train.backend != "numpy" and not alone,
                          f"the {cfg.train.backend} backend (--backend)")):
         if wrong:
@@ -81,10 +82,20 @@ def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
     return None
 
 
+def _several(cfg: LaneFreeConfig) -> str | None:
+    """``several agents (--agents)`` or ``several environments (--envs)`` for a run of several slots (SB3's
+    ``n_envs``: :class:`~lanefree_sumo.rl.env_batch.SlotBatch`), else None."""
+    if cfg.scenario.agents != 1:
+        return "several agents (--agents)"
+    return "several environments (--envs)" if cfg.train.envs != 1 else None
+
+
 def needs_env_batch(cfg: LaneFreeConfig) -> bool:
     """Whether a batch of ``cfg``'s runs steps LaneFree-v0 environments (:class:`~lanefree_sumo.rl.env_batch.
-    EnvBatch`: the shield, a road other than the ring, a run inside SUMO) rather than the ring's batched world."""
-    return cfg.shield.enabled or not road_kind(cfg).batched_world or cfg.train.backend != "numpy"
+    EnvBatch`: the shield, a road other than the ring, a run inside SUMO; :class:`~lanefree_sumo.rl.env_batch.
+    SlotBatch`: several agents or environments per run) rather than the ring's batched world."""
+    return (cfg.shield.enabled or not road_kind(cfg).batched_world or cfg.train.backend != "numpy"
+            or _several(cfg) is not None)
 
 
 def cpu_only(cfg: LaneFreeConfig) -> str | None:
@@ -95,6 +106,9 @@ def cpu_only(cfg: LaneFreeConfig) -> str | None:
         return None
     if cfg.shield.enabled:
         return "the safety shield (--shield)"
+    several = _several(cfg)
+    if several is not None:
+        return several
     if cfg.train.backend != "numpy":
         return f"the {cfg.train.backend} backend (--backend)"
     return f"the {cfg.road.kind} road (--scenario)"
@@ -409,10 +423,11 @@ class _Batch:
     def _start(self) -> tuple[Any, Any, _Books]:
         """A new batch's environment (every run reset), its first observation and its books."""
         from lanefree_sumo.rl.batched_env import BatchedRingEnv
-        from lanefree_sumo.rl.env_batch import EnvBatch
+        from lanefree_sumo.rl.env_batch import EnvBatch, SlotBatch
 
-        env = (EnvBatch if any(needs_env_batch(c) for c in self.cfgs) else BatchedRingEnv)(self.cfgs,
-                                                                                         device=self.device)
+        kind = (SlotBatch if any(_several(c) is not None for c in self.cfgs) else
+                EnvBatch if any(needs_env_batch(c) for c in self.cfgs) else BatchedRingEnv)
+        env = kind(self.cfgs, device=self.device)
         obs = env.reset()
         return env, obs, _Books([0] * self.runs, [c.train.episodes for c in self.cfgs], [False] * self.runs)
 
@@ -486,7 +501,7 @@ class _Batch:
                     print(f"{self.folders[k].path}: stopped: {books.stopped[k]}", file=sys.stderr)
                     continue
                 ended[k] = True
-                checkpoint |= self._episode_done(k, env.episode_metrics(k, host), learner.num_timesteps, learner,
+                checkpoint |= self._episode_done(k, [env.episode_metrics(k, host)], learner.num_timesteps, learner,
                                                  env, books, logs, bar)
             learner.episodes_ended(ended)
             loop.start(env.reset([k for k in range(self.runs) if books.active(k)]))
@@ -496,14 +511,16 @@ class _Batch:
         if stop.requested and any(books.active(k) for k in range(self.runs)):
             self.save(env, learner, loop.obs, books, loop)
 
-    def _episode_done(self, k: int, metrics: dict[str, Any], timesteps: int, learner: Any, env: Any,
+    def _episode_done(self, k: int, group: list[dict[str, Any]], timesteps: int, learner: Any, env: Any,
                       books: _Books, logs: list[EpisodeLog], bar: Any) -> bool:
-        """Run k ended an episode: its row, and its final model when it is done; returns whether it reached a
-        checkpoint episode."""
+        """Run k ended an episode: its rows (``group``: one, or one per agent), and its final model when it is
+        done; returns whether it reached a checkpoint episode."""
         books.done[k] += 1
         cfg = self.cfgs[k]
-        logs[k].append({**metrics, "episode": books.done[k], "algorithm": cfg.train.algo, "timesteps": timesteps})
-        self._boards[k].episode(metrics, timesteps)
+        for metrics in group:
+            logs[k].append({**metrics, "episode": books.done[k], "algorithm": cfg.train.algo,
+                            "timesteps": timesteps})
+        self._boards[k].episode(group, timesteps)
         bar.update(1)
         if books.done[k] >= books.target[k]:
             books.finished[k] = True  # the sequential run stops here: its final model is this one
@@ -523,18 +540,26 @@ class _Batch:
         """One step of every run in SB3's order; returns whether a run reached a checkpoint episode."""
         actions = learner.act(obs, explore=True)
         new_obs, reward, terminated, truncated, info = env.step(actions)
-        timesteps = learner.num_timesteps + 1  # SB3 counts the step before the callback sees it
+        m = learner.slots
+        timesteps = learner.num_timesteps + m  # SB3 counts the step before the callback sees it
         checkpoint = False
         for k, reason in info["stopped"].items():
             if books.active(k):
                 books.stopped[k] = reason
                 print(f"{self.folders[k].path}: stopped: {reason}", file=sys.stderr)
         self._ended = np.zeros(self.runs, dtype=bool)
-        for k, metrics in enumerate(info["episode_metrics"]):
-            if metrics is None or not books.active(k):
+        grouped = getattr(env, "grouped", False)
+        for k in range(self.runs):
+            ended = [metrics for metrics in info["episode_metrics"][k * m:(k + 1) * m] if metrics is not None]
+            if not ended or not books.active(k):
                 continue
             self._ended[k] = True
-            checkpoint |= self._episode_done(k, metrics, timesteps, learner, env, books, logs, bar)
+            # SB3's callback: the agents' rows of one episode form that episode; several environments' ends are
+            # episodes one after another, those past the run's last one dropped
+            for group in [ended] if grouped else [[metrics] for metrics in ended]:
+                if not books.active(k):
+                    break
+                checkpoint |= self._episode_done(k, group, timesteps, learner, env, books, logs, bar)
         done = terminated | truncated
         learner.store(obs, actions, reward, new_obs, done, truncated & ~terminated)
         learner.update()
@@ -608,14 +633,15 @@ class _Board:
         self.folder = folder
         self._writer: Any = None
 
-    def episode(self, metrics: dict[str, Any], timesteps: int) -> None:
-        """The episode's :data:`TENSORBOARD_SCALARS` at the batch's step ``timesteps``."""
+    def episode(self, group: list[dict[str, Any]], timesteps: int) -> None:
+        """The episode's :data:`TENSORBOARD_SCALARS` (the mean over its agents' rows ``group``) at the batch's step
+        ``timesteps``."""
         if self._writer is None:
             from torch.utils.tensorboard import SummaryWriter
 
             self._writer = SummaryWriter(log_dir=str(self.folder))
         for key in TENSORBOARD_SCALARS:
-            self._writer.add_scalar(f"episode/{key}", float(metrics[key]), timesteps)
+            self._writer.add_scalar(f"episode/{key}", float(np.mean([m[key] for m in group])), timesteps)
         self._writer.flush()
 
     def close(self) -> None:

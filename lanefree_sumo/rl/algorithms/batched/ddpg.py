@@ -88,7 +88,7 @@ class BatchedDDPG(BatchedLearner):
                  critic_layers: Sequence[int] = (256, 128), batch_size: int = 64, buffer_size: int = 100_000,
                  learning_starts: int = 800, warmup_actions: str = "uniform", total_timesteps: int = 1,
                  pre_tanh_penalty: float | Sequence[float] = 0.0, encoder: str | None = None,
-                 device: str = "cpu", exact: bool | None = None) -> None:
+                 device: str = "cpu", exact: bool | None = None, slots: int = 1) -> None:
         if not isinstance(action_space, spaces.Box) or len(action_space.shape) != 1:
             raise ValueError("batched DDPG takes a flat Box action space")
         if warmup_actions not in WARMUP_ACTIONS:
@@ -96,7 +96,7 @@ class BatchedDDPG(BatchedLearner):
         n_actions = int(action_space.shape[0])
         super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
                          learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=n_actions,
-                         action_dtype=th.float32, device=device, exact=exact)
+                         action_dtype=th.float32, device=device, exact=exact, slots=slots)
         k = self.runs
         self.learning_rate = per_run(learning_rate, k, "learning_rate")
         self.gamma = per_run(gamma, k, "gamma")
@@ -139,7 +139,7 @@ class BatchedDDPG(BatchedLearner):
         self._tau = per_run_column(self.tau, self.device)
         self._one_minus_tau = per_run_column([1 - t for t in self.tau], self.device)
         self._shared_tau = self.tau[0] if len(set(self.tau)) == 1 else None
-        self.noise = OUNoise(self.ou_sigma, self.ou_theta, n_actions)
+        self.noise = OUNoise(self.ou_sigma, self.ou_theta, n_actions, self.slots)
         self._one = th.tensor(1.0, device=self.device)
         self._penalty = (None if not any(self.pre_tanh_penalty)
                          else per_run_column(self.pre_tanh_penalty, self.device).unsqueeze(2))
@@ -192,17 +192,18 @@ class BatchedDDPG(BatchedLearner):
                 *grads]
 
     def actor_output(self, obs: Any) -> th.Tensor:
-        """μ(s) of every run, ``[K, actions]`` in [−1, 1] (obs ``[K, obs]``, or the set observation's dict)."""
+        """μ(s) of every run's slots, ``[K · slots, actions]`` in [−1, 1] (obs ``[K · slots, obs]``, or the set
+        observation's dict)."""
         with th.no_grad():
-            return self._forward(self.actor, self._obs(obs), None, True)[1][-1].reshape(self.runs, -1)
+            return self._forward(self.actor, self._obs(obs), None, True)[1][-1].reshape(self.rows, -1)
 
     def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
-        """Every run's action for the env, ``[K, actions]`` (SB3's ``_sample_action``: random for the first
+        """Every run's actions for the env, ``[K · slots, actions]`` (SB3's ``_sample_action``: random for the first
         :attr:`random_steps`, then μ(s); with ``explore`` plus the run's OU noise, clipped; without, ``predict``'s
         deterministic action)."""
         policy = self._policy
         if explore and self.num_timesteps < self.random_steps:
-            unscaled = np.stack([space.sample() for space in self.streams.spaces])
+            unscaled = np.stack([space.sample() for space in self.streams.spaces for _ in range(self.slots)])
         else:
             unscaled = policy.unscale_action(self.actor_output(obs).cpu().numpy())
             if not explore:
@@ -246,7 +247,7 @@ class BatchedDDPG(BatchedLearner):
         """The scaled action SB3 stores: the one :meth:`act` computed for ``action``, else ``action`` scaled."""
         if self._last is not None and action is self._last[0]:
             return self._last[1]
-        return self._policy.scale_action(np.asarray(action).reshape(self.runs, -1))
+        return self._policy.scale_action(np.asarray(action).reshape(self.rows, -1))
 
     def _episodes_ended(self, done: np.ndarray) -> None:
         self.noise.reset(done)
@@ -256,7 +257,7 @@ class BatchedDDPG(BatchedLearner):
     # -- the update -------------------------------------------------------------------------------------------
 
     def _update(self) -> None:
-        self._learn(self.streams.sample_indices(self.replay.size(), self.batch_size))
+        self._learn(self.streams.sample_indices(self.replay.size(), self.batch_size, self.slots))
 
     def _learn(self, indices: np.ndarray | th.Tensor) -> None:
         mm = self.mm

@@ -107,7 +107,7 @@ class BatchedDQN(BatchedLearner):
                  exploration_final_eps: float | Sequence[float] = 0.05, max_grad_norm: float = 10.0,
                  loss: str = "huber", total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4,
                  per_eps: float = 1e-6,
-                 device: str = "cpu", exact: bool | None = None) -> None:
+                 device: str = "cpu", exact: bool | None = None, slots: int = 1) -> None:
         algos = [algo] * len(seeds) if isinstance(algo, str) else list(algo)
         for name in algos:
             if name not in FAMILY:
@@ -123,7 +123,7 @@ class BatchedDQN(BatchedLearner):
             raise ValueError("batched DQN takes the vector observation (a flat Box)")
         super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
                          learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=1,
-                         action_dtype=th.int64, device=device, exact=exact)
+                         action_dtype=th.int64, device=device, exact=exact, slots=slots)
         from lanefree_sumo.rl.algorithms import get_algorithm
 
         k = self.runs
@@ -161,7 +161,7 @@ class BatchedDQN(BatchedLearner):
         self._mean_grad = th.full((k, self.batch_size, 1), 1.0 / self.batch_size, device=self.device)
         self._one = th.tensor(1.0, device=self.device)
         self._n_calls = 0
-        self.priorities = ([RunPriorities(self.buffer_size, per_alpha, per_eps) for _ in range(k)]
+        self.priorities = ([RunPriorities(self.replay.capacity * self.slots, per_alpha, per_eps) for _ in range(k)]
                            if algos[0] == "per" else [])
 
     def optimisers(self) -> list[StackedAdam]:
@@ -170,21 +170,23 @@ class BatchedDQN(BatchedLearner):
     # -- acting -----------------------------------------------------------------------------------------------
 
     def q_values(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
-        """Q(s, ·) of every run, ``[K, actions]`` (obs ``[K, obs]``)."""
+        """Q(s, ·) of every run's slots, ``[K · slots, actions]`` (obs ``[K · slots, obs]``)."""
         with th.no_grad():
-            return self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.runs, -1)
+            return self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.rows, -1)
 
     def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
-        """Every run's action ``[K]`` (SB3's ``_sample_action``: random before ``learning_starts``, then
-        ε-greedy with the run's ε; without ``explore`` the greedy action)."""
-        actions = np.zeros(self.runs, dtype=np.int64)
-        greedy = np.ones(self.runs, dtype=bool)
+        """Every run's actions ``[K · slots]`` (SB3's ``_sample_action``: random before ``learning_starts``, then
+        ε-greedy with the run's ε, one draw for all its slots as SB3's ``predict`` draws it; without ``explore``
+        the greedy action)."""
+        m = self.slots
+        actions = np.zeros(self.rows, dtype=np.int64)
+        greedy = np.ones(self.rows, dtype=bool)
         if explore:
             warm_up = self.num_timesteps < self.learning_starts
             for k, (rs, space) in enumerate(zip(self.streams.numpy, self.streams.spaces)):
                 if warm_up or rs.rand() < self.exploration_rate[k]:
-                    actions[k] = space.sample()
-                    greedy[k] = False
+                    actions[k * m:(k + 1) * m] = [space.sample() for _ in range(m)]
+                    greedy[k * m:(k + 1) * m] = False
         if greedy.any():
             best = self.q_values(obs).argmax(dim=1).cpu().numpy()
             actions[greedy] = best[greedy]
@@ -255,16 +257,18 @@ class BatchedDQN(BatchedLearner):
         return actions, actions.reshape(self.runs, 1)
 
     def _buffer_actions(self, action: np.ndarray) -> np.ndarray:
-        return np.asarray(action).reshape(self.runs, 1)
+        return np.asarray(action).reshape(self.rows, 1)
 
     def _stored(self, pos: int) -> None:
+        flat = np.arange(pos * self.slots, (pos + 1) * self.slots)  # the step's transitions, one per slot
         for priorities in self.priorities:
-            priorities.added(pos)
+            priorities.added(flat)
 
     def _on_step(self) -> None:
-        """SB3's DQN ``_on_step``: the target copied every ``target_update_interval`` steps, ε from the schedule."""
+        """SB3's DQN ``_on_step``: the target copied every ``target_update_interval`` timesteps (every
+        ``target_update_interval // slots`` steps), ε from the schedule."""
         self._n_calls += 1
-        if self._n_calls % max(self.target_update_interval, 1) == 0:
+        if self._n_calls % max(self.target_update_interval // self.slots, 1) == 0:
             hard_update(self.q_net_target.stack, self.q_net.stack)
         self.exploration_rate = [schedule(self.progress_remaining) for schedule in self.exploration]
 
@@ -278,7 +282,7 @@ class BatchedDQN(BatchedLearner):
     def _sample(self) -> tuple[np.ndarray, th.Tensor | None]:
         """Every run's minibatch positions ``[K, batch]`` and, with prioritised replay, loss weights."""
         if not self.priorities:
-            return self.streams.sample_indices(self.replay.size(), self.batch_size), None
+            return self.streams.sample_indices(self.replay.size(), self.batch_size, self.slots), None
         beta = self.per_beta()
         drawn = [p.sample(rs, self.batch_size, beta) for p, rs in zip(self.priorities, self.streams.numpy)]
         indices = np.stack([d[0] for d in drawn])

@@ -90,7 +90,11 @@ class BatchedLearner:
     :param seeds: run k's seed (its initial weights and random streams are the single run's with this seed).
     :param total_timesteps: the runs' SB3 ``learn`` length in steps (the progress the ε and β schedules read).
     :param device: where the networks and the replay live (CPU: batched run k equals the single run bit for bit).
-    :param exact: use the batched products only where they give the single run's bits (default: on CPU)."""
+    :param exact: use the batched products only where they give the single run's bits (default: on CPU).
+    :param slots: the environments or learning vehicles of each run (SB3's ``n_envs``: one shared policy acts for
+        each, every step stores a transition of each and counts that many timesteps; ``buffer_size`` is shared
+        among them as SB3 shares it). Observations, actions and rewards are then ``[K · slots, …]``, run k's
+        slots in rows k · slots …"""
 
     host_draws: ClassVar[str | None] = None
     """What of the update draws its random numbers on the host, so that the lockstep loop
@@ -99,20 +103,26 @@ class BatchedLearner:
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, seeds: Sequence[int], *,
                  batch_size: int, buffer_size: int, learning_starts: int, total_timesteps: int,
                  action_dim: int, action_dtype: th.dtype, device: str = "cpu",
-                 exact: bool | None = None) -> None:
+                 exact: bool | None = None, slots: int = 1) -> None:
         self.obs_dim = observation_size(observation_space)
         if not seeds:
             raise ValueError("a batch needs at least one run")
         self.observation_space, self.action_space = observation_space, action_space
         self.seeds = [int(s) for s in seeds]
         self.runs = len(self.seeds)
+        if slots < 1:
+            raise ValueError(f"slots: a run has at least one environment or agent, got {slots}")
+        self.slots = int(slots)
+        self.rows = self.runs * self.slots
+        """Rows of the observations and actions: each run's slots."""
         self.device = torch_device(device)
         """The torch device of the networks and the replay (``device`` is ``train.device``)."""
         self.mm = Products(self.device.type == "cpu" if exact is None else exact)
         self.batch_size, self.buffer_size = int(batch_size), int(buffer_size)
         self.learning_starts, self.total_timesteps = int(learning_starts), int(total_timesteps)
         self.streams = RunStreams(self.seeds, action_space)
-        self.replay = BatchedReplay(self.runs, self.buffer_size, self.obs_dim, action_dim, action_dtype, self.device)
+        self.replay = BatchedReplay(self.runs, max(self.buffer_size // self.slots, 1), self.obs_dim, action_dim,
+                                    action_dtype, self.device, self.slots)
         self.num_timesteps = 0
         self.n_updates = 0
         self.progress_remaining = 1.0
@@ -125,22 +135,23 @@ class BatchedLearner:
     # -- the cycle ------------------------------------------------------------------------------------------
 
     def _obs(self, obs: Any) -> th.Tensor:
-        """Observations ``[K, obs]`` (host arrays, or tensors where the env runs on a device; the set observation's
-        dicts flattened, :func:`flat_observations`) as the networks take them: ``[K, 1, obs]`` float32 on the
-        device."""
+        """Observations ``[K · slots, obs]`` (host arrays, or tensors where the env runs on a device; the set
+        observation's dicts flattened, :func:`flat_observations`) as the networks take them: ``[K, slots, obs]``
+        float32 on the device."""
         obs = flat_observations(obs)
         values = obs if isinstance(obs, th.Tensor) else th.as_tensor(np.asarray(obs))
-        return values.float().reshape(self.runs, 1, self.obs_dim).to(self.device)
+        return values.float().reshape(self.runs, self.slots, self.obs_dim).to(self.device)
 
     def store(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
               done: np.ndarray, truncated: np.ndarray | None = None) -> None:
-        """Store every run's transition and advance the step count (SB3's ``_store_transition`` and
-        ``_on_step``). ``action``: what :meth:`act` returned; ``done``: the episode ended (terminated or
-        truncated); ``truncated``: it ended by the time limit (SB3's ``TimeLimit.truncated``: no terminal
-        value cut); ``next_obs``: the observation after the action (the terminal one where ``done``)."""
-        done = np.asarray(done, dtype=bool).reshape(self.runs)
-        timeouts = np.zeros(self.runs, dtype=bool) if truncated is None else np.asarray(truncated, dtype=bool)
-        self.num_timesteps += 1
+        """Store every run's transitions (one per slot) and advance the step count by the slots (SB3's
+        ``_store_transition`` and ``_on_step``). ``action``: what :meth:`act` returned; ``done``: the episode
+        ended (terminated or truncated); ``truncated``: it ended by the time limit (SB3's ``TimeLimit.truncated``:
+        no terminal value cut); ``next_obs``: the observation after the action (the terminal one where
+        ``done``)."""
+        done = np.asarray(done, dtype=bool).reshape(self.rows)
+        timeouts = np.zeros(self.rows, dtype=bool) if truncated is None else np.asarray(truncated, dtype=bool)
+        self.num_timesteps += self.slots
         pos = self.replay.add(flat_observations(obs), flat_observations(next_obs), self._buffer_actions(action),
                               np.asarray(reward), done, timeouts)
         self._stored(pos)
@@ -151,7 +162,7 @@ class BatchedLearner:
 
     def update(self) -> bool:
         """One gradient step for every run once the step count is past ``learning_starts`` (SB3's ``learn``:
-        ``train_freq = gradient_steps = 1``); returns whether it stepped."""
+        ``train_freq = gradient_steps = 1``: one per step of all slots); returns whether it stepped."""
         if not (self.num_timesteps > 0 and self.num_timesteps > self.learning_starts):
             return False
         self.n_updates += 1
@@ -209,7 +220,8 @@ class BatchedLearner:
                 adam.steps += 1
 
     def episodes_ended(self, done: np.ndarray) -> None:
-        """Runs ``done`` (bool ``[K]``) ended an episode outside :meth:`store` (the lockstep loop: noise reset)."""
+        """Slots ``done`` (bool ``[K · slots]``) ended an episode outside :meth:`store` (the lockstep loop: noise
+        reset)."""
         self._episodes_ended(np.asarray(done, dtype=bool))
 
     def device_state(self) -> dict[str, Any]:
@@ -250,7 +262,7 @@ class BatchedLearner:
         """SB3's ``_on_step`` (after the step count and the progress moved)."""
 
     def _episodes_ended(self, done: np.ndarray) -> None:
-        """Runs ``done`` (bool ``[K]``) ended an episode."""
+        """Slots ``done`` (bool ``[K · slots]``) ended an episode."""
 
     def _update(self) -> None:
         raise NotImplementedError

@@ -34,13 +34,14 @@ class RunStreams:
             space.seed(int(seed))
             self.spaces.append(space)
 
-    def sample_indices(self, upper: int, batch_size: int) -> np.ndarray:
-        """``ReplayBuffer.sample``'s draws for every run: ``[K, batch]`` positions (and the env index draw,
-        always 0 with one env, made as SB3 makes it)."""
+    def sample_indices(self, upper: int, batch_size: int, slots: int = 1) -> np.ndarray:
+        """``ReplayBuffer.sample``'s draws for every run: ``[K, batch]`` flat indices ``position · slots + slot``
+        (:class:`BatchedReplay`) from the step position drawn below ``upper``, then the env index (SB3's
+        ``env_indices``: always 0 with one env), each run from its stream as SB3 draws them."""
         out = np.empty((len(self.numpy), batch_size), dtype=np.int64)
         for k, rs in enumerate(self.numpy):
-            out[k] = rs.randint(0, upper, size=batch_size)
-            rs.randint(0, high=1, size=(batch_size,))
+            out[k] = rs.randint(0, upper, size=batch_size) * slots
+            out[k] += rs.randint(0, high=slots, size=(batch_size,))
         return out
 
     def state(self) -> dict[str, Any]:
@@ -61,43 +62,51 @@ class RunStreams:
 
 
 class OUNoise:
-    """SB3's ``OrnsteinUhlenbeckActionNoise`` (dt = 0.01, mean 0, float64 state, float32 noise) for K runs,
-    ``[K, actions]``, each run with its own σ and θ, drawing from its own stream."""
+    """SB3's ``OrnsteinUhlenbeckActionNoise`` (dt = 0.01, mean 0, float64 state, float32 noise) for K runs of
+    ``slots`` environments or agents each (SB3's ``VectorizedActionNoise``: one process per slot), ``[K · slots,
+    actions]`` (run k's slots in rows k · slots …), each run with its own σ and θ, drawing from its own stream
+    slot after slot."""
 
     DT = 1e-2
 
-    def __init__(self, sigma: Sequence[float], theta: Sequence[float], n_actions: int) -> None:
-        k = len(sigma)
-        self.mu = np.zeros((k, n_actions))
-        self.sigma = np.array([float(s) * np.ones(n_actions) for s in sigma])
-        self.theta = np.array([[float(t)] for t in theta])
-        self.prev = np.zeros((k, n_actions))
+    def __init__(self, sigma: Sequence[float], theta: Sequence[float], n_actions: int, slots: int = 1) -> None:
+        rows = len(sigma) * slots
+        self.slots = slots
+        self.mu = np.zeros((rows, n_actions))
+        self.sigma = np.array([float(s) * np.ones(n_actions) for s in sigma for _ in range(slots)])
+        self.theta = np.array([[float(t)] for t in theta for _ in range(slots)])
+        self.prev = np.zeros((rows, n_actions))
 
     def __call__(self, streams: RunStreams) -> np.ndarray:
-        normal = np.stack([rs.normal(size=self.mu.shape[1]) for rs in streams.numpy])
+        normal = np.stack([streams.numpy[row // self.slots].normal(size=self.mu.shape[1])
+                           for row in range(self.mu.shape[0])])
         noise = (self.prev + self.theta * (self.mu - self.prev) * self.DT
                  + self.sigma * np.sqrt(self.DT) * normal)
         self.prev = noise
         return noise.astype(np.float32)
 
-    def reset(self, runs: np.ndarray) -> None:
-        """Back to zero for the runs whose episode ended (``runs``: bool ``[K]``)."""
-        self.prev[runs] = 0.0
+    def reset(self, rows: np.ndarray) -> None:
+        """Back to zero for the slots whose episode ended (``rows``: bool ``[K · slots]``)."""
+        self.prev[rows] = 0.0
 
 
 class BatchedReplay:
-    """K replay buffers of one capacity as tensors ``[K, capacity, …]`` (SB3's ``ReplayBuffer`` contents:
-    observations, next observations, actions, rewards, dones, timeouts); all runs store together."""
+    """K replay buffers of one capacity as tensors ``[K, capacity · slots, …]`` (SB3's ``ReplayBuffer`` contents:
+    observations, next observations, actions, rewards, dones, timeouts); all runs store together. A run of
+    ``slots`` environments or agents stores one transition per slot at each step position, as SB3's buffer of
+    ``n_envs`` does (its ``[capacity, n_envs]`` flattened: position p, slot m at p · slots + m); ``capacity``
+    counts step positions."""
 
     def __init__(self, runs: int, capacity: int, obs_dim: int, action_dim: int, action_dtype: th.dtype,
-                 device: th.device) -> None:
-        self.capacity = capacity
-        self.observations = th.zeros(runs, capacity, obs_dim, device=device)
-        self.next_observations = th.zeros(runs, capacity, obs_dim, device=device)
-        self.actions = th.zeros(runs, capacity, action_dim, dtype=action_dtype, device=device)
-        self.rewards = th.zeros(runs, capacity, device=device)
-        self.dones = th.zeros(runs, capacity, device=device)
-        self.timeouts = th.zeros(runs, capacity, device=device)
+                 device: th.device, slots: int = 1) -> None:
+        self.capacity, self.slots = capacity, slots
+        rows = capacity * slots
+        self.observations = th.zeros(runs, rows, obs_dim, device=device)
+        self.next_observations = th.zeros(runs, rows, obs_dim, device=device)
+        self.actions = th.zeros(runs, rows, action_dim, dtype=action_dtype, device=device)
+        self.rewards = th.zeros(runs, rows, device=device)
+        self.dones = th.zeros(runs, rows, device=device)
+        self.timeouts = th.zeros(runs, rows, device=device)
         self.pos = 0
         self.full = False
         self._runs = th.arange(runs, device=device).unsqueeze(1)
@@ -107,18 +116,20 @@ class BatchedReplay:
 
     def add(self, obs: np.ndarray, next_obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             dones: np.ndarray, timeouts: np.ndarray) -> int:
-        """Store one transition per run (rows of the arrays, cast as SB3's numpy buffer casts; tensors already on
-        a device are cast there, with the same rounding); returns its position."""
+        """Store one transition per run and slot (rows of the arrays, run-major, cast as SB3's numpy buffer casts;
+        tensors already on a device are cast there, with the same rounding); returns its step position."""
         pos = self.pos
         device = self.observations.device
+        at = slice(pos * self.slots, (pos + 1) * self.slots)
         for target, values in ((self.observations, obs), (self.next_observations, next_obs),
                                (self.actions, actions), (self.rewards, rewards), (self.dones, dones),
                                (self.timeouts, timeouts)):
+            view = target[:, at]
             if isinstance(values, th.Tensor):
-                target[:, pos].copy_(values.to(device=device, dtype=target.dtype).reshape(target[:, pos].shape))
+                view.copy_(values.to(device=device, dtype=target.dtype).reshape(view.shape))
                 continue
-            host = np.asarray(values).astype(_NUMPY[target.dtype]).reshape(target[:, pos].shape)
-            target[:, pos].copy_(th.from_numpy(host).to(device, non_blocking=True))
+            host = np.asarray(values).astype(_NUMPY[target.dtype]).reshape(view.shape)
+            view.copy_(th.from_numpy(host).to(device, non_blocking=True))
         self.pos += 1
         if self.pos == self.capacity:
             self.full, self.pos = True, 0
@@ -138,7 +149,7 @@ class BatchedReplay:
 
     def gather(self, indices: np.ndarray | th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
         """(observations, actions, next observations, dones · (1 − timeouts), rewards) at ``indices``
-        ``[K, batch]`` (host positions, or a tensor on the device): ``[K, batch, …]``, the last two
+        ``[K, batch]`` (host flat indices, or a tensor on the device): ``[K, batch, …]``, the last two
         ``[K, batch, 1]``."""
         index = (indices if isinstance(indices, th.Tensor)
                  else th.from_numpy(indices).to(self.observations.device, non_blocking=True))
@@ -171,7 +182,8 @@ class RunPriorities:
         self.alpha, self.eps = float(alpha), float(eps)
         self.max_priority = 1.0
 
-    def added(self, pos: int) -> None:
+    def added(self, pos: int | np.ndarray) -> None:
+        """New transitions at flat index ``pos`` (one, or a step's of every slot) get the largest ``p^α``."""
         self.sum_tree.update(pos, self.max_priority)
         self.min_tree.update(pos, self.max_priority)
 
