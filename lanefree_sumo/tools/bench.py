@@ -280,7 +280,7 @@ def _interleaved(cases: dict[tuple[str, str], Callable[[], float]], repeats: int
 
 TRAINING_CASES: dict[str, tuple[str, dict[str, Any]]] = {
     "plain SB3 DDPG, libsumo": ("sb3", {"backend": "libsumo"}),
-    "SB3's loop, numpy (several agents or envs)": ("sb3", {}),
+    "SB3's loop, numpy (SAC's, PPO's path)": ("sb3", {}),
     "a batch of one, numpy (`lanefree train`)": ("one", {}),
 }
 """The DDPG training paths compared (label: (``sb3``: SB3's loop with SB3's ``DDPG``, ``one``: the batched trainer
