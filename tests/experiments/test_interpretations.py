@@ -128,6 +128,46 @@ def test_the_claims_of_tables_5_and_6_under_each_variant(tmp_path):
     assert run_folder(tmp_path, "both", "collision", 3).parent.parent.name == "phase1_cap25"  # no bonus: cap25's
 
 
+def test_each_cell_under_the_three_readings_and_its_racing_runs(tmp_path):
+    """The readings table: each run's last 50 episodes averaged (not its first), then the cell's runs; a run races
+    above 24 m/s; a variant that does not change a cell shows the runs it stands for."""
+    from lanefree_sumo.experiments.analysis.interpretations import readings_by_variant, readings_markdown
+
+    make_cells(tmp_path)
+    racer = run_folder(tmp_path, "cap25", "fields", 2)  # cap25's fields cell, seed 2: the last 50 differ
+    cfg = merge_config(LaneFreeConfig(), {"seed": 2, "reward": {"preset": "fields"}})
+    (racer / "episodes.csv").unlink()
+    log = EpisodeLog(racer / "episodes.csv", episode_columns(cfg))
+    for e in range(1, 61):
+        late = e > 10
+        log.append({"episode": e, "steps": 800, "collisions": 7.0 if late else 99.0,
+                    "speed_dev_mps": 5.0 if late else 0.0, "speed_dev_episode_mps": 4.0 if late else 0.0,
+                    "speed_error_mps": 4.5 if late else -9.0, "mean_speed_mps": 24.5 if late else 19.0,
+                    "return": 1.0, "overtakes": 3, "algorithm": "ddpg", "reward_preset": "fields", "density": 70.0,
+                    "seed": 2})
+    log.close()
+    table = readings_by_variant(tmp_path)
+    assert list(table["variant"]) == [v for v in VARIANTS for _ in range(7)]
+    assert list(table["cell"])[:7] == list(CELLS)
+    fields = table[table["cell"] == "fields"].set_index("variant")
+    # fields is place 1 of CELLS: seed s collides 10 + s times; seed 2 now 7 (its last 50)
+    assert fields.loc["default", "collisions"] == pytest.approx(12.0)
+    assert fields.loc["cap25", "collisions"] == pytest.approx((10 + 11 + 7 + 13 + 14) / 5)
+    assert fields.loc["cap25", "speed_dev_mps"] == pytest.approx((1.0 + 1.1 + 5.0 + 1.3 + 1.4) / 5)
+    assert fields.loc["cap25", "speed_dev_episode_mps"] == pytest.approx((0.5 * 4 + 4.0) / 5)
+    assert fields.loc["cap25", "speed_error_mps"] == pytest.approx((-0.5 * 4 + 4.5) / 5)
+    assert fields.loc["cap25", "racing"] == 1 and fields.loc["both", "racing"] == 1  # both stands for cap25 here
+    assert fields.loc["default", "racing"] == 0 and fields.loc["once_per_vehicle", "racing"] == 0
+    ref = paper_reference("ddpg", "fields", 70.0)
+    assert fields.loc["both", "paper_collisions"] == ref.collisions
+    assert fields.loc["both", "paper_speed_dev_mps"] == ref.speed_dev_mps
+    page = readings_markdown(table)
+    assert page.count("\n") == 2 + 28
+    assert (f"| fields | cap25 | 11.00 | 1.96 | 1.20 | 0.50 | {ref.collisions:g} / {ref.speed_dev_mps:g} | 1 of 5 |"
+            in page)
+    assert "| collision | default | 2.00 | 1.20 | 0.50 | -0.50 |" in page
+
+
 def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
     from lanefree_sumo.experiments.analysis.interpretations import write_phase1
 
@@ -141,4 +181,5 @@ def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
     page = write_phase1(tmp_path)
     text = page.read_text()
     assert "Picked: **once_per_vehicle**" in text and "## The paper's claims of Tables 5–6 under each variant" in text
+    assert "## Every cell under the three readings of the speed deviation" in text and "| racing runs |" in text
     assert (tmp_path / "interpretations" / "ours_vs_paper.png").stat().st_size > 10_000

@@ -200,6 +200,50 @@ def claims_markdown(table: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
+READINGS: tuple[tuple[str, str], ...] = (
+    ("collisions", "collisions / episode"),
+    ("speed_dev_mps", "per-step \\|v_x − v_d\\| (m/s)"),
+    ("speed_dev_episode_mps", "per-episode \\|mean v_x − v_d\\| (m/s)"),
+    ("speed_error_mps", "signed mean v_x − v_d (m/s)"),
+)
+"""(``episodes.csv`` column, label): the collisions and the three readings of the speed deviation
+(``protocol.md``), reported per cell; the score reads the first two."""
+LAST = 50
+"""The training episodes at the end of each run that every figure of phase 1 averages."""
+
+
+def readings_by_variant(results: Path, variants: Sequence[str] = VARIANTS) -> pd.DataFrame:
+    """Per variant and cell (rows in that order): the means over the cell's runs of each run's last
+    :data:`LAST`-episode means of :data:`READINGS`, the runs that race (a last-50 mean speed above
+    :data:`~.effects.RACING_SPEED_MPS`), and the paper's values; from the run folders' ``episodes.csv``."""
+    from lanefree_sumo.experiments.analysis.effects import RACING_SPEED_MPS
+    from lanefree_sumo.experiments.storage.rundata import read_run
+
+    rows = []
+    for variant in variants:
+        for preset in CELLS:
+            runs = [read_run(run_folder(results, variant, preset, seed)).episodes.iloc[-LAST:] for seed in SEEDS]
+            ref = paper_reference("ddpg", preset, DEFAULT_DENSITY)
+            assert ref is not None
+            rows.append({"variant": variant, "cell": preset,
+                         **{m: float(np.mean([r[m].mean() for r in runs])) for m, _ in READINGS},
+                         "racing": sum(int(r["mean_speed_mps"].mean() > RACING_SPEED_MPS) for r in runs),
+                         "paper_collisions": ref.collisions, "paper_speed_dev_mps": ref.speed_dev_mps})
+    return pd.DataFrame(rows)
+
+
+def readings_markdown(table: pd.DataFrame) -> str:
+    """One row per cell and variant: collisions and the three speed readings beside the paper's, the racing runs."""
+    lines = ["| cell | variant | " + " | ".join(label for _, label in READINGS) + " | paper: collisions / speed "
+             "deviation | racing runs |", "|---|---|" + "---|" * (len(READINGS) + 2)]
+    for preset in CELLS:
+        for row in table[table["cell"] == preset].itertuples():
+            values = " | ".join(f"{getattr(row, m):.2f}" for m, _ in READINGS)
+            lines.append(f"| {preset} | {row.variant} | {values} | {row.paper_collisions:g} / "
+                         f"{row.paper_speed_dev_mps:g} | {row.racing} of {len(SEEDS)} |")
+    return "\n".join(lines) + "\n"
+
+
 def ours_vs_paper(results: Sequence[Score], path: Path) -> None:
     """The log-log figure: each cell's value against the paper's, per metric and variant (the diagonal: equal)."""
     import matplotlib
@@ -239,6 +283,11 @@ def write_phase1(results: Path) -> Path:
             + ", ".join(f"`results/{name}`" for name in PHASE1_SOURCES)
             + " as `protocol.md` defines it: 7 DDPG cells of Tables 5–6 at 70 veh/km, seeds 0–4, each run's last 50 "
             "training episodes.\n\n" + phase1_markdown(found) + "\n![ours against the paper](ours_vs_paper.png)\n\n"
+            "## Every cell under the three readings of the speed deviation\n\nMeans over the cell's 5 runs of each "
+            f"run's last {LAST} training episodes (the score reads the collisions and the per-step reading); a run "
+            "races when its last-50 mean speed is above 24 m/s (the desired speed is 20). Where a variant does not "
+            "change a cell, its runs are those of the variant it stands for (`protocol.md`).\n\n"
+            + readings_markdown(readings_by_variant(results)) + "\n"
             "## The paper's claims of Tables 5–6 under each variant\n\nEach cell: the verdict of the claim alone / as "
             "one family of this variant's claims (Holm; `lanefree_sumo/experiments/analysis/claims.py`), 5 runs a "
             "side.\n\n"
