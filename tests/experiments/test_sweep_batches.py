@@ -252,17 +252,25 @@ def _task(tmp_path: Path, **overrides):
 
 
 def test_a_batch_task_trains_its_runs_clears_their_failures_and_keeps_no_checkpoint(tmp_path):
+    import re
+    import time
+
     from lanefree_sumo.experiments.sweep.batches import run_batch
     from lanefree_sumo.experiments.sweep.state import failure_reason, record_failure
 
     sweep, names, configs = _task(tmp_path)
     record_failure(sweep, names[0], "an earlier session's failure")
+    _run(sweep, names[1], 1)  # a start killed before its first checkpoint: restarted from scratch
+    t0 = time.monotonic()
     with worker_output():
         results = run_batch(str(sweep.path), "batch_t", names, configs, 2, "lanefree sweep tiny.yaml")
+    elapsed = time.monotonic() - t0
     host, pid = socket.gethostname(), os.getpid()
     assert [{k: v for k, v in r.items() if k != "wall_s"} for r in results] == [
         {"name": n, "status": "complete", "episodes": 2, "detail": "", "host": host, "pid": pid} for n in names]
-    assert all(isinstance(r["wall_s"], float) and r["wall_s"] >= 0 for r in results)
+    for r in results:  # seconds since the task began, to a tenth
+        assert isinstance(r["wall_s"], float) and 0 <= r["wall_s"] <= elapsed + 0.05
+        assert r["wall_s"] == round(r["wall_s"], 1)
     assert failure_reason(sweep, names[0]) is None  # cleared when its batch started
     for name in names:
         assert len((sweep.run(name) / "episodes.csv").read_text().splitlines()) == 3
@@ -270,11 +278,22 @@ def test_a_batch_task_trains_its_runs_clears_their_failures_and_keeps_no_checkpo
         assert f"lanefree sweep tiny.yaml  # sweep batch batch_t on {host} pid {pid}" in command
     assert not (sweep.batch("batch_t") / BATCH_CHECKPOINTS).exists()  # complete: nothing left to resume
     log = sweep.log("batch_t").read_text()
-    assert f"batch batch_t (2 runs: {names[0]}, {names[1]}) on host {host} pid {pid} node -\n" in log
-    assert f"=== batch batch_t: {names[0]} complete, {names[1]} complete (" in log
+    assert re.search(rf"\n=== \d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d batch batch_t \(2 runs: {names[0]}, {names[1]}\) "
+                     rf"on host {host} pid {pid} node -\n", log)
+    assert f"{names[1]}: no checkpoint (1 episode rows); starting from scratch\n" in log
+    took = re.search(rf"=== batch batch_t: {names[0]} complete, {names[1]} complete \((\d+\.\d) s\)\n", log)
+    assert took is not None and float(took.group(1)) <= elapsed + 0.05
+    # a new batch of runs that are complete: each says so, and the batch, which never checkpointed, leaves no folder
+    with worker_output():
+        again = run_batch(str(sweep.path), "batch_u", names, configs, 2, "c")
+    assert [(r["name"], r["status"], r["episodes"]) for r in again] == [(n, "complete", 2) for n in names]
+    assert not (sweep.batch("batch_u") / BATCH_CHECKPOINTS).exists()
 
 
 def test_a_batch_task_whose_run_is_held_elsewhere_trains_nothing(tmp_path):
+    import subprocess
+    import sys
+
     from lanefree_sumo.experiments.sweep.batches import run_batch
     from lanefree_sumo.experiments.sweep.state import run_lock
 
@@ -286,6 +305,24 @@ def test_a_batch_task_whose_run_is_held_elsewhere_trains_nothing(tmp_path):
         (n, "busy", f"{sweep.run(n)} (batch batch_t) is being trained by another sweep worker") for n in names]
     assert not any(sweep.run(n).exists() and any(sweep.run(n).iterdir()) for n in names)
     assert "a run of batch batch_t is being trained by another sweep worker" in sweep.log("batch_t").read_text()
+    # another process writing a run's episodes.csv (a `lanefree train` of it): named by its id
+    csv_path = sweep.run(names[1]) / "episodes.csv"
+    csv_path.parent.mkdir(parents=True)
+    csv_path.write_text("episode\n")
+    hold = "import sys; f = open(sys.argv[1], 'a'); print('open', flush=True); sys.stdin.read()"
+    writer = subprocess.Popen([sys.executable, "-c", hold, str(csv_path)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert writer.stdout is not None and writer.stdout.readline() == "open\n"  # the file is held open now
+        with worker_output():
+            results = run_batch(str(sweep.path), "batch_v", names, configs, 2, "c")
+    finally:
+        writer.communicate("")
+    said = f"is being trained by process {writer.pid}"
+    assert [(r["name"], r["status"]) for r in results] == [(n, "busy") for n in names]
+    assert all(r["detail"] == f"{sweep.run(r['name'])} (batch batch_v) {said}" for r in results)
+    assert f"a run of batch batch_v {said}" in sweep.log("batch_v").read_text()
+    assert csv_path.read_text() == "episode\n"  # nothing trained into it
 
 
 def test_a_batch_tasks_errors_fail_its_runs_in_one_line_and_an_interrupt_before_training_leaves_them(
@@ -293,13 +330,16 @@ def test_a_batch_tasks_errors_fail_its_runs_in_one_line_and_an_interrupt_before_
     import lanefree_sumo.experiments.sweep.batches as batches_module
     from lanefree_sumo.errors import ConfigError
     from lanefree_sumo.experiments.sweep.batches import run_batch
-    from lanefree_sumo.experiments.sweep.state import failure_reason
+    from lanefree_sumo.experiments.sweep.state import failure_reason, read_heartbeat
 
     sweep, names, configs = _task(tmp_path)
-    raised: list[BaseException] = []
+    raised: list[BaseException | None] = []
+    beats: list[list[dict]] = []
 
     def stand_in(*args, **kwargs):
-        raise raised[-1]
+        beats.append([read_heartbeat(sweep, n) for n in names])  # what the sweep's status reads meanwhile
+        if raised[-1] is not None:
+            raise raised[-1]
 
     monkeypatch.setattr(batches_module, "train_batch_task", stand_in)
     log = sweep.log("batch_t")
@@ -307,7 +347,8 @@ def test_a_batch_tasks_errors_fail_its_runs_in_one_line_and_an_interrupt_before_
             (ConfigError("a bad\n  value"), "failed", "a bad value"),
             (ValueError("broken\nenv " + "x" * 400), "failed",
              f"ValueError: {('broken env ' + 'x' * 400)[:300]} (see {log})"),
-            (KeyboardInterrupt(), "interrupted", "stopped before training began")):
+            (KeyboardInterrupt(), "interrupted", "stopped before training began"),
+            (None, "interrupted", "stopped at 0/2 episodes")):  # returned without training: left for later
         raised.append(error)
         with worker_output():
             results = run_batch(str(sweep.path), "batch_t", names, configs, 2, "c")
@@ -316,6 +357,8 @@ def test_a_batch_tasks_errors_fail_its_runs_in_one_line_and_an_interrupt_before_
         assert [failure_reason(sweep, n) for n in names] == [detail if status == "failed" else None] * 2
     text = log.read_text()
     assert "Traceback" in text and text.count("Traceback") == 1  # a bug's traceback goes to the log, once
+    beat = {"node": "-", "batch": "batch_t", "pid": os.getpid(), "host": socket.gethostname()}
+    assert [[{k: b.get(k) for k in beat} for b in each] for each in beats] == [[beat] * 2] * 4
 
 
 def test_a_batch_task_continues_a_checkpointed_batch_and_restarts_stale_runs_but_refuses_finished_ones(
