@@ -160,6 +160,15 @@ def test_the_varobs_verdict_page_is_what_the_run_folders_make(tmp_path):
     assert text.startswith("# observation.kind=set, observation.encoder=paper against the defaults")
 
 
+def test_the_interpretation_studys_phase1_page_is_what_the_committed_runs_make():
+    """results/interpretations/phase1.md (the distance, the pick, the readings, the claims per variant) is what the
+    committed run tables and run folders give today."""
+    from lanefree_sumo.experiments.analysis.interpretations import phase1_page
+
+    results = ROOT / "results"
+    assert phase1_page(results) == (results / "interpretations" / "phase1.md").read_text()
+
+
 def test_the_remedy_report_is_what_the_run_folders_make(tmp_path):
     """results/varobs_remedies/report150/ is `lanefree report … --first 150 --compare` of the vector DDPG runs (seeds
     0-2), the set runs and the pre-tanh penalty's 150-episode runs: both variants against the vector runs over the

@@ -278,7 +278,17 @@ def write_phase1(results: Path) -> Path:
     """``results/interpretations/phase1.md`` and ``ours_vs_paper.png`` from the committed run tables."""
     out = results / "interpretations"
     found = scores(phase1_runs(results))
-    page = ("# Interpretation study, phase 1: the distance to the paper\n\n"
+    (out / "phase1.md").write_text(phase1_page(results, found))
+    ours_vs_paper(found, out / "ours_vs_paper.png")
+    return out / "phase1.md"
+
+
+def phase1_page(results: Path, found: Sequence[Score] | None = None) -> str:
+    """The text of ``phase1.md`` from the run tables and run folders under ``results`` (``found``: the scores,
+    computed here when not given)."""
+    if found is None:
+        found = scores(phase1_runs(results))
+    return ("# Interpretation study, phase 1: the distance to the paper\n\n"
             "Computed by `python -m lanefree_sumo.experiments.analysis.interpretations` from the `runs.csv` of "
             + ", ".join(f"`results/{name}`" for name in PHASE1_SOURCES)
             + " as `protocol.md` defines it: 7 DDPG cells of Tables 5–6 at 70 veh/km, seeds 0–4, each run's last 50 "
@@ -292,9 +302,6 @@ def write_phase1(results: Path) -> Path:
             "one family of this variant's claims (Holm; `lanefree_sumo/experiments/analysis/claims.py`), 5 runs a "
             "side.\n\n"
             + claims_markdown(claims_by_variant(results)))
-    (out / "phase1.md").write_text(page)
-    ours_vs_paper(found, out / "ours_vs_paper.png")
-    return out / "phase1.md"
 
 
 if __name__ == "__main__":
