@@ -350,6 +350,9 @@ class _Batch:
             append_command(run.path, command)
         names = [_seed_name(r.path) for r in self.folders]
         desc = cfgs[0].train.algo if self.runs == 1 else f"{cfgs[0].train.algo} x{self.runs}"
+        several = _several(cfgs[0])  # as SB3's loop said it: "ddpg, 4 agents"
+        if several is not None:
+            desc += f", {cfgs[0].scenario.agents * cfgs[0].train.envs} {several.split()[1]}"
         bar = tqdm(total=sum(books.target), initial=sum(books.done), unit="ep", disable=not progress, desc=desc,
                    dynamic_ncols=True, postfix=_bar_text(books, names))
         stop = Stop()
