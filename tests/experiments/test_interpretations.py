@@ -168,6 +168,45 @@ def test_each_cell_under_the_three_readings_and_its_racing_runs(tmp_path):
     assert "| collision | default | 2.00 | 1.20 | 0.50 | -0.50 |" in page
 
 
+def test_the_figure_puts_each_cells_mean_against_the_papers_on_log_axes(tmp_path):
+    """ours_vs_paper: two log-log panels (collisions, per-step speed deviation), one series per variant whose points
+    are (the paper's value, the cell's mean), the diagonal over the points' span widened 1.5× either way, a legend
+    of the variants; a PNG of 1100 × 495 pixels."""
+    import matplotlib.image
+
+    from lanefree_sumo.experiments.analysis.interpretations import FIGURE_METRICS, figure_points, ours_vs_paper
+
+    found = scores(runs(), resamples=20)
+    points = figure_points(found)
+    assert len(points) == 2 and [list(panel) for panel in points] == [list(VARIANTS)] * 2
+    refs = [paper_reference("ddpg", preset, 70.0) for preset in CELLS]
+    for s in found:
+        paper, ours = points[0][s.variant]
+        assert paper == [r.collisions for r in refs]
+        assert ours == pytest.approx([r.collisions * math.exp(s.log_ratios[c][0]) for r, c in zip(refs, CELLS)])
+        paper, ours = points[1][s.variant]
+        assert paper == [r.speed_dev_mps for r in refs]
+        assert ours == pytest.approx([r.speed_dev_mps * math.exp(s.log_ratios[c][1]) for r, c in zip(refs, CELLS)])
+    values = cell_values(runs(), "cap25")  # ours is the cell's mean, back from its log ratio
+    assert points[0]["cap25"][1] == pytest.approx([max(values[c][:, 0].mean(), 0.01) for c in CELLS])
+    path = tmp_path / "f.png"
+    fig = ours_vs_paper(found, path)
+    assert matplotlib.image.imread(path).shape[:2] == (495, 1100)
+    assert len(fig.axes) == 2
+    for ax, label, panel in zip(fig.axes, FIGURE_METRICS, points):
+        assert (ax.get_xscale(), ax.get_yscale()) == ("log", "log")
+        assert (ax.get_xlabel(), ax.get_ylabel()) == (f"paper: {label}", f"ours: {label}")
+        drawn = [c.get_offsets() for c in ax.collections]
+        assert [[tuple(xy) for xy in d] for d in drawn] == [list(zip(*panel[v])) for v in VARIANTS]
+        everything = [v for paper, ours in panel.values() for v in paper + ours]
+        [diagonal] = ax.lines
+        assert list(diagonal.get_xdata()) == list(diagonal.get_ydata()) == pytest.approx(
+            [min(everything) / 1.5, max(everything) * 1.5])
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == list(VARIANTS)
+    assert fig.axes[0].get_legend().get_title().get_text() == "variant" and fig.axes[1].get_legend() is None
+    assert fig._suptitle.get_text().startswith("Tables 5–6, DDPG, 70 veh/km")
+
+
 def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
     from lanefree_sumo.experiments.analysis.interpretations import write_phase1
 

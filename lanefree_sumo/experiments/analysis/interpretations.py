@@ -21,6 +21,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -149,13 +150,12 @@ PHASE1_SOURCES: tuple[str, ...] = ("paper", "interpretations/phase1_bonus", "int
 
 def phase1_runs(results: Path) -> pd.DataFrame:
     """The runs of phase 1 from the ``runs.csv`` of :data:`PHASE1_SOURCES` under ``results`` (the defaults' from
-    ``results/paper``, labelled ``default``); FileNotFoundError naming a missing table."""
+    ``results/paper``, their variant empty: :func:`cell_values` reads it as ``default``); FileNotFoundError naming a
+    missing table."""
     frames = []
     for name in PHASE1_SOURCES:
         table = pd.read_csv(results / name / "runs.csv")
-        table = table[table["algorithm"] == "ddpg"].copy()
-        table["variant"] = table["variant"].astype(object).fillna("").replace("", "default")
-        frames.append(table)
+        frames.append(table[table["algorithm"] == "ddpg"])
     return pd.concat(frames, ignore_index=True)
 
 
@@ -244,27 +244,42 @@ def readings_markdown(table: pd.DataFrame) -> str:
     return "\n".join(lines) + "\n"
 
 
-def ours_vs_paper(results: Sequence[Score], path: Path) -> None:
-    """The log-log figure: each cell's value against the paper's, per metric and variant (the diagonal: equal)."""
-    import matplotlib
+FIGURE_METRICS: tuple[str, ...] = ("collisions / episode", "speed deviation per step (m/s)")
+"""The two panels of :func:`ours_vs_paper`, in :data:`METRICS` order."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
-    for ax, (m, label) in zip(axes, enumerate(("collisions / episode", "speed deviation per step (m/s)"))):
-        lows, highs = [], []
+def figure_points(results: Sequence[Score]) -> list[dict[str, tuple[list[float], list[float]]]]:
+    """Per metric (:data:`METRICS` order), per variant: (the paper's values, ours) over :data:`CELLS` — ours the
+    paper's times exp(the cell's log ratio), i.e. the cell's mean (or :data:`FLOOR` for a cell mean of 0)."""
+    out: list[dict[str, tuple[list[float], list[float]]]] = []
+    for m in range(len(METRICS)):
+        panel = {}
         for s in results:
             paper = []
             for preset in CELLS:
                 ref = paper_reference("ddpg", preset, DEFAULT_DENSITY)
                 assert ref is not None
                 paper.append(ref.collisions if m == 0 else ref.speed_dev_mps)
-            ours = [p * math.exp(s.log_ratios[c][m]) for p, c in zip(paper, CELLS)]
-            ax.scatter(paper, ours, label=s.variant)
-            lows.append(min(paper + ours))
-            highs.append(max(paper + ours))
-        span = [min(lows) / 1.5, max(highs) * 1.5]
+            panel[s.variant] = (paper, [v * math.exp(s.log_ratios[c][m]) for v, c in zip(paper, CELLS)])
+        out.append(panel)
+    return out
+
+
+def ours_vs_paper(results: Sequence[Score], path: Path) -> Any:
+    """The log-log figure at ``path`` (PNG, 1100 × 495 pixels): each cell's value against the paper's, per metric
+    (:data:`FIGURE_METRICS`) and variant, with the diagonal (equal) over the points' span widened 1.5× either
+    way; returns the (closed) matplotlib figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    for ax, label, panel in zip(axes, FIGURE_METRICS, figure_points(results)):
+        for variant, (paper, ours) in panel.items():
+            ax.scatter(paper, ours, label=variant)
+        values = [v for paper, ours in panel.values() for v in paper + ours]
+        span = [min(values) / 1.5, max(values) * 1.5]
         ax.plot(span, span, color="grey", lw=1)
         ax.set(xscale="log", yscale="log", xlabel=f"paper: {label}", ylabel=f"ours: {label}")
     axes[0].legend(title="variant")
@@ -272,6 +287,7 @@ def ours_vs_paper(results: Sequence[Score], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return fig
 
 
 def write_phase1(results: Path) -> Path:
