@@ -186,11 +186,12 @@ class SlotBatch:
     - the agents of a run share its simulation, whose e-th episode has the traffic seed (seed, 0, e); the first
       agent whose episode ends (it left the on-ramp) ends the others' too, as truncations.
 
-    Simulated with numpy (``train.backend = numpy``) on the CPU; a checkpoint may be taken inside an episode."""
+    Simulated on the CPU: with numpy (``train.backend = numpy``), where a checkpoint may be taken inside an episode;
+    or, for one run of several agents, inside SUMO (libsumo or traci: one simulation), checkpointed between episodes
+    only and started again from its episode's seed after unpickling, as :class:`EnvBatch` does."""
 
     device = "cpu"
     xp = NUMPY
-    saves_mid_episode = True
 
     def __init__(self, configs: Sequence[LaneFreeConfig | Mapping[str, Any]], device: str = "cpu") -> None:
         from lanefree_sumo.rl.multi_agent import LaneFreeParallelEnv
@@ -202,14 +203,21 @@ class SlotBatch:
         if not self.cfgs:
             raise ConfigError("a batch needs at least one run")
         self.slots = slots(self.cfgs[0])
-        if any(slots(c) != self.slots for c in self.cfgs) or any(c.backend != "numpy" for c in self.cfgs):
+        if any(slots(c) != self.slots for c in self.cfgs):
             raise ConfigError("the runs of a batch of several agents or environments share scenario.agents and "
-                              "train.envs and are simulated with train.backend = numpy")
+                              "train.envs")
         self.runs = len(self.cfgs)
         self.rows = self.runs * self.slots
         self.grouped = self.cfgs[0].scenario.agents > 1
         """The slots are the agents of one simulation (their rows of one episode are that episode's)."""
-        self.multi = [LaneFreeParallelEnv(c) for c in self.cfgs] if self.grouped else []
+        self.in_sumo = any(c.backend != "numpy" for c in self.cfgs)
+        """Whether the runs move SUMO's vehicles (libsumo, traci) rather than numpy's."""
+        if self.in_sumo and (self.runs != 1 or not self.grouped):
+            raise ConfigError("inside SUMO (train.backend libsumo or traci) one run of several agents trains alone, "
+                              "not in a batch, and several environments train in SB3's loop; the numpy backend "
+                              "gives the same episodes")
+        self.multi: list[LaneFreeParallelEnv] | None = ([LaneFreeParallelEnv(c) for c in self.cfgs]
+                                                       if self.grouped else [])
         self.envs = [] if self.grouped else [[LaneFreeEnv(c) for _ in range(self.slots)] for c in self.cfgs]
         self.episode = np.zeros(self.rows, dtype=int)
         """Each slot's episodes begun."""
@@ -219,6 +227,40 @@ class SlotBatch:
         self._due = np.ones(self.rows, dtype=bool)
         """Slots whose next episode :meth:`reset` starts (each, at first)."""
         self._obs: list[Any] = [None] * self.rows
+        self._steps = np.zeros(self.runs, dtype=int)
+        """Each run's steps since its simulation's episode began (agents)."""
+
+    @property
+    def saves_mid_episode(self) -> bool:
+        """Whether a checkpoint may be taken inside an episode (not inside SUMO)."""
+        return not self.in_sumo
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (a batch checkpoint holds its env); inside SUMO without the simulation."""
+        return {**self.__dict__, "multi": None} if self.in_sumo else dict(self.__dict__)
+
+    def _parallel(self) -> list[Any]:
+        """The runs' multi-agent environments; after unpickling a run inside SUMO, started again: a run that had
+        just begun an episode is reset with that episode's seed, which must give the observations saved."""
+        from lanefree_sumo.rl.multi_agent import LaneFreeParallelEnv
+
+        if self.multi is None:
+            self.multi = [LaneFreeParallelEnv(c) for c in self.cfgs]
+            m = self.slots
+            for k, env in enumerate(self.multi):
+                if self.stopped[k] or self._due[k * m] or self.episode[k * m] == 0:
+                    continue
+                if self._steps[k] != 0:
+                    raise RunError(f"run {k}: a run inside SUMO is checkpointed between episodes, not at step "
+                                   f"{int(self._steps[k])} of episode {int(self.episode[k * m])}")
+                observations, _ = env.reset(seed=int(episode_seed(self.cfgs[k].seed, 0, int(self.episode[k * m]))))
+                env.episode = int(self.episode[k * m])
+                if not all(_same(observations[name], self._obs[k * m + i])
+                           for i, name in enumerate(env.possible_agents)):
+                    raise RunError(f"run {k}: SUMO did not start episode {int(self.episode[k * m])} as it did before "
+                                   "the checkpoint (its seed gave other first observations); resuming would not "
+                                   "continue the same run")
+        return self.multi
 
     @property
     def cfg(self) -> LaneFreeConfig:
@@ -242,11 +284,12 @@ class SlotBatch:
             rows = range(k * m, (k + 1) * m)
             if self.grouped and self._due[k * m]:
                 self.episode[rows] += 1
-                env = self.multi[k]
+                env = self._parallel()[k]
                 observations, _ = env.reset(seed=int(episode_seed(self.cfgs[k].seed, 0, int(self.episode[k * m]))))
                 for row, name in zip(rows, env.possible_agents):
                     self._obs[row] = observations[name]
                 self._due[rows] = False
+                self._steps[k] = 0
             elif not self.grouped:
                 for r, row in enumerate(rows):
                     if self._due[row]:
@@ -295,10 +338,11 @@ class SlotBatch:
                      truncated: np.ndarray, metrics: list[dict[str, Any] | None]) -> None:
         """Run k's agents' step (:class:`~lanefree_sumo.rl.multi_agent.SharedPolicyVecEnv`'s: one agent's end ends
         the episode of all, the others truncated)."""
-        env = self.multi[k]
+        env = self._parallel()[k]
         names = env.possible_agents
         observations, rewards, terminations, truncations, infos = env.step(
             {name: actions[i] for i, name in enumerate(names)})
+        self._steps[k] += 1
         done = [terminations[name] or truncations[name] for name in names]
         for i, name in enumerate(names):
             row = k * self.slots + i
@@ -312,7 +356,7 @@ class SlotBatch:
 
     def close(self) -> None:
         """Close every run's environments."""
-        for multi in self.multi:
+        for multi in self.multi or []:
             multi.close()
         for envs in self.envs:
             for env in envs:

@@ -136,6 +136,18 @@ def test_a_single_run_of_several_agents_or_environments_reproduces_its_golden_ep
     assert rows(run / "episodes.csv", golden) == rows(golden)
 
 
+@pytest.mark.sumo
+@pytest.mark.parametrize(("algo", "backend"), [("ddpg", "libsumo"), ("dqn", "traci")])
+def test_a_run_of_several_agents_inside_sumo_reproduces_the_golden_episodes(tmp_path, algo, backend):
+    """Two agents of one SUMO simulation train in the one trainer too (a batch of one whose run has two slots, the
+    multi-agent env on that backend) and give the numpy run's golden episodes, frozen from SB3's loop."""
+    cfg = merge_config(merge_config(config(algo), SHARED["agents2"]), {"train": {"backend": backend}})
+    run, done = train(cfg, run=tmp_path / "run", progress=False)
+    assert done == 3 and (run / "batch.json").is_file()
+    golden = golden_file(f"{algo}_agents2_episodes.csv")
+    assert rows(run / "episodes.csv", golden) == rows(golden)
+
+
 @pytest.mark.parametrize(("algo", "scene"), [("ddpg", "agents2"), ("dqn", "envs2")])
 def test_batched_run_k_of_several_agents_or_environments_reproduces_the_golden_single_run(tmp_path, algo, scene):
     """Two runs of two slots each (two agents of one simulation, or two environments) as one batch: run k's

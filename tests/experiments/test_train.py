@@ -227,13 +227,15 @@ def test_resume_trains_every_remaining_episode_and_refuses_a_gap_in_the_episode_
         train(LaneFreeConfig(), run=run, resume=True, episodes=5, progress=False)
 
 
-@pytest.mark.parametrize(("algo", "slots"), [("ddpg", {"scenario": {"agents": 2}}), ("dqn", {"train": {"envs": 2}})],
-                         ids=["ddpg-agents2", "dqn-envs2"])
+@pytest.mark.parametrize(("algo", "slots"), [("ddpg", {"scenario": {"agents": 2}}), ("dqn", {"train": {"envs": 2}}),
+                                            ("ddpg", {"scenario": {"agents": 2}, "train": {"backend": "libsumo"}})],
+                         ids=["ddpg-agents2", "dqn-envs2", "ddpg-agents2-libsumo"])
 def test_a_run_of_several_agents_or_environments_resumed_equals_the_uninterrupted_run(tmp_path, monkeypatch, algo,
                                                                                      slots):
     """A run of two learning vehicles (one shared policy) or of two environments trains in the one trainer too (a
     batch of one whose run has two slots): SIGTERM at step 150, in the middle of an episode and after a checkpoint,
-    and --resume give the uninterrupted run's episodes.csv (every column but wall time)."""
+    and --resume give the uninterrupted run's episodes.csv (every column but wall time). (Inside SUMO the stop keeps
+    the checkpoint taken between episodes; the resume starts the simulation again from its episode's seed.)"""
     import os
 
     from lanefree_sumo.experiments.runners import batch

@@ -73,7 +73,7 @@ def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
     for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on train.device = cpu)"),
                         (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
                          f"the set observation (--obs set) with {cfg.train.algo}"),
-                        (several is not None and cfg.train.backend != "numpy",
+                        (cfg.train.envs != 1 and cfg.train.backend != "numpy",
                          f"{several} inside SUMO (--backend {cfg.train.backend})"),
                         (cfg.train.backend != "numpy" and not alone,
                          f"the {cfg.train.backend} backend (--backend)")):

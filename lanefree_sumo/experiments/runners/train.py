@@ -3,11 +3,11 @@ per-episode CSV, checkpoints, interruption and resume.
 
 The run folder layout is defined in :mod:`lanefree_sumo.experiments.storage.rundir`.
 
-One trainer: a run the batched path trains (DDPG, TD3 and the DQN family; on numpy, or inside SUMO with one agent
-and one environment: :func:`~lanefree_sumo.experiments.runners.batch.batch_refusal`) is a batch of one in its own
+One trainer: a run the batched path trains (DDPG, TD3 and the DQN family; on numpy, or inside SUMO with one
+environment: :func:`~lanefree_sumo.experiments.runners.batch.batch_refusal`) is a batch of one in its own
 folder (:func:`~lanefree_sumo.experiments.runners.batch.train_batch`); its resume continues the whole state (learner,
 replay, random streams, environment) and gives the uninterrupted run's episodes bit for bit, and ``--episodes N``
-extends it the same way. Every other run (SAC, PPO; several agents or environments inside SUMO) trains in SB3's
+extends it the same way. Every other run (SAC, PPO; several environments inside SUMO) trains in SB3's
 loop below: ``resume`` continues from the newest checkpoint (model and replay
 buffer restored, ``episodes.csv`` cut back to the checkpoint's episode count, episode numbers continued).
 Episode k's traffic seed depends only on the run's seed and k (:func:`~lanefree_sumo.rl.models.episode_seed`;

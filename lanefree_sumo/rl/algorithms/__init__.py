@@ -8,7 +8,7 @@ import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
 policies in :mod:`.q_networks`, which imports no algorithm. ``ddpg`` is :mod:`.ddpg`'s subclass of SB3's
 DDPG and ``dqn`` :mod:`.dqn`'s of SB3's DQN (the base of the other three): SB3's update, with the project's
 choices; they load models saved by SB3's classes, and SB3's classes load theirs. They train what the batched
-learners (:mod:`.batched`) do not: runs on SB3's loop (several agents or environments inside SUMO), and they are
+learners (:mod:`.batched`) do not: runs on SB3's loop (several environments inside SUMO), and they are
 the class of every ``model.zip`` the batched learners export.
 """
 
