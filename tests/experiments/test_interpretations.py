@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import pytest
@@ -72,6 +73,35 @@ def test_the_pick_is_the_smallest_distance_with_ties_to_the_earlier_variant():
     assert pick(tied).variant == "default"
     page = phase1_markdown(results)
     assert "| **once_per_vehicle** |" in page and "Picked: **once_per_vehicle**" in page
+
+
+def _score(variant: str, distance: float, difference: float = math.nan, low: float = math.nan,
+           high: float = math.nan) -> Any:
+    from lanefree_sumo.experiments.analysis.interpretations import Score
+
+    ratios = {preset: (0.1 * k, -0.05 * k) for k, preset in enumerate(CELLS)}
+    return Score(variant, distance, ratios, difference, low, high)
+
+
+def test_the_phase1_table_in_full_and_a_pick_the_ci_cannot_tell_from_the_defaults():
+    results = [_score("default", 1.0), _score("once_per_vehicle", 0.8, -0.2, -0.35, -0.05),
+               _score("cap25", 0.5, -0.5, -0.9, 0.0), _score("both", 0.7, -0.3, -0.6, 0.1)]
+    rows = "".join(f"| {preset} | " + " | ".join([f"{0.1 * k:+.2f} / {-0.05 * k:+.2f}"] * 4) + " |\n"
+                   for k, preset in enumerate(CELLS))
+    assert phase1_markdown(results) == (
+        "| variant | D (mean abs log ratio) | D − D(default) [95 % CI] |\n|---|---|---|\n"
+        "| default | 1.000 | – |\n"
+        "| once_per_vehicle | 0.800 | -0.200 [-0.350, -0.050] |\n"
+        "| **cap25** | 0.500 | -0.500 [-0.900, +0.000] |\n"
+        "| both | 0.700 | -0.300 [-0.600, +0.100] |\n\n"
+        "Picked: **cap25** (not distinguishable from the defaults: the CI of D − D(default) contains 0)\n\n"
+        "ln(ours / paper) per cell, collisions / speed deviation:\n\n"
+        "| cell | default | once_per_vehicle | cap25 | both |\n|---|---|---|---|---|\n" + rows)
+    told_apart = [results[0], _score("cap25", 0.5, -0.5, -0.9, -1e-9)]
+    assert "Picked: **cap25**\n\n" in phase1_markdown(told_apart)
+    assert "Picked: **default**\n\n" in phase1_markdown([results[0]])  # no difference, no CI
+    # a variant outside the protocol's list ranks after all of them on a tie
+    assert pick([_score("other", 0.5), _score("both", 0.5)]).variant == "both"
 
 
 def test_the_bootstrap_is_paired_by_seed_and_constant_runs_give_a_point_interval():
@@ -208,7 +238,13 @@ def test_the_figure_puts_each_cells_mean_against_the_papers_on_log_axes(tmp_path
 
 
 def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
-    from lanefree_sumo.experiments.analysis.interpretations import write_phase1
+    from lanefree_sumo.experiments.analysis.interpretations import (
+        phase1_page,
+        phase1_runs,
+        readings_by_variant,
+        readings_markdown,
+        write_phase1,
+    )
 
     all_runs = runs()
     for folder, variants in (("paper", [""]), ("interpretations/phase1_bonus", ["once_per_vehicle", "both"]),
@@ -219,6 +255,22 @@ def test_the_phase1_page_and_figure_from_run_tables(tmp_path):
     make_cells(tmp_path)
     page = write_phase1(tmp_path)
     text = page.read_text()
+    found = scores(phase1_runs(tmp_path))
+    assert text == (
+        "# Interpretation study, phase 1: the distance to the paper\n\n"
+        "Computed by `python -m lanefree_sumo.experiments.analysis.interpretations` from the `runs.csv` of "
+        "`results/paper`, `results/interpretations/phase1_bonus`, `results/interpretations/phase1_cap25` as "
+        "`protocol.md` defines it: 7 DDPG cells of Tables 5–6 at 70 veh/km, seeds 0–4, each run's last 50 training "
+        "episodes.\n\n" + phase1_markdown(found) + "\n![ours against the paper](ours_vs_paper.png)\n\n"
+        "## Every cell under the three readings of the speed deviation\n\nMeans over the cell's 5 runs of each run's "
+        "last 50 training episodes (the score reads the collisions and the per-step reading); a run races when its "
+        "last-50 mean speed is above 24 m/s (the desired speed is 20). Where a variant does not change a cell, its "
+        "runs are those of the variant it stands for (`protocol.md`).\n\n"
+        + readings_markdown(readings_by_variant(tmp_path)) + "\n"
+        "## The paper's claims of Tables 5–6 under each variant\n\nEach cell: the verdict of the claim alone / as "
+        "one family of this variant's claims (Holm; `lanefree_sumo/experiments/analysis/claims.py`), 5 runs a "
+        "side.\n\n" + claims_markdown(claims_by_variant(tmp_path)))
+    assert phase1_page(tmp_path, found) == text == phase1_page(tmp_path)
     assert "Picked: **once_per_vehicle**" in text and "## The paper's claims of Tables 5–6 under each variant" in text
     assert "## Every cell under the three readings of the speed deviation" in text and "| racing runs |" in text
     assert (tmp_path / "interpretations" / "ours_vs_paper.png").stat().st_size > 10_000

@@ -156,7 +156,7 @@ def phase1_runs(results: Path) -> pd.DataFrame:
     for name in PHASE1_SOURCES:
         table = pd.read_csv(results / name / "runs.csv")
         frames.append(table[table["algorithm"] == "ddpg"])
-    return pd.concat(frames, ignore_index=True)
+    return pd.concat(frames)  # the rows' index is not read: cells are picked by their columns
 
 
 RUN_FOLDERS: Mapping[str, str] = {"default": "paper", "once_per_vehicle": "interpretations/phase1_bonus",
