@@ -97,6 +97,8 @@ def test_the_phase1_table_in_full_and_a_pick_the_ci_cannot_tell_from_the_default
         "Picked: **cap25** (not distinguishable from the defaults: the CI of D − D(default) contains 0)\n\n"
         "ln(ours / paper) per cell, collisions / speed deviation:\n\n"
         "| cell | default | once_per_vehicle | cap25 | both |\n|---|---|---|---|---|\n" + rows)
+    at_its_low = [results[0], _score("cap25", 0.5, 0.2, 0.0, 0.4)]  # a CI starting at exactly 0 contains it
+    assert "Picked: **cap25** (not distinguishable from the defaults" in phase1_markdown(at_its_low)
     told_apart = [results[0], _score("cap25", 0.5, -0.5, -0.9, -1e-9)]
     assert "Picked: **cap25**\n\n" in phase1_markdown(told_apart)
     assert "Picked: **default**\n\n" in phase1_markdown([results[0]])  # no difference, no CI
