@@ -37,6 +37,22 @@ def _same(a: Any, b: Any) -> bool:
     return bool(np.array_equal(a, b)) and np.asarray(a).dtype == np.asarray(b).dtype
 
 
+def _stacked(observations: list[Any]) -> Any:
+    """Observations (arrays, or dicts of arrays) stacked row by row: ``[rows, obs]`` or a dict of ``[rows, …]``."""
+    if isinstance(observations[0], dict):
+        return {name: np.stack([o[name] for o in observations]) for name in observations[0]}
+    return np.stack(observations)
+
+
+def _runs_listed(runs: Sequence[int] | None, count: int) -> list[int]:
+    """``reset``'s runs as a list (None: all ``count``); ValueError unless they are distinct indices of the batch."""
+    listed = list(range(count) if runs is None else runs)
+    if any(isinstance(k, bool) or not isinstance(k, int | np.integer) or not 0 <= k < count
+           for k in listed) or len(set(listed)) != len(listed):
+        raise ValueError(f"reset: runs are distinct indices 0 … {count - 1} of this batch, got {runs!r}")
+    return listed
+
+
 class EnvBatch:
     """K LaneFree-v0 runs (module docstring): ``reset(runs)``, ``step(actions)`` and the episode books as
     :class:`~lanefree_sumo.rl.batched_env.BatchedRingEnv` has them; ``first_episodes``: each run's next episode
@@ -115,17 +131,12 @@ class EnvBatch:
 
     def _stacked(self) -> Any:
         """Every run's current observation, stacked: ``[K, obs]`` or a dict of ``[K, …]``."""
-        if isinstance(self._obs[0], dict):
-            return {name: np.stack([o[name] for o in self._obs]) for name in self._obs[0]}
-        return np.stack(self._obs)
+        return _stacked(self._obs)
 
     def reset(self, runs: Sequence[int] | None = None, seeds: Sequence[int] | None = None) -> Any:
         """Start the next episode of ``runs`` (None: every run not stopped); returns every run's observation.
         ``seeds``: those episodes' traffic seeds (None: each run's training schedule)."""
-        listed = list(range(self.runs) if runs is None else runs)
-        if any(isinstance(k, bool) or not isinstance(k, int | np.integer) or not 0 <= k < self.runs
-               for k in listed) or len(set(listed)) != len(listed):
-            raise ValueError(f"reset: runs are distinct indices 0 … {self.runs - 1} of this batch, got {runs!r}")
+        listed = _runs_listed(runs, self.runs)
         chosen = [int(k) for k in listed if not self.stopped[k]]
         if seeds is not None and len(seeds) != len(chosen):
             raise ValueError(f"reset: {len(seeds)} seed(s) for {len(chosen)} run(s); give one seed per run")
@@ -268,17 +279,12 @@ class SlotBatch:
         return self.cfgs[0]
 
     def _stacked(self) -> Any:
-        if isinstance(self._obs[0], dict):
-            return {name: np.stack([o[name] for o in self._obs]) for name in self._obs[0]}
-        return np.stack(self._obs)
+        return _stacked(self._obs)
 
     def reset(self, runs: Sequence[int] | None = None) -> Any:
         """Start the next episode of every slot of ``runs`` (None: every run not stopped) whose episode ended (at
         first: all); returns every slot's observation ``[K · slots, …]``."""
-        listed = list(range(self.runs) if runs is None else runs)
-        if any(isinstance(k, bool) or not isinstance(k, int | np.integer) or not 0 <= k < self.runs
-               for k in listed) or len(set(listed)) != len(listed):
-            raise ValueError(f"reset: runs are distinct indices 0 … {self.runs - 1} of this batch, got {runs!r}")
+        listed = _runs_listed(runs, self.runs)
         m = self.slots
         for k in (int(k) for k in listed if not self.stopped[k]):
             rows = range(k * m, (k + 1) * m)
