@@ -241,13 +241,13 @@ def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
         (["--seeds", "0-1", "--seed", "4"], "--seed and --seeds exclude each other"),
         (["--seeds", "0-1", "--backend", "libsumo"], "does not support the libsumo backend"),
         (["--seeds", "0-1", "--envs", "2", "--backend", "libsumo"],
-         "does not support several environments (--envs) inside SUMO (--backend libsumo)"),
+         "does not train several environments (--envs) inside SUMO (--backend libsumo); train them on --backend "
+         "numpy"),
         (["--seeds", "0-1", "--shield", "--device", "cuda"],
          "the safety shield (--shield) train on the CPU (train.device = cpu), not on train.device = cuda; "
          "leave --device out"),
         (["--seeds", "0-1", "--agents", "2", "--device", "cuda"],
          "runs with several agents (--agents) train on the CPU (train.device = cpu), not on train.device = cuda"),
-        (["--seeds", "0-1", "--algo", "dqn", "--obs", "set"], "the set observation (--obs set) with dqn"),
         (["--seeds", "0-1", "--algo", "td3", "--set", "train.profile=kerasrl"], "td3 takes SB3's uniform warm-up"),
         (["--seeds", "0-1", "--algo", "td3", "--set", "train.actor_critic.pre_tanh_penalty=0.01"],
          "set it to 0 for td3"),

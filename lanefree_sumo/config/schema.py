@@ -397,7 +397,7 @@ class ActorCriticConfig:
         "paper": "not in either paper (neither says how DDPG's actor was kept off its tanh bound)"})
     """λ of the term λ·mean(u²) added to DDPG's actor loss, u the actor's output before its tanh (–): keeps u
     where tanh' does not vanish, so the critic's gradient still reaches the actor; 0 (default): SB3's loss.
-    DDPG only (the project's, on SB3's loop or batched: :mod:`lanefree_sumo.rl.algorithms.ddpg`)."""
+    DDPG only (:mod:`lanefree_sumo.rl.algorithms.batched.ddpg`)."""
     ou_sigma: float = field(default=0.2, metadata={"range": (0.0, 100.0)})
     """Ornstein–Uhlenbeck exploration noise σ (action units; the paper does not give it)."""
     ou_theta: float = field(default=0.15, metadata={"range": (0.0, 100.0)})
@@ -450,8 +450,8 @@ class TrainConfig:
     """Training episodes of ``sim.episode_steps`` steps each."""
     envs: int = field(default=1, metadata={"range": (1, 4096)})
     """Environments one policy learns from at once (SB3's ``n_envs``): stepped in this process by the one trainer
-    (the batchable algorithms), one process each in SB3's loop (SAC, PPO; libsumo runs one simulation per
-    process)."""
+    (the batchable algorithms, on the numpy backend: libsumo runs one simulation per process), one process each
+    in SB3's loop (SAC, PPO)."""
     checkpoint_every_episodes: int = field(default=25, metadata={"range": (1, 10_000_000)})
     """Save a checkpoint every this many episodes."""
     torch_threads: int = field(default=1, metadata={"range": (1, 1024)})
@@ -468,8 +468,8 @@ class TrainConfig:
     the random numbers drawn on the GPU, so equal to the CPU's runs in distribution, not bit for bit) or
     ``torch-cpu`` (the torch simulation and learners on the CPU, in the host's loop: slower than ``cpu``, for
     checking the torch path without a GPU). The
-    shield, the on-ramp, a run inside SUMO and runs of SB3's loop (SAC, PPO, several agents or environments) train
-    on the CPU (``cpu``)."""
+    shield, the on-ramp, a run inside SUMO, runs of several agents or environments and runs of SB3's loop (SAC,
+    PPO) train on the CPU (``cpu``)."""
     actor_critic: ActorCriticConfig = field(default_factory=ActorCriticConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
 

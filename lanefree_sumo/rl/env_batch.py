@@ -225,7 +225,7 @@ class SlotBatch:
         """Whether the runs move SUMO's vehicles (libsumo, traci) rather than numpy's."""
         if self.in_sumo and (self.runs != 1 or not self.grouped):
             raise ConfigError("inside SUMO (train.backend libsumo or traci) one run of several agents trains alone, "
-                              "not in a batch, and several environments train in SB3's loop; the numpy backend "
+                              "not in a batch, and several environments do not train; the numpy backend "
                               "gives the same episodes")
         self.multi: list[LaneFreeParallelEnv] | None = ([LaneFreeParallelEnv(c) for c in self.cfgs]
                                                        if self.grouped else [])

@@ -166,7 +166,12 @@ def check_actor_critic_choices(cfg: LaneFreeConfig, own_class: bool) -> None:
 def check_trainable(cfg: LaneFreeConfig) -> None:
     """The learner choices a run of ``cfg`` must be able to train, checked alike for one run, a batch and every
     run of a sweep's grid before anything starts (:func:`check_actor_critic_choices`)."""
-    if get_algorithm(cfg.train.algo).config_section == "actor_critic":
+    spec = get_algorithm(cfg.train.algo)
+    if spec.batched and cfg.train.envs != 1 and cfg.train.backend != "numpy":
+        raise ConfigError(f"{spec.name} does not train several environments (--envs) inside SUMO (--backend "
+                          f"{cfg.train.backend}); train them on --backend numpy (the same episodes), or one inside "
+                          "SUMO (libsumo holds one simulation per process)")
+    if spec.config_section == "actor_critic":
         check_actor_critic_choices(cfg, own_class=True)
 
 
@@ -250,8 +255,6 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
     actor_critic = spec.config_section == "actor_critic"
     if len(seeds) != len(cfgs):
         raise ConfigError(f"{len(cfgs)} configs but {len(seeds)} seeds: give one seed per run")
-    if not actor_critic and any(c.observation.kind != "vector" for c in cfgs):
-        raise ConfigError(f"batched {algo} takes the vector observation; train the set observation run by run")
     sections = [getattr(c.train, spec.config_section) for c in cfgs]
     shared = _BATCH_SHARED[spec.config_section] + (("timesteps",) if not actor_critic else ())
     for key in shared:
@@ -264,6 +267,7 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
         raise ConfigError("the runs of one batch must share scenario.agents and train.envs; put runs that differ "
                           "there in separate batches")
     first = sections[0]
+    encoder = cfgs[0].observation.encoder if cfgs[0].observation.kind == "set" else None
     if actor_critic:
         return cls(
             observation_space, action_space, seeds, learning_rate=[s.learning_rate for s in sections],
@@ -272,8 +276,7 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
             critic_layers=first.critic_layers, batch_size=first.batch_size, buffer_size=first.buffer_size,
             learning_starts=first.learning_starts_steps, warmup_actions=first.warmup_actions,
             pre_tanh_penalty=[s.pre_tanh_penalty for s in sections],
-            encoder=cfgs[0].observation.encoder if cfgs[0].observation.kind == "set" else None,
-            total_timesteps=total_timesteps(cfgs[0]), device=device, slots=slots(cfgs[0]))
+            encoder=encoder, total_timesteps=total_timesteps(cfgs[0]), device=device, slots=slots(cfgs[0]))
     return cls(
         [c.train.algo for c in cfgs], observation_space, action_space, seeds,
         learning_rate=[s.learning_rate for s in sections], gamma=[s.gamma for s in sections], layers=first.layers,
@@ -282,5 +285,5 @@ def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_
         exploration_fraction=[exploration_fraction(c) for c in cfgs],
         exploration_initial_eps=[s.epsilon_start for s in sections],
         exploration_final_eps=[s.epsilon_end for s in sections], loss=first.loss,
-        max_grad_norm=math.inf if first.max_grad_norm is None else first.max_grad_norm,
+        max_grad_norm=math.inf if first.max_grad_norm is None else first.max_grad_norm, encoder=encoder,
         total_timesteps=total_timesteps(cfgs[0]), device=device, slots=slots(cfgs[0]))

@@ -250,6 +250,11 @@ def test_operating_system_limits_and_impossible_requests_are_one_line(tmp_path):
     res = lanefree("train", "--algo", "ppo", "--envs", "1000", "--episodes", "1", "--out", str(tmp_path / "many"))
     assert res.returncode == 2 and "use at most" in res.stderr and res.stderr.count("\n") == 1
     assert not (tmp_path / "many").exists()
+    res = lanefree("train", "--algo", "dqn", "--envs", "2", "--backend", "traci", "--episodes", "1",
+                   "--out", str(tmp_path / "inside"))  # libsumo holds one simulation per process
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert "dqn does not train several environments (--envs) inside SUMO (--backend traci)" in res.stderr
+    assert "--backend numpy (the same episodes)" in res.stderr and not (tmp_path / "inside").exists()
 
 
 def test_every_committed_run_config_still_loads():

@@ -92,12 +92,22 @@ def test_dqn_and_ddqn_runs_share_batches_and_the_other_variants_do_not(tmp_path)
 def test_a_run_with_a_switch_the_batched_learners_lack_goes_one_per_task(tmp_path):
     grid = load_grid(write_grid(tmp_path / "g.yaml", {
         "algorithms": ["dqn"], "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2,
-        "variants": {"default": {}, "set": {"observation.kind": "set"}}}))
+        "variants": {"default": {}, "libsumo": {"train.backend": "libsumo"}}}))
     cells = list(grid.cells())
     packing = pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 8)
     assert [sorted(b.runs) for b in packing.batches] == [sorted(c.name for c in cells if "_default_" in c.name)]
-    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_set_" in c.name)
-    assert list(packing.reasons) == ["batched training does not support the set observation (--obs set) with dqn"]
+    assert sorted(c.name for c in packing.sequential) == sorted(c.name for c in cells if "_libsumo_" in c.name)
+    assert list(packing.reasons) == ["batched training does not support the libsumo backend (--backend)"]
+
+
+def test_the_dqn_familys_runs_on_the_set_observation_are_batched(tmp_path):
+    grid = load_grid(write_grid(tmp_path / "g.yaml", {
+        "algorithms": ["dqn", "per"], "reward_presets": ["collision"], "seeds": [0, 1], "episodes": 2,
+        "variants": {"set": {"observation.kind": "set"}}}))
+    cells = list(grid.cells())
+    packing = pack(SweepDir(tmp_path / "sweep"), grid, cells, pending(grid), 8)
+    assert not packing.sequential and len(packing.batches) == 2
+    assert sorted(r for b in packing.batches for r in b.runs) == sorted(c.name for c in cells)
 
 
 def test_runs_of_several_environments_or_agents_are_packed_by_their_count(tmp_path):

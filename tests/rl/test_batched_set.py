@@ -1,11 +1,14 @@
-"""Batched DDPG and TD3 on the set observation (the written-out set encoder, :mod:`...batched.set_encoder`).
+"""Batched DDPG, TD3 and the DQN family on the set observation (the written-out set encoder,
+:mod:`...batched.set_encoder`).
 
 The chain: run k of a batch equals the batch of that one run bit for bit (CPU); a batch of one run equals
-SB3's autograd update (``LaneFreeDDPG`` with ``SetFeaturesExtractor``, the sequential ``lanefree train --obs set``)
-to float tolerance — the dense encoder sums the rows in another order than the gathered one — after 20
-updates; the exported model loads in SB3 and acts as the batch does (to the same tolerance). Both encoders
+SB3's autograd update (``LaneFreeDDPG``, SB3's TD3 and DQN, the project's DQN variants, each with
+``SetFeaturesExtractor``) to float tolerance — the dense encoder sums the rows in another order than the
+gathered one — after 20 updates; the exported model loads in SB3 and acts as the batch does (to the same
+tolerance). Both encoders
 (``paper``, ``small``), with and without the pre-tanh penalty, runs with different seeds and penalties in one
-batch; TD3 (twin critics on one encoder) with the paper encoder.
+batch; TD3 (twin critics on one encoder) with the paper encoder; every DQN variant (dueling: the encoder under
+the dueling head's trunk), prioritised replay compared with its runs batched alone.
 """
 
 from __future__ import annotations
@@ -164,13 +167,15 @@ def test_the_export_loads_in_sb3_and_acts_as_the_batch(tmp_path: Path) -> None:
         assert model.pre_tanh_penalty == PENALTIES[k] and model.num_timesteps == 120
 
 
-def test_the_vector_learners_refuse_the_set_observation() -> None:
+def test_the_learners_refuse_a_set_observation_without_an_encoder() -> None:
     from lanefree_sumo.rl.algorithms.batched import BatchedDQN
 
     with pytest.raises(ValueError, match="takes an encoder"):
         BatchedDDPG(SPACE, ACTIONS, SEEDS)
-    with pytest.raises(ValueError, match="vector observation"):
+    with pytest.raises(ValueError, match="takes an encoder"):
         BatchedDQN("dqn", SPACE, spaces.Discrete(9), SEEDS)
+    with pytest.raises(ValueError, match="the vector observation none"):
+        BatchedDQN("dqn", spaces.Box(-1, 1, (EGO,), np.float32), spaces.Discrete(9), SEEDS, encoder="small")
 
 
 def test_the_devices_dense_encoder_equals_the_cpus_run_by_run_encoder() -> None:
@@ -192,3 +197,110 @@ def test_the_devices_dense_encoder_equals_the_cpus_run_by_run_encoder() -> None:
                             _encode_backward(batched.mm, layout, tensors, dense_saved, grad)):
         assert mine.shape == theirs.shape and th.allclose(mine, theirs, atol=1e-5)
     assert features.shape == (len(SEEDS), BATCH, batched.features_dim)
+
+
+# -- the DQN family ----------------------------------------------------------------------------------------------
+
+N_ACTIONS = 9
+DISCRETE = spaces.Discrete(N_ACTIONS)
+DQN_CASES = [("paper", "dqn"), ("small", "ddqn"), ("small", "dueling"), ("paper", "per")]
+"""(encoder, variant) of the DQN family's comparisons: every variant, both encoders."""
+
+
+def _batched_dqn(encoder: str, algo: str, seeds: tuple[int, ...]) -> Any:
+    from lanefree_sumo.rl.algorithms.batched import BatchedDQN
+
+    return BatchedDQN(algo, SPACE, DISCRETE, seeds, learning_rate=1e-3, layers=LAYERS, batch_size=BATCH,
+                      buffer_size=1000, learning_starts=50, target_update_interval=7, total_timesteps=400,
+                      encoder=encoder)
+
+
+def _dqn_transitions(n: int = 300) -> list[tuple[Any, ...]]:
+    rng = np.random.default_rng(11)
+    return [(obs, rng.integers(0, N_ACTIONS, len(SEEDS)), reward, next_obs, done, truncated)
+            for obs, _, reward, next_obs, done, truncated in _transitions(n)]
+
+
+def _trained_dqn(encoder: str, algo: str, runs: list[int], transitions: list[tuple[Any, ...]]) -> Any:
+    batched = _batched_dqn(encoder, algo, tuple(SEEDS[k] for k in runs))
+    for obs, action, reward, next_obs, done, truncated in transitions:
+        batched.store({key: v[runs] for key, v in obs.items()}, action[runs], reward[runs],
+                      {key: v[runs] for key, v in next_obs.items()}, done[runs], truncated[runs])
+    for _ in range(UPDATES):
+        assert batched.update()
+    return batched
+
+
+def _single_dqn(encoder: str, algo: str, k: int) -> Any:
+    """Run k in SB3's autograd update: SB3's own DQN for ``dqn``, the registry's class for the other variants."""
+    from stable_baselines3 import DQN
+
+    from lanefree_sumo.rl.algorithms import get_algorithm
+
+    cls = DQN if algo == "dqn" else get_algorithm(algo).cls
+    return cls("MultiInputPolicy", SpacesEnv(SPACE, DISCRETE), learning_rate=1e-3, buffer_size=1000,
+               batch_size=BATCH, gamma=0.98, learning_starts=50, target_update_interval=7, train_freq=1,
+               gradient_steps=1, seed=SEEDS[k], device="cpu",
+               policy_kwargs={"net_arch": list(LAYERS), "activation_fn": th.nn.ReLU,
+                              "features_extractor_class": SetFeaturesExtractor,
+                              "features_extractor_kwargs": {"encoder": encoder}})
+
+
+@pytest.mark.parametrize(("encoder", "algo"), DQN_CASES)
+def test_the_dqn_familys_initial_weights_are_sb3s(encoder: str, algo: str) -> None:
+    batched = _batched_dqn(encoder, algo, SEEDS)
+    for k in range(len(SEEDS)):
+        single = _single_dqn(encoder, algo, k)
+        for net in ("q_net", "q_net_target"):
+            params = [p.detach() for p in getattr(single, net).parameters()]
+            mine = getattr(batched, net).stack.row(k)
+            assert len(params) == len(mine) > 10 and all(th.equal(p, q) for p, q in zip(params, mine))
+
+
+@pytest.mark.parametrize(("encoder", "algo"), DQN_CASES)
+def test_the_dqn_familys_batch_equals_its_runs_batched_alone_bit_for_bit(encoder: str, algo: str) -> None:
+    transitions = _dqn_transitions()
+    batch = _trained_dqn(encoder, algo, [0, 1, 2], transitions)
+    for k in range(len(SEEDS)):
+        alone = _trained_dqn(encoder, algo, [k], transitions)
+        for net in ("q_net", "q_net_target"):
+            assert th.equal(getattr(batch, net).stack.flat[k], getattr(alone, net).stack.flat[0]), (algo, k, net)
+        assert th.equal(batch.losses["loss"][k], alone.losses["loss"][0])
+
+
+@pytest.mark.parametrize(("encoder", "algo"), [c for c in DQN_CASES if c[1] != "per"])
+def test_the_dqn_familys_updates_equal_sb3s_autograd_update_to_float_tolerance(encoder: str, algo: str) -> None:
+    """Uniform replay (PER's draws depend on the TD errors, whose float rounding differs: its runs are compared
+    with themselves above); the target network is the initial one throughout (it is copied on stored steps)."""
+    transitions = _dqn_transitions()
+    batched = _trained_dqn(encoder, algo, [0, 1, 2], transitions)
+    start = _batched_dqn(encoder, algo, SEEDS)
+    for k in range(len(SEEDS)):
+        single = _single_dqn(encoder, algo, k)
+        for obs, action, reward, next_obs, done, truncated in transitions:
+            single.replay_buffer.add(_run(obs, k), _run(next_obs, k), action[k:k + 1], reward[k:k + 1],
+                                     done[k:k + 1], [{"TimeLimit.truncated": bool(truncated[k])}])
+        single.set_logger(Logger(None, []))
+        np.random.seed(SEEDS[k])  # the single run's global stream, as SB3 seeded it
+        for _ in range(UPDATES):
+            single.train(gradient_steps=1, batch_size=BATCH)
+        moved = 0.0
+        for p, q, first in zip(single.q_net.parameters(), batched.q_net.stack.row(k), start.q_net.stack.row(k)):
+            assert (p.detach() - q).abs().max().item() < TOLERANCE, (algo, k)
+            moved = max(moved, (p.detach() - first).abs().max().item())
+        assert moved > 100 * TOLERANCE
+        assert float(batched.losses["loss"][k]) == pytest.approx(single.logger.name_to_value["train/loss"],
+                                                                 rel=1e-5, abs=1e-6)
+
+
+def test_the_dqn_familys_export_loads_in_sb3_and_acts_as_the_batch(tmp_path: Path) -> None:
+    from stable_baselines3 import DQN
+
+    batched = _trained_dqn("paper", "dueling", [0, 1, 2], _dqn_transitions(120))
+    obs = _observations(np.random.default_rng(3))
+    greedy = batched.act(obs, explore=False)
+    for k in range(len(SEEDS)):
+        batched.export(k, tmp_path / f"run{k}.zip")
+        model = DQN.load(tmp_path / f"run{k}.zip", device="cpu")
+        action, _ = model.predict({key: v[k] for key, v in obs.items()}, deterministic=True)
+        assert int(action) == int(greedy[k]) and model.num_timesteps == 120

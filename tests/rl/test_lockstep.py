@@ -26,10 +26,10 @@ PHASES = ((True, False), (False, False), (False, True))
 
 
 def configs(algo: str, runs: int = 2, **extra: Any) -> list[LaneFreeConfig]:
-    """``runs`` runs of ``algo`` ("dqn+ddqn": dqn, ddqn, dqn, …; "ddpg-set": DDPG on the set observation with the
-    paper encoder), densities 70 and 90 by turns."""
-    if algo == "ddpg-set":
-        algo, extra = "ddpg", {**extra, "observation": {"kind": "set", "encoder": "paper"}}
+    """``runs`` runs of ``algo`` ("dqn+ddqn": dqn, ddqn, dqn, …; "ddpg-set", "per-set": the algorithm on the set
+    observation with the paper encoder), densities 70 and 90 by turns."""
+    if algo.endswith("-set"):
+        algo, extra = algo[:-4], {**extra, "observation": {"kind": "set", "encoder": "paper"}}
     section = "actor_critic" if algo == "ddpg" else "dqn"
     return [training_config(merge_config(LaneFreeConfig(), {
         "seed": k, "scenario": {"density_veh_per_km": 90.0 if k % 2 else 70.0}, **extra,
@@ -98,7 +98,7 @@ def test_the_host_number_detector_sees_a_scalar_written_by_index() -> None:
     assert seen.found == []
 
 
-@pytest.mark.parametrize("algo", [None, "ddpg", "ddpg-set", "dqn", "dqn+ddqn", "per"])
+@pytest.mark.parametrize("algo", [None, "ddpg", "ddpg-set", "dqn", "dqn+ddqn", "per", "per-set"])
 def test_an_iteration_reads_nothing_from_the_host_and_writes_no_host_number(algo: str | None) -> None:
     """What a CUDA graph needs: each phase's iteration (random actions; acting; acting and updating) runs with
     every host read refused and writes no number from the host into a tensor."""
@@ -203,7 +203,7 @@ def test_a_compiler_that_fails_leaves_the_loop_uncompiled_with_a_warning() -> No
     assert th.equal(broken.obs, plain.obs) and th.equal(broken.learner.q_net.stack.flat, plain.learner.q_net.stack.flat)
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "ddpg-set", "dqn", "dqn+ddqn", "per"])
+@pytest.mark.parametrize("algo", ["ddpg", "ddpg-set", "dqn", "dqn+ddqn", "per", "dueling-set"])
 def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_eager_one(algo: str) -> None:
     """The gradient step traced as one graph (``aot_eager``) moves the weights, the targets and Adam's moments as
     the eager step does, to float32 rounding (the traced graph runs the in-place updates in functional form: the
@@ -227,7 +227,7 @@ def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_ea
         a, b = getattr(traced.learner, name), getattr(eager.learner, name)
         a, b = (a if ddpg else a.stack).flat, (b if ddpg else b.stack).flat
         assert th.allclose(a, b, rtol=1e-5, atol=1e-7), name
-    if algo == "per":  # the priorities the traced step wrote back
+    if algo.startswith("per"):  # the priorities the traced step wrote back
         assert th.allclose(traced.learner._leaves, eager.learner._leaves, rtol=1e-5)
         assert ((eager.learner._leaves > 0) & (eager.learner._leaves != 1.0)).any()  # the updates moved some
     for mine, theirs in zip(traced.learner.optimisers(), eager.learner.optimisers(), strict=True):

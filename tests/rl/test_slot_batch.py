@@ -118,7 +118,7 @@ def test_a_slot_batchs_bad_arguments_are_one_clear_error():
     batch.close()
     with pytest.raises(ConfigError, match="share scenario.agents and train.envs"):
         SlotBatch([cfg, _config({**COLLIDING_ENVS, "train": {"algo": "ddpg", "envs": 2}})])
-    with pytest.raises(ConfigError, match="several environments train in SB3's loop"):
+    with pytest.raises(ConfigError, match="several environments do not train; the numpy backend gives"):
         SlotBatch([_config({**COLLIDING_ENVS, "train": {"algo": "ddpg", "envs": 3, "backend": "libsumo"}})])
     inside = _config({**ONRAMP_AGENTS, "train": {"algo": "ddpg", "backend": "libsumo"}})
     with pytest.raises(ConfigError, match="one run of several agents trains alone, not in a batch"):

@@ -64,15 +64,11 @@ def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
     when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer.
     ``alone``: the run is a batch of one (``lanefree train --seed``), which may run inside SUMO."""
     from lanefree_sumo.rl.algorithms import BATCHED
-    from lanefree_sumo.rl.algorithms.batched.dqn import FAMILY
-
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
     cpu = cpu_only(cfg)
     several = _several(cfg)
     for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on train.device = cpu)"),
-                        (cfg.observation.kind != "vector" and cfg.train.algo in FAMILY,
-                         f"the set observation (--obs set) with {cfg.train.algo}"),
                         (cfg.train.envs != 1 and cfg.train.backend != "numpy",
                          f"{several} inside SUMO (--backend {cfg.train.backend})"),
                         (cfg.train.backend != "numpy" and not alone,
@@ -126,12 +122,12 @@ def check_batchable(cfg: LaneFreeConfig, alone: bool = False) -> None:
     if cpu is not None:
         raise ConfigError(f"runs with {cpu} train on the CPU (train.device = cpu), not on train.device = "
                           f"{cfg.train.device}; leave --device out")
-    why = batch_refusal(cfg, alone)
-    if why is not None:
-        raise ConfigError(f"batched training does not support {why}; train such runs with --seed (one run)")
     from lanefree_sumo.rl.models import check_trainable
 
     check_trainable(cfg)  # the single run's check: what one run refuses, a batch refuses
+    why = batch_refusal(cfg, alone)
+    if why is not None:
+        raise ConfigError(f"batched training does not support {why}; train such runs with --seed (one run)")
     check_device(cfg.train.device)
 
 

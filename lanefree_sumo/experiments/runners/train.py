@@ -36,9 +36,9 @@ from lanefree_sumo.errors import ConfigError, RunError
 from lanefree_sumo.experiments.runners.session import Stop, check_episode_rows, new_run_folder, versions
 from lanefree_sumo.experiments.storage.episodes import TENSORBOARD_SCALARS, EpisodeLog, episode_columns
 from lanefree_sumo.experiments.storage.rundir import Checkpoint, RunDir, append_command, record_session, write_config
-from lanefree_sumo.rl.algorithms import get_algorithm
+from lanefree_sumo.rl.algorithms import BATCHED, get_algorithm
 from lanefree_sumo.rl.env import resolve_config
-from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
+from lanefree_sumo.rl.models import build_model, check_trainable, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import check_fits
 
 # -- episode log and checkpoints ------------------------------------------------------------------
@@ -185,6 +185,9 @@ def train(
             check_fits(cfg)  # before the folder is made
             path = new_run_folder(cfg, run, restart=run is not None and dead_single_run(run))
             return train_batch([cfg], path, [path], progress, command)[0]
+        check_trainable(cfg)
+        if cfg.train.algo in BATCHED:  # every run of a batchable algorithm trains in the one trainer
+            raise ConfigError(f"{cfg.train.algo} does not train {why}")
         if cfg.train.device != "cpu":
             raise ConfigError(f"train.device = {cfg.train.device} trains on the batched path, which does not "
                               f"support {why}; leave --device out to train this run on the CPU")

@@ -7,9 +7,9 @@ import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
 :mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`); the dueling Q-network head and its
 policies in :mod:`.q_networks`, which imports no algorithm. ``ddpg`` is :mod:`.ddpg`'s subclass of SB3's
 DDPG and ``dqn`` :mod:`.dqn`'s of SB3's DQN (the base of the other three): SB3's update, with the project's
-choices; they load models saved by SB3's classes, and SB3's classes load theirs. They train what the batched
-learners (:mod:`.batched`) do not: runs on SB3's loop (several environments inside SUMO), and they are
-the class of every ``model.zip`` the batched learners export.
+choices; they load models saved by SB3's classes, and SB3's classes load theirs. Every run of these algorithms
+trains in the batched learners (:mod:`.batched`); the subclasses are the class of every ``model.zip`` those
+export, and the references ``tests/rl/`` compares the learners' updates with.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""DDPG on SB3's loop: Stable-Baselines3's :class:`~stable_baselines3.DDPG` with the project's two actor-critic
-choices (``train.actor_critic``) for the runs the batched learner does not train (several agents or
-environments, the SUMO backends).
+"""DDPG as an SB3 class: Stable-Baselines3's :class:`~stable_baselines3.DDPG` with the project's two actor-critic
+choices (``train.actor_critic``): the class of the batched learner's ``model.zip`` and the reference its tests
+compare it with (every run trains in the batched learner).
 
 :class:`LaneFreeDDPG` is SB3's DDPG — same constructor, ``save``/``load`` (either class loads the other's
 ``model.zip``), callbacks, TensorBoard, replay buffer, resume — and with the defaults (``warmup_actions =

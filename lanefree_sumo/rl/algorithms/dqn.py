@@ -1,7 +1,7 @@
-"""The DQN family on SB3's loop: Stable-Baselines3's :class:`~stable_baselines3.DQN` with its ``train`` split into
+"""The DQN family as SB3 classes: Stable-Baselines3's :class:`~stable_baselines3.DQN` with its ``train`` split into
 hooks, the base of the project's :class:`~.double_dqn.DoubleDQN`, :class:`~.dueling.DuelingDoubleDQN` and
-:class:`~.prioritized.PrioritizedDoubleDQN`, for the runs the batched learner does not train (several agents
-or environments, the SUMO backends).
+:class:`~.prioritized.PrioritizedDoubleDQN`: the classes of the batched learner's ``model.zip`` and the
+references its tests compare it with (every run trains in the batched learner).
 
 :class:`LaneFreeDQN` is SB3's DQN (same constructor, ``save``/``load`` both ways, callbacks, TensorBoard, replay buffer,
 resume); with the default hooks and loss its update is SB3's, call for call and draw for draw

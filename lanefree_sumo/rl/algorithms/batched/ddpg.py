@@ -175,12 +175,6 @@ class BatchedDDPG(BatchedLearner):
             features = th.cat([features, actions], dim=2)
         return saved, features
 
-    @property
-    def dense(self) -> bool:
-        """Whether the set encoder runs every row of every run at once (a GPU, the lockstep loop:
-        :func:`~.set_encoder.encode`)."""
-        return self.device.type != "cpu" or self.device_streams
-
     def _backward(self, net: ParamStack, saved: list[Encoded] | None, outs: list[th.Tensor], grad: th.Tensor,
                   squash: bool) -> list[th.Tensor]:
         """The gradients of ``net``'s tensors (its encoder's, then its head's) from its output's gradient."""

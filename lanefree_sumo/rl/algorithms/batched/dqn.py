@@ -7,9 +7,10 @@ one :class:`~.replay.RunPriorities` per run); or one name per run, of one :func:
 SB3 gives its variant's class with seed k, draws its ε-greedy decisions, random actions and replay indices from
 its own streams in the single run's order, and has its own learning rate, γ and ε schedule; the network shape,
 batch size, buffer size, ``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU
-run k equals the single run of SB3's loop bit for bit (``tests/rl/test_batched_learners.py``). Prioritised replay
-keeps its trees on the host: its TD errors come back from the device once per update. With device streams (the
-lockstep loop) its priorities live on the device instead (:meth:`BatchedDQN.sample_on_device`).
+run k equals SB3's update of that run bit for bit (``tests/rl/test_batched_learners.py``; on the set observation
+to float tolerance, ``tests/rl/test_batched_set.py``: the set encoder comes first, :mod:`.set_encoder`).
+Prioritised replay keeps its trees on the host: its TD errors come back from the device once per update. With
+device streams (the lockstep loop) its priorities live on the device instead (:meth:`BatchedDQN.sample_on_device`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from torch.nn import functional as F
 
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner, SpacesEnv, kept_random_state, per_run
 from lanefree_sumo.rl.algorithms.batched.replay import RunPriorities
+from lanefree_sumo.rl.algorithms.batched.set_encoder import Encoded, SetLayout, encode, encode_backward
 from lanefree_sumo.rl.algorithms.batched.stack import (
     Linear,
     ParamStack,
@@ -39,6 +41,7 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     per_run_column,
 )
 from lanefree_sumo.rl.algorithms.dqn import HUBER_BETA, LOSSES, NO_REDUCTION
+from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
 FAMILY = ("dqn", "ddqn", "dueling", "per")
 
@@ -51,43 +54,60 @@ def batch_group(algo: str) -> str:
 
 class _QNet:
     """K Q-networks on a :class:`ParamStack`: a plain MLP, or the dueling head (ReLU trunk, then
-    ``V + A − mean_a A``), forward and backward written out with the kernels autograd calls for them."""
+    ``V + A − mean_a A``), forward and backward written out with the kernels autograd calls for them; on the set
+    observation (``layout``) the set encoder (:mod:`.set_encoder`) comes first, its tensors at the stack's
+    head."""
 
-    def __init__(self, stack: ParamStack, dueling: bool) -> None:
-        self.stack, self.dueling = stack, dueling
+    def __init__(self, stack: ParamStack, dueling: bool, layout: SetLayout | None = None) -> None:
+        self.stack, self.dueling, self.layout = stack, dueling, layout
 
-    def forward(self, mm: Products, x: th.Tensor) -> tuple[list[th.Tensor], th.Tensor]:
-        """(what :meth:`backward` needs, Q-values ``[K, M, actions]``)."""
+    def forward(self, mm: Products, x: th.Tensor,
+                dense: bool = False) -> tuple[tuple[list[Encoded] | None, list[th.Tensor]], th.Tensor]:
+        """((what :meth:`backward` needs: the encoder's saved values, the head's inputs and outputs), Q-values
+        ``[K, M, actions]``) of observations ``[K, M, obs]``; ``dense``: :func:`~.set_encoder.encode`'s."""
+        saved = None
+        if self.layout is not None:
+            x, saved = encode(mm, self.layout, self.stack.views(), x, dense)
         layers = self.stack.layers()
         if not self.dueling:
             outs = mlp_forward(mm, layers, x, False)
-            return outs, outs[-1]
+            return (saved, outs), outs[-1]
         outs = [x]
         for layer in layers[:-2]:
             x = th.relu(mm.linear(x, layer))
             outs.append(x)
         value = mm.linear(x, layers[-2])
         advantage = mm.linear(x, layers[-1])
-        return outs, value + advantage - advantage.mean(dim=2, keepdim=True)
+        return (saved, outs), value + advantage - advantage.mean(dim=2, keepdim=True)
 
-    def backward(self, mm: Products, outs: list[th.Tensor], grad_q: th.Tensor) -> list[th.Tensor]:
-        """Gradients of the stack's tensors (in order) given the Q-values' gradient."""
+    def backward(self, mm: Products, state: tuple[list[Encoded] | None, list[th.Tensor]],
+                 grad_q: th.Tensor) -> list[th.Tensor]:
+        """Gradients of the stack's tensors (in order: the encoder's, then the head's) given the Q-values'
+        gradient."""
+        saved, outs = state
+        to_input = saved is not None
         layers: list[Linear] = self.stack.layers()
         if not self.dueling:
-            return mlp_backward(mm, layers, outs, grad_q, False)[0]
-        hidden = outs[-1]
-        value, advantage = layers[-2], layers[-1]
-        grad_mean = (-grad_q).sum(dim=2, keepdim=True)
-        grad_value = grad_q.sum(dim=2, keepdim=True)
-        grad_advantage = grad_q + grad_mean.expand(grad_q.shape) / grad_q.shape[2]
-        grads_value = [mm.weight_grad(grad_value, hidden), grad_value.sum(1)]
-        grads_advantage = [mm.weight_grad(grad_advantage, hidden), grad_advantage.sum(1)]
-        grad_hidden = mm.input_grad(grad_value, value[0]) + mm.input_grad(grad_advantage, advantage[0])
-        grads_trunk: list[th.Tensor] = []
-        if len(layers) > 2:
-            grad_hidden = aten.threshold_backward(grad_hidden, hidden, 0)
-            grads_trunk = mlp_backward(mm, layers[:-2], outs, grad_hidden, False)[0]
-        return [*grads_trunk, *grads_value, *grads_advantage]
+            grads, grad_input = mlp_backward(mm, layers, outs, grad_q, False, to_input=to_input)
+        else:
+            hidden = outs[-1]
+            value, advantage = layers[-2], layers[-1]
+            grad_mean = (-grad_q).sum(dim=2, keepdim=True)
+            grad_value = grad_q.sum(dim=2, keepdim=True)
+            grad_advantage = grad_q + grad_mean.expand(grad_q.shape) / grad_q.shape[2]
+            grads_value = [mm.weight_grad(grad_value, hidden), grad_value.sum(1)]
+            grads_advantage = [mm.weight_grad(grad_advantage, hidden), grad_advantage.sum(1)]
+            grad_hidden = mm.input_grad(grad_value, value[0]) + mm.input_grad(grad_advantage, advantage[0])
+            grads_trunk: list[th.Tensor] = []
+            grad_input = grad_hidden
+            if len(layers) > 2:
+                grad_hidden = aten.threshold_backward(grad_hidden, hidden, 0)
+                grads_trunk, grad_input = mlp_backward(mm, layers[:-2], outs, grad_hidden, False, to_input=to_input)
+            grads = [*grads_trunk, *grads_value, *grads_advantage]
+        if saved is None or self.layout is None:
+            return grads
+        assert grad_input is not None
+        return [*encode_backward(mm, self.layout, self.stack.views(), saved, grad_input), *grads]
 
 
 class BatchedDQN(BatchedLearner):
@@ -96,7 +116,9 @@ class BatchedDQN(BatchedLearner):
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``exploration_fraction``,
     ``exploration_initial_eps``, ``exploration_final_eps``. The batch's: the rest, as SB3's DQN names them
     (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..dqn.LaneFreeDQN`'s, ``huber`` or
-    ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s)."""
+    ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s;
+    ``encoder``: the set encoder's name for the set observation (a Dict observation space; :mod:`.set_encoder`),
+    None for the vector observation)."""
 
     def __init__(self, algo: str | Sequence[str], observation_space: spaces.Space, action_space: spaces.Space,
                  seeds: Sequence[int], *, learning_rate: float | Sequence[float] = 1e-3,
@@ -106,7 +128,7 @@ class BatchedDQN(BatchedLearner):
                  exploration_initial_eps: float | Sequence[float] = 1.0,
                  exploration_final_eps: float | Sequence[float] = 0.05, max_grad_norm: float = 10.0,
                  loss: str = "huber", total_timesteps: int = 1, per_alpha: float = 0.6, per_beta0: float = 0.4,
-                 per_eps: float = 1e-6,
+                 per_eps: float = 1e-6, encoder: str | None = None,
                  device: str = "cpu", exact: bool | None = None, slots: int = 1) -> None:
         algos = [algo] * len(seeds) if isinstance(algo, str) else list(algo)
         for name in algos:
@@ -119,8 +141,8 @@ class BatchedDQN(BatchedLearner):
             raise ValueError("batched DQN takes a Discrete action space")
         if loss not in LOSSES:
             raise ValueError(f"unknown TD loss {loss!r}; valid: {', '.join(LOSSES)}")
-        if not isinstance(observation_space, spaces.Box):
-            raise ValueError("batched DQN takes the vector observation (a flat Box)")
+        if (encoder is None) != isinstance(observation_space, spaces.Box):
+            raise ValueError("the set observation (a Dict space) takes an encoder, the vector observation none")
         super().__init__(observation_space, action_space, seeds, batch_size=batch_size, buffer_size=buffer_size,
                          learning_starts=learning_starts, total_timesteps=total_timesteps, action_dim=1,
                          action_dtype=th.int64, device=device, exact=exact, slots=slots)
@@ -144,17 +166,26 @@ class BatchedDQN(BatchedLearner):
         self.layers, self.max_grad_norm, self.loss = tuple(layers), float(max_grad_norm), loss
         self.target_update_interval = int(target_update_interval)
         self.per_alpha, self.per_beta0, self.per_eps = float(per_alpha), float(per_beta0), float(per_eps)
+        self.encoder = encoder
         policies = []
         for cls, seed, lr in zip(self.classes, self.seeds, self.learning_rate):
-            policy_class = cls.policy_aliases["MlpPolicy"]
+            policy_class = cls.policy_aliases[self._policy_name]
             with th.random.fork_rng(devices=[]):  # as DQN._setup_model builds it after set_random_seed(seed)
                 th.manual_seed(seed)
                 policies.append(policy_class(observation_space, action_space, lambda _, lr=lr: lr,
-                                             net_arch=list(self.layers), activation_fn=nn.ReLU))
+                                             **self._policy_kwargs()))
         self.dueling = type(policies[0].q_net.q_net) is not nn.Sequential
-        self.q_net = _QNet(ParamStack([list(p.q_net.parameters()) for p in policies], self.device), self.dueling)
-        self.q_net_target = _QNet(ParamStack([list(p.q_net_target.parameters()) for p in policies], self.device),
-                                  self.dueling)
+        self.layout: SetLayout | None = None
+        """The set observation's layout (None: the vector observation)."""
+        if encoder is not None:
+            extractor = policies[0].q_net.features_extractor
+            assert isinstance(extractor, SetFeaturesExtractor)
+            self.layout = SetLayout.of(extractor.encoder, int(observation_space["ego"].shape[0]),  # type: ignore
+                                       int(observation_space["others"].shape[0]))  # type: ignore[index]
+        head = 0 if self.layout is None else self.layout.tensors
+        self.q_net, self.q_net_target = (
+            _QNet(ParamStack([list(getattr(p, name).parameters()) for p in policies], self.device, head),
+                  self.dueling, self.layout) for name in ("q_net", "q_net_target"))
         group = policies[0].optimizer.param_groups[0]
         self.adam = StackedAdam(self.q_net.stack, self.learning_rate, group["betas"], group["eps"])
         self._gamma = per_run_column(self.gamma, self.device).unsqueeze(2)
@@ -164,15 +195,31 @@ class BatchedDQN(BatchedLearner):
         self.priorities = ([RunPriorities(self.replay.capacity * self.slots, per_alpha, per_eps) for _ in range(k)]
                            if algos[0] == "per" else [])
 
+    @property
+    def _policy_name(self) -> str:
+        return "MlpPolicy" if self.encoder is None else "MultiInputPolicy"
+
+    def _policy_kwargs(self) -> dict[str, Any]:
+        """SB3's ``policy_kwargs`` of ``build_model``'s DQN: the layer widths, ReLU, and the set encoder."""
+        kwargs: dict[str, Any] = {"net_arch": list(self.layers), "activation_fn": nn.ReLU}
+        if self.encoder is not None:
+            kwargs.update(features_extractor_class=SetFeaturesExtractor,
+                          features_extractor_kwargs={"encoder": self.encoder})
+        return kwargs
+
     def optimisers(self) -> list[StackedAdam]:
         return [self.adam]
+
+    def _q(self, obs: th.Tensor) -> tuple[tuple[list[Encoded] | None, list[th.Tensor]], th.Tensor]:
+        """The online network's forward pass on observations ``[K, M, obs]``."""
+        return self.q_net.forward(self.mm, obs, self.dense)
 
     # -- acting -----------------------------------------------------------------------------------------------
 
     def q_values(self, obs: np.ndarray | th.Tensor) -> th.Tensor:
         """Q(s, ·) of every run's slots, ``[K · slots, actions]`` (obs ``[K · slots, obs]``)."""
         with th.no_grad():
-            return self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.rows, -1)
+            return self._q(self._obs(obs))[1].reshape(self.rows, -1)
 
     def act(self, obs: np.ndarray, explore: bool = True) -> np.ndarray:
         """Every run's actions ``[K · slots]`` (SB3's ``_sample_action``: random before ``learning_starts``, then
@@ -252,7 +299,7 @@ class BatchedDQN(BatchedLearner):
             done = self._count / float(self.total_timesteps)
             eps = th.where(done > fraction, end, start + done * (end - start) / fraction)
             eps = eps * (self._count > 0)  # SB3's ε is 0 before its first _on_step
-            greedy = self.q_net.forward(self.mm, self._obs(obs))[1].reshape(self.runs, -1).argmax(dim=1)
+            greedy = self._q(self._obs(obs))[1].reshape(self.runs, -1).argmax(dim=1)
             actions = th.where(draws[:, 0] < eps, uniform, greedy)
         return actions, actions.reshape(self.runs, 1)
 
@@ -296,19 +343,19 @@ class BatchedDQN(BatchedLearner):
         mm = self.mm
         obs, actions, next_obs, dones, rewards = self.replay.gather(indices)
         with th.no_grad():
+            target_next = self.q_net_target.forward(mm, next_obs, self.dense)[1]
             if self._double is not None:  # dqn and ddqn runs: both targets, each run takes its own
-                next_actions = self.q_net.forward(mm, next_obs)[1].argmax(dim=2, keepdim=True)
-                target_next = self.q_net_target.forward(mm, next_obs)[1]
+                next_actions = self._q(next_obs)[1].argmax(dim=2, keepdim=True)
                 next_q = th.where(self._double, th.gather(target_next, dim=2, index=next_actions),
                                   target_next.max(dim=2, keepdim=True)[0])
             elif self.double_q:
-                next_actions = self.q_net.forward(mm, next_obs)[1].argmax(dim=2, keepdim=True)
-                next_q = th.gather(self.q_net_target.forward(mm, next_obs)[1], dim=2, index=next_actions)
+                next_actions = self._q(next_obs)[1].argmax(dim=2, keepdim=True)
+                next_q = th.gather(target_next, dim=2, index=next_actions)
             else:
-                next_q = self.q_net_target.forward(mm, next_obs)[1].max(dim=2, keepdim=True)[0]
+                next_q = target_next.max(dim=2, keepdim=True)[0]
             target_q = rewards + (1 - dones) * self._gamma * next_q
 
-            outs, q_values = self.q_net.forward(mm, obs)
+            outs, q_values = self._q(obs)
             index = actions.long()
             current_q = th.gather(q_values, dim=2, index=index)
             loss, grad_current = self._loss(current_q, target_q, weights)
@@ -379,7 +426,7 @@ class BatchedDQN(BatchedLearner):
         step counts and ε."""
         schedule = self.exploration[k]
         with kept_random_state():
-            model = self.classes[k]("MlpPolicy", SpacesEnv(self.observation_space, self.action_space),
+            model = self.classes[k](self._policy_name, SpacesEnv(self.observation_space, self.action_space),
                              learning_rate=self.learning_rate[k], buffer_size=self.buffer_size,
                              batch_size=self.batch_size, gamma=self.gamma[k], learning_starts=self.learning_starts,
                              target_update_interval=self.target_update_interval,
@@ -387,7 +434,7 @@ class BatchedDQN(BatchedLearner):
                              exploration_fraction=schedule.end_fraction, max_grad_norm=self.max_grad_norm,
                              loss=self.loss,
                              train_freq=1, gradient_steps=1, seed=self.seeds[k], device="cpu", verbose=0,
-                             policy_kwargs={"net_arch": list(self.layers), "activation_fn": nn.ReLU},
+                             policy_kwargs=self._policy_kwargs(),
                              **({"per_alpha": self.per_alpha, "per_beta0": self.per_beta0, "per_eps": self.per_eps}
                                 if self.algos[k] == "per" else {}))
         with th.no_grad():

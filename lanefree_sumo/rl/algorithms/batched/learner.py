@@ -132,6 +132,12 @@ class BatchedLearner:
         self.losses: dict[str, th.Tensor] = {}
         """The last update's losses per run (``[K]`` tensors on the device; read them when logging)."""
 
+    @property
+    def dense(self) -> bool:
+        """Whether a set encoder runs every row of every run at once (a GPU, the lockstep loop:
+        :func:`~.set_encoder.encode`) rather than run by run."""
+        return self.device.type != "cpu" or self.device_streams
+
     # -- the cycle ------------------------------------------------------------------------------------------
 
     def _obs(self, obs: Any) -> th.Tensor:
