@@ -2,9 +2,10 @@
 
 ``training_config`` fixes what the algorithm decides (action kind, the agent on the road);
 ``make_vec_env`` builds the environments (one process each when several: libsumo runs one
-simulation per process); ``build_model`` a new model of the registry's class for
-``cfg.train.algo`` with the hyperparameters of ``cfg.train``; ``build_batched`` the batched learner
-(:mod:`lanefree_sumo.rl.algorithms.batched`) of several runs of one algorithm, each with its config's.
+simulation per process); ``build_model`` a new model of stock SB3's class for ``cfg.train.algo`` with the
+hyperparameters of ``cfg.train`` (SAC's, PPO's training); ``build_batched`` the batched learner
+(:mod:`lanefree_sumo.rl.algorithms.batched`) of several runs of one algorithm, each with its config's;
+``load_saved_model`` a run's ``model.zip``.
 """
 
 from __future__ import annotations
@@ -138,7 +139,7 @@ def exploration_fraction(cfg: LaneFreeConfig) -> float:
 
 
 def _taking(key: str) -> str:
-    """The algorithms whose classes take the choice ``key`` (:attr:`~.algorithms.AlgorithmSpec.choices`)."""
+    """The algorithms whose learners take the choice ``key`` (:attr:`~.algorithms.AlgorithmSpec.choices`)."""
     from lanefree_sumo.rl.algorithms import ALGORITHMS
 
     return ", ".join(name for name, spec in ALGORITHMS.items() if key in spec.choices)
@@ -175,16 +176,18 @@ def check_trainable(cfg: LaneFreeConfig) -> None:
         check_actor_critic_choices(cfg, own_class=True)
 
 
-def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None, cls: Any = None) -> Any:
-    """A new model for ``cfg.train.algo`` with the paper's hyperparameters (specification §9); ``cls`` another class
-    taking SB3's constructor arguments (e.g. SB3's own ``DDPG``, for comparisons)."""
+def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
+    """A new model of stock SB3's class for ``cfg.train.algo`` with the paper's hyperparameters (specification
+    §9): how SAC and PPO train (SB3's loop), and SB3's own DDPG, TD3 and DQN, which the benchmark sets beside the
+    batched learners. ConfigError for a choice SB3's class lacks (the DQN variants, the learner choices)."""
     import torch
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
     algo = cfg.train.algo
     spec = get_algorithm(algo)
-    takes = spec.choices if cls is None else ()  # SB3's own class takes none of the project's choices
-    cls = spec.cls if cls is None else cls
+    if spec.double_q or spec.dueling or algo == "per":
+        raise ConfigError(f"SB3 has no {spec.summary}; {algo} trains in its batched learner (build_batched)")
+    cls = spec.cls
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
     if set_obs:
@@ -211,17 +214,17 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
             kwargs["action_noise"] = OrnsteinUhlenbeckActionNoise(
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
-        check_actor_critic_choices(cfg, own_class=bool(takes))
-        kwargs.update({key: getattr(ac, key) for key in takes})
+        if spec.choices and (ac.pre_tanh_penalty or ac.warmup_actions != "uniform"):
+            raise ConfigError(f"SB3's {cls.__name__} has no pre_tanh_penalty or warmup_actions = policy; "
+                              f"{algo} trains with them in its batched learner (build_batched)")
+        check_actor_critic_choices(cfg, own_class=False)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
         return cls(policy, env, **kwargs)
 
     dq = cfg.train.dqn
-    policy = "MultiInputPolicy" if set_obs else "MlpPolicy"  # the dueling class maps these to dueling heads
-    own = {key: getattr(dq, key) for key in takes}
-    if dq.loss != "huber" and "loss" not in takes:
-        raise ConfigError(f"train.dqn.loss = {dq.loss} needs the project's DQN classes; "
-                          f"{cls.__name__} takes SB3's Huber")
+    policy = "MultiInputPolicy" if set_obs else "MlpPolicy"
+    if dq.loss != "huber":
+        raise ConfigError(f"train.dqn.loss = {dq.loss} is the batched learner's; SB3's DQN takes its Huber loss")
     return cls(
         policy, env, learning_rate=dq.learning_rate, buffer_size=dq.buffer_size, batch_size=dq.batch_size,
         gamma=dq.gamma, learning_starts=dq.learning_starts_steps, target_update_interval=dq.target_update_steps,
@@ -229,7 +232,7 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
         exploration_fraction=exploration_fraction(cfg), train_freq=1, gradient_steps=1,
         max_grad_norm=math.inf if dq.max_grad_norm is None else dq.max_grad_norm,
         policy_kwargs={"net_arch": list(dq.layers), "activation_fn": torch.nn.ReLU, **extractor},
-        **common, **own,
+        **common,
     )
 
 
@@ -238,6 +241,19 @@ _BATCH_SHARED = {"actor_critic": ("actor_layers", "critic_layers", "batch_size",
                  "dqn": ("layers", "batch_size", "buffer_size", "learning_starts_steps", "target_update_steps",
                          "loss", "max_grad_norm")}
 """What the runs of one batch must share (network shapes and replay sizes); the rest may differ per run."""
+
+
+LEGACY_OBJECTS: dict[str, Any] = {"replay_buffer_class": None, "replay_buffer_kwargs": {}}
+"""What :func:`load_saved_model` reads in place of a ``model.zip``'s own entries: the replay buffer's class (and its
+arguments), which SB3 picks again from the spaces. A ``per`` model of an earlier version named a buffer class of
+the project's that no longer exists; every model now saves SB3's own."""
+
+
+def load_saved_model(algo: str, path: Any, **kwargs: Any) -> Any:
+    """The ``model.zip`` (or checkpoint) at ``path`` of an ``algo`` run as a model of stock SB3's class, on the CPU
+    (``kwargs``: more of SB3's ``load`` arguments, e.g. ``env``)."""
+    kwargs.setdefault("device", "cpu")
+    return get_algorithm(algo).cls.load(path, custom_objects=LEGACY_OBJECTS, **kwargs)
 
 
 def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_space: Any, action_space: Any,

@@ -10,7 +10,7 @@ For 70, 90 and 120 veh/km, 800 steps each:
 machine noise hits both alike.  Timings are not tests: the numbers are for reading.
 Last, :func:`training_speed`: DDPG's env steps/s on LaneFree-v0 with plain SB3, on SB3's loop and as a batch of
 one (``lanefree train``), against the peer HighwayEnv ``highway-v0`` (``pip install -e '.[bench]'``), interleaved,
-and :func:`dqn_family_speed`: the DQN family on SB3's loop and as a batch of one
+and :func:`dqn_family_speed`: the DQN family as a batch of one beside SB3's own DQN
 (``--training-only`` runs just these sections, ``--dqn-only`` the last), :func:`single_run_speed`: one run in
 SB3's loop against one run as a batch of one (``--single-only``), :func:`slot_speed`: the same for a run of
 several agents or environments (``--slots-only``), and :func:`batch_speed`: runs per
@@ -178,10 +178,10 @@ def _env_rate(make_env: Callable[[], Any], steps: int, seed: int) -> float:
         env.close()
 
 
-def _train_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int, cls: Any = None) -> float:
-    """Env steps per second of a training run of ``cfg.train.algo`` (build_model: the paper's settings and
-    ``cfg.train``'s paths; ``cls`` another class, e.g. SB3's ``DDPG``) over ``steps`` steps after
-    ``SPEED_STARTS`` random ones: env step, exploration, one update per step."""
+def _train_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, steps: int) -> float:
+    """Env steps per second of a training run of ``cfg.train.algo`` in SB3's loop with stock SB3's class
+    (build_model: the paper's settings) over ``steps`` steps after ``SPEED_STARTS`` random ones: env step,
+    exploration, one update per step."""
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -200,7 +200,7 @@ def _train_rate(cfg: LaneFreeConfig, make_env: Callable[[], Any], seed: int, ste
 
     env = make_env()
     try:
-        build_model(cfg, env, seed, None, cls).learn(total_timesteps=SPEED_STARTS + steps + 1, callback=Clock())
+        build_model(cfg, env, seed, None).learn(total_timesteps=SPEED_STARTS + steps + 1, callback=Clock())
     finally:
         env.close()
     return steps / (stamps[SPEED_STARTS + steps] - stamps[SPEED_STARTS])
@@ -293,35 +293,34 @@ DQN_FAMILY = ("dqn", "ddqn", "dueling", "per")
 
 def dqn_family_speed(seed: int, steps: int = 1600, repeats: int = REPEATS) -> str:
     """Markdown: env steps/s of each DQN-family algorithm on LaneFree-v0 at 90 veh/km (numpy backend, the paper's
-    settings) on SB3's loop (for DQN SB3's own class: what a user would write) and as a batch of one (``lanefree
-    train``), every case measured ``repeats`` times interleaved (medians)."""
-    from stable_baselines3 import DQN
-
+    settings) as a batch of one (``lanefree train``), beside SB3's own ``DQN`` in SB3's loop (what a user would
+    write; SB3 has no double, dueling or prioritised DQN), every case measured ``repeats`` times interleaved
+    (medians)."""
     from lanefree_sumo.rl.models import make_vec_env, training_config
 
-    cases: dict[tuple[str, str], Callable[[], float]] = {}
+    cfg = training_config(merge_config(LaneFreeConfig(), {
+        "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": "dqn"}}))
+    cases: dict[tuple[str, str], Callable[[], float]] = {
+        ("dqn", "sb3"): functools.partial(_train_rate, cfg, functools.partial(make_vec_env, cfg), seed, steps)}
     for algo in DQN_FAMILY:
-        cfg = training_config(merge_config(LaneFreeConfig(), {
-            "seed": seed, "scenario": {"density_veh_per_km": PEER_DENSITY}, "train": {"algo": algo}}))
-        cases[(algo, "sb3")] = functools.partial(_train_rate, cfg, functools.partial(make_vec_env, cfg), seed,
-                                                 steps, DQN if algo == "dqn" else None)
         cases[(algo, "one")] = functools.partial(lambda a: batched_rate(a, 1, seed, steps)[0], algo)
     rate = _interleaved(cases, repeats)
     total = 625 * LaneFreeConfig().sim.episode_steps
+    slow = rate[("dqn", "sb3")]
     lines = [
         f"The DQN family (paper settings: 128-64, batch 64, one update per env step, target copy every 10 000 steps; "
         f"LaneFree-v0 at {PEER_DENSITY:g} veh/km, numpy backend, one env; {SPEED_STARTS} random steps, then {steps} "
         f"timed; median of {repeats} interleaved repeats; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} "
-        "cores at the end), env steps/s; both paths give the same parameters bit for bit:",
+        "cores at the end), env steps/s; × and the minutes against SB3's own `DQN` in SB3's loop "
+        f"({slow:.1f} steps/s, {total / slow / 60:.0f} min for 625 episodes), which has no double, dueling or "
+        "prioritised variant:",
         "",
-        "| algorithm | SB3's loop | a batch of one (`lanefree train`) | × | 625 episodes |",
-        "|---|---|---|---|---|",
+        "| algorithm | a batch of one (`lanefree train`) | × SB3's `DQN` | 625 episodes |",
+        "|---|---|---|---|",
     ]
     for algo in DQN_FAMILY:
-        slow, fast = rate[(algo, "sb3")], rate[(algo, "one")]
-        label = f"{algo} (SB3's `DQN`)" if algo == "dqn" else algo
-        lines.append(f"| {label} | {slow:.1f} | {fast:.1f} | {fast / slow:.2f}× "
-                     f"| {total / slow / 60:.0f} → {total / fast / 60:.0f} min |")
+        fast = rate[(algo, "one")]
+        lines.append(f"| {algo} | {fast:.1f} | {fast / slow:.2f}× | {total / fast / 60:.0f} min |")
     return "\n".join(lines)
 
 
@@ -330,8 +329,6 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     :data:`TRAINING_CASES` (plain SB3 DDPG — what a user would write — first), of the peer highway-v0 with
     as many vehicles and a 0.25 s step, and of the envs alone — every case measured ``repeats`` times
     interleaved in this run (medians) — plus the update alone and its floor."""
-    from stable_baselines3 import DDPG
-
     from lanefree_sumo.rl.models import make_vec_env, training_config
 
     cfg = training_config(merge_config(LaneFreeConfig(), {
@@ -349,7 +346,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
         case_cfg = merge_config(cfg, {"train": train})
         case_cfg = merge_config(case_cfg, {"backend": case_cfg.train.backend})
         make = functools.partial(make_vec_env, case_cfg)
-        cases[("lanefree", label)] = (functools.partial(_train_rate, case_cfg, make, seed, steps, DDPG)
+        cases[("lanefree", label)] = (functools.partial(_train_rate, case_cfg, make, seed, steps)
                                       if kind == "sb3" else lambda: batched_rate("ddpg", 1, seed, steps)[0])
     try:
         import highway_env  # noqa: F401
@@ -359,7 +356,7 @@ def training_speed(seed: int, steps: int = 1600, peer_steps: int = 200, repeats:
     for hz in peers:
         highway = functools.partial(_highway_env, n, hz, seed)
         cases[(f"highway{hz}", "env")] = functools.partial(_env_rate, highway, peer_steps, seed)
-        cases[(f"highway{hz}", "sb3")] = functools.partial(_train_rate, cfg, highway, seed, peer_steps, DDPG)
+        cases[(f"highway{hz}", "sb3")] = functools.partial(_train_rate, cfg, highway, seed, peer_steps)
     rate = _interleaved(cases, repeats)
     total = 625 * cfg.sim.episode_steps
 

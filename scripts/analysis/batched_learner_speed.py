@@ -2,7 +2,7 @@
 
 The paper's shapes (DDPG actor 24-256-128-2, critic 26-256-128-1; DQN 24-128-64-9; batch 64) and full replay
 buffers (100 000 random transitions per run). For each K: one batched update of K runs against one update of
-each of K single runs (``LaneFreeDDPG``/``LaneFreeDQN``: SB3's update), timed in turn five times; the best CPU
+each of K single runs (SB3's ``DDPG``/``DQN``: SB3's update), timed in turn five times; the best CPU
 time of this process counts (on a shared machine the least disturbed repeat).
 
     python scripts/analysis/batched_learner_speed.py [--algo ddpg|dqn] [--runs 1 4 8 16] [--updates 160]
@@ -18,13 +18,12 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3 import DDPG, DQN
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner, SpacesEnv
-from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
-from lanefree_sumo.rl.algorithms.dqn import LaneFreeDQN
 
 OBS, ACT, ACTIONS, CAPACITY = 24, 2, 9, 100_000
 
@@ -61,11 +60,11 @@ def single(algo: str, seed: int, rng: np.random.Generator) -> Any:
     env = SpacesEnv(obs_space, act_space)
     model: Any
     if algo == "ddpg":
-        model = LaneFreeDDPG("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, tau=0.001, seed=seed,
+        model = DDPG("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, tau=0.001, seed=seed,
                      device="cpu", action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT)),
                      policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU})
     else:
-        model = LaneFreeDQN("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, seed=seed, device="cpu",
+        model = DQN("MlpPolicy", env, buffer_size=CAPACITY, batch_size=64, gamma=0.98, seed=seed, device="cpu",
                     policy_kwargs={"net_arch": [128, 64], "activation_fn": th.nn.ReLU})
     rb = model.replay_buffer
     rb.observations[:] = rng.normal(size=rb.observations.shape)

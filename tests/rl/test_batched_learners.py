@@ -1,5 +1,6 @@
-"""Batched learners: run k of a batch of K is the single run of SB3's loop with seed k (the project's DDPG and DQN
-classes, SB3's TD3), bit for bit on CPU.
+"""Batched learners: run k of a batch of K is the single run of SB3's loop with seed k, bit for bit on CPU: stock
+SB3's DDPG, TD3 and DQN, and where SB3 has no class (the DQN variants, the learner choices) SB3's autograd update
+with the choice written in (:mod:`tests.rl.reference`).
 
 "The same" is ``torch.equal`` on every parameter, target parameter and Adam moment (compared through the
 SB3 model each run exports, against the single run's SB3 model), plus the numpy random stream each run drew
@@ -27,12 +28,9 @@ from lanefree_sumo.config import LaneFreeConfig, merge_config
 from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedDQN, BatchedTD3
 from lanefree_sumo.rl.algorithms.batched.learner import BatchedLearner
-from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
-from lanefree_sumo.rl.algorithms.double_dqn import DoubleDQN
-from lanefree_sumo.rl.algorithms.dqn import LaneFreeDQN
-from lanefree_sumo.rl.algorithms.dueling import DuelingDoubleDQN
-from lanefree_sumo.rl.algorithms.prioritized import PrioritizedDoubleDQN
+from lanefree_sumo.rl.algorithms.q_networks import DuelingDQNPolicy
 from lanefree_sumo.rl.models import build_batched, build_model
+from tests.rl.reference import ReferenceDDPG, ReferenceDQN
 
 OBS, ACT, ACTIONS, BATCH, UPDATES = 24, 2, 9, 64, 50
 """LaneFree-v0's vector observation, continuous action and discrete action counts; the paper's batch."""
@@ -41,8 +39,10 @@ HYPER = {"per-run": ((1e-3, 1e-3, 5e-4), (0.98, 0.98, 0.95), (0.001, 0.001, 0.00
          "shared": ((1e-3,) * 3, (0.98,) * 3, (0.001,) * 3)}
 """Learning rates, γ and τ of the three runs: run 2 differs (the per-run forms), or all alike (the scalar forms)."""
 LR, GAMMA, TAU = HYPER["per-run"]
-DQN_ALGOS: dict[str, type[LaneFreeDQN]] = {"dqn": LaneFreeDQN, "ddqn": DoubleDQN, "dueling": DuelingDoubleDQN,
-                                       "per": PrioritizedDoubleDQN}
+DQN_ALGOS: dict[str, dict[str, Any]] = {"dqn": {}, "ddqn": {"double_q": True},
+                                        "dueling": {"double_q": True, "policy": DuelingDQNPolicy},
+                                        "per": {"double_q": True, "per": (0.6, 0.4, 1e-6)}}
+"""Each variant as :class:`~tests.rl.reference.ReferenceDQN`'s arguments (PER: α, β₀, ε, the learner's defaults)."""
 MIXED = ("dqn", "ddqn", "dqn")
 """The variants of the three runs of a mixed batch ("dqn+ddqn"): one network, each run its own target."""
 VARIANTS = [*DQN_ALGOS, "dqn+ddqn"]
@@ -78,12 +78,16 @@ class ToyEnv(gym.Env):  # type: ignore[type-arg]
 
 # -- building the two sides ---------------------------------------------------------------------------------
 
-def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run", warmup: str = "uniform") -> LaneFreeDDPG:
+def _ddpg(k: int, learning_starts: int = 100, hyper: str = "per-run", warmup: str = "uniform",
+          penalty: float = 0.0) -> DDPG:
+    """Run k as SB3's DDPG (the reference where a choice differs from SB3's)."""
     lr, gamma, tau = (values[k] for values in HYPER[hyper])
-    return LaneFreeDDPG("MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
+    own = {"warmup_actions": warmup, "pre_tanh_penalty": penalty}
+    return (DDPG if warmup == "uniform" and not penalty else ReferenceDDPG)(
+        "MlpPolicy", ToyEnv(False), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
                     gamma=gamma, tau=tau, learning_starts=learning_starts, train_freq=1, gradient_steps=1,
-                    warmup_actions=warmup,
                     seed=SEEDS[k], device="cpu",
+                    **({} if warmup == "uniform" and not penalty else own),
                     action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
                     policy_kwargs={"net_arch": {"pi": [256, 128], "qf": [256, 128]}, "activation_fn": th.nn.ReLU})
 
@@ -98,11 +102,16 @@ def _batched_ddpg(learning_starts: int = 100, total: int = 1, hyper: str = "per-
 
 
 def _dqn(algo: str, k: int, total: int, learning_starts: int = 100, hyper: str = "per-run",
-         loss: str = "huber") -> LaneFreeDQN:
+         loss: str = "huber") -> DQN:
+    """Run k as SB3's DQN (stock for ``dqn`` with its Huber loss, else the reference)."""
     lr, gamma, _ = (values[k] for values in HYPER[hyper])
-    cls = DQN_ALGOS[MIXED[k] if algo == "dqn+ddqn" else algo]
-    return cls("MlpPolicy", ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
-               gamma=gamma, loss=loss, max_grad_norm=math.inf if loss == "squared" else 10.0,
+    variant = dict(DQN_ALGOS[MIXED[k] if algo == "dqn+ddqn" else algo])
+    policy = variant.pop("policy", "MlpPolicy")
+    stock = not variant and loss == "huber"
+    return (DQN if stock else ReferenceDQN)(
+               policy, ToyEnv(True), learning_rate=lr, buffer_size=5000, batch_size=BATCH,
+               gamma=gamma, max_grad_norm=math.inf if loss == "squared" else 10.0,
+               **({} if stock else {"loss": loss, **variant}),
                learning_starts=learning_starts, target_update_interval=50,
                exploration_fraction=0.3, exploration_initial_eps=1.0, exploration_final_eps=0.1,
                train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
@@ -228,7 +237,8 @@ def _drive(batched: BatchedLearner, discrete: bool, steps: int) -> None:
 @pytest.mark.parametrize("warmup", ["uniform", "policy"])
 def test_ddpg_act_store_update_equals_single_learn(warmup: str) -> None:
     """The whole cycle (random warm-up actions or the actor's from the first step, OU noise and its resets,
-    terminal observations, timeouts, updates) equals ``LaneFreeDDPG.learn`` run by run."""
+    terminal observations, timeouts, updates) equals SB3's ``DDPG.learn`` (policy warm-up: the reference's) run by
+    run."""
     steps = 260
     batched = _batched_ddpg(learning_starts=100, total=steps, warmup=warmup)
     _drive(batched, False, steps)
@@ -237,7 +247,7 @@ def test_ddpg_act_store_update_equals_single_learn(warmup: str) -> None:
         single.learn(total_timesteps=steps)
         _assert_same(single, batched, k)
         assert np.array_equal(np.random.get_state()[1], batched.streams.numpy[k].get_state()[1])
-        assert batched.n_updates == single._n_updates == steps - 100
+        assert batched.n_updates == steps - 100
 
 
 def test_ddpg_export_loads_in_sb3_and_predicts_the_batched_action(tmp_path: Path) -> None:
@@ -332,10 +342,11 @@ def test_td3_act_store_update_equals_sb3s_learn() -> None:
 # -- the DQN family ---------------------------------------------------------------------------------------
 
 def _per_trees(single: Any, batched: BatchedDQN, k: int) -> None:
-    if isinstance(single, PrioritizedDoubleDQN):
-        rb, mine = single.replay_buffer, batched.priorities[k]
-        assert np.array_equal(rb.sum_tree.tree, mine.sum_tree.tree)
-        assert np.array_equal(rb.min_tree.tree, mine.min_tree.tree) and rb.max_priority == mine.max_priority
+    if getattr(single, "priorities", None) is not None:
+        theirs, mine = single.priorities, batched.priorities[k]
+        assert np.array_equal(theirs.sum_tree.tree, mine.sum_tree.tree) and mine.sum_tree.total() > 0
+        assert np.array_equal(theirs.min_tree.tree, mine.min_tree.tree)
+        assert theirs.max_priority == mine.max_priority > 1.0
 
 
 @pytest.mark.parametrize(("hyper", "loss"), [("per-run", "huber"), ("shared", "huber"), ("per-run", "squared")])
@@ -392,8 +403,7 @@ def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_
     for k in range(len(SEEDS)):
         batched.export(k, tmp_path / f"run{k}.zip")
         model = DQN.load(tmp_path / f"run{k}.zip", device="cpu")
-        assert type(model.q_net) is type(_dqn(algo, k, 100).q_net)  # the dueling network comes back
-        assert type(batched.sb3_model(k)) is type(_dqn(algo, k, 100))  # each run's variant (a mixed batch's too)
+        assert type(model) is DQN and type(model.q_net) is type(_dqn(algo, k, 100).q_net)  # the dueling network
         action, _ = model.predict(obs[k], deterministic=True)
         assert int(action) == greedy[k]
         with th.no_grad():
@@ -414,21 +424,24 @@ def test_a_batch_checkpoint_resumes_exactly(algo: str, tmp_path: Path) -> None:
 @pytest.mark.parametrize(("algo", "profile"), [("ddpg", "sb3"), ("ddpg", "kerasrl"), ("td3", "sb3"),
                                                ("dqn", "kerasrl"), ("per", "sb3")])
 def test_build_batched_gives_each_run_build_models_model(algo: str, profile: str) -> None:
-    """Run k of ``build_batched`` is ``build_model``'s model for config k and seed k: the same class,
-    hyperparameters and initial weights (run 1 with another learning rate and γ), for both learner profiles."""
+    """Run k of ``build_batched`` is stock SB3's model of config k and seed k (``build_model``; for what SB3's class
+    lacks, the config without those choices): the same class, hyperparameters and initial weights (run 1 with
+    another learning rate and γ), for both learner profiles; the choices themselves come from the config."""
     actor_critic = algo in ("ddpg", "td3")
     section = "actor_critic" if actor_critic else "dqn"
     cfgs = [merge_config(LaneFreeConfig(), {"train": {"algo": algo, "profile": profile, "episodes": 50, section: {
         "learning_rate": lr, "gamma": gamma}}}) for lr, gamma in ((1e-3, 0.98), (3e-4, 0.95))]
+    sb3s = {"train": {"algo": "dqn" if algo == "per" else algo, "actor_critic": {"warmup_actions": "uniform"},
+                      "dqn": {"loss": "huber"}}}  # SB3's class: no choice of its own (per's network is DQN's)
     env = ToyEnv(not actor_critic)
     batched = build_batched(cfgs, [5, 6], env.observation_space, env.action_space)
     keys = ["learning_rate", "gamma", "buffer_size", "batch_size", "learning_starts", "seed"] + (
-        ["tau", "warmup_actions"] if algo == "ddpg" else
+        ["tau"] if algo == "ddpg" else
         ["tau", "policy_delay", "target_policy_noise", "target_noise_clip"] if algo == "td3" else [
             "target_update_interval", "exploration_initial_eps", "exploration_final_eps", "exploration_fraction",
-            "max_grad_norm", "loss"])
+            "max_grad_norm"])
     for k, seed in enumerate((5, 6)):
-        mine, theirs = batched.sb3_model(k), build_model(cfgs[k], env, seed, None)
+        mine, theirs = batched.sb3_model(k), build_model(merge_config(cfgs[k], sb3s), env, seed, None)
         assert type(mine) is type(theirs)
         assert {key: getattr(mine, key) for key in keys} == {key: getattr(theirs, key) for key in keys}
         a, b = (th.cat([p.detach().reshape(-1) for p in m.policy.parameters()]) for m in (mine, theirs))
@@ -436,10 +449,15 @@ def test_build_batched_gives_each_run_build_models_model(algo: str, profile: str
         if actor_critic:
             noises = (mine.action_noise, theirs.action_noise)
             assert all(np.array_equal(getattr(noises[0], n), getattr(noises[1], n)) for n in ("_sigma", "_theta"))
+        if algo == "ddpg":  # the choices SB3's DDPG lacks travel in its model.zip
+            assert mine.warmup_actions == cfgs[k].train.actor_critic.warmup_actions
+            assert mine.pre_tanh_penalty == cfgs[k].train.actor_critic.pre_tanh_penalty
     assert batched.learning_rate == [1e-3, 3e-4]
-    if profile == "kerasrl":  # the profile reached both sides
+    if profile == "kerasrl":  # the profile reached the learner
         assert (batched.warmup_actions == "policy" if algo == "ddpg"
                 else batched.loss == "squared" and batched.max_grad_norm == math.inf)
+    if algo == "per":
+        assert batched.priorities and batched.double_q
 
 
 def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:
@@ -467,8 +485,7 @@ def test_ddpg_pre_tanh_penalty_equals_the_single_autograd_update_bit_for_bit() -
     for _ in range(UPDATES):
         assert batched.update()
     for k in range(len(SEEDS)):
-        single = _ddpg(k)
-        single.pre_tanh_penalty = penalties[k]
+        single = _ddpg(k, penalty=penalties[k])
         _fill(single, k, transitions)
         np.random.seed(SEEDS[k])
         for _ in range(UPDATES):

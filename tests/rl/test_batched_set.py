@@ -2,13 +2,13 @@
 :mod:`...batched.set_encoder`).
 
 The chain: run k of a batch equals the batch of that one run bit for bit (CPU); a batch of one run equals
-SB3's autograd update (``LaneFreeDDPG``, SB3's TD3 and DQN, the project's DQN variants, each with
-``SetFeaturesExtractor``) to float tolerance — the dense encoder sums the rows in another order than the
-gathered one — after 20 updates; the exported model loads in SB3 and acts as the batch does (to the same
-tolerance). Both encoders
-(``paper``, ``small``), with and without the pre-tanh penalty, runs with different seeds and penalties in one
-batch; TD3 (twin critics on one encoder) with the paper encoder; every DQN variant (dueling: the encoder under
-the dueling head's trunk), prioritised replay compared with its runs batched alone.
+SB3's autograd update (SB3's DDPG, TD3 and DQN, and for the pre-tanh penalty and the DQN variants SB3's update
+with the choice written in, :mod:`tests.rl.reference`; each with ``SetFeaturesExtractor``) to float tolerance — the
+dense encoder sums the rows in another order than the gathered one — after 20 updates; the exported model loads in
+SB3 and acts as the batch does (to the same tolerance). Both encoders (``paper``, ``small``), with and without the
+pre-tanh penalty, runs with different seeds and penalties in one batch; TD3 (twin critics on one encoder) with the
+paper encoder; every DQN variant (dueling: the encoder under the dueling head's trunk), prioritised replay compared
+with its runs batched alone.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
 from lanefree_sumo.rl.algorithms.batched import BatchedDDPG, BatchedTD3
 from lanefree_sumo.rl.algorithms.batched.learner import SpacesEnv
-from lanefree_sumo.rl.algorithms.ddpg import LaneFreeDDPG
 from lanefree_sumo.rl.encoder import SetFeaturesExtractor
+from tests.rl.reference import ReferenceDDPG, ReferenceDQN
 
 EGO, ROWS, WIDTH, ACT, BATCH, UPDATES = 4, 6, 5, 2, 16, 20
 SEEDS = (0, 1, 2)
@@ -90,8 +90,8 @@ def _trained(encoder: str, runs: list[int], transitions: list[tuple[Any, ...]], 
 
 
 def _single(encoder: str, k: int, algo: str = "ddpg") -> TD3:
-    extra: dict[str, Any] = {"pre_tanh_penalty": PENALTIES[k]} if algo == "ddpg" else {}
-    return (LaneFreeDDPG if algo == "ddpg" else TD3)(
+    extra: dict[str, Any] = {"pre_tanh_penalty": PENALTIES[k]} if algo == "ddpg" and PENALTIES[k] else {}
+    return (TD3 if algo == "td3" else ReferenceDDPG if extra else DDPG)(
         "MultiInputPolicy", SpacesEnv(SPACE, ACTIONS), learning_rate=1e-3, buffer_size=1000, batch_size=BATCH,
         gamma=0.98, tau=0.001, learning_starts=50, train_freq=1, gradient_steps=1, seed=SEEDS[k], device="cpu",
         action_noise=OrnsteinUhlenbeckActionNoise(np.zeros(ACT), 0.2 * np.ones(ACT), theta=0.15),
@@ -232,18 +232,20 @@ def _trained_dqn(encoder: str, algo: str, runs: list[int], transitions: list[tup
 
 
 def _single_dqn(encoder: str, algo: str, k: int) -> Any:
-    """Run k in SB3's autograd update: SB3's own DQN for ``dqn``, the registry's class for the other variants."""
+    """Run k in SB3's autograd update: SB3's own DQN for ``dqn``, the reference's double-Q target for the other
+    variants (dueling: its policy)."""
     from stable_baselines3 import DQN
 
-    from lanefree_sumo.rl.algorithms import get_algorithm
+    from lanefree_sumo.rl.algorithms.q_networks import MultiInputDuelingDQNPolicy
 
-    cls = DQN if algo == "dqn" else get_algorithm(algo).cls
-    return cls("MultiInputPolicy", SpacesEnv(SPACE, DISCRETE), learning_rate=1e-3, buffer_size=1000,
+    policy = MultiInputDuelingDQNPolicy if algo == "dueling" else "MultiInputPolicy"
+    extra: dict[str, Any] = {} if algo == "dqn" else {"double_q": True}
+    return (ReferenceDQN if extra else DQN)(policy, SpacesEnv(SPACE, DISCRETE), learning_rate=1e-3, buffer_size=1000,
                batch_size=BATCH, gamma=0.98, learning_starts=50, target_update_interval=7, train_freq=1,
                gradient_steps=1, seed=SEEDS[k], device="cpu",
                policy_kwargs={"net_arch": list(LAYERS), "activation_fn": th.nn.ReLU,
                               "features_extractor_class": SetFeaturesExtractor,
-                              "features_extractor_kwargs": {"encoder": encoder}})
+                              "features_extractor_kwargs": {"encoder": encoder}}, **extra)
 
 
 @pytest.mark.parametrize(("encoder", "algo"), DQN_CASES)

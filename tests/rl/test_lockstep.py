@@ -226,7 +226,9 @@ def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_ea
     for name in nets:
         a, b = getattr(traced.learner, name), getattr(eager.learner, name)
         a, b = (a if ddpg else a.stack).flat, (b if ddpg else b.stack).flat
-        assert th.allclose(a, b, rtol=1e-5, atol=1e-7), name
+        # to float32 rounding on the weights' own scale (max |w| ≈ 1: a few ulps), 100× below what the updates move
+        # them by (asserted below); the set encoder's reordered sums: 4.4e-7 measured for dueling-set on an AMD EPYC
+        assert th.allclose(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max())), name
     if algo.startswith("per"):  # the priorities the traced step wrote back
         assert th.allclose(traced.learner._leaves, eager.learner._leaves, rtol=1e-5)
         assert ((eager.learner._leaves > 0) & (eager.learner._leaves != 1.0)).any()  # the updates moved some

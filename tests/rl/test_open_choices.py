@@ -20,7 +20,6 @@ from lanefree_sumo.rl.problem import Problem, ProblemState
 from lanefree_sumo.rl.rewards import pass_events
 from lanefree_sumo.sim.simulation import clip_acceleration
 from lanefree_sumo.sim.xp import NUMPY
-from tests.rl.test_dqn import ALGOS, _filled, _steps
 
 
 def test_pass_events_tell_passes_from_being_passed() -> None:
@@ -138,39 +137,78 @@ def test_the_kerasrl_profile_sets_its_keys_and_keys_beside_it_win() -> None:
         merge_config(LaneFreeConfig(), {"train": {"dqn": {"max_grad_norm": "ten"}}})
 
 
+def _drive(cfg: LaneFreeConfig, steps: int) -> tuple[Any, np.ndarray]:
+    """The batched learner of one run of ``cfg`` after ``steps`` steps of the one trainer's cycle (act, env step,
+    store, update) on LaneFree-v0; its actions, ``[steps, 2]``."""
+    from lanefree_sumo.rl.env import action_space, observation_space
+    from lanefree_sumo.rl.env_batch import SlotBatch
+    from lanefree_sumo.rl.models import build_batched
+
+    env = SlotBatch([cfg])
+    learner = build_batched([cfg], [cfg.seed], observation_space(cfg), action_space(cfg))
+    obs, actions = env.reset(), []
+    try:
+        for _ in range(steps):
+            action = learner.act(obs, explore=True)
+            new_obs, reward, terminated, truncated, _ = env.step(action)
+            learner.store(obs, action, reward, new_obs, terminated | truncated, truncated & ~terminated)
+            learner.update()
+            actions.append(action[0])
+            obs = env.reset([0]) if (terminated | truncated).any() else new_obs
+    finally:
+        env.close()
+    return learner, np.array(actions)
+
+
 @pytest.mark.usefixtures("one_torch_thread")
 @pytest.mark.parametrize("algo", ["dqn", "per"])
 def test_the_squared_loss_is_half_the_squared_error_and_another_update_than_huber(algo: str) -> None:
     """Keras-RL's ½·δ² with no clip: the loss of errors (1, 3) is ½·mean(1, 9) = 2.5 where Huber's is
-    mean(0.5, 2.5) = 1.5 (with PER's weights (1, 2): mean(0.5, 9) and mean(0.5, 5)), and training with it is
-    another update than with Huber (the toy's TD errors exceed 1)."""
-    cls = ALGOS[algo]
-    squared = _filled(cls, loss="squared", max_grad_norm=math.inf)
-    huber = _filled(cls, max_grad_norm=math.inf)
-    current, target, weights = th.tensor([[0.0], [3.0]]), th.tensor([[1.0], [0.0]]), th.tensor([[1.0], [2.0]])
-    assert squared._compute_loss(current, target).item() == 2.5 and huber._compute_loss(current, target).item() == 1.5
-    assert squared._compute_loss(current, target, weights).item() == 4.75
-    assert huber._compute_loss(current, target, weights).item() == 2.75
-    for model in (squared, huber):
-        _steps(model, 20)
-    assert not all(th.equal(a, b) for a, b in zip(squared.q_net.parameters(), huber.q_net.parameters()))
+    mean(0.5, 2.5) = 1.5 (with PER's weights (1, 2): mean(0.5, 9) and mean(0.5, 5)), each with its gradient
+    (δ/n, and Huber's δ clipped at ±1, over n = 2), and training with it is another update than with Huber (the
+    toy's TD errors exceed 1)."""
+    from gymnasium import spaces
+
+    from lanefree_sumo.rl.algorithms.batched import BatchedDQN
+
+    obs_space, act_space = spaces.Box(-np.inf, np.inf, (24,), np.float32), spaces.Discrete(9)
+
+    def learner(loss: str, batch: int) -> BatchedDQN:
+        return BatchedDQN(algo, obs_space, act_space, [0], loss=loss, max_grad_norm=math.inf, batch_size=batch,
+                          buffer_size=500, learning_starts=50, total_timesteps=500)
+
+    squared, huber = learner("squared", 2), learner("huber", 2)
+    current, target, weights = th.tensor([[[0.0], [3.0]]]), th.tensor([[[1.0], [0.0]]]), th.tensor([[[1.0], [2.0]]])
+    for model, w, value, grad in ((squared, None, 2.5, [-0.5, 1.5]), (huber, None, 1.5, [-0.5, 0.5]),
+                                  (squared, weights, 4.75, [-0.5, 3.0]), (huber, weights, 2.75, [-0.5, 1.0])):
+        loss, d_current = model._loss(current, target, w)
+        assert loss.item() == value and d_current.reshape(-1).tolist() == grad
+    rng = np.random.default_rng(0)
+    squared, huber = learner("squared", 16), learner("huber", 16)
+    for _ in range(100):
+        step = (rng.normal(size=(1, 24)).astype(np.float32), rng.integers(0, 9, 1),
+                (5 * rng.normal(size=1)).astype(np.float32), rng.normal(size=(1, 24)).astype(np.float32),
+                np.array([False]), np.array([False]))
+        for model in (squared, huber):
+            model.store(*step)
+            model.update()
+    assert squared.n_updates == huber.n_updates == 50
+    assert not th.equal(squared.q_net.stack.flat, huber.q_net.stack.flat)
 
 
 def test_ddpg_policy_warmup_acts_with_the_actor_from_the_first_step() -> None:
     """``warmup_actions: policy``: the first actions are the actor's plus noise (the same for two seeds'
     runs with the same actor would differ if uniform); updates still wait for learning_starts."""
-    from lanefree_sumo.rl.models import build_model, make_vec_env, training_config
+    from lanefree_sumo.rl.models import training_config
 
     cfg = merge_config(LaneFreeConfig(), {"backend": "numpy", "sim": {"episode_steps": 50},
                                           "train": {"episodes": 1, "actor_critic": {"ou_sigma": 0.0}}})
     seen: dict[str, np.ndarray] = {}
     for warmup in ("uniform", "policy"):
         c = training_config(merge_config(cfg, {"train": {"actor_critic": {"warmup_actions": warmup}}}))
-        model = build_model(c, make_vec_env(c), 0, None)
-        model.learn(20)
-        seen[warmup] = model.replay_buffer.actions[:20, 0].copy()
-        assert model._n_updates == 0  # 20 steps < learning_starts (800): no update either way
-    # with σ = 0 and no update, the policy warm-up stores the untrained actor's (nearly constant) action
+        learner, seen[warmup] = _drive(c, 20)
+        assert learner.n_updates == 0  # 20 steps < learning_starts (800): no update either way
+    # with σ = 0 and no update, the policy warm-up takes the untrained actor's (nearly constant) action
     policy, uniform = seen["policy"], seen["uniform"]
     assert np.ptp(policy, axis=0).max() < 0.2 < np.ptp(uniform, axis=0).max()
 
@@ -178,8 +216,8 @@ def test_ddpg_policy_warmup_acts_with_the_actor_from_the_first_step() -> None:
 @pytest.mark.slow
 def test_the_pre_tanh_penalty_holds_the_actor_off_its_bound_and_is_refused_where_it_is_not_built() -> None:
     """``train.actor_critic.pre_tanh_penalty``: λ·mean(u²) in DDPG's actor loss (u before the tanh) keeps the actor's
-    pre-tanh output near 0 where λ = 0 lets it grow; TD3 (single or batched) and SB3's own class refuse a λ > 0,
-    the batched DDPG takes it per run."""
+    pre-tanh output near 0 where λ = 0 lets it grow; TD3 (single or batched) and SB3's own DDPG refuse a λ > 0,
+    the batched DDPG takes it per run and its model.zip keeps it."""
     from lanefree_sumo.experiments.runners.batch import check_batchable
     from lanefree_sumo.rl.models import build_batched, build_model, make_vec_env, training_config
 
@@ -188,21 +226,19 @@ def test_the_pre_tanh_penalty_holds_the_actor_off_its_bound_and_is_refused_where
     pre = {}
     for penalty in (0.0, 1000.0):
         c = training_config(merge_config(cfg, {"train": {"actor_critic": {"pre_tanh_penalty": penalty}}}))
-        model = build_model(c, make_vec_env(c), 0, None)
+        learner, _ = _drive(c, 250)
+        assert learner.n_updates == 200
+        model = learner.sb3_model(0)
         assert model.pre_tanh_penalty == penalty
-        model.learn(250)  # 200 updates
-        assert model._n_updates == 200
-        states = th.as_tensor(model.replay_buffer.observations[:250, 0])
+        states = learner.replay.observations[0, :250]
         with th.no_grad():
             u = model.actor.mu[:-1](model.actor.extract_features(states, model.actor.features_extractor))
         pre[penalty] = float(u.abs().median())
     assert pre[1000.0] < 0.05 < pre[0.0]
-    from stable_baselines3 import DDPG
-
-    for algo, cls in (("td3", None), ("ddpg", DDPG)):
+    for algo in ("td3", "ddpg"):
         c = training_config(merge_config(cfg, {"train": {"algo": algo, "actor_critic": {"pre_tanh_penalty": 0.1}}}))
         with pytest.raises(ConfigError, match="pre_tanh_penalty"):
-            build_model(c, make_vec_env(c), 0, None, cls)
+            build_model(c, make_vec_env(c), 0, None)
     c = training_config(merge_config(cfg, {"train": {"actor_critic": {"pre_tanh_penalty": 0.1}}}))
     env = make_vec_env(c)
     assert build_batched([c, c], [0, 1], env.observation_space, env.action_space).pre_tanh_penalty == [0.1, 0.1]

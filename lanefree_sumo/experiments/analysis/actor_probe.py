@@ -38,8 +38,8 @@ from lanefree_sumo.config import LaneFreeConfig  # noqa: E402
 from lanefree_sumo.errors import LaneFreeError, RunError  # noqa: E402
 from lanefree_sumo.experiments.analysis import markdown  # noqa: E402
 from lanefree_sumo.experiments.storage.rundir import CHECKPOINTS, MODEL, read_config, write_atomic  # noqa: E402
-from lanefree_sumo.rl.algorithms import get_algorithm  # noqa: E402
-from lanefree_sumo.rl.models import build_model, make_vec_env  # noqa: E402
+from lanefree_sumo.rl.env import action_space, observation_space  # noqa: E402
+from lanefree_sumo.rl.models import build_batched, load_saved_model  # noqa: E402
 
 PROBE_SEED = 0
 """Seed of the probe's traffic and random actions."""
@@ -165,15 +165,11 @@ def probe_run(run: Path, states: int = 256) -> list[Probe]:
         raise RunError(f"{run} has neither a model nor a complete checkpoint to probe")
     torch.set_num_threads(cfg.train.torch_threads)
     observations = probe_states(cfg, states)
-    cls = get_algorithm(cfg.train.algo).cls
-    env = make_vec_env(cfg)
-    try:
-        out = [probe_model(build_model(cfg, env, cfg.seed, None), observations, "initial", 0)]
-    finally:
-        env.close()
+    initial = build_batched([cfg], [cfg.seed], observation_space(cfg), action_space(cfg)).sb3_model(0)
+    out = [probe_model(initial, observations, "initial", 0)]
     for label, path, timesteps in models:
         try:
-            model = cls.load(path, device="cpu")
+            model = load_saved_model(cfg.train.algo, path)
         except Exception as exc:
             raise RunError(f"{path} cannot be loaded ({type(exc).__name__}: {exc})") from None
         out.append(probe_model(model, observations, label, timesteps))

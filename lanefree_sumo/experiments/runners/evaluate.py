@@ -38,7 +38,7 @@ from lanefree_sumo.experiments.storage.rundir import (
     vehicles_path,
     write_config,
 )
-from lanefree_sumo.rl.algorithms import get_algorithm
+from lanefree_sumo.rl.models import load_saved_model
 from lanefree_sumo.sim.road import road_of
 from lanefree_sumo.sim.spawn import agent_id
 
@@ -227,7 +227,7 @@ def load_model(folder: RunDir, cfg: LaneFreeConfig) -> Any:
     torch.set_num_threads(cfg.train.torch_threads)
     model_path = folder.find_model()
     try:
-        return get_algorithm(cfg.train.algo).cls.load(model_path, device="cpu")
+        return load_saved_model(cfg.train.algo, model_path)
     except Exception as exc:
         raise RunError(f"{model_path} cannot be loaded ({type(exc).__name__}: {exc})") from None
 

@@ -38,7 +38,7 @@ from lanefree_sumo.experiments.storage.episodes import TENSORBOARD_SCALARS, Epis
 from lanefree_sumo.experiments.storage.rundir import Checkpoint, RunDir, append_command, record_session, write_config
 from lanefree_sumo.rl.algorithms import BATCHED, get_algorithm
 from lanefree_sumo.rl.env import resolve_config
-from lanefree_sumo.rl.models import build_model, check_trainable, make_vec_env, training_config
+from lanefree_sumo.rl.models import build_model, check_trainable, load_saved_model, make_vec_env, training_config
 from lanefree_sumo.sim.spawn import check_fits
 
 # -- episode log and checkpoints ------------------------------------------------------------------
@@ -136,7 +136,7 @@ def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any, folder: RunDir) -> A
     TensorBoard folder is ``folder``'s, never the path the checkpoint saved: a moved, renamed or copied run, or
     one resumed from another directory, writes into itself."""
     try:
-        model = spec.cls.load(ckpt.model, env=env, device="cpu", tensorboard_log=str(folder.tensorboard))
+        model = load_saved_model(spec.name, ckpt.model, env=env, tensorboard_log=str(folder.tensorboard))
         if spec.off_policy:
             if not ckpt.replay_buffer.is_file():
                 raise RunError(f"checkpoint {ckpt.path} lacks {ckpt.replay_buffer.name}; it is incomplete")
@@ -199,6 +199,9 @@ def train(
             folder = RunDir(run)
             # a run folder at all, before anything is written
             cfg = resolve_config(folder.load_config(note_retired=True))
+            if cfg.train.algo in BATCHED:
+                raise RunError(f"{run} was trained in SB3's loop, where {cfg.train.algo} no longer trains; its model "
+                               "still evaluates (lanefree evaluate): start a new run to train it further")
             stack.enter_context(folder.writer_lock())  # one writer: a second resume is refused here
             ckpt, target = _resume_point(folder, cfg, episodes)
             timesteps = ckpt.timesteps

@@ -1,15 +1,11 @@
-"""THE algorithm registry: name → SB3(-compatible) class, action kind, on/off-policy, config section; the
-names are the config's ``AlgorithmName`` (the config room imports nothing of this one).
+"""THE algorithm registry: name → the SB3 class of its ``model.zip``, action kind, on/off-policy, config section,
+its batched learner; the names are the config's ``AlgorithmName`` (the config room imports nothing of this one).
 
 Training, evaluation, the benchmark, the CLI's help and the tests all read :data:`ALGORITHMS`.
 Classes are imported only when asked for (``spec.cls``), so listing algorithms costs no torch
-import. The DQN variants SB3 lacks live one family a module: :mod:`.double_dqn`,
-:mod:`.dueling`, :mod:`.prioritized` (with :mod:`.segment_tree`); the dueling Q-network head and its
-policies in :mod:`.q_networks`, which imports no algorithm. ``ddpg`` is :mod:`.ddpg`'s subclass of SB3's
-DDPG and ``dqn`` :mod:`.dqn`'s of SB3's DQN (the base of the other three): SB3's update, with the project's
-choices; they load models saved by SB3's classes, and SB3's classes load theirs. Every run of these algorithms
-trains in the batched learners (:mod:`.batched`); the subclasses are the class of every ``model.zip`` those
-export, and the references ``tests/rl/`` compares the learners' updates with.
+import. Every algorithm with a batched learner (:mod:`.batched`: DDPG, TD3 and the DQN family) trains there,
+for one run and for K; its ``model.zip`` is an ordinary model of stock SB3's class (``DDPG``, ``TD3``, ``DQN``; the
+dueling network's policy from :mod:`.q_networks`), which evaluation loads. SAC and PPO train in SB3's own loop.
 """
 
 from __future__ import annotations
@@ -29,7 +25,7 @@ class AlgorithmSpec:
     name: AlgorithmName
     """One of the config's names (a name the schema lacks is a type error)."""
     target: str
-    """``module:attribute`` of the class."""
+    """``module:attribute`` of the SB3 class of its ``model.zip`` (and, for SAC and PPO, of its training)."""
     actions: Literal["continuous", "discrete"]
     off_policy: bool
     """Keeps a replay buffer (checkpointed with the model)."""
@@ -38,9 +34,12 @@ class AlgorithmSpec:
     summary: str
     """One line for ``--help``."""
     choices: tuple[str, ...] = ()
-    """Keys of its ``config_section`` that SB3's class lacks and its class (the project's subclass of SB3's) and
-    its batched learner take as constructor arguments (``warmup_actions``, ``pre_tanh_penalty``, ``loss``); a
-    value other than SB3's for a key an algorithm does not take is refused."""
+    """Keys of its ``config_section`` that SB3's class lacks and its batched learner takes (``warmup_actions``,
+    ``pre_tanh_penalty``, ``loss``); a value other than SB3's for a key an algorithm does not take is refused."""
+    double_q: bool = False
+    """The DQN family's TD target takes the online network's argmax (double DQN) rather than the target's."""
+    dueling: bool = False
+    """The DQN family's Q-network is the dueling head (:mod:`.q_networks`)."""
     batched_target: str = ""
     """``module:attribute`` of its batched learner (:mod:`.batched`), which trains it as a batch of K runs in one
     array program (``lanefree train``, ``--seeds``, ``sweep --batch``, the GPU); empty: SB3's loop only."""
@@ -52,6 +51,15 @@ class AlgorithmSpec:
     def cls(self) -> Any:
         """The SB3(-compatible) class (imported on first use)."""
         return _load(self.target)
+
+    def policy(self, name: str) -> Any:
+        """The SB3 policy class of ``name`` (``MlpPolicy``, ``MultiInputPolicy``) for this algorithm: the dueling
+        policies of :mod:`.q_networks` for the dueling network, else :attr:`cls`'s own alias."""
+        if self.dueling:
+            from lanefree_sumo.rl.algorithms.q_networks import DuelingDQNPolicy, MultiInputDuelingDQNPolicy
+
+            return {"MlpPolicy": DuelingDQNPolicy, "MultiInputPolicy": MultiInputDuelingDQNPolicy}[name]
+        return self.cls.policy_aliases[name]
 
     @property
     def batched(self) -> bool:
@@ -72,13 +80,13 @@ def _load(target: str) -> Any:
     return getattr(importlib.import_module(module), attribute)
 
 
-_ALGOS = "lanefree_sumo.rl.algorithms"
-_BATCHED = f"{_ALGOS}.batched"
+_BATCHED = "lanefree_sumo.rl.algorithms.batched"
 _OU = ("ou_sigma", "ou_theta")
+_DQN = "stable_baselines3:DQN"
 _SPECS: dict[str, AlgorithmSpec] = {
     spec.name: spec
     for spec in (
-        AlgorithmSpec("ddpg", f"{_ALGOS}.ddpg:LaneFreeDDPG", "continuous", True, "actor_critic",
+        AlgorithmSpec("ddpg", "stable_baselines3:DDPG", "continuous", True, "actor_critic",
                       "DDPG with Ornstein-Uhlenbeck noise (the paper's main algorithm)",
                       choices=("warmup_actions", "pre_tanh_penalty"),
                       batched_target=f"{_BATCHED}.ddpg:BatchedDDPG", unread_keys=("ppo_n_steps",)),
@@ -88,16 +96,14 @@ _SPECS: dict[str, AlgorithmSpec] = {
                       unread_keys=("ppo_n_steps", *_OU)),
         AlgorithmSpec("ppo", "stable_baselines3:PPO", "continuous", False, "actor_critic", "PPO",
                       unread_keys=("buffer_size", "tau", "learning_starts_steps", *_OU)),
-        AlgorithmSpec("dqn", f"{_ALGOS}.dqn:LaneFreeDQN", "discrete", True, "dqn", "DQN", choices=("loss",),
+        AlgorithmSpec("dqn", _DQN, "discrete", True, "dqn", "DQN", choices=("loss",),
                       batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
-        AlgorithmSpec("ddqn", f"{_ALGOS}.double_dqn:DoubleDQN", "discrete", True, "dqn", "double DQN",
-                      choices=("loss",), batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
-        AlgorithmSpec("dueling", f"{_ALGOS}.dueling:DuelingDoubleDQN", "discrete", True, "dqn",
-                      "dueling double DQN", choices=("loss",),
+        AlgorithmSpec("ddqn", _DQN, "discrete", True, "dqn", "double DQN", choices=("loss",), double_q=True,
                       batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
-        AlgorithmSpec("per", f"{_ALGOS}.prioritized:PrioritizedDoubleDQN", "discrete", True, "dqn",
-                      "double DQN with prioritised replay", choices=("loss",),
-                      batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
+        AlgorithmSpec("dueling", _DQN, "discrete", True, "dqn", "dueling double DQN", choices=("loss",),
+                      double_q=True, dueling=True, batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
+        AlgorithmSpec("per", _DQN, "discrete", True, "dqn", "double DQN with prioritised replay",
+                      choices=("loss",), double_q=True, batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
     )
 }
 ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)

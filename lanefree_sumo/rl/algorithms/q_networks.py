@@ -1,8 +1,8 @@
 """The DQN family's Q-network heads that SB3 lacks: the dueling head (Wang et al. 2016) and its policies.
 
 ``Q(s, a) = V(s) + A(s, a) − mean_a' A(s, a')``. A module of its own, below the algorithms: the
-batched learner (:mod:`.batched.dqn`) writes these heads out, and :mod:`.dueling` puts them into
-:class:`~.dueling.DuelingDoubleDQN`'s policy aliases; neither imports the other for them.
+batched learner (:mod:`.batched.dqn`) writes these heads out, and a ``dueling`` run's ``model.zip`` is SB3's
+``DQN`` with these policies (the registry's :meth:`~lanefree_sumo.rl.algorithms.AlgorithmSpec.policy`).
 """
 
 from typing import Any

@@ -6,8 +6,9 @@
 observation and give every run's action (:meth:`~.learner.BatchedLearner.act`), store every run's transition
 (``store``), and make one gradient step per run (``update``); ``state_dict``/``load_state_dict`` checkpoint the
 batch and ``export(k, path)`` writes run k as an ordinary SB3 ``model.zip``. On CPU run k computes exactly what
-SB3's update (:mod:`..ddpg`, :mod:`..dqn`; SB3's TD3) computes for one run of seed k (on the set observation:
-to float tolerance, :mod:`.set_encoder`).
+SB3's update (SB3's DDPG, TD3 and DQN, with the choices SB3 lacks written in) computes for one run of seed k (on the
+set observation: to float tolerance, :mod:`.set_encoder`). They are the only implementation of these algorithms'
+updates; SB3's classes are their ``model.zip``.
 """
 
 from lanefree_sumo.rl.algorithms.batched.ddpg import BatchedDDPG

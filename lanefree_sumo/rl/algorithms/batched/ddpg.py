@@ -1,11 +1,15 @@
-"""DDPG for K runs at once: SB3's DDPG update (:class:`~..ddpg.LaneFreeDDPG`), written out with a leading run axis.
+"""DDPG for K runs at once: SB3's DDPG update, written out with a leading run axis, with two choices SB3 lacks.
 
 Run k starts from the weights SB3's DDPG gets with seed k (its policy built under ``torch.manual_seed(k)``,
 as ``DDPG._setup_model`` builds it), draws its replay indices and Ornstein-Uhlenbeck noise from its own
 stream (:class:`~.replay.RunStreams`) in the single run's order, and has its own learning rate, γ, τ, σ and θ;
 the network shapes, batch size, buffer size and ``learning_starts`` are the batch's. On CPU run k's
-parameters, targets and Adam moments equal the single :class:`~..ddpg.LaneFreeDDPG` run's bit for bit
-(``tests/rl/test_batched_learners.py``), with the pre-tanh penalty too. SB3 also
+parameters, targets and Adam moments equal SB3's ``DDPG`` of that run bit for bit (``tests/rl/
+test_batched_learners.py``). The choices: ``warmup_actions = policy`` (Keras-RL's DDPG: the actor and its noise act
+from the first step instead of SB3's uniformly random actions before ``learning_starts``; updates still wait) and
+``pre_tanh_penalty = λ > 0`` (λ·mean(u²) added to the actor loss, u the actor's pre-tanh output: a remedy for an
+actor stuck at its tanh bound); both bit for bit against SB3's update with the choice written in (``tests/rl/reference.py``), and in
+the golden files frozen from SB3's loop (``tests/experiments/test_golden_runs.py``). SB3 also
 draws DDPG's target-policy noise, which DDPG clips to zero; it changes no number (only a −0.0 action to +0.0),
 so it is not drawn here. On the set observation each network starts with the set encoder (:mod:`.set_encoder`),
 and run k agrees with the single run to float tolerance (``tests/rl/test_batched_set.py``). TD3 is this class
@@ -38,8 +42,10 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     per_run_column,
     soft_update,
 )
-from lanefree_sumo.rl.algorithms.ddpg import WARMUP_ACTIONS
 from lanefree_sumo.rl.encoder import SetFeaturesExtractor
+
+WARMUP_ACTIONS: tuple[str, ...] = ("uniform", "policy")
+"""What DDPG does before its first update (``train.actor_critic.warmup_actions``)."""
 
 
 def policy_kwargs(actor_layers: Sequence[int], critic_layers: Sequence[int], encoder: str | None) -> dict[str, Any]:
@@ -69,9 +75,9 @@ class BatchedDDPG(BatchedLearner):
     """DDPG (SB3's, as ``lanefree train`` configures it) for K runs; module docstring.
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``tau``, ``ou_sigma``,
-    ``ou_theta``, ``pre_tanh_penalty`` (λ of :class:`~..ddpg.LaneFreeDDPG`'s λ·mean(u²) on the actor's pre-tanh
+    ``ou_theta``, ``pre_tanh_penalty`` (λ of λ·mean(u²) on the actor's pre-tanh
     output u). The batch's: the layer widths, ``batch_size``, ``buffer_size``, ``learning_starts``,
-    ``warmup_actions`` (:class:`~..ddpg.LaneFreeDDPG`'s: ``uniform`` random actions before
+    ``warmup_actions`` (``uniform``: random actions before
     ``learning_starts``, or ``policy``: the actor and its noise from the first step), ``encoder``: the set
     encoder's name for the set observation (a Dict observation space; :mod:`.set_encoder`), None for the
     vector observation."""
@@ -148,7 +154,7 @@ class BatchedDDPG(BatchedLearner):
 
     @property
     def random_steps(self) -> int:
-        """Steps that act uniformly at random (:meth:`~..ddpg.LaneFreeDDPG._random_steps`)."""
+        """Steps that act uniformly at random: SB3's ``learning_starts``, or none with ``warmup_actions = policy``."""
         return self.learning_starts if self.warmup_actions == "uniform" else 0
 
     def optimisers(self) -> list[StackedAdam]:
@@ -310,15 +316,19 @@ class BatchedDDPG(BatchedLearner):
 
     def _model_kwargs(self, k: int) -> dict[str, Any]:
         """Run k's constructor arguments of the SB3 class beyond those all these learners share."""
+        return {}
+
+    def _choices(self, k: int) -> dict[str, Any]:
+        """Run k's choices SB3's class lacks, kept as attributes of its exported model (``model.zip`` records
+        them; SB3 itself trains without them)."""
         return {"warmup_actions": self.warmup_actions, "pre_tanh_penalty": self.pre_tanh_penalty[k]}
 
-    def sb3_model(self, k: int, cls: Any = None) -> Any:
-        """Run k as an SB3 model of ``cls`` (the registry's DDPG class by default): its hyperparameters, its
-        networks, Adam states and step counts."""
-        if cls is None:
-            from lanefree_sumo.rl.algorithms import get_algorithm
+    def sb3_model(self, k: int) -> Any:
+        """Run k as a model of the registry's SB3 class (``DDPG``, or ``TD3``): its hyperparameters, its networks,
+        Adam states and step counts, and the learner choices SB3's class lacks as attributes."""
+        from lanefree_sumo.rl.algorithms import get_algorithm
 
-            cls = get_algorithm(self.algo).cls
+        cls = get_algorithm(self.algo).cls
         n_actions = int(self.action_space.shape[0])  # type: ignore[index]
         noise = OrnsteinUhlenbeckActionNoise(np.zeros(n_actions), self.ou_sigma[k] * np.ones(n_actions),
                                              theta=self.ou_theta[k])
@@ -330,6 +340,8 @@ class BatchedDDPG(BatchedLearner):
                         gradient_steps=1, action_noise=noise, seed=self.seeds[k], device="cpu", verbose=0,
                         policy_kwargs=policy_kwargs(self.actor_layers, self.critic_layers, self.encoder),
                         **self._model_kwargs(k))
+        for key, value in self._choices(k).items():
+            setattr(model, key, value)
         with th.no_grad():
             for net, stack in ((model.actor, self.actor), (model.critic, self.critic),
                                (model.actor_target, self.actor_target), (model.critic_target, self.critic_target)):

@@ -1,14 +1,16 @@
-"""The DQN family for K runs at once: :class:`~..dqn.LaneFreeDQN`'s update, written out with a leading run axis.
+"""The DQN family for K runs at once: SB3's DQN update and its variants, written out with a leading run axis.
 
 ``algo`` is a registry name: ``dqn`` (the target network's argmax), ``ddqn`` (the online network's),
 ``dueling`` (double DQN with the dueling head), ``per`` (double DQN with proportional prioritised replay,
 one :class:`~.replay.RunPriorities` per run); or one name per run, of one :func:`batch_group`: ``dqn`` and
 ``ddqn`` runs share a batch (one network shape; each run takes its own target). Run k starts from the weights
-SB3 gives its variant's class with seed k, draws its ε-greedy decisions, random actions and replay indices from
-its own streams in the single run's order, and has its own learning rate, γ and ε schedule; the network shape,
-batch size, buffer size, ``learning_starts``, target interval, gradient clip and TD loss are the batch's. On CPU
-run k equals SB3's update of that run bit for bit (``tests/rl/test_batched_learners.py``; on the set observation
-to float tolerance, ``tests/rl/test_batched_set.py``: the set encoder comes first, :mod:`.set_encoder`).
+SB3's DQN gets with seed k (the dueling policy of :mod:`..q_networks` for ``dueling``), draws its ε-greedy
+decisions, random actions and replay indices from its own streams in SB3's order, and has its own learning rate,
+γ and ε schedule; the network shape, batch size, buffer size, ``learning_starts``, target interval, gradient clip
+and TD loss (:data:`LOSSES`) are the batch's. On CPU a DQN run equals SB3's ``DQN`` bit for bit, and every
+variant SB3's update with the variant written in (``tests/rl/reference.py``; ``tests/rl/test_batched_learners.py``; on the set observation to float
+tolerance, ``tests/rl/test_batched_set.py``: the set encoder comes first, :mod:`.set_encoder`); the variants'
+golden files were frozen from SB3's loop (``tests/experiments/test_golden_runs.py``).
 Prioritised replay keeps its trees on the host: its TD errors come back from the device once per update. With
 device streams (the lockstep loop) its priorities live on the device instead (:meth:`BatchedDQN.sample_on_device`).
 """
@@ -40,10 +42,15 @@ from lanefree_sumo.rl.algorithms.batched.stack import (
     mlp_forward,
     per_run_column,
 )
-from lanefree_sumo.rl.algorithms.dqn import HUBER_BETA, LOSSES, NO_REDUCTION
 from lanefree_sumo.rl.encoder import SetFeaturesExtractor
 
 FAMILY = ("dqn", "ddqn", "dueling", "per")
+NO_REDUCTION = 0
+"""torch's ``Reduction::None`` (the loss gradient: ``smooth_l1_loss_backward``)."""
+HUBER_BETA = 1.0
+"""``F.smooth_l1_loss``'s default β, which SB3's DQN uses."""
+LOSSES: tuple[str, ...] = ("huber", "squared")
+"""The TD losses (``train.dqn.loss``): SB3's Huber (smooth L1, β = 1) or Keras-RL's ½·δ²."""
 
 
 def batch_group(algo: str) -> str:
@@ -115,8 +122,8 @@ class BatchedDQN(BatchedLearner):
 
     Per run (one number for all or one per run): ``learning_rate``, ``gamma``, ``exploration_fraction``,
     ``exploration_initial_eps``, ``exploration_final_eps``. The batch's: the rest, as SB3's DQN names them
-    (``max_grad_norm``: ``inf`` for no clip; ``loss``: :class:`~..dqn.LaneFreeDQN`'s, ``huber`` or
-    ``squared``; ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, as :mod:`..prioritized`'s;
+    (``max_grad_norm``: ``inf`` for no clip; ``loss``: :data:`LOSSES`, SB3's Huber or Keras-RL's ½·δ²;
+    ``per_alpha``, ``per_beta0``, ``per_eps``: the prioritised replay's, :class:`~.replay.RunPriorities`;
     ``encoder``: the set encoder's name for the set observation (a Dict observation space; :mod:`.set_encoder`),
     None for the vector observation)."""
 
@@ -151,8 +158,9 @@ class BatchedDQN(BatchedLearner):
         k = self.runs
         self.algos = algos
         """Each run's variant."""
-        self.classes = [get_algorithm(a).cls for a in algos]
-        double = [bool(c.double_q) for c in self.classes]
+        self.specs = [get_algorithm(a) for a in algos]
+        """Each run's registry entry (its target, its network, the class of its ``model.zip``)."""
+        double = [spec.double_q for spec in self.specs]
         self.double_q = all(double)
         """Every run takes the double-Q target (none does where False and :attr:`_double` is None)."""
         self._double = (th.tensor(double, device=self.device).view(k, 1, 1) if len(set(double)) > 1 else None)
@@ -168,8 +176,8 @@ class BatchedDQN(BatchedLearner):
         self.per_alpha, self.per_beta0, self.per_eps = float(per_alpha), float(per_beta0), float(per_eps)
         self.encoder = encoder
         policies = []
-        for cls, seed, lr in zip(self.classes, self.seeds, self.learning_rate):
-            policy_class = cls.policy_aliases[self._policy_name]
+        for spec, seed, lr in zip(self.specs, self.seeds, self.learning_rate):
+            policy_class = spec.policy(self._policy_name)
             with th.random.fork_rng(devices=[]):  # as DQN._setup_model builds it after set_random_seed(seed)
                 th.manual_seed(seed)
                 policies.append(policy_class(observation_space, action_space, lambda _, lr=lr: lr,
@@ -320,7 +328,7 @@ class BatchedDQN(BatchedLearner):
         self.exploration_rate = [schedule(self.progress_remaining) for schedule in self.exploration]
 
     def per_beta(self) -> float:
-        """The importance-sampling exponent now: β0 → 1 linearly over training (:mod:`..prioritized`)."""
+        """The importance-sampling exponent now: β0 → 1 linearly over training (:class:`~.replay.RunPriorities`)."""
         fraction = min(max(1.0 - float(self.progress_remaining), 0.0), 1.0)
         return self.per_beta0 + (1.0 - self.per_beta0) * fraction
 
@@ -422,21 +430,21 @@ class BatchedDQN(BatchedLearner):
             priorities.load_state(saved)
 
     def sb3_model(self, k: int) -> Any:
-        """Run k as a model of the registry's class for its variant: its hyperparameters, networks, Adam state,
-        step counts and ε."""
+        """Run k as a model of SB3's ``DQN`` (the class of its ``model.zip``; the dueling network's policy for
+        ``dueling``): its hyperparameters, networks, Adam state, step counts and ε. The TD target, loss and replay
+        of its variant are the batched learner's (SB3's ``DQN`` trains a plain DQN)."""
         schedule = self.exploration[k]
         with kept_random_state():
-            model = self.classes[k](self._policy_name, SpacesEnv(self.observation_space, self.action_space),
-                             learning_rate=self.learning_rate[k], buffer_size=self.buffer_size,
-                             batch_size=self.batch_size, gamma=self.gamma[k], learning_starts=self.learning_starts,
-                             target_update_interval=self.target_update_interval,
-                             exploration_initial_eps=schedule.start, exploration_final_eps=schedule.end,
-                             exploration_fraction=schedule.end_fraction, max_grad_norm=self.max_grad_norm,
-                             loss=self.loss,
-                             train_freq=1, gradient_steps=1, seed=self.seeds[k], device="cpu", verbose=0,
-                             policy_kwargs=self._policy_kwargs(),
-                             **({"per_alpha": self.per_alpha, "per_beta0": self.per_beta0, "per_eps": self.per_eps}
-                                if self.algos[k] == "per" else {}))
+            model = self.specs[k].cls(self.specs[k].policy(self._policy_name),
+                                      SpacesEnv(self.observation_space, self.action_space),
+                                      learning_rate=self.learning_rate[k], buffer_size=self.buffer_size,
+                                      batch_size=self.batch_size, gamma=self.gamma[k],
+                                      learning_starts=self.learning_starts,
+                                      target_update_interval=self.target_update_interval,
+                                      exploration_initial_eps=schedule.start, exploration_final_eps=schedule.end,
+                                      exploration_fraction=schedule.end_fraction, max_grad_norm=self.max_grad_norm,
+                                      train_freq=1, gradient_steps=1, seed=self.seeds[k], device="cpu", verbose=0,
+                                      policy_kwargs=self._policy_kwargs())
         with th.no_grad():
             for net, stack in ((model.q_net, self.q_net.stack), (model.q_net_target, self.q_net_target.stack)):
                 for p, value in zip(net.parameters(), stack.row(k)):

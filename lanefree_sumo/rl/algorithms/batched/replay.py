@@ -6,8 +6,8 @@ space's own generator (seeded with the run's seed) for random actions. :class:`R
 ``numpy.random.RandomState(seed_k)`` (the global generator's algorithm and seeding) and a copy of the action
 space seeded with ``seed_k``; the learners call them in the single run's order, so run k draws the single
 run's numbers. :class:`BatchedReplay` stores what SB3's ``ReplayBuffer`` stores (float32; SB3's action dtype)
-as tensors on the learner's device; :class:`RunPriorities` is one run's prioritised replay index
-(:mod:`..prioritized`'s sampling on :mod:`..segment_tree`'s trees).
+as tensors on the learner's device; :class:`RunPriorities` is one run's prioritised replay index (on
+:mod:`.segment_tree`'s trees).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from lanefree_sumo.rl.algorithms.segment_tree import MinTree, SumTree
+from lanefree_sumo.rl.algorithms.batched.segment_tree import MinTree, SumTree
 
 
 class RunStreams:
@@ -173,9 +173,16 @@ _NUMPY = {th.float32: np.float32, th.int64: np.int64}
 
 
 class RunPriorities:
-    """One run's proportional prioritised replay index (:class:`~..prioritized.PrioritizedReplayBuffer`'s:
-    the trees hold ``p^α``, a new transition gets the largest ``p^α`` set so far, stratified sampling,
-    importance weights normalised by the smallest probability in the buffer)."""
+    """One run's proportional prioritised replay index (Schaul et al. 2016), with the choices the paper leaves open:
+
+    * the trees hold ``p_i^α`` with ``p_i = |δ_i| + eps``; a new transition gets the largest ``p^α`` set so far
+      (1.0 at first); priorities are updated after each gradient step with the |TD errors| of its forward pass;
+    * sampling is stratified (App. B.2.1): the total mass cut into ``batch_size`` equal segments, one value drawn
+      uniformly in each;
+    * importance weights ``w_i = (P(i) / min_j P(j))^−β ≤ 1``, the minimum over the whole buffer (a min-tree, as
+      in Algorithm 1); they multiply the per-sample loss, averaged over the batch; β annealed linearly from
+      ``per_beta0`` to 1 over training (:meth:`~.dqn.BatchedDQN.per_beta`);
+    * the flat index of a transition is ``position · slots + slot`` (SB3's ``(buffer_size, n_envs)`` layout)."""
 
     def __init__(self, capacity: int, alpha: float, eps: float) -> None:
         self.sum_tree, self.min_tree = SumTree(capacity), MinTree(capacity)

@@ -121,6 +121,9 @@ class BatchedTD3(BatchedDDPG):
         return {"policy_delay": self.policy_delay, "target_policy_noise": self.target_policy_noise,
                 "target_noise_clip": self.target_noise_clip}
 
+    def _choices(self, k: int) -> dict[str, Any]:
+        return {}
+
     def state_dict(self) -> dict[str, Any]:
         return {**super().state_dict(), "target_noise": [g.get_state() for g in self.generators]}
 
