@@ -8,8 +8,9 @@ parameters, targets and Adam moments equal SB3's ``DDPG`` of that run bit for bi
 test_batched_learners.py``). The choices: ``warmup_actions = policy`` (Keras-RL's DDPG: the actor and its noise act
 from the first step instead of SB3's uniformly random actions before ``learning_starts``; updates still wait) and
 ``pre_tanh_penalty = λ > 0`` (λ·mean(u²) added to the actor loss, u the actor's pre-tanh output: a remedy for an
-actor stuck at its tanh bound); both bit for bit against SB3's update with the choice written in (``tests/rl/reference.py``), and in
-the golden files frozen from SB3's loop (``tests/experiments/test_golden_runs.py``). SB3 also
+actor stuck at its tanh bound); both bit for bit against SB3's update with the choice written in
+(``tests/rl/reference.py``), and in the golden files frozen from SB3's loop
+(``tests/experiments/test_golden_runs.py``). SB3 also
 draws DDPG's target-policy noise, which DDPG clips to zero; it changes no number (only a −0.0 action to +0.0),
 so it is not drawn here. On the set observation each network starts with the set encoder (:mod:`.set_encoder`),
 and run k agrees with the single run to float tolerance (``tests/rl/test_batched_set.py``). TD3 is this class

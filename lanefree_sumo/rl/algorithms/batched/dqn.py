@@ -8,9 +8,10 @@ SB3's DQN gets with seed k (the dueling policy of :mod:`..q_networks` for ``duel
 decisions, random actions and replay indices from its own streams in SB3's order, and has its own learning rate,
 γ and ε schedule; the network shape, batch size, buffer size, ``learning_starts``, target interval, gradient clip
 and TD loss (:data:`LOSSES`) are the batch's. On CPU a DQN run equals SB3's ``DQN`` bit for bit, and every
-variant SB3's update with the variant written in (``tests/rl/reference.py``; ``tests/rl/test_batched_learners.py``; on the set observation to float
-tolerance, ``tests/rl/test_batched_set.py``: the set encoder comes first, :mod:`.set_encoder`); the variants'
-golden files were frozen from SB3's loop (``tests/experiments/test_golden_runs.py``).
+variant SB3's update with the variant written in (``tests/rl/reference.py``, ``tests/rl/test_batched_learners.py``;
+on the set observation to float tolerance, ``tests/rl/test_batched_set.py``: the set encoder comes first,
+:mod:`.set_encoder`); the variants' golden files were frozen from SB3's loop
+(``tests/experiments/test_golden_runs.py``).
 Prioritised replay keeps its trees on the host: its TD errors come back from the device once per update. With
 device streams (the lockstep loop) its priorities live on the device instead (:meth:`BatchedDQN.sample_on_device`).
 """
