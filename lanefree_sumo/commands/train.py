@@ -25,7 +25,8 @@ OPTIONS: tuple[Option, ...] = (
     SEED,
     Option("--seeds", type=argtypes.seeds, default=None, extra={"metavar": "A-B"},
            note="train these seeds (a range A-B or a list A,B,C) as one batch in one process, one run folder each "
-           "under --out (ddpg, td3 and the DQN family, one agent on the ring; ddpg and td3 also with --obs set)"),
+           "under --out (ddpg, td3 and the DQN family: the vector or the set observation, the ring, the on-ramp, the "
+           "shield, several agents or environments; on the numpy backend)"),
     Option("--obs", "observation.kind"),
     Option("--encoder", "observation.encoder"),
     Option("--envs", "train.envs", unit="environments"),

@@ -158,6 +158,11 @@ class BatchedRingEnv:
         """``[K]``: each run's steps since its episode began (a copy)."""
         return self._steps.copy()
 
+    def count_step(self) -> None:
+        """Count one step of every run taken outside :meth:`step` (the lockstep loop steps the world on the
+        device)."""
+        self._steps += 1
+
     @property
     def cfg(self) -> LaneFreeConfig:
         """Run 0's config (the action and observation settings are every run's)."""

@@ -202,7 +202,7 @@ class Lockstep:
             self._graphs[key].replay()
         else:
             self._capture(key)
-        self.env._steps += 1
+        self.env.count_step()
 
     def _capture(self, key: tuple[bool, bool]) -> None:
         """Run the phase's iteration once for real (on a side stream, as capture wants its first use there), then
@@ -223,7 +223,7 @@ class Lockstep:
     def episode_over(self) -> bool:
         """Whether the runs' episodes reached their time limit (a host count)."""
         live = ~self.env.stopped
-        return bool(live.any()) and bool((self.env._steps[live] >= self.env.cfg.sim.episode_steps).all())
+        return bool(live.any()) and bool((self.env.steps[live] >= self.env.cfg.sim.episode_steps).all())
 
     def take_flagged(self) -> np.ndarray:
         """The runs whose action was not finite since the last call (bool ``[K]``, read from the device), and

@@ -145,13 +145,13 @@ def _taking(key: str) -> str:
     return ", ".join(name for name, spec in ALGORITHMS.items() if key in spec.choices)
 
 
-def check_actor_critic_choices(cfg: LaneFreeConfig, own_class: bool) -> None:
-    """ConfigError (one line) for an actor-critic choice the learner does not take (its
-    :attr:`~.algorithms.AlgorithmSpec.choices`; ``own_class`` False: SB3's own class, which takes none): the
-    pre-tanh penalty and the warm-up from the policy (an on-policy learner has no warm-up)."""
+def check_actor_critic_choices(cfg: LaneFreeConfig) -> None:
+    """ConfigError (one line) for an actor-critic choice the algorithm's learner does not take (its
+    :attr:`~.algorithms.AlgorithmSpec.choices`): the pre-tanh penalty and the warm-up from the policy (an on-policy
+    learner has no warm-up)."""
     ac, algo = cfg.train.actor_critic, cfg.train.algo
     spec = get_algorithm(algo)
-    takes = spec.choices if own_class else ()
+    takes = spec.choices
     if ac.pre_tanh_penalty and "pre_tanh_penalty" not in takes:
         raise ConfigError(f"train.actor_critic.pre_tanh_penalty = {ac.pre_tanh_penalty:g} is built into the "
                           f"project's {_taking('pre_tanh_penalty')} only; set it to 0 for {algo}")
@@ -165,15 +165,16 @@ def check_actor_critic_choices(cfg: LaneFreeConfig, own_class: bool) -> None:
 
 
 def check_trainable(cfg: LaneFreeConfig) -> None:
-    """The learner choices a run of ``cfg`` must be able to train, checked alike for one run, a batch and every
-    run of a sweep's grid before anything starts (:func:`check_actor_critic_choices`)."""
+    """ConfigError (one line) for what no run of ``cfg`` trains, checked alike for one run, a batch and every run
+    of a sweep's grid before anything starts: several environments inside SUMO for a batchable algorithm, and the
+    learner choices its algorithm lacks (:func:`check_actor_critic_choices`)."""
     spec = get_algorithm(cfg.train.algo)
     if spec.batched and cfg.train.envs != 1 and cfg.train.backend != "numpy":
         raise ConfigError(f"{spec.name} does not train several environments (--envs) inside SUMO (--backend "
-                          f"{cfg.train.backend}); train them on --backend numpy (the same episodes), or one inside "
-                          "SUMO (libsumo holds one simulation per process)")
+                          f"{cfg.train.backend}); train them on --backend numpy (the same episodes), or one "
+                          "environment (--envs 1) inside SUMO (libsumo holds one simulation per process)")
     if spec.config_section == "actor_critic":
-        check_actor_critic_choices(cfg, own_class=True)
+        check_actor_critic_choices(cfg)
 
 
 def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str | None) -> Any:
@@ -185,8 +186,9 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
 
     algo = cfg.train.algo
     spec = get_algorithm(algo)
-    if spec.double_q or spec.dueling or algo == "per":
-        raise ConfigError(f"SB3 has no {spec.summary}; {algo} trains in its batched learner (build_batched)")
+    if spec.double_q or spec.dueling or spec.prioritized:
+        raise ConfigError(f"SB3 has no {spec.summary}; {algo} trains in its batched learner (lanefree train; "
+                          "from Python, build_batched)")
     cls = spec.cls
     set_obs = cfg.observation.kind == "set"
     extractor: dict[str, Any] = {}
@@ -215,9 +217,10 @@ def build_model(cfg: LaneFreeConfig, env: Any, seed: int, tensorboard_log: str |
                 mean=np.zeros(n_actions), sigma=ac.ou_sigma * np.ones(n_actions), theta=ac.ou_theta
             )
         if spec.choices and (ac.pre_tanh_penalty or ac.warmup_actions != "uniform"):
-            raise ConfigError(f"SB3's {cls.__name__} has no pre_tanh_penalty or warmup_actions = policy; "
-                              f"{algo} trains with them in its batched learner (build_batched)")
-        check_actor_critic_choices(cfg, own_class=False)
+            raise ConfigError(f"SB3's {cls.__name__} has no pre_tanh_penalty or warmup_actions = policy (the "
+                              f"latter set by train.profile = kerasrl); {algo} trains with them in its batched learner "
+                              "(lanefree train; from Python, build_batched)")
+        check_actor_critic_choices(cfg)
         kwargs["policy_kwargs"] = {"net_arch": nets, "activation_fn": torch.nn.ReLU, **extractor}
         return cls(policy, env, **kwargs)
 
@@ -243,7 +246,7 @@ _BATCH_SHARED = {"actor_critic": ("actor_layers", "critic_layers", "batch_size",
 """What the runs of one batch must share (network shapes and replay sizes); the rest may differ per run."""
 
 
-LEGACY_OBJECTS: dict[str, Any] = {"replay_buffer_class": None, "replay_buffer_kwargs": {}}
+LEGACY_ENTRIES = ("replay_buffer_class", "replay_buffer_kwargs")
 """What :func:`load_saved_model` reads in place of a ``model.zip``'s own entries: the replay buffer's class (and its
 arguments), which SB3 picks again from the spaces. A ``per`` model of an earlier version named a buffer class of
 the project's that no longer exists; every model now saves SB3's own."""
@@ -253,7 +256,9 @@ def load_saved_model(algo: str, path: Any, **kwargs: Any) -> Any:
     """The ``model.zip`` (or checkpoint) at ``path`` of an ``algo`` run as a model of stock SB3's class, on the CPU
     (``kwargs``: more of SB3's ``load`` arguments, e.g. ``env``)."""
     kwargs.setdefault("device", "cpu")
-    return get_algorithm(algo).cls.load(path, custom_objects=LEGACY_OBJECTS, **kwargs)
+    fresh: dict[str, Any] = {"replay_buffer_class": None, "replay_buffer_kwargs": {}}  # SB3 may change the dict
+    assert tuple(fresh) == LEGACY_ENTRIES
+    return get_algorithm(algo).cls.load(path, custom_objects=fresh, **kwargs)
 
 
 def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_space: Any, action_space: Any,

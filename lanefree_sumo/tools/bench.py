@@ -428,9 +428,8 @@ def batched_rate(algo: str, runs: int, seed: int, steps: int, density: float = P
 
 def single_run_speed(seed: int, steps: int = 800, repeats: int = REPEATS) -> str:
     """Markdown: env steps/s of one run of DDPG and of DQN (the paper's settings at 90 veh/km, one thread) along
-    the two single-run paths, measured ``repeats`` times interleaved (medians): SB3's loop with SB3's update (SAC's
-    and PPO's loop, and DDPG's and DQN's with several envs inside SUMO) and a batch of one
-    (``lanefree train`` for every batchable run)."""
+    the two single-run paths, measured ``repeats`` times interleaved (medians): SB3's loop with stock SB3's class
+    (SAC's and PPO's loop) and a batch of one (``lanefree train`` for every batchable run)."""
     cases: dict[tuple[str, str], Callable[[], float]] = {}
     for algo in ("ddpg", "dqn"):
         cases[(algo, "sb3")] = functools.partial(training_rate, algo, seed, steps=steps)

@@ -7,6 +7,7 @@ import csv
 import json
 import signal
 import time
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -59,8 +60,13 @@ def test_every_algorithm_makes_a_complete_run_folder(tmp_path, algo):
     assert (ckpt / "replay_buffer.pkl").is_file() == (spec.off_policy and not spec.batched)
     assert is_single_run(run) == spec.batched
     assert any((run / "batch_checkpoints").glob("step_*.pt")) == spec.batched
-    model = spec.cls.load(run / "model.zip", device="cpu")  # stock SB3's class loads every run's model
-    assert type(model).__module__.startswith("stable_baselines3.")
+    # stock SB3's class loads every run's model, which names no class of the project's but the dueling policy
+    data = json.loads(zipfile.ZipFile(run / "model.zip").read("data"))
+    modules = {v["__module__"] for v in data.values() if isinstance(v, dict) and "__module__" in v}
+    assert modules and all(m.startswith("stable_baselines3.") for m in modules - {
+        "lanefree_sumo.rl.algorithms.q_networks"}), modules
+    assert ("lanefree_sumo.rl.algorithms.q_networks" in modules) == (algo == "dueling")
+    model = spec.cls.load(run / "model.zip", device="cpu")
     assert (type(getattr(model, "q_net", None)).__name__ == "DuelingQNetwork") == (algo == "dueling")
 
 
@@ -163,21 +169,46 @@ def test_broken_checkpoints_give_clear_errors(tmp_path):
         train(LaneFreeConfig(), run=empty, resume=True, progress=False)
 
 
-@pytest.mark.parametrize("algo", ["ddpg", "per"])
-def test_an_earlier_versions_run_of_sb3s_loop_is_refused_in_one_line_and_left_as_it_is(tmp_path, algo):
-    """A run folder of a batchable algorithm that SB3's loop trained (no batch folder: an earlier version's) is not
-    resumed; the error says what still works; nothing in it changes."""
-    from lanefree_sumo.experiments.storage.rundir import write_config
+def _sb3_loop_run(folder: Path, algo: str) -> Path:
+    """A run as an earlier version left it: ``algo`` trained in SB3's loop with stock SB3's class (checkpoints with
+    SB3's replay buffer beside the model, no batch.json)."""
+    from lanefree_sumo.experiments.runners import train as runner
+    from lanefree_sumo.experiments.storage.rundir import RunDir, write_config
+    from lanefree_sumo.rl.models import training_config
 
-    run = tmp_path / "old"
-    run.mkdir()
-    write_config(run, tiny_config(algo))
-    before = {p.name: p.read_bytes() for p in run.iterdir()}
-    with pytest.raises(RunError, match=f"trained in SB3's loop, where {algo} no longer trains; its model still "
-                                       "evaluates") as caught:
+    cfg = training_config(tiny_config(algo))
+    folder.mkdir()
+    write_config(folder, cfg)
+    assert runner._train_session(cfg, RunDir(folder), None, 0, 2, False, "test") == (folder, 2)
+    return folder
+
+
+@pytest.mark.parametrize("case", ["sb3-loop", "no-batch-json", "sweep-batch"])
+def test_an_earlier_versions_run_of_sb3s_loop_is_refused_in_one_line_and_left_as_it_is(tmp_path, case):
+    """A run folder of a batchable algorithm with no batch of its own is not resumed: one that SB3's loop trained
+    (an earlier version's: its checkpoints keep SB3's replay buffer), a batch of one that lost its batch.json, a run
+    of a sweep's batch (continued with its batch). The error says what still works; nothing in the folder changes."""
+    if case == "sb3-loop":
+        run = _sb3_loop_run(tmp_path / "old", "dqn")
+        assert any(run.glob("checkpoints/ep_*/replay_buffer.pkl"))
+        expected = "was trained in SB3's loop by an earlier version, where dqn no longer trains; its model"
+    else:
+        run, _ = train(tiny_config("ddpg"), run=tmp_path / "runs" / "one", progress=False)
+        if case == "no-batch-json":
+            (run / "batch.json").unlink()
+            expected = "was trained as a batch of one but has no batch.json, so its batch checkpoint cannot be found"
+        else:  # as a sweep's batch leaves its runs: its last session names the batch's folder, no batch.json
+            session = json.loads((run / "last_session.json").read_text())
+            session["batch"] = {"folder": "../../batches/b", "run": 1, "runs": 2}
+            (run / "last_session.json").write_text(json.dumps(session))
+            (run / "batch.json").unlink()
+            expected = (f"is a run of the batch {tmp_path / 'batches' / 'b'}; continue the whole batch: lanefree "
+                        "sweep --resume SWEEP for a sweep's")
+    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    with pytest.raises(RunError, match=expected.replace("(", r"\(").replace(")", r"\)")) as caught:
         train(LaneFreeConfig(), run=run, resume=True, progress=False, episodes=4)
     assert "\n" not in str(caught.value)
-    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
 
 
 def test_cli_refuses_an_existing_run_folder(tmp_path):

@@ -403,7 +403,7 @@ def test_dqn_export_loads_in_sb3_and_predicts_the_batched_action(algo: str, tmp_
     for k in range(len(SEEDS)):
         batched.export(k, tmp_path / f"run{k}.zip")
         model = DQN.load(tmp_path / f"run{k}.zip", device="cpu")
-        assert type(model) is DQN and type(model.q_net) is type(_dqn(algo, k, 100).q_net)  # the dueling network
+        assert type(model.q_net) is type(_dqn(algo, k, 100).q_net)  # the dueling network comes back
         action, _ = model.predict(obs[k], deterministic=True)
         assert int(action) == greedy[k]
         with th.no_grad():
@@ -458,6 +458,11 @@ def test_build_batched_gives_each_run_build_models_model(algo: str, profile: str
                 else batched.loss == "squared" and batched.max_grad_norm == math.inf)
     if algo == "per":
         assert batched.priorities and batched.double_q
+    if not actor_critic:  # the choices SB3's DQN lacks travel in its model.zip
+        for k in range(2):
+            mine = batched.sb3_model(k)
+            assert (mine.loss, mine.double_q) == (cfgs[k].train.dqn.loss, algo != "dqn")
+            assert (getattr(mine, "per_alpha", None) is not None) == (algo == "per")
 
 
 def test_build_batched_refuses_runs_that_cannot_share_a_batch() -> None:
@@ -492,3 +497,33 @@ def test_ddpg_pre_tanh_penalty_equals_the_single_autograd_update_bit_for_bit() -
             single.train(gradient_steps=1, batch_size=BATCH)
         _assert_same(single, batched, k)
         assert float(batched.losses["actor_loss"][k]) == single.logger.name_to_value["train/actor_loss"]
+
+
+def test_each_references_choice_changes_its_update() -> None:
+    """The references are not SB3's update in disguise: with its choice each trains other weights than stock SB3's
+    from the same seed and transitions (so a choice the batched learner and its reference both dropped would show
+    as a difference from stock here, not as their agreement)."""
+    for algo, loss in (("ddqn", "huber"), ("per", "huber"), ("dqn", "squared")):
+        transitions = _transitions(True)
+        trained = []
+        for model in (_dqn(algo, 0, 2000, loss=loss), _dqn("dqn", 0, 2000)):
+            _fill(model, 0, transitions)
+            model._current_progress_remaining = 0.5
+            np.random.seed(SEEDS[0])
+            for _ in range(UPDATES):
+                model.train(gradient_steps=1, batch_size=BATCH)
+            trained.append(_tensors(model))
+        assert not all(th.equal(x, y) for x, y in zip(*trained)), (algo, loss)
+    transitions = _transitions(False)
+    trained = []
+    for model in (_ddpg(1, penalty=0.05), _ddpg(1)):
+        _fill(model, 1, transitions)
+        np.random.seed(SEEDS[1])
+        for _ in range(UPDATES):
+            model.train(gradient_steps=1, batch_size=BATCH)
+        trained.append(_tensors(model))
+    assert not all(th.equal(x, y) for x, y in zip(*trained))
+    policy, uniform = _ddpg(0, warmup="policy"), _ddpg(0)
+    for model in (policy, uniform):
+        model.learn(total_timesteps=50)  # all before learning_starts: the warm-up's actions alone
+    assert not np.array_equal(policy.replay_buffer.actions[:50], uniform.replay_buffer.actions[:50])

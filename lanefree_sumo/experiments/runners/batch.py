@@ -61,16 +61,15 @@ KEEP_BATCH_CHECKPOINTS = 2
 
 def batch_refusal(cfg: LaneFreeConfig, alone: bool = False) -> str | None:
     """What of ``cfg`` the batched path cannot train (one phrase, e.g. ``the ppo algorithm (--algo)``), or None
-    when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer.
-    ``alone``: the run is a batch of one (``lanefree train --seed``), which may run inside SUMO."""
+    when it trains it: the one list behind :func:`check_batchable` and the single run's choice of trainer (SB3's
+    loop for SAC and PPO; a batchable algorithm's run it cannot train is refused). ``alone``: the run is a batch of
+    one (``lanefree train --seed``), which may run inside SUMO. What no run trains (several environments inside
+    SUMO, a learner choice its algorithm lacks) is :func:`~lanefree_sumo.rl.models.check_trainable`'s."""
     from lanefree_sumo.rl.algorithms import BATCHED
     if cfg.train.algo not in BATCHED:
         return f"the {cfg.train.algo} algorithm (--algo)"
     cpu = cpu_only(cfg)
-    several = _several(cfg)
     for wrong, what in ((cpu is not None, f"{cpu} on {cfg.train.device} (it trains on train.device = cpu)"),
-                        (cfg.train.envs != 1 and cfg.train.backend != "numpy",
-                         f"{several} inside SUMO (--backend {cfg.train.backend})"),
                         (cfg.train.backend != "numpy" and not alone,
                          f"the {cfg.train.backend} backend (--backend)")):
         if wrong:
@@ -481,7 +480,7 @@ class _Batch:
             # the step that ends every live run's last episode takes no update: SB3 stops before it (the final
             # models are those of the sequential runs)
             last = all(books.done[k] + 1 >= books.target[k] for k in live) and \
-                int(env._steps[live].max()) + 1 >= episode_steps
+                int(env.steps[live].max()) + 1 >= episode_steps
             loop.iterate(update=not last)
             books.steps += 1
             if not loop.episode_over():

@@ -7,9 +7,9 @@ One trainer: a run the batched path trains (DDPG, TD3 and the DQN family; on num
 environment: :func:`~lanefree_sumo.experiments.runners.batch.batch_refusal`) is a batch of one in its own
 folder (:func:`~lanefree_sumo.experiments.runners.batch.train_batch`); its resume continues the whole state (learner,
 replay, random streams, environment) and gives the uninterrupted run's episodes bit for bit, and ``--episodes N``
-extends it the same way. Every other run (SAC, PPO; several environments inside SUMO) trains in SB3's
-loop below: ``resume`` continues from the newest checkpoint (model and replay
-buffer restored, ``episodes.csv`` cut back to the checkpoint's episode count, episode numbers continued).
+extends it the same way. SAC and PPO train in SB3's loop below: ``resume`` continues from the newest checkpoint
+(model and replay buffer restored, ``episodes.csv`` cut back to the checkpoint's episode count, episode numbers
+continued).
 Episode k's traffic seed depends only on the run's seed and k (:func:`~lanefree_sumo.rl.models.episode_seed`;
 with several environments, on the environment too), so a resumed one-environment run sees the traffic an
 uninterrupted one sees; SB3's exploration noise state and the torch/numpy random streams are not checkpointed:
@@ -131,6 +131,28 @@ def _resume_point(folder: RunDir, cfg: LaneFreeConfig, episodes: int | None) -> 
     return ckpt, target
 
 
+def _unbatched_resume(folder: RunDir, algo: str) -> str:
+    """Why a run of a batchable ``algo`` that is no batch of one is not resumed (nothing is written): a run of a
+    batch of several (its batch continues it), a batch of one that lost its ``batch.json``, or a run an earlier
+    version trained in SB3's loop (its checkpoints keep SB3's replay buffer); RunError when it has no checkpoint."""
+    run = folder.path
+    try:
+        batch = json.loads((run / "last_session.json").read_text()).get("batch")
+    except (OSError, ValueError, AttributeError):
+        batch = None
+    if isinstance(batch, dict) and batch.get("folder") not in (None, "."):
+        where = (run / str(batch["folder"])).resolve()
+        return (f"{run} is a run of the batch {where}; continue the whole batch: lanefree sweep --resume SWEEP for a "
+                f"sweep's, lanefree train --resume {where} for one of --seeds")
+    if isinstance(batch, dict):
+        return (f"{run} was trained as a batch of one but has no batch.json, so its batch checkpoint cannot be "
+                "found; its model still evaluates (lanefree evaluate): start a new run to train it further")
+    if folder.newest_checkpoint().replay_buffer.is_file():
+        return (f"{run} was trained in SB3's loop by an earlier version, where {algo} no longer trains; its model "
+                "still evaluates (lanefree evaluate): start a new run to train it further")
+    return f"{run} has checkpoints of no batch; its model still evaluates (lanefree evaluate): start a new run"
+
+
 def _load_checkpoint(spec: Any, ckpt: Checkpoint, env: Any, folder: RunDir) -> Any:
     """The model (and replay buffer) of a checkpoint of ``folder``; RunError naming it when unusable. Its
     TensorBoard folder is ``folder``'s, never the path the checkpoint saved: a moved, renamed or copied run, or
@@ -187,6 +209,7 @@ def train(
             return train_batch([cfg], path, [path], progress, command)[0]
         check_trainable(cfg)
         if cfg.train.algo in BATCHED:  # every run of a batchable algorithm trains in the one trainer
+            check_batchable(cfg, alone=True)  # its one-line refusal, with what to do
             raise ConfigError(f"{cfg.train.algo} does not train {why}")
         if cfg.train.device != "cpu":
             raise ConfigError(f"train.device = {cfg.train.device} trains on the batched path, which does not "
@@ -199,9 +222,8 @@ def train(
             folder = RunDir(run)
             # a run folder at all, before anything is written
             cfg = resolve_config(folder.load_config(note_retired=True))
-            if cfg.train.algo in BATCHED:
-                raise RunError(f"{run} was trained in SB3's loop, where {cfg.train.algo} no longer trains; its model "
-                               "still evaluates (lanefree evaluate): start a new run to train it further")
+            if cfg.train.algo in BATCHED:  # neither a batch of one (above) nor a --seeds batch's run (the CLI's)
+                raise RunError(_unbatched_resume(folder, cfg.train.algo))
             stack.enter_context(folder.writer_lock())  # one writer: a second resume is refused here
             ckpt, target = _resume_point(folder, cfg, episodes)
             timesteps = ckpt.timesteps

@@ -40,6 +40,8 @@ class AlgorithmSpec:
     """The DQN family's TD target takes the online network's argmax (double DQN) rather than the target's."""
     dueling: bool = False
     """The DQN family's Q-network is the dueling head (:mod:`.q_networks`)."""
+    prioritized: bool = False
+    """The DQN family's replay is proportional prioritised replay (:class:`~.batched.replay.RunPriorities`)."""
     batched_target: str = ""
     """``module:attribute`` of its batched learner (:mod:`.batched`), which trains it as a batch of K runs in one
     array program (``lanefree train``, ``--seeds``, ``sweep --batch``, the GPU); empty: SB3's loop only."""
@@ -49,7 +51,7 @@ class AlgorithmSpec:
 
     @property
     def cls(self) -> Any:
-        """The SB3(-compatible) class (imported on first use)."""
+        """Stock SB3's class of its ``model.zip`` (imported on first use)."""
         return _load(self.target)
 
     def policy(self, name: str) -> Any:
@@ -103,7 +105,8 @@ _SPECS: dict[str, AlgorithmSpec] = {
         AlgorithmSpec("dueling", _DQN, "discrete", True, "dqn", "dueling double DQN", choices=("loss",),
                       double_q=True, dueling=True, batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
         AlgorithmSpec("per", _DQN, "discrete", True, "dqn", "double DQN with prioritised replay",
-                      choices=("loss",), double_q=True, batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
+                      choices=("loss",), double_q=True, prioritized=True,
+                      batched_target=f"{_BATCHED}.dqn:BatchedDQN"),
     )
 }
 ALGORITHM_NAMES: tuple[str, ...] = get_args(AlgorithmName)

@@ -202,7 +202,7 @@ class BatchedDQN(BatchedLearner):
         self._one = th.tensor(1.0, device=self.device)
         self._n_calls = 0
         self.priorities = ([RunPriorities(self.replay.capacity * self.slots, per_alpha, per_eps) for _ in range(k)]
-                           if algos[0] == "per" else [])
+                           if self.specs[0].prioritized else [])
 
     @property
     def _policy_name(self) -> str:
@@ -456,7 +456,16 @@ class BatchedDQN(BatchedLearner):
             model.policy.optimizer.load_state_dict(state)
         model.num_timesteps, model._n_updates = self.num_timesteps, self.n_updates
         model.exploration_rate = self.exploration_rate[k]
+        for key, value in self._choices(k).items():
+            setattr(model, key, value)
         return model
+
+    def _choices(self, k: int) -> dict[str, Any]:
+        """Run k's choices SB3's ``DQN`` lacks, kept as attributes of its exported model (``model.zip`` records
+        them; SB3 itself trains a plain DQN): the TD loss, the double-Q target, and prioritised replay's α, β₀, ε."""
+        spec = self.specs[k]
+        per = {"per_alpha": self.per_alpha, "per_beta0": self.per_beta0, "per_eps": self.per_eps}
+        return {"loss": self.loss, "double_q": spec.double_q, **(per if spec.prioritized else {})}
 
     def export(self, k: int, path: str | Path) -> None:
         """Write run k as an ordinary ``model.zip`` (``stable_baselines3.DQN.load`` loads it)."""
