@@ -246,6 +246,9 @@ def test_train_resume_and_evaluate_say_what_they_did(tmp_path):
         (["--seeds", "0-1", "--shield", "--device", "cuda"],
          "the safety shield (--shield) train on the CPU (train.device = cpu), not on train.device = cuda; "
          "leave --device out"),
+        (["--shield", "--device", "cuda"],  # one run: a batch of one, refused alike
+         "the safety shield (--shield) train on the CPU (train.device = cpu), not on train.device = cuda; "
+         "leave --device out"),
         (["--seeds", "0-1", "--agents", "2", "--device", "cuda"],
          "runs with several agents (--agents) train on the CPU (train.device = cpu), not on train.device = cuda"),
         (["--seeds", "0-1", "--algo", "td3", "--set", "train.profile=kerasrl"], "td3 takes SB3's uniform warm-up"),
