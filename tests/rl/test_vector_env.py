@@ -168,3 +168,113 @@ def test_frames_of_every_world():
     frames = vec.render()
     assert len(frames) == 2 and frames[0].dtype == np.uint8 and frames[0].ndim == 3
     assert not np.array_equal(frames[0], frames[1])  # two seeds, two scenes
+
+
+def test_the_errors_and_refusals_word_for_word():
+    """Each message whole, as a user reads it (the tests above match a part)."""
+    with pytest.raises(ConfigError) as err:
+        make_vec(2, {"gui": True})
+    assert str(err.value) == ("backend 'sumo-gui': the vector entry point runs its worlds as numpy arrays (the same "
+                              "episodes as libsumo); use gymnasium.make_vec('LaneFree-v0', num_envs, "
+                              "vectorization_mode='sync', config=...) for it")
+    with pytest.raises(ConfigError) as err:
+        make_vec(2, {"shield": {"enabled": True}})
+    assert str(err.value).startswith("shield.enabled: the vector entry point has no safety shield yet; use ")
+    with pytest.raises(ValueError) as err:
+        make_vec(2, render_mode="human")
+    assert str(err.value) == ("render_mode 'human': the vector entry point renders 'rgb_array' frames (sumo-gui, "
+                              "'human', runs under vectorization_mode='sync')")
+    for bad in (True, 2.0, 0, -1):
+        with pytest.raises(ValueError) as err:
+            LaneFreeVectorEnv(bad, SHORT)
+        assert str(err.value) == f"num_envs must be a whole number ≥ 1, got {bad!r}"
+    fresh = make_vec(2)
+    with pytest.raises(RuntimeError) as err:
+        fresh.step(np.zeros((2, 2)))
+    assert str(err.value) == "call reset() before step()"
+    with pytest.raises(RuntimeError) as err:
+        make_vec(2, render_mode="rgb_array").render()
+    assert str(err.value) == "call reset() before render()"
+    with pytest.raises(ValueError) as err:
+        fresh.reset(options={"reset_mask": np.array([True, False])})
+    assert str(err.value) == "reset: the first reset starts every environment (reset_mask all True)"
+    fresh.reset(seed=0)
+    with pytest.raises(ValueError) as err:
+        fresh.step(np.array([[0.0, np.inf], [0.0, 0.0]]))
+    assert str(err.value) == ("step: the actions of environment(s) 0 are not finite; a diverged policy must not "
+                              "drive the car")
+    wide = make_vec(3)
+    wide.reset(seed=0)
+    with pytest.raises(ValueError, match=r"environment\(s\) 0, 2 are not finite"):
+        wide.step(np.array([[np.nan, 0.0], [0.0, 0.0], [0.0, -np.inf]]))
+    discrete = make_vec(2, {**SHORT, "action": {"kind": "discrete"}})
+    discrete.reset(seed=0)
+    with pytest.raises(ValueError) as err:
+        discrete.step(np.zeros((2, 2)))
+    assert str(err.value) == "step: 2 discrete actions expected (shape (2,)), got shape (2, 2)"
+
+
+@pytest.mark.parametrize("actions,ok", [([0, 8], True), ([8, 8], True), ([9, 0], False), ([-1, 0], False),
+                                        ([1.5, 2], False), ([2, 2.5], False), ([np.nan, 0], False)])
+def test_a_discrete_action_is_a_whole_number_in_range(actions, ok):
+    vec = make_vec(2, {**SHORT, "action": {"kind": "discrete"}})
+    vec.reset(seed=0)
+    if ok:
+        vec.step(np.array(actions))
+        np.testing.assert_array_equal(vec.batch.steps, [1, 1])
+    else:
+        with pytest.raises(ValueError, match="one whole number 0 … 8 per environment"):
+            vec.step(np.array(actions))
+        np.testing.assert_array_equal(vec.batch.steps, [0, 0])
+
+
+def test_defaults_spaces_and_info_dtypes():
+    one = LaneFreeVectorEnv(config=SHORT)
+    assert one.num_envs == 1
+    vec = make_vec(3)
+    assert vec.observation_space == gym.vector.utils.batch_space(vec.single_observation_space, 3)
+    assert vec.observation_space.shape == (3, 24) and vec.action_space.shape == (3, 2)
+    assert vec.action_space == gym.vector.utils.batch_space(vec.single_action_space, 3)
+    obs, info = vec.reset(options={"reset_mask": np.array([True, True, True])})  # a full mask starts them all
+    assert info["episode_seed"].dtype == np.int64 and info["_episode_seed"].dtype == np.bool_
+    seeds = info["episode_seed"]
+    assert np.all((seeds >= 0) & (seeds < 2**31 - 1)) and len(set(seeds.tolist())) == 3  # fresh entropy, one each
+    for _ in range(SHORT["sim"]["episode_steps"]):
+        vec.step(np.zeros((3, 2)))
+    _, reward, _, _, info = vec.step(np.zeros((3, 2)))  # NEXT_STEP: every world starts its next episode
+    assert info["episode_seed"].dtype == np.int64 and info["_episode_seed"].all()
+    assert len(set(info["episode_seed"].tolist())) == 3 and reward.dtype == np.float64 and not reward.any()
+
+
+def test_one_worlds_autoreset_leaves_the_others_going():
+    """Two worlds out of step (world 1 restarted at step 5): world 0's episode end and restart leave world 1 where
+    LaneFree-v0 with its seed would be."""
+    vec = make_vec(2)
+    vec.reset(seed=[4, 8])
+    for _ in range(5):
+        vec.step(np.zeros((2, 2)))
+    vec.reset(seed=[0, 6], options={"reset_mask": np.array([False, True])})
+    single = gym.make("LaneFree-v0", config=SHORT)
+    single_obs, _ = single.reset(seed=6)
+    for t in range(SHORT["sim"]["episode_steps"] - 5 + 1):
+        obs, _, terminated, truncated, info = vec.step(np.zeros((2, 2)))
+        single_obs, _, single_term, single_trunc, _ = single.step(np.zeros(2))
+        np.testing.assert_array_equal(obs[1], single_obs)
+        assert not (terminated[1] or truncated[1]) and not (single_term or single_trunc)
+    assert info["_episode_seed"].tolist() == [True, False]  # world 0 restarted on this step, world 1 went on
+
+
+def test_a_worlds_frame_is_lanefree_v0s_frame():
+    vec = make_vec(2, render_mode="rgb_array")
+    singles = [gym.make("LaneFree-v0", config=SHORT, render_mode="rgb_array") for _ in range(2)]
+    vec.reset(seed=[5, 6])
+    for env, seed in zip(singles, (5, 6)):
+        env.reset(seed=seed)
+    rng = np.random.default_rng(2)
+    for _ in range(12):
+        act = rng.uniform(-1, 1, (2, 2))
+        vec.step(act)
+        for k, env in enumerate(singles):
+            env.step(act[k])
+    for frame, env in zip(vec.render(), singles):
+        np.testing.assert_array_equal(frame, env.render())
