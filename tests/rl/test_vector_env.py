@@ -256,7 +256,7 @@ def test_one_worlds_autoreset_leaves_the_others_going():
     vec.reset(seed=[0, 6], options={"reset_mask": np.array([False, True])})
     single = gym.make("LaneFree-v0", config=SHORT)
     single_obs, _ = single.reset(seed=6)
-    for t in range(SHORT["sim"]["episode_steps"] - 5 + 1):
+    for _ in range(SHORT["sim"]["episode_steps"] - 5 + 1):
         obs, _, terminated, truncated, info = vec.step(np.zeros((2, 2)))
         single_obs, _, single_term, single_trunc, _ = single.step(np.zeros(2))
         np.testing.assert_array_equal(obs[1], single_obs)
