@@ -356,11 +356,13 @@ def test_bootstrap_ci():
     assert covered >= 170  # ~95 % nominal; percentile bootstrap with n = 10 runs a little under
 
 
-def test_summary_and_status_from_run_folders(tmp_path):
+def _pair_sweep(folder: Path):
+    """A sweep of two settings × 3 seeds of 60 episodes, without training: every run complete but the last (30
+    episodes), one deterministic evaluation (2 episodes), one unreadable shielded one."""
     grid = parse_grid({"reward_presets": ["fields_collision", "collision"], "n_seeds": 3, "episodes": 60},
                       "pair", "pair.yaml")
-    write_manifest(tmp_path, Manifest(grid))
-    sweep = SweepDir(tmp_path)
+    write_manifest(folder, Manifest(grid))
+    sweep = SweepDir(folder)
     cells = grid.cells()
     for cell, collisions in zip(cells, [0.4, 1.2, 0.5, 1.3, 0.6, 1.4]):
         fake_run(sweep.run(cell), grid, cell, 60, collisions=collisions)
@@ -375,6 +377,11 @@ def test_summary_and_status_from_run_folders(tmp_path):
     shielded = RunDir(sweep.run(cells[1])).eval_dir(shield=True)  # collision seed 0: a broken shielded one
     shielded.mkdir()
     (shielded / "episodes.csv").write_text("episode,return\n1,2\n")
+    return grid, sweep, cells
+
+
+def test_summary_and_status_from_run_folders(tmp_path):
+    grid, sweep, cells = _pair_sweep(tmp_path)
     result = summarize(tmp_path)
     table = result.table
     assert tuple(table.columns) == COLUMNS
@@ -1004,3 +1011,44 @@ def test_an_on_ramp_sweep_and_report_are_not_compared_with_the_papers_ring():
             for road in ("ring", "onramp")}
     table = summary_table({("ddpg", "fields_overtake_collision", 90.0, road): [run] for road, run in runs.items()})
     assert table["collisions_paper"].notna().tolist() == [True, False]
+
+
+SUMMARY_GOLDEN = Path(__file__).resolve().parents[1] / "golden" / "summary"
+"""Whole pages of ``lanefree sweep --summary`` for the two hand-made sweeps below, their numbers checked by hand
+(the means of values written into the runs, the paper's Table 5 values, the ratios; the percentile CI of 3 values
+ends at their extremes: each extreme mean has probability 1/27 > 2.5 %)."""
+
+
+def _capped_sweep(folder: Path) -> None:
+    """A sweep of one DQN setting under two variants (default, cap25; compared), 10 seeds of 700 episodes (the
+    budget differs from the paper's but is not reduced) with a config override; run i of the cells writes
+    i mod 10 × 0.125 collisions per episode, 0.5 more under cap25 (numbers exact in binary: ties are exact)."""
+    grid = parse_grid({"algorithms": ["dqn"], "reward_presets": ["collision"], "n_seeds": 10, "episodes": 700,
+                       "overrides": {"scenario": {"agent_lateral_speed_ratio": 0.5}},
+                       "variants": {"default": {}, "cap25": {"scenario.agent_max_speed_mps": 25}},
+                       "compare": ["cap25"]}, "capped", "capped.yaml")
+    write_manifest(folder, Manifest(grid))
+    sweep = SweepDir(folder)
+    for i, cell in enumerate(grid.cells()):
+        fake_run(sweep.run(cell), grid, cell, 700,
+                 collisions=0.125 * (i % 10) + (0.5 if cell.setting.variant == "cap25" else 0.0))
+
+
+@pytest.mark.parametrize("case", ["pair", "capped"])
+def test_the_summary_pages_word_for_word(tmp_path, case):
+    """summary.md (and the variants' verdict.md) as a reader gets them, whole: the budget line, the overrides, the
+    readings' note, the table with its constant columns folded into one line, the paper's values and ratios, the
+    curves, every run with its evaluations, the runs left out and the notes."""
+    if case == "pair":
+        _pair_sweep(tmp_path)
+    else:
+        _capped_sweep(tmp_path)
+    summarize(tmp_path)
+    pages = ["summary.md"] + (["verdict.md"] if case == "capped" else [])
+    for page in pages:
+        golden = SUMMARY_GOLDEN / f"{case}_{page}"
+        if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":
+            golden.parent.mkdir(parents=True, exist_ok=True)
+            golden.write_text((tmp_path / page).read_text())
+        assert (tmp_path / page).read_text() == golden.read_text(), page
+
