@@ -13,6 +13,7 @@ import contextlib
 import csv
 import ipaddress
 import json
+import math
 import os
 import re
 import secrets
@@ -25,6 +26,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -939,6 +941,15 @@ def test_summary_of_the_first_seeds_of_an_extended_sweep(tmp_path, capsys):
     assert complete_seeds(tmp_path) == 4
     shutil.rmtree(sweep.run(grid.cells()[5]))  # seed 2 of the second setting not trained yet
     assert complete_seeds(tmp_path) == 2
+    second = grid.cells()[1]  # seed 0 of the second setting, as a copy of the results holds it: no model.zip
+    shutil.rmtree(sweep.run(second))
+    fake_run(sweep.run(second), grid, second, 3, model=False)
+    assert complete_seeds(tmp_path) == 2  # every episode on file counts
+    shutil.rmtree(sweep.run(grid.cells()[2]))  # seed 1 of the first setting
+    assert complete_seeds(tmp_path) == 1
+    shutil.rmtree(sweep.run(grid.cells()[0]))
+    fake_run(sweep.run(grid.cells()[0]), grid, grid.cells()[0], 2, model=False)  # seed 0 stopped at episode 2
+    assert complete_seeds(tmp_path) == 0
     capsys.readouterr()
     assert main(["sweep", "--summary", str(tmp_path), "--seeds", "5"]) == 2
     err = capsys.readouterr().err.strip()
@@ -1044,11 +1055,50 @@ def test_the_summary_pages_word_for_word(tmp_path, case):
     else:
         _capped_sweep(tmp_path)
     summarize(tmp_path)
-    pages = ["summary.md"] + (["verdict.md"] if case == "capped" else [])
+    pages = ["summary.md", "summary.csv", "runs.csv"] + (["verdict.md"] if case == "capped" else [])
     for page in pages:
         golden = SUMMARY_GOLDEN / f"{case}_{page}"
         if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":
             golden.parent.mkdir(parents=True, exist_ok=True)
             golden.write_text((tmp_path / page).read_text())
-        assert (tmp_path / page).read_text() == golden.read_text(), page
+        if page.endswith(".csv"):  # every column and string exactly, the numbers to float rounding
+            ours, theirs = (list(csv.reader(open(path))) for path in (tmp_path / page, golden))
+            assert ours[0] == theirs[0] and len(ours) == len(theirs), page
+            for mine, frozen in zip(ours[1:], theirs[1:]):
+                assert [_number_or_text(v) for v in mine] == [_number_or_text(v) for v in frozen], (page, mine)
+        else:
+            assert (tmp_path / page).read_text() == golden.read_text(), page
+
+
+def _number_or_text(value: str) -> Any:
+    """A CSV field as a number compared to float rounding (NaN equal to NaN: an empty field), or its text."""
+    try:
+        number = float(value) if value else math.nan
+    except ValueError:
+        return value
+    return "nan" if math.isnan(number) else pytest.approx(number, rel=1e-12, abs=1e-15)
+
+
+def test_the_summary_takes_its_window_and_smoothing_from_the_call(tmp_path):
+    """``last`` and ``smooth`` given: the means over that window (a run whose episodes differ), the page and the
+    tables say so; left out: the report config's defaults (50 episodes)."""
+    grid = parse_grid({"reward_presets": ["collision"], "n_seeds": 2, "episodes": 60}, "window", "window.yaml")
+    write_manifest(tmp_path, Manifest(grid))
+    sweep = SweepDir(tmp_path)
+    for cell in grid.cells():
+        fake_run(sweep.run(cell), grid, cell, 60, collisions=1.0)
+        path = sweep.run(cell) / "episodes.csv"
+        rows = list(csv.DictReader(open(path)))
+        for row in rows[-10:]:  # the last 10 episodes: 3 collisions each
+            row["collisions"] = "3.0"
+        with open(path, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    table = summarize(tmp_path, last=10, smooth=5).table
+    assert list(table["collisions_mean"]) == [3.0] and list(table["last_episodes"]) == [10]
+    assert "the mean over its last 10 episodes" in (tmp_path / "summary.md").read_text()
+    assert [float(r["collisions"]) for r in csv.DictReader(open(tmp_path / "runs.csv"))] == [3.0, 3.0]
+    default = summarize(tmp_path).table
+    assert list(default["collisions_mean"]) == [pytest.approx(1.4)] and list(default["last_episodes"]) == [50]
 
