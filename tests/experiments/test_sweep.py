@@ -34,7 +34,7 @@ import yaml
 
 from lanefree_sumo.cli import main
 from lanefree_sumo.config import merge_config
-from lanefree_sumo.errors import ConfigError, RunError, UsageError
+from lanefree_sumo.errors import ConfigError, ReportError, RunError, UsageError
 from lanefree_sumo.experiments.storage.episodes import EPISODE_COLUMNS
 from lanefree_sumo.experiments.storage.rundir import RunDir, record_session, write_config
 from lanefree_sumo.experiments.sweep.command import _pace_sample, plan, status_text
@@ -1030,11 +1030,11 @@ SUMMARY_GOLDEN = Path(__file__).resolve().parents[1] / "golden" / "summary"
 ends at their extremes: each extreme mean has probability 1/27 > 2.5 %)."""
 
 
-def _capped_sweep(folder: Path) -> None:
+def _capped_sweep(folder: Path, preset: str = "collision") -> None:
     """A sweep of one DQN setting under two variants (default, cap25; compared), 10 seeds of 700 episodes (the
     budget differs from the paper's but is not reduced) with a config override; run i of the cells writes
     i mod 10 × 0.125 collisions per episode, 0.5 more under cap25 (numbers exact in binary: ties are exact)."""
-    grid = parse_grid({"algorithms": ["dqn"], "reward_presets": ["collision"], "n_seeds": 10, "episodes": 700,
+    grid = parse_grid({"algorithms": ["dqn"], "reward_presets": [preset], "n_seeds": 10, "episodes": 700,
                        "overrides": {"scenario": {"agent_lateral_speed_ratio": 0.5}},
                        "variants": {"default": {}, "cap25": {"scenario.agent_max_speed_mps": 25}},
                        "compare": ["cap25"]}, "capped", "capped.yaml")
@@ -1101,4 +1101,36 @@ def test_the_summary_takes_its_window_and_smoothing_from_the_call(tmp_path):
     assert [float(r["collisions"]) for r in csv.DictReader(open(tmp_path / "runs.csv"))] == [3.0, 3.0]
     default = summarize(tmp_path).table
     assert list(default["collisions_mean"]) == [pytest.approx(1.4)] and list(default["last_episodes"]) == [50]
+
+
+def test_a_study_puts_several_sweeps_effects_on_one_page(tmp_path):
+    """``summarize_study``: each sweep summarised in its folder, their effect rows in one effects.csv and one
+    page; refused in one line without variants, for a cell two sweeps share, and where the page cannot be written."""
+    from lanefree_sumo.experiments.sweep.summary import summarize_study
+
+    first, second, plain = tmp_path / "a", tmp_path / "b", tmp_path / "plain"
+    _capped_sweep(first)
+    _capped_sweep(second, "fields_collision")
+    summaries, page = summarize_study([first, second], tmp_path / "study")
+    assert page == tmp_path / "study" / "effects.md" and len(summaries) == 2
+    assert all((folder / "summary.md").is_file() for folder in (first, second))
+    rows = list(csv.DictReader(open(tmp_path / "study" / "effects.csv")))
+    assert sorted({(r["reward_preset"], r["variant"]) for r in rows}) == [("collision", "cap25"),
+                                                                        ("fields_collision", "cap25")]
+    text = page.read_text()
+    assert str(first) in text and str(second) in text and "fields_collision" in text
+    _pair_sweep(plain)
+    with pytest.raises(ReportError) as err:
+        summarize_study([plain], tmp_path / "none")
+    assert str(err.value) == ("none of these sweeps has variants (a grid's `variants` with a `default`): there is no "
+                              "effect to put side by side; report each sweep alone")
+    assert not (tmp_path / "none").exists()
+    with pytest.raises(ReportError) as err:
+        summarize_study([first, plain, first], tmp_path / "twice")
+    assert str(err.value) == (f"the sweeps {first} and {first} both have the cell dqn / collision / 70 veh/km: each "
+                              "cell's variants are compared within one sweep")
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where the study's folder would go")
+    with pytest.raises(ReportError, match=f"cannot write the study's effects into {blocked}: "):
+        summarize_study([first], blocked)
 
