@@ -1054,8 +1054,16 @@ def test_the_summary_pages_word_for_word(tmp_path, case):
         _pair_sweep(tmp_path)
     else:
         _capped_sweep(tmp_path)
-    summarize(tmp_path)
-    pages = ["summary.md", "summary.csv", "runs.csv"] + (["verdict.md"] if case == "capped" else [])
+    result = summarize(tmp_path)
+    own = ["claims.csv", "claims.md"] if case == "pair" else ["effects.csv", "effects.md", "verdict.md"]
+    pages = ["summary.md", "summary.csv", "runs.csv", *own]
+    curves = [f"{'table5' if case == 'pair' else 'other'}_{name}.png" for name in ("return", "collisions", "speed_dev")]
+    assert sorted(path.name for path in result.files) == sorted(["summary.md", "summary.csv", "runs.csv", *own,
+                                                                 *curves])
+    assert all(path.is_file() for path in result.files)
+    assert result.incomplete == ([("ddpg_collision_d70_s2", "partial, 30/60 episodes")] if case == "pair" else [])
+    assert len(result.notes) == (1 if case == "pair" else 0)
+    assert (result.effects is None) == (case == "pair") and len(result.table) == (2 if case == "pair" else 2)
     for page in pages:
         golden = SUMMARY_GOLDEN / f"{case}_{page}"
         if os.environ.get("LANEFREE_WRITE_GOLDEN") == "1":

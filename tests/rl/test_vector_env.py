@@ -244,6 +244,8 @@ def test_defaults_spaces_and_info_dtypes():
     _, reward, _, _, info = vec.step(np.zeros((3, 2)))  # NEXT_STEP: every world starts its next episode
     assert info["episode_seed"].dtype == np.int64 and info["_episode_seed"].all()
     assert len(set(info["episode_seed"].tolist())) == 3 and reward.dtype == np.float64 and not reward.any()
+    _, info = vec.reset(seed=1)  # no mask: every world, the mask's dtype as gymnasium's
+    assert info["_episode_seed"].dtype == np.bool_ and info["_episode_seed"].all()
 
 
 def test_one_worlds_autoreset_leaves_the_others_going():
