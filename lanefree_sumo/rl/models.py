@@ -246,19 +246,14 @@ _BATCH_SHARED = {"actor_critic": ("actor_layers", "critic_layers", "batch_size",
 """What the runs of one batch must share (network shapes and replay sizes); the rest may differ per run."""
 
 
-LEGACY_ENTRIES = ("replay_buffer_class", "replay_buffer_kwargs")
-"""What :func:`load_saved_model` reads in place of a ``model.zip``'s own entries: the replay buffer's class (and its
-arguments), which SB3 picks again from the spaces. A ``per`` model of an earlier version named a buffer class of
-the project's that no longer exists; every model now saves SB3's own."""
-
-
 def load_saved_model(algo: str, path: Any, **kwargs: Any) -> Any:
     """The ``model.zip`` (or checkpoint) at ``path`` of an ``algo`` run as a model of stock SB3's class, on the CPU
     (``kwargs``: more of SB3's ``load`` arguments, e.g. ``env``)."""
     kwargs.setdefault("device", "cpu")
-    fresh: dict[str, Any] = {"replay_buffer_class": None, "replay_buffer_kwargs": {}}  # SB3 may change the dict
-    assert tuple(fresh) == LEGACY_ENTRIES
-    return get_algorithm(algo).cls.load(path, custom_objects=fresh, **kwargs)
+    # the replay buffer's class and arguments are SB3's again, picked from the spaces: a per model of an earlier
+    # version named a buffer class of the project's that no longer exists (a fresh dict each time: SB3 may change it)
+    legacy: dict[str, Any] = {"replay_buffer_class": None, "replay_buffer_kwargs": {}}
+    return get_algorithm(algo).cls.load(path, custom_objects=legacy, **kwargs)
 
 
 def build_batched(cfgs: Sequence[LaneFreeConfig], seeds: list[int], observation_space: Any, action_space: Any,
