@@ -159,7 +159,7 @@ def test_the_batched_env_validates_its_actions(actions, named):
         env.step(actions)
 
 
-@pytest.mark.parametrize("runs", [[5], [-1], [0, 0], [True]])
+@pytest.mark.parametrize("runs", [[5], [2], [-1], [0, 0], [True]])
 def test_the_batched_env_validates_the_runs_it_resets(runs):
     env = BatchedRingEnv([{"seed": s, "backend": "numpy"} for s in range(2)])
     env.reset()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -194,3 +195,186 @@ def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as
         (obs_a, r_a, *_), (obs_b, r_b, *_) = earlier.step(a), now.step(a)
         assert obs_a.tobytes() == obs_b.tobytes() and r_a.tobytes() == r_b.tobytes()
     assert all(earlier.state.books[name].tobytes() == now.state.books[name].tobytes() for name in now.state.books)
+
+
+@pytest.mark.parametrize("kind", ["continuous", "discrete"])
+def test_the_device_step_equals_the_host_step(kind: str) -> None:
+    """step_on_device with the actions on the device gives step's observations, rewards and books bit for bit
+    (a non-finite continuous action: acceleration 0, the run flagged and not scored); count_step counts its steps."""
+    import torch as th
+
+    cfgs = configs(kind)
+    host, device = BatchedRingEnv(cfgs, device="torch-cpu"), BatchedRingEnv(cfgs, device="torch-cpu")
+    host.reset()
+    device.reset()
+    rng = np.random.default_rng(0)
+    active = th.ones(3, dtype=th.bool)
+    for step in range(15):
+        if kind == "continuous":
+            act = rng.uniform(-1.2, 1.2, (3, 2)).astype(np.float32)
+            if step == 10:
+                act[2, 0] = np.nan
+        else:
+            act = rng.integers(0, 9, 3)
+        obs, reward, *_ = host.step(act)
+        got_obs, got_reward, bad = device.step_on_device(th.as_tensor(act), active)
+        device.count_step()
+        active &= ~bad
+        assert th.equal(got_obs, obs) and th.equal(got_reward, reward)
+        assert bad.tolist() == [False, False, kind == "continuous" and step == 10]
+    assert host.stopped.tolist() == [False, False, kind == "continuous"]
+    assert device.steps.tolist() == host.steps.tolist() == [15] * 3
+    for name in host.state.books:
+        assert th.equal(device.state.books[name], host.state.books[name]), name
+    with pytest.raises(RuntimeError, match=r"^call reset\(\) before step_on_device\(\)$"):
+        BatchedRingEnv(cfgs, device="torch-cpu").step_on_device(th.as_tensor(act), active)
+
+
+def test_the_torch_simulation_books_and_episode_rows_are_numpys() -> None:
+    """On ``torch-cpu`` the episode books come back to the host (:meth:`host_books`) as the numpy simulation's, and
+    the episode rows with them; the actions may be a host array, a tensor or a list."""
+    import torch as th
+
+    cfgs = configs("continuous")
+    on_numpy, on_torch = BatchedRingEnv(cfgs), BatchedRingEnv(cfgs, device="torch-cpu")
+    on_numpy.reset()
+    on_torch.reset()
+    rng = np.random.default_rng(3)
+    for step in range(STEPS):
+        act = actions(rng, "continuous", step, surge=True)
+        given = (act, th.as_tensor(act), act.tolist())[step % 3]
+        *_, info_numpy = on_numpy.step(act)
+        *_, info_torch = on_torch.step(given)
+    books = on_torch.host_books()
+    assert set(books) == set(on_numpy.state.books)
+    for name, value in on_numpy.state.books.items():
+        assert isinstance(books[name], np.ndarray) and books[name].shape == (3,)
+        np.testing.assert_allclose(books[name], value, rtol=1e-12, atol=1e-12, err_msg=name)
+    for k in range(3):
+        row_numpy, row_torch = info_numpy["episode_metrics"][k], info_torch["episode_metrics"][k]
+        assert row_numpy is not None and row_torch is not None
+        assert row_torch.keys() == row_numpy.keys()
+        for key, value in without_wall(row_numpy).items():
+            close = value if isinstance(value, str) else pytest.approx(value, rel=1e-12, abs=1e-12)
+            assert row_torch[key] == close, key
+    assert on_numpy.state.books["collisions"].sum() > 0  # the books counted something
+
+
+def test_a_batch_on_torch_pickles_and_continues_on_torch() -> None:
+    import pickle
+
+    env = BatchedRingEnv(configs("continuous"), device="torch-cpu")
+    env.reset()
+    again = pickle.loads(pickle.dumps(env))
+    assert again.device == "torch-cpu" and not again.xp.is_numpy
+    rng = np.random.default_rng(4)
+    act = actions(rng, "continuous")
+    (obs_a, r_a, *_), (obs_b, r_b, *_) = env.step(act), again.step(act)
+    assert obs_a.equal(obs_b) and r_a.equal(r_b)
+
+
+def test_an_episode_ends_at_a_collision_where_the_config_says_so() -> None:
+    """``episode.terminate_on_collision``: each run's episode ends at its agent's first collision, as LaneFree-v0's;
+    the ended runs restart alone while the others go on."""
+    cfgs = configs("continuous", steps=150)
+    for cfg in cfgs:
+        cfg["episode"] = {"terminate_on_collision": True}
+    batch = BatchedRingEnv(cfgs)
+    singles = [EpisodeSeeds(LaneFreeEnv(cfg), cfg["seed"], 0, 1) for cfg in cfgs]
+    batch.reset()
+    for env in singles:
+        env.reset()
+    rng = np.random.default_rng(5)
+    terminations = 0
+    for _ in range(300):
+        act = np.column_stack([np.ones(3), rng.uniform(-1.0, 1.0, 3)]).astype(np.float32)
+        obs, reward, terminated, truncated, info = batch.step(act)
+        ended = []
+        for k, env in enumerate(singles):
+            single_obs, single_reward, single_term, single_trunc, single_info = env.step(act[k])
+            assert (terminated[k], truncated[k]) == (single_term, single_trunc)
+            assert reward[k] == single_reward
+            if single_term or single_trunc:
+                assert without_wall(info["episode_metrics"][k]) == without_wall(single_info["episode_metrics"])
+                terminations += single_term
+                ended.append(k)
+                env.reset()
+            else:
+                np.testing.assert_array_equal(obs[k], single_obs)
+        if ended:
+            obs = batch.reset(ended)
+            for k in ended:
+                assert batch.steps[k] == 0
+    assert terminations >= 2  # episodes cut short by a collision were compared
+
+
+def test_a_stopped_run_books_nothing_more() -> None:
+    """After a run's non-finite action its episode books stay as they were while the other runs' go on; the stop's
+    reason names the action's step and episode."""
+    batch = BatchedRingEnv(configs("continuous"))
+    batch.reset()
+    rng = np.random.default_rng(6)
+    for step in range(STEPS - 1):
+        act = actions(rng, "continuous", step, surge=True)
+        if step == 4:
+            act[0] = [np.nan, 0.5]
+        *_, info = batch.step(act)
+        if step == 4:
+            assert info["stopped"] == {0: f"run 0: action {act[0]!r} at step 5 of episode 1 is not finite; a "
+                                          "diverged policy must not drive the car"}
+            at_stop = {name: value.copy() for name, value in batch.state.books.items()}
+    for name, value in batch.state.books.items():
+        assert value[0] == at_stop[name][0], name
+    assert batch.state.books["return"][1] != at_stop["return"][1]
+
+
+def test_the_episode_row_times_the_episode() -> None:
+    batch = BatchedRingEnv(configs("continuous", steps=3))
+    before = time.perf_counter()
+    batch.reset()
+    for _ in range(3):
+        *_, info = batch.step(np.zeros((3, 2)))
+    wall = info["episode_metrics"][0]["wall_s"]
+    assert isinstance(wall, float) and 0.0 <= wall <= time.perf_counter() - before
+
+
+@pytest.mark.parametrize(("kind", "act", "message"), [
+    ("continuous", np.zeros((2, 3)), "step: actions of shape (3, 2) expected (one row per run of the batch's 3), got "
+                                     "shape (2, 3)"),
+    ("discrete", np.zeros((3, 2)), "step: actions of shape (3,) or (3, 1) expected (one row per run of the batch's "
+                                   "3), got shape (3, 2)"),
+    ("discrete", np.array([0, 9, 1]), "a discrete action is one whole number 0 … 8 per run, got array([0, 9, 1])"),
+    ("discrete", np.array([0, -1, 1]), "a discrete action is one whole number 0 … 8 per run, got array([ 0, -1,  1])"),
+    ("discrete", np.array([0, 1.5, 1]), "a discrete action is one whole number 0 … 8 per run, got "
+                                        "array([0. , 1.5, 1. ])"),
+])
+def test_a_bad_action_is_one_clear_error(kind: str, act: np.ndarray, message: str) -> None:
+    env = BatchedRingEnv(configs(kind))
+    with pytest.raises(RuntimeError, match=r"^call reset\(\) before step\(\)$"):
+        env.step(act)
+    env.reset()
+    with pytest.raises(ValueError) as err:
+        env.step(act)
+    assert str(err.value) == message
+    assert env.steps.tolist() == [0, 0, 0]
+
+
+@pytest.mark.parametrize("kind", ["continuous", "discrete"])
+def test_a_non_finite_action_accelerates_nothing_and_is_flagged(kind: str) -> None:
+    """(specification §6) a NaN or infinite action: acceleration (0, 0), flagged, the run stopped at that step; the
+    others' accelerations as given (discrete: a column of indices is taken too)."""
+    env = BatchedRingEnv(configs(kind))
+    env.reset()
+    if kind == "continuous":
+        act = np.array([[np.nan, 0.5], [0.5, -1.0], [np.inf, 0.0]])
+        want = [[0.0, 0.0], [0.5 * env.cfg.scenario.agent_bounds.ax_max, -env.cfg.scenario.agent_bounds.ay_max],
+                [0.0, 0.0]]
+    else:
+        act = np.array([[np.nan], [5.0], [np.inf]])
+        want = [[0.0, 0.0], [env.cfg.action.discrete_ax_mps2, env.cfg.action.discrete_ay_mps2], [0.0, 0.0]]
+    accel, bad = env.accelerations(act)
+    np.testing.assert_array_equal(accel, want)
+    assert bad.tolist() == [True, False, True]
+    *_, info = env.step(act)
+    assert sorted(info["stopped"]) == [0, 2] and env.stopped.tolist() == [True, False, True]
+    np.testing.assert_array_equal(np.column_stack([info["ax"], info["ay"]]), want)

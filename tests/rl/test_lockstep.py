@@ -1,6 +1,7 @@
 """The lockstep loop (lanefree_sumo.rl.lockstep) on the CPU: what a CUDA graph needs of an iteration (nothing read
-from the host, no number written from the host, the state copied back into the same buffers), the device step
-equal to the host step, and the device-stream learners equal to the exact ones given the same minibatch."""
+from the host, no number written from the host, the state copied back into the same buffers) and the device-stream
+learners equal to the exact ones given the same minibatch (the device step equal to the host step:
+tests/rl/test_batched_env.py)."""
 
 from __future__ import annotations
 
@@ -240,33 +241,6 @@ def test_the_compiled_update_traces_as_one_graph_and_moves_the_weights_as_the_ea
         assert th.allclose(mine.exp_avg, theirs.exp_avg, rtol=1e-5, atol=1e-5 * scale)
     for adam, old in zip(eager.learner.optimisers(), before, strict=True):  # the updates moved the weights
         assert (adam.params.flat - old).abs().max() > 1e-4
-
-
-@pytest.mark.parametrize("kind", ["continuous", "discrete"])
-def test_the_device_step_equals_the_host_step(kind: str) -> None:
-    """step_on_device with the actions on the device gives step's observations, rewards and books bit for bit
-    (a non-finite continuous action: acceleration 0, the run flagged and not scored)."""
-    cfgs = configs("ddpg" if kind == "continuous" else "dqn", runs=3)
-    host, device = BatchedRingEnv(cfgs, device="torch-cpu"), BatchedRingEnv(cfgs, device="torch-cpu")
-    host.reset()
-    device.reset()
-    rng = np.random.default_rng(0)
-    active = th.ones(3, dtype=th.bool)
-    for step in range(15):
-        if kind == "continuous":
-            actions = rng.uniform(-1.2, 1.2, (3, 2)).astype(np.float32)
-            if step == 10:
-                actions[2, 0] = np.nan
-        else:
-            actions = rng.integers(0, 9, 3)
-        obs, reward, *_ = host.step(actions)
-        got_obs, got_reward, bad = device.step_on_device(th.as_tensor(actions), active)
-        active &= ~bad
-        assert th.equal(got_obs, obs) and th.equal(got_reward, reward)
-        assert bad.tolist() == [False, False, kind == "continuous" and step == 10]
-    assert host.stopped.tolist() == [False, False, kind == "continuous"]
-    for name in host.state.books:
-        assert th.equal(device.state.books[name], host.state.books[name]), name
 
 
 @pytest.mark.parametrize("algo", ["ddpg", "dqn"])
