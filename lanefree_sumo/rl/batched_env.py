@@ -29,7 +29,7 @@ from lanefree_sumo.errors import ConfigError
 from lanefree_sumo.rl.env import DISCRETE_ACTIONS, resolve_config
 from lanefree_sumo.rl.models import episode_seed
 from lanefree_sumo.rl.problem import BOOKS, AgentView, Problem, ProblemState, episode_row
-from lanefree_sumo.rl.rewards import OVERTAKE_BONUS_MODES, Rewards
+from lanefree_sumo.rl.rewards import Rewards
 from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
@@ -55,9 +55,6 @@ def _resolve(configs: Sequence[LaneFreeConfig | Mapping[str, Any]]) -> list[Reso
         if cfg.shield.enabled:
             raise ConfigError(f"run {k}: the batched environment has no safety shield; "
                               "use LaneFree-v0 with shield.enabled")
-        if cfg.reward.overtake_bonus not in OVERTAKE_BONUS_MODES:
-            raise ConfigError(f"run {k}: reward.overtake_bonus = {cfg.reward.overtake_bonus!r} is not one of "
-                              f"{', '.join(OVERTAKE_BONUS_MODES)}")
         mine = config_to_dict(cfg)
         differ = [s for s in SHARED_SECTIONS if mine[s] != first[s]]
         unshared = dict.fromkeys(PER_RUN_REWARD)
@@ -181,6 +178,8 @@ class BatchedRingEnv:
         chosen = [int(k) for k in (range(self.runs) if runs is None else runs) if not self.stopped[k]]
         if seeds is not None and len(seeds) != len(chosen):
             raise ValueError(f"reset: {len(seeds)} seed(s) for {len(chosen)} run(s); give one seed per run")
+        if self.world is None and len(chosen) != self.runs:
+            raise RuntimeError("the first reset starts every run")
         given = dict(zip(chosen, seeds)) if seeds is not None else {}
         states = []
         for k in chosen:
@@ -196,8 +195,6 @@ class BatchedRingEnv:
                                                                                                   self.view())
         index = self.xp.asarray(chosen, dtype=int)
         if self.world is None or len(chosen) == self.runs:
-            if len(chosen) != self.runs:
-                raise RuntimeError("the first reset starts every run")
             world = world_of(states, [c.road.length_m for c in self.cfgs], [c.road.width_m for c in self.cfgs],
                              rows=max(self._vehicles))
             self.world = world if self.xp.is_numpy else world_to(world, self.device)

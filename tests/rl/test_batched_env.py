@@ -152,18 +152,55 @@ def test_a_run_with_a_nan_action_stops_alone_and_the_others_go_on():
 
 def test_runs_that_cannot_share_a_batch_are_refused():
     base = configs("continuous")[:2]
-    with pytest.raises(ConfigError, match="run 1 differs from run 0 in sim"):
-        BatchedRingEnv([base[0], {**base[1], "sim": {"episode_steps": 50}}])
-    with pytest.raises(ConfigError, match="action"):
-        BatchedRingEnv([base[0], {**base[1], "action": {"kind": "discrete"}}])
-    with pytest.raises(ConfigError, match="shield"):
-        BatchedRingEnv([{**base[0], "shield": {"enabled": True}}])
-    with pytest.raises(ConfigError, match="ring"):
-        BatchedRingEnv([{**base[0], "road": {"kind": "onramp"}}])
-    with pytest.raises(ConfigError, match="run 1 differs from run 0 in reward"):
-        BatchedRingEnv([base[0], {**base[1], "reward": {"preset": "collision", "overtake_reward": 0.5}}])
+    only = ("the runs of one batch may differ in seed, density, reward preset, overtake bonus and the agent's top "
+            "speed and lateral bound only")
+    refused = {
+        "a batched environment needs at least one run": [],
+        f"run 1 differs from run 0 in sim: {only}": [base[0], {**base[1], "sim": {"episode_steps": 50}}],
+        f"run 1 differs from run 0 in action, sim: {only}": [base[0], {**base[1], "action": {"kind": "discrete"},
+                                                                       "sim": {"episode_steps": 50}}],
+        "run 0: the batched environment has no safety shield; use LaneFree-v0 with shield.enabled":
+            [{**base[0], "shield": {"enabled": True}}],
+        "run 1: the batched environment runs one agent on the ring (road.kind = ring, scenario.agents = 1); use "
+        "LaneFree-v0 for the others": [base[0], {**base[1], "road": {"kind": "onramp"}}],
+        "run 0: the batched environment runs one agent on the ring (road.kind = ring, scenario.agents = 1); use "
+        "LaneFree-v0 for the others": [{**base[0], "scenario": {"agents": 2}}],
+        f"run 1 differs from run 0 in reward: {only}": [base[0], {**base[1], "reward": {"preset": "collision",
+                                                                                        "overtake_reward": 0.5}}],
+    }
+    for message, cfgs in refused.items():
+        with pytest.raises(ConfigError) as err:
+            BatchedRingEnv(cfgs)
+        assert str(err.value) == message
     with pytest.raises(ConfigError, match="acceleration bounds; these differ: agent_bounds"):
         BatchedRingEnv([base[0], {**base[1], "scenario": {"agent_bounds": {"ay_max": 1.0}}}])
+
+
+def test_a_reset_of_no_run_returns_every_runs_observation_as_it_stands() -> None:
+    """``reset([])`` (or of stopped runs only) changes nothing and returns the observation as the last call left it;
+    the first reset starts every run; one seed per run reset; the world is padded to the largest run, no more."""
+    env = BatchedRingEnv(configs("continuous", "set"))
+    with pytest.raises(RuntimeError) as err:
+        env.reset([0])
+    assert str(err.value) == "the first reset starts every run"
+    assert env.episode.tolist() == [0, 0, 0] and env.world is None  # the refused reset changed nothing
+    first = env.reset()
+    assert env.world.present.shape == (3, max(env._vehicles)) and env.world.present.shape[1] == \
+        max(c.background_vehicles for c in env.cfgs) + 1
+    again = env.reset([])
+    assert all(np.array_equal(again[key], first[key]) for key in first)
+    rng = np.random.default_rng(7)
+    stepped, *_ = env.step(actions(rng, "continuous"))
+    assert env.reset([]) is stepped
+    restarted = env.reset([1], seeds=[11])
+    assert env.episode_seeds[1] == 11 and env.episode.tolist() == [1, 2, 1] and env.steps.tolist() == [1, 0, 1]
+    assert env.steps.dtype.kind == "i" and env.episode_seeds.dtype == np.int64
+    after = env.reset([])
+    assert all(np.array_equal(after[key], restarted[key]) for key in restarted)
+    assert not np.array_equal(after["others"][1], stepped["others"][1])
+    with pytest.raises(ValueError) as err:
+        env.reset([0], seeds=[1, 2])
+    assert str(err.value) == "reset: 2 seed(s) for 1 run(s); give one seed per run"
 
 
 def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as_it_was():
@@ -195,6 +232,7 @@ def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as
         (obs_a, r_a, *_), (obs_b, r_b, *_) = earlier.step(a), now.step(a)
         assert obs_a.tobytes() == obs_b.tobytes() and r_a.tobytes() == r_b.tobytes()
     assert all(earlier.state.books[name].tobytes() == now.state.books[name].tobytes() for name in now.state.books)
+    assert set(earlier.__dict__) == set(now.__dict__)  # the earlier layout's private names are gone
 
 
 @pytest.mark.parametrize("kind", ["continuous", "discrete"])
