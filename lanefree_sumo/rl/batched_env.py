@@ -33,7 +33,7 @@ from lanefree_sumo.rl.rewards import Rewards
 from lanefree_sumo.sim.road import road_kind
 from lanefree_sumo.sim.spawn import spawn
 from lanefree_sumo.sim.world import World, WorldParams, replace_runs, step_world, world_of, world_to
-from lanefree_sumo.sim.xp import NUMPY, array_namespace, device_name
+from lanefree_sumo.sim.xp import array_namespace, device_name
 
 SHARED_SECTIONS = ("action", "observation", "sim", "episode", "shield")
 """Config sections every run of a batch must have alike (the reward may differ in its preset and overtake bonus)."""
@@ -99,10 +99,9 @@ class BatchedRingEnv:
         self.stopped = np.zeros(self.runs, dtype=bool)
         """Runs stopped for a non-finite action; they are never reset nor scored again."""
         self.world: World | None = None
-        self._vehicles = [c.background_vehicles + 1 for c in self.cfgs]
         self.problem = Problem(self.cfgs, xp)
         """The learning problem's per-run constants (:mod:`~lanefree_sumo.rl.problem`)."""
-        self.state = ProblemState.empty(xp, self.runs, max(self._vehicles))
+        self.state = ProblemState.empty(xp, self.runs, max(c.background_vehicles + 1 for c in self.cfgs))
         """What each run's learning problem keeps from step to step: the pass book, who is in range, the books."""
         self.terminate_on_collision = np.array([c.episode.terminate_on_collision for c in self.cfgs])
         """``[K]``: the runs whose episodes end at a collision (``episode.terminate_on_collision``)."""
@@ -195,9 +194,8 @@ class BatchedRingEnv:
                                                                                                   self.view())
         index = self.xp.asarray(chosen, dtype=int)
         if self.world is None or len(chosen) == self.runs:
-            world = world_of(states, [c.road.length_m for c in self.cfgs], [c.road.width_m for c in self.cfgs],
-                             rows=max(self._vehicles))
-            self.world = world if self.xp.is_numpy else world_to(world, self.device)
+            self.world = world_to(world_of(states, [c.road.length_m for c in self.cfgs],
+                                           [c.road.width_m for c in self.cfgs]), self.device)
         else:
             self.world = replace_runs(self.world, chosen, states)
         return self.problem.begin(self.state, self.view(), index)
@@ -224,32 +222,28 @@ class BatchedRingEnv:
         :func:`~lanefree_sumo.rl.env.action_to_acceleration`), and ``[K]`` True where a run's action is not finite
         (its acceleration is then 0)."""
         cfg = self.cfg
-        values = np.asarray(NUMPY.to_numpy(actions) if isinstance(actions, np.ndarray)
-                            else self.xp.to_numpy(actions), dtype=float)
+        values = np.asarray(self.xp.to_numpy(actions), dtype=float)
         want = ((self.runs,), (self.runs, 1)) if cfg.action.kind == "discrete" else ((self.runs, 2),)
         if values.shape not in want:
             raise ValueError(f"step: actions of shape {' or '.join(str(w) for w in want)} expected (one row per run "
                              f"of the batch's {self.runs}), got shape {values.shape}")
         values = values.reshape(self.runs, -1)
         bad = ~np.isfinite(values).all(axis=1)
-        values = np.where(bad[:, None], 0.0, values)
+        values = np.where(bad[:, None], 0.0, values)  # action 0 of either kind: no acceleration
         if cfg.action.kind == "discrete":
             index = values[:, 0].astype(int)
-            if values.shape[1] != 1 or (values[:, 0] != index).any() or (index < 0).any() or \
-                    (index >= len(DISCRETE_ACTIONS)).any():
+            if (values[:, 0] != index).any() or (index < 0).any() or (index >= len(DISCRETE_ACTIONS)).any():
                 raise ValueError(f"a discrete action is one whole number 0 … {len(DISCRETE_ACTIONS) - 1} per run, "
                                  f"got {actions!r}")
             signs = DISCRETE_ACTIONS[index]
             accel = np.column_stack([signs[:, 0] * cfg.action.discrete_ax_mps2,
                                      signs[:, 1] * cfg.action.discrete_ay_mps2])
         else:
-            if values.shape[1] != 2:
-                raise ValueError(f"a continuous action has 2 components (ax, ay in [-1, 1]) per run, got {actions!r}")
             bounds = cfg.scenario.agent_bounds
             a = np.minimum(1.0, np.maximum(-1.0, values))
             accel = np.column_stack([np.where(a[:, 0] >= 0.0, a[:, 0] * bounds.ax_max, -a[:, 0] * bounds.ax_min),
                                      a[:, 1] * bounds.ay_max])
-        return np.where(bad[:, None], 0.0, accel), bad
+        return accel, bad
 
     def device_accelerations(self, actions: Any) -> tuple[Any, Any]:
         """:meth:`accelerations` for actions already on the simulation's device, with no host read: (ax, ay)
@@ -261,11 +255,11 @@ class BatchedRingEnv:
             return accel[:, None, :], xp.zeros(self.runs, dtype=bool)
         values = xp.astype(actions, float).reshape(self.runs, 2)
         bad = ~xp.all(xp.isfinite(values), axis=1)
-        a = xp.minimum(1.0, xp.maximum(-1.0, xp.where(bad[:, None], 0.0, values)))
+        a = xp.minimum(1.0, xp.maximum(-1.0, xp.where(bad[:, None], 0.0, values)))  # 0: no acceleration
         bounds = cfg.scenario.agent_bounds
         accel = xp.column_stack([xp.where(a[:, 0] >= 0.0, a[:, 0] * bounds.ax_max, -a[:, 0] * bounds.ax_min),
                                  a[:, 1] * bounds.ay_max])
-        return xp.where(bad[:, None], 0.0, accel)[:, None, :], bad
+        return accel[:, None, :], bad
 
     def step_on_device(self, actions: Any, active: Any) -> tuple[Any, Any, Any]:
         """One step of every run with no host read (a CUDA graph can hold it): ``actions`` a tensor on the device,
@@ -297,7 +291,7 @@ class BatchedRingEnv:
             xp.asarray(accel[:, None, :]), self._active[1])
         self._steps += 1
         if self.terminate_on_collision.any():  # the one value read from the device every step, where it counts
-            terminated = active_host & self.terminate_on_collision & np.asarray(xp.to_numpy(collided), dtype=bool)
+            terminated = active_host & self.terminate_on_collision & xp.to_numpy(collided)
         else:
             terminated = np.zeros(self.runs, dtype=bool)
         truncated = active_host & (self._steps >= self.cfg.sim.episode_steps)
