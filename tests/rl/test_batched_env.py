@@ -202,9 +202,12 @@ def test_a_reset_of_no_run_returns_every_runs_observation_as_it_stands() -> None
     assert str(err.value) == "reset: 2 seed(s) for 1 run(s); give one seed per run"
 
 
-def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as_it_was():
+@pytest.mark.parametrize("constants", [("_w", "_once", "_net_passes", "_range", "_ego_scale", "_neighbour_scale"),
+                                       ("_w", "_once")])
+def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as_it_was(constants):
     """A batch checkpoint pickles its env; one of the earlier layout (the problem's arrays and books as private
-    attributes of the env) unpickles into the same env: the same steps follow, bit for bit."""
+    attributes of the env, with the reward's ``constants`` as versions of it kept them) unpickles into the same
+    env: the same steps follow, bit for bit."""
     import pickle
 
     cfgs = configs("continuous", bonuses=("every_pass", "once_per_vehicle", "net_passes"))
@@ -223,8 +226,9 @@ def test_a_batch_pickled_before_the_learning_problem_had_its_module_continues_as
     old.pop("_seen")
     old.pop("xp")
     old["device"] = None  # the numpy simulation, as that layout named it
-    old.update(_w=env.problem.weights, _once=env.problem.once, _net_passes=env.problem.net_passes, _range=80.0,
-               _ego_scale=np.ones(3), _neighbour_scale=np.ones(3))
+    kept = {"_w": env.problem.weights, "_once": env.problem.once, "_net_passes": env.problem.net_passes,
+            "_range": 80.0, "_ego_scale": np.ones(3), "_neighbour_scale": np.ones(3)}
+    old.update({name: kept[name] for name in constants})
     earlier = BatchedRingEnv.__new__(BatchedRingEnv)
     earlier.__setstate__(pickle.loads(pickle.dumps(old)))
     now = pickle.loads(pickle.dumps(env))
