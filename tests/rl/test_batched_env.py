@@ -118,13 +118,18 @@ def assert_runs_are_lanefree_v0(cfgs: list[dict], kind: str, surge: bool = False
     return seen
 
 
-def test_a_run_with_a_nan_action_stops_alone_and_the_others_go_on():
-    cfgs = configs("continuous")
+def started(cfgs: list[dict]) -> tuple[BatchedRingEnv, list[EpisodeSeeds]]:
+    """The runs of ``cfgs`` as one batch and as LaneFree-v0 each alone (a training run's episode seeds), reset."""
     batch = BatchedRingEnv(cfgs)
     singles = [EpisodeSeeds(LaneFreeEnv(cfg), cfg["seed"], 0, 1) for cfg in cfgs]
     batch.reset()
     for env in singles:
         env.reset()
+    return batch, singles
+
+
+def test_a_run_with_a_nan_action_stops_alone_and_the_others_go_on():
+    batch, singles = started(configs("continuous"))
     rng = np.random.default_rng(2)
     for step in range(STEPS):
         act = actions(rng, "continuous")
@@ -326,11 +331,7 @@ def test_an_episode_ends_at_a_collision_where_the_config_says_so() -> None:
     cfgs = configs("continuous", steps=150)
     for cfg in cfgs:
         cfg["episode"] = {"terminate_on_collision": True}
-    batch = BatchedRingEnv(cfgs)
-    singles = [EpisodeSeeds(LaneFreeEnv(cfg), cfg["seed"], 0, 1) for cfg in cfgs]
-    batch.reset()
-    for env in singles:
-        env.reset()
+    batch, singles = started(cfgs)
     rng = np.random.default_rng(5)
     terminations = 0
     for _ in range(300):
